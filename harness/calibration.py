@@ -1,0 +1,498 @@
+"""Sensor calibration of the rig: potentiometer gain Kp, strain-gauge gain Ke, motor dead zone.
+
+Conventions (seed 000, section 2): shaft angle theta [deg] = Kp (theta_v - pot_offset_v), Kp in deg/V;
+deflection alpha [deg] = Ke (alpha_v - gauge_offset_v), Ke in deg/V; tip angle y = theta + alpha [deg].
+The potentiometer wraps from its top voltage to its bottom one at +-180 deg and has a dead band of a few
+degrees there, where its voltage holds at the end values.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.optimize import minimize_scalar
+
+__all__ = [
+    "Calibration",
+    "DeadZone",
+    "GaugeCalibration",
+    "PotCalibration",
+    "alpha_deg",
+    "comb_table",
+    "dead_zone_estimate",
+    "dead_zone_from_ramp",
+    "dead_zone_merge",
+    "ke_from_comb",
+    "kp_from_ramp",
+    "kp_from_table",
+    "kp_from_wrap_voltages",
+    "theta_deg",
+    "tip_deg",
+]
+
+
+def _array(name: str, x: Any, n: int | None = None) -> np.ndarray:
+    a = np.asarray(x, dtype=np.float64)
+    if a.ndim != 1:
+        raise ValueError(f"{name} must be a 1-D array, got shape {a.shape}")
+    if n is not None and a.size != n:
+        raise ValueError(f"{name} has {a.size} samples, expected {n}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} contains NaN or inf")
+    return a
+
+
+def _time_axis(t: Any) -> np.ndarray:
+    t = _array("t", t)
+    if t.size < 2 or np.any(np.diff(t) <= 0):
+        raise ValueError("t must hold at least two strictly increasing times [s]")
+    return t
+
+
+# --- potentiometer
+
+
+def kp_from_wrap_voltages(v_max: float, v_min: float) -> float:
+    """The seed formula Kp = 360 / (v_max - v_min) [deg/V] from the pot's end voltages [V]."""
+    v_max, v_min = float(v_max), float(v_min)
+    if not (math.isfinite(v_max) and math.isfinite(v_min)) or v_max <= v_min:
+        raise ValueError(f"need finite v_max > v_min, got v_max={v_max} V, v_min={v_min} V")
+    return 360.0 / (v_max - v_min)
+
+
+@dataclass(frozen=True)
+class PotCalibration:
+    """Potentiometer calibration from a constant-speed ramp through several wraps.
+
+    Kp [deg/V] from the wrap timing (true gain); Kp_span [deg/V] = 360 / (v_max - v_min), the seed formula,
+    which over-estimates Kp by 360 / (360 - deadband_deg); v_max, v_min [V] the end voltages; deadband_deg
+    = 360 - Kp (v_max - v_min); n_wraps the number of wraps seen. lag_s [s]: when the record starts at rest
+    with the command step at t[0], the time after t[0] at which the steady-speed asymptote passes the start
+    angle (command delay + mechanical time constant; the ``lag_s`` of :func:`dead_zone_estimate`); NaN when
+    the start lies in the dead band or too few tracks are seen.
+    """
+
+    Kp: float
+    Kp_span: float
+    v_max: float
+    v_min: float
+    deadband_deg: float
+    n_wraps: int
+    lag_s: float = float("nan")
+
+
+def _robust_line(t: np.ndarray, v: np.ndarray) -> tuple[float, float, float]:
+    """Line v = s (t - tm) + b, refitted up to twice without points beyond 4 MAD; returns (s, b, tm)."""
+    tm = float(t.mean())
+    keep = np.ones(t.size, dtype=bool)
+    s, b = 0.0, 0.0
+    for _ in range(3):
+        s, b = np.polyfit(t[keep] - tm, v[keep], 1)
+        r = v - (s * (t - tm) + b)
+        mad = 1.4826 * float(np.median(np.abs(r[keep] - np.median(r[keep]))))
+        new = np.abs(r) <= max(4.0 * mad, 1e-12)
+        if new.sum() < 3 or np.array_equal(new, keep):
+            break
+        keep = new
+    return float(s), float(b), tm
+
+
+def kp_from_ramp(t: Any, theta_v: Any) -> PotCalibration:
+    """Kp [deg/V] from a constant-speed pot ramp ``theta_v`` [V] at times ``t`` [s] through several wraps.
+
+    Wraps are jumps larger than half the voltage span. Each track between wraps gets a robust line fit on its
+    middle 80 % of the voltage range (dead-band holds and jumps excluded) and the time it crosses mid-range.
+    One revolution (360 deg) lasts the time between crossings of consecutive tracks, T, so the pot turns
+    s T volts per 360 deg (s the track slope [V/s]): Kp = 360 / (s T), median over track pairs. The shaft
+    must turn one way only; at least two tracks must cross mid-range (one full revolution observed).
+    """
+    t = _time_axis(t)
+    v = _array("theta_v", theta_v, t.size)
+    lo, hi = float(v.min()), float(v.max())
+    span = hi - lo
+    if span <= 0:
+        raise ValueError("potentiometer voltage is constant: the shaft did not turn")
+    dv = np.diff(v)
+    jumps = np.flatnonzero(np.abs(dv) > 0.5 * span)
+    if jumps.size == 0:
+        raise ValueError("no potentiometer wrap found: the shaft must turn through the +-180 deg wrap")
+    signs = np.sign(dv[jumps])
+    if np.any(signs != signs[0]):
+        raise ValueError("the potentiometer wraps in both directions: the ramp must turn the shaft one way")
+    direction = -signs[0]  # a downward jump means the shaft turns towards increasing voltage
+    bounds = np.concatenate(([0], jumps + 1, [v.size]))
+    v_ref = 0.5 * (lo + hi)
+    band_lo, band_hi = lo + 0.1 * span, hi - 0.1 * span
+    cross: dict[int, tuple[float, float]] = {}  # track index -> (crossing time, slope)
+    tops, bottoms = [], []
+    for i in range(bounds.size - 1):
+        seg = slice(bounds[i], bounds[i + 1])
+        ts, vs = t[seg], v[seg]
+        if vs.size >= 5:
+            tops.append(vs.max())
+            bottoms.append(vs.min())
+        m = (vs >= band_lo) & (vs <= band_hi)
+        if m.sum() < 5:
+            continue
+        s, b, tm = _robust_line(ts[m], vs[m])
+        if s * direction <= 0:
+            continue
+        tc = tm + (v_ref - b) / s
+        if ts[m][0] - 1e-9 <= tc <= ts[m][-1] + 1e-9:
+            cross[i] = (tc, s)
+    pairs = [(cross[i], cross[i + 1]) for i in cross if i + 1 in cross]
+    volts_per_rev = [0.5 * (a[1] + b[1]) * (b[0] - a[0]) for a, b in pairs]
+    if not volts_per_rev:
+        raise ValueError(
+            "need one full revolution (two tracks crossing mid-range between wraps) to time the potentiometer"
+        )
+    kp = 360.0 / abs(float(np.median(volts_per_rev)))
+    lag = float("nan")
+    later = sorted(i for i in cross if i >= 1)
+    if 0.02 < float(v[0] - lo) / span < 0.98 and len(later) >= 2:
+        # steady asymptote: crossing times t_c(i) = t_c0 + i T fitted on tracks after the first (start-up)
+        _, tc0 = np.polyfit(np.array(later, float), np.array([cross[i][0] for i in later]), 1)
+        slope = float(np.median([cross[i][1] for i in later]))
+        lag = float(tc0 + (v[0] - v_ref) / slope - t[0])
+    v_max = float(np.median(tops))
+    v_min = float(np.median(bottoms))
+    return PotCalibration(
+        Kp=kp,
+        Kp_span=kp_from_wrap_voltages(v_max, v_min),
+        v_max=v_max,
+        v_min=v_min,
+        deadband_deg=360.0 - kp * (v_max - v_min),
+        n_wraps=int(jumps.size),
+        lag_s=lag,
+    )
+
+
+# --- strain gauge
+
+
+@dataclass(frozen=True)
+class GaugeCalibration:
+    """Least-squares line angle = Ke (volts - offset_v): Ke [deg/V], offset_v [V] (voltage at zero angle),
+    r2 the coefficient of determination, residual_std [deg] = sqrt(SSR / (n - 2))."""
+
+    Ke: float
+    offset_v: float
+    r2: float
+    residual_std: float
+
+
+def ke_from_comb(angle_deg: Any, volts: Any) -> GaugeCalibration:
+    """Ke [deg/V] by least squares of angle [deg] on voltage [V] with intercept (the seed's regression)."""
+    x = _array("volts", volts)
+    y = _array("angle_deg", angle_deg, x.size)
+    if x.size < 3:
+        raise ValueError(f"need at least 3 calibration points, got {x.size}")
+    if np.ptp(x) == 0:
+        raise ValueError("all calibration voltages are equal: the gain is undefined")
+    A = np.column_stack([x, np.ones_like(x)])
+    (k, c), *_ = np.linalg.lstsq(A, y, rcond=None)
+    r = y - (k * x + c)
+    ssr = float(r @ r)
+    sst = float(((y - y.mean()) ** 2).sum())
+    if k == 0:
+        raise ValueError("calibration angle does not depend on voltage (zero gain)")
+    return GaugeCalibration(
+        Ke=float(k),
+        offset_v=float(-c / k),
+        r2=1.0 - ssr / sst if sst > 0 else 1.0,
+        residual_std=math.sqrt(ssr / (x.size - 2)),
+    )
+
+
+def kp_from_table(angle_deg: Any, volts: Any) -> float:
+    """Kp [deg/V] as the least-squares slope of angle [deg] on pot voltage [V] (second lab's table 1)."""
+    return ke_from_comb(angle_deg, volts).Ke
+
+
+def comb_table(
+    t: Any, alpha_v: Any, alpha_true_deg: Any, holds: list[tuple[float, float]]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Comb table (angle [deg], gauge voltage [V]) from a record of comb deflections held still.
+
+    Each hold (t_start, t_end) [s] is averaged from 0.5 s to 2 s after its start (clipped to t_end), as in
+    the seed. ``alpha_true_deg`` is either one angle per hold (e.g. -atan(l/D)) or a time series like
+    ``alpha_v``, averaged over the same windows.
+    """
+    t = _time_axis(t)
+    av = _array("alpha_v", alpha_v, t.size)
+    truth = _array("alpha_true_deg", alpha_true_deg)
+    per_sample = truth.size == t.size
+    if not per_sample and truth.size != len(holds):
+        raise ValueError(
+            f"alpha_true_deg needs a value per hold ({len(holds)}) or per sample ({t.size}), got {truth.size}"
+        )
+    if len(holds) == 0:
+        raise ValueError("no comb holds given")
+    angles, volts = [], []
+    for i, hold in enumerate(holds):
+        try:
+            t_start, t_end = (float(h) for h in hold)
+        except (TypeError, ValueError):
+            raise ValueError(f"hold {i} must be a pair (t_start, t_end) in seconds, got {hold!r}") from None
+        if not t_end > t_start:
+            raise ValueError(f"hold {i} ends before it starts: ({t_start}, {t_end})")
+        m = (t >= t_start + 0.5) & (t <= min(t_start + 2.0, t_end))
+        if not m.any():
+            raise ValueError(f"hold {i} ({t_start}, {t_end}) s has no samples 0.5 s to 2 s after its start")
+        volts.append(float(av[m].mean()))
+        angles.append(float(truth[m].mean()) if per_sample else float(truth[i]))
+    return np.array(angles), np.array(volts)
+
+
+# --- dead zone
+
+
+@dataclass(frozen=True)
+class DeadZone:
+    """Dead-zone thresholds [V] from slow command ramps: v_up for the positive ramp, v_down (as |u|) for the
+    negative one (None when absent), v_th their mean; t_up, t_down the motion onset times [s]."""
+
+    v_th: float
+    v_up: float | None = None
+    v_down: float | None = None
+    t_up: float | None = None
+    t_down: float | None = None
+
+
+def _runs(sign: np.ndarray) -> list[tuple[int, int]]:
+    """Maximal runs [start, stop) of equal nonzero sign."""
+    out = []
+    edges = np.flatnonzero(np.diff(sign) != 0) + 1
+    starts = np.concatenate(([0], edges))
+    stops = np.concatenate((edges, [sign.size]))
+    for a, b in zip(starts, stops, strict=True):
+        if sign[a] != 0:
+            out.append((int(a), int(b)))
+    return out
+
+
+def _hinge_ssr(tt: np.ndarray, d: np.ndarray, t0: np.ndarray) -> np.ndarray:
+    """SSR of the least-squares fit d ~ b + c max(t - t0, 0)^2 for each candidate t0 (c > 0 required)."""
+    x = np.maximum(tt[None, :] - t0[:, None], 0.0) ** 2
+    n = tt.size
+    sx, sxx = x.sum(1), (x * x).sum(1)
+    sd, sxd, sdd = d.sum(), x @ d, float(d @ d)
+    det = n * sxx - sx * sx
+    with np.errstate(divide="ignore", invalid="ignore"):
+        c = (n * sxd - sx * sd) / det
+        b = (sd - c * sx) / n
+        ssr = sdd - b * sd - c * sxd
+    return np.where((det > 0) & (c > 0), ssr, np.inf)
+
+
+def _onset(t: np.ndarray, th: np.ndarray, sgn: float) -> float | None:
+    """Motion onset time [s] in one ramp run (motor at rest at its start), or None if it never moves."""
+    d = sgn * (th - th[0])
+    head = max(10, d.size // 10)
+    base = float(np.median(d[:head]))
+    d = d - base
+    steps = np.abs(np.diff(th))
+    q = float(steps[steps > 0].min()) if np.any(steps > 0) else 0.0
+    dd = np.diff(d[:head])
+    sigma = 1.4826 * float(np.median(np.abs(dd - np.median(dd)))) / math.sqrt(2.0) if dd.size else 0.0
+    band = max(5.0 * sigma, 3.0 * q, 1e-9)
+    above = d > band
+    hold = 5
+    run_ok = np.convolve(above.astype(int), np.ones(hold, dtype=int), "valid") == hold
+    hits = np.flatnonzero(run_ok)
+    if hits.size == 0:
+        return None
+    k_exit = int(hits[0])
+    far = np.flatnonzero(d[k_exit:] > 20.0 * band)
+    k_hi = k_exit + int(far[0]) + 1 if far.size else d.size
+    tt, dw = t[:k_hi], d[:k_hi]
+    cand = np.linspace(t[0], t[k_exit], min(400, k_exit + 1))
+    ssr = _hinge_ssr(tt, dw, cand)
+    j = int(np.argmin(ssr))
+    if not math.isfinite(float(ssr[j])):
+        return None
+    step = cand[1] - cand[0] if cand.size > 1 else t[1] - t[0]
+    lo, hi = max(t[0], cand[j] - 2 * step), min(t[k_exit], cand[j] + 2 * step)
+    if hi <= lo:
+        return float(cand[j])
+    res = minimize_scalar(
+        lambda x: float(_hinge_ssr(tt, dw, np.array([x]))[0]),
+        bounds=(lo, hi),
+        method="bounded",
+        options={"xatol": 1e-6 * (t[-1] - t[0] + 1.0)},
+    )
+    return float(res.x) if res.fun <= ssr[j] else float(cand[j])
+
+
+def dead_zone_estimate(t: Any, u: Any, theta_deg: Any, *, lag_s: float = 0.0) -> DeadZone:
+    """Dead-zone threshold [V] from slow command ramps (u [V], shaft angle [deg] at times t [s]).
+
+    Each run of positive (negative) command starting with the motor at rest is used up to its largest |u|.
+    Motion onset: the angle must leave a noise band (5 noise sigma or 3 quantisation steps, whichever is
+    larger) for 5 samples; then theta ~ b + c max(t - t0, 0)^2 is fitted from the run start until the motion
+    reaches 20 bands and t0 is the back-extrapolated onset; the threshold is |u(t0 - lag_s)|. With several
+    runs of one sign, the first one that moves is used.
+
+    The onset appears late by the command delay plus the motor's mechanical time constant (a first-order
+    speed lag tau shifts the quadratic by tau), so the threshold is over-estimated by slope * lag; pass
+    ``lag_s`` [s] (delay + tau, e.g. :attr:`PotCalibration.lag_s` from the pot step) to remove it. Without
+    it, 0.05 V/s with tau = 30 ms and a 20 ms delay reads about 0.7 % high.
+    """
+    lag_s = float(lag_s)
+    if not (math.isfinite(lag_s) and lag_s >= 0):
+        raise ValueError(f"lag_s must be a finite delay >= 0 s, got {lag_s!r}")
+    t = _time_axis(t)
+    u = _array("u", u, t.size)
+    th = _array("theta_deg", theta_deg, t.size)
+    scale = float(np.max(np.abs(u)))
+    if scale == 0:
+        raise ValueError("the command is zero: no ramp to find the dead zone from")
+    sign = np.where(np.abs(u) > 1e-9 * scale, np.sign(u), 0.0)
+    found: dict[float, tuple[float, float]] = {}
+    for a, b in _runs(sign):
+        s = float(sign[a])
+        if s in found:
+            continue
+        stop = a + int(np.argmax(np.abs(u[a:b]))) + 1
+        if stop - a < 20 or abs(u[stop - 1]) <= abs(u[a]):
+            continue
+        t0 = _onset(t[a:stop], th[a:stop], s)
+        if t0 is not None:
+            found[s] = (abs(float(np.interp(t0 - lag_s, t, u))), t0)
+    if not found:
+        raise ValueError("no motion onset found: the ramp never moved the shaft out of its noise band")
+    up, down = found.get(1.0), found.get(-1.0)
+    vals = [x[0] for x in found.values()]
+    return DeadZone(
+        v_th=float(np.mean(vals)),
+        v_up=up[0] if up else None,
+        v_down=down[0] if down else None,
+        t_up=up[1] if up else None,
+        t_down=down[1] if down else None,
+    )
+
+
+def dead_zone_from_ramp(t: Any, u: Any, theta_deg: Any, *, lag_s: float = 0.0) -> float:
+    """Dead-zone threshold V_th [V]: mean of the up and down ramp estimates of :func:`dead_zone_estimate`."""
+    return dead_zone_estimate(t, u, theta_deg, lag_s=lag_s).v_th
+
+
+def dead_zone_merge(*estimates: DeadZone) -> DeadZone:
+    """Combine estimates from separate records (e.g. "deadzone_up" and "deadzone_down" experiments): the
+    first v_up and the first v_down found; v_th their mean [V]."""
+    up = next(((e.v_up, e.t_up) for e in estimates if e.v_up is not None), None)
+    down = next(((e.v_down, e.t_down) for e in estimates if e.v_down is not None), None)
+    vals = [x[0] for x in (up, down) if x is not None]
+    if not vals:
+        raise ValueError("no dead-zone estimate to merge")
+    return DeadZone(
+        v_th=float(np.mean(vals)),
+        v_up=up[0] if up else None,
+        v_down=down[0] if down else None,
+        t_up=up[1] if up else None,
+        t_down=down[1] if down else None,
+    )
+
+
+# --- calibration record
+
+
+@dataclass
+class Calibration:
+    """Calibration of one rig: Kp [deg/V], Ke [deg/V], gauge_offset_v [V], pot_offset_v [V], dead_zone_v [V]
+    (NaN when not measured) and ``source``, a JSON-serialisable dict of provenance (methods, raw numbers)."""
+
+    Kp: float
+    Ke: float
+    gauge_offset_v: float = 0.0
+    pot_offset_v: float = 0.0
+    dead_zone_v: float = float("nan")
+    source: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        for name in ("Kp", "Ke", "gauge_offset_v", "pot_offset_v", "dead_zone_v"):
+            val = getattr(self, name)
+            try:
+                val = float(val)
+            except (TypeError, ValueError):
+                raise ValueError(f"calibration field {name} must be a number, got {val!r}") from None
+            if name != "dead_zone_v" and not math.isfinite(val):
+                raise ValueError(f"calibration field {name} must be finite, got {val!r}")
+            setattr(self, name, val)
+        if self.Kp == 0 or self.Ke == 0:
+            raise ValueError(f"calibration gains must be nonzero, got Kp={self.Kp}, Ke={self.Ke}")
+        if not isinstance(self.source, dict):
+            raise ValueError(f"calibration source must be a dict, got {type(self.source).__name__}")
+
+    def to_json(self, path: str | os.PathLike[str]) -> None:
+        """Write atomically (temp file + os.replace) with sorted keys; floats in shortest round-trip form,
+        NaN as null."""
+        d = asdict(self)
+        d = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in d.items()}
+        try:
+            text = json.dumps(d, sort_keys=True, indent=2, allow_nan=False) + "\n"
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"calibration source is not JSON-serialisable: {exc}") from None
+        path = Path(path)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent or ".")
+        try:
+            with os.fdopen(fd, "w", encoding="utf-8") as fh:
+                fh.write(text)
+                fh.flush()
+                os.fsync(fh.fileno())
+            os.replace(tmp, path)
+        except BaseException:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+            raise
+
+    @classmethod
+    def from_json(cls, path: str | os.PathLike[str]) -> Calibration:
+        """Read a file written by :meth:`to_json`; unknown or missing fields raise ValueError."""
+        try:
+            d = json.loads(Path(path).read_text(encoding="utf-8"))
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"{path}: not valid JSON ({exc.msg}, line {exc.lineno})") from None
+        if not isinstance(d, dict):
+            raise ValueError(f"{path}: calibration must be a JSON object")
+        names = [f.name for f in fields(cls)]
+        unknown = sorted(set(d) - set(names))
+        missing = [n for n in ("Kp", "Ke") if n not in d]
+        if unknown or missing:
+            what = f"unknown field(s) {', '.join(unknown)}" if unknown else f"missing {', '.join(missing)}"
+            raise ValueError(f"{path}: {what}; valid fields: {', '.join(names)}")
+        if d.get("dead_zone_v", 0.0) is None:
+            d["dead_zone_v"] = float("nan")
+        return cls(**d)
+
+
+# --- conversions
+
+
+def theta_deg(theta_v: Any, cal: Calibration, unwrap: bool = True) -> np.ndarray:
+    """Shaft angle [deg] = Kp (theta_v - pot_offset_v); with ``unwrap`` every jump of more than 180 deg
+    between samples (a wrap, ~360 deg minus the dead band) is removed by adding +-360 deg."""
+    v = _array("theta_v", theta_v)
+    deg = cal.Kp * (v - cal.pot_offset_v)
+    return np.unwrap(deg, period=360.0) if unwrap and deg.size else deg
+
+
+def alpha_deg(alpha_v: Any, cal: Calibration) -> np.ndarray:
+    """Link deflection [deg] = Ke (alpha_v - gauge_offset_v)."""
+    return cal.Ke * (_array("alpha_v", alpha_v) - cal.gauge_offset_v)
+
+
+def tip_deg(theta_v: Any, alpha_v: Any, cal: Calibration, unwrap: bool = True) -> np.ndarray:
+    """Tip angle y = theta + alpha [deg] from the two sensor voltages [V]."""
+    th = theta_deg(theta_v, cal, unwrap)
+    al = alpha_deg(alpha_v, cal)
+    if th.size != al.size:
+        raise ValueError(f"theta_v and alpha_v differ in length: {th.size} vs {al.size}")
+    return th + al
