@@ -1,0 +1,72 @@
+"""Acceptance gate: does the selected model meet the spec's fit thresholds on every dataset and on average?
+
+The thresholds come from the spec's ``[accept]`` table (``min_fit`` per dataset, ``min_average_fit``), as
+recorded in the run's manifest or given explicitly. Fits are the cross-fit row of the selected model
+(``crossfit.csv``, computed through the exported FMU) or, before the cross-fit, its cross-validation fits in
+``models/selected.json``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from .data import DataError, load_manifest
+from .spec import ACCEPT_DEFAULTS
+
+
+@dataclass
+class Verdict:
+    """Outcome of the gate: ``passed`` and the failing cells as human-readable strings."""
+
+    passed: bool
+    fits: dict[str, float]
+    average: float
+    thresholds: dict[str, float]
+    source: str
+    failures: list[str] = field(default_factory=list)
+
+
+def thresholds_of(run: Path, override: dict[str, Any] | None = None) -> dict[str, float]:
+    """``[accept]`` thresholds of the run's spec (defaults where absent), with ``override`` on top."""
+    th = dict(ACCEPT_DEFAULTS)
+    manifest = load_manifest(run)
+    th.update(manifest.get("spec", {}).get("accept", {}))
+    th.update(override or {})
+    return {k: float(v) for k, v in th.items()}
+
+
+def selected_fits(run: Path) -> tuple[dict[str, float], str]:
+    """Per-dataset fits [%] of the selected model and where they were read from."""
+    run = Path(run)
+    cf = run / "crossfit.csv"
+    if cf.exists():
+        df = pd.read_csv(cf, index_col="model")
+        if "selected" in df.index:
+            row = df.loc["selected"].drop(labels=["average"], errors="ignore")
+            return {k: float(v) for k, v in row.items()}, "crossfit.csv (exported FMU)"
+    sel = run / "models" / "selected.json"
+    if sel.exists():
+        rec = json.loads(sel.read_text())
+        return {k: (math.nan if v is None else float(v)) for k, v in rec["cv"].items()}, "models/selected.json"
+    raise DataError(f"{run}: no selected model (run `flexjoint identify {run}` first)")
+
+
+def accept(run: Path, override: dict[str, Any] | None = None) -> Verdict:
+    """Gate the selected model of a run. Unstable (NaN) fits fail."""
+    th = thresholds_of(run, override)
+    fits, source = selected_fits(run)
+    failures = [
+        f"{name}: {'unstable' if math.isnan(v) else f'{v:.2f} %'} < {th['min_fit']:g} %"
+        for name, v in fits.items()
+        if not v >= th["min_fit"]
+    ]
+    avg = sum(fits.values()) / len(fits) if fits else math.nan
+    if not avg >= th["min_average_fit"]:
+        failures.append(f"average: {avg:.2f} % < {th['min_average_fit']:g} %")
+    return Verdict(not failures, fits, avg, th, source, failures)

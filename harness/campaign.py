@@ -1,0 +1,208 @@
+"""Campaigns: run every experiment of a spec on the rig twin and write a run directory.
+
+``run_campaign(spec, out)`` writes ``out/data/<experiment>.parquet`` (columns ``t, u, theta_v, alpha_v`` and
+the true ``theta, alpha`` [deg]; a comb experiment adds ``tau_tip`` [N m] and ``comb_angle`` [deg, NaN between
+holds]) and ``out/manifest.json`` (resolved spec, its hash, FMU hashes, seeds, versions). The same spec gives
+the same bytes.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import platform
+import zlib
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from . import __version__
+from .data import write_dataset, write_json
+from .signals import generate
+from .spec import Experiment, Spec
+
+Progress = Callable[[str], None]
+
+
+def experiment_seed(spec: Spec, exp: Experiment) -> int:
+    """Seed of one experiment's signal and noise: stable in the spec seed and the experiment name."""
+    return (spec.seed * 1_000_003 + zlib.crc32(exp.name.encode())) % (2**31 - 1)
+
+
+def comb_schedule(exp: Experiment, Ts: float, plant: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    """Tip-torque schedule of a comb calibration: smooth ramps between static holds at each comb deflection.
+
+    The comb holds the tip at l [cm] from rest at D [cm]: angle = -atan(l / D) (the seed's table 1). The torque
+    is the static torque giving that deflection on the twin (clamped hub). Returns (tau_tip [N m], comb_angle
+    [deg], NaN outside the settled part of each hold).
+    """
+    from .plant import PlantParams, mass_stiffness
+
+    p = exp.params
+    ls = np.asarray(p.get("deflections_cm", [-3.7, -3.05, -2.4, -1.8, -1.1, -0.5, 0, 0.6, 1.4, 2, 2.65, 3.3, 3.9]))
+    D, hold, ramp = float(p.get("D_cm", 40.0)), float(p.get("hold", 3.0)), float(p.get("ramp", 1.0))
+    n = int(round(exp.duration / Ts))
+    angles = -np.degrees(np.arctan(ls / D))
+    pp = PlantParams(**{k: v for k, v in plant.items() if k in PlantParams.__dataclass_fields__})
+    K = mass_stiffness(pp)[1]
+    compliance = float(np.sum(1.0 / np.diag(K)[1:]))  # clamped hub: a_i = tau / k_i, alpha = sum a_i [rad/N m]
+    torques = np.radians(angles) / compliance
+    tau = np.zeros(n)
+    comb = np.full(n, np.nan)
+    t = np.arange(n) * Ts
+    prev = 0.0
+    start = 0.0
+    for a, q in zip(angles, torques, strict=True):
+        in_ramp = (t >= start) & (t < start + ramp)
+        s = (t[in_ramp] - start) / ramp
+        tau[in_ramp] = prev + (q - prev) * 0.5 * (1 - np.cos(np.pi * s))
+        in_hold = (t >= start + ramp) & (t < start + ramp + hold)
+        tau[in_hold] = q
+        comb[in_hold] = a
+        prev, start = q, start + ramp + hold
+    if start > exp.duration + 1e-9:
+        raise ValueError(f"experiment {exp.name!r}: duration {exp.duration} s too short for {len(ls)} holds")
+    tau[t >= start] = prev
+    return tau, comb
+
+
+def _experiment_inputs(spec: Spec, exp: Experiment) -> tuple[np.ndarray, dict, dict, np.ndarray | None, Any]:
+    Ts = spec.Ts
+    n = int(round(exp.duration * spec.sample_rate))
+    seed = experiment_seed(spec, exp)
+    plant = {"internal_step": spec.internal_step, **spec.plant, **exp.plant}
+    daq = {**spec.daq, **exp.daq}
+    daq["seed"] = int(daq.get("seed", 0)) * 7919 + seed
+    if exp.signal == "comb":
+        plant["hub_locked"] = 1
+        tau, comb = comb_schedule(exp, Ts, plant)
+        return np.zeros(n), plant, daq, tau, comb
+    u = generate(exp.signal, n, Ts, exp.params, seed)
+    return u, plant, daq, None, None
+
+
+_WORKER_RIG = None
+
+
+def _worker_init(plant_fmu: str, daq_fmu: str) -> None:
+    global _WORKER_RIG
+    from .cosim import Rig
+
+    _WORKER_RIG = Rig(Path(plant_fmu), Path(daq_fmu))
+
+
+def _worker_run(spec: Spec, exp: Experiment) -> dict[str, np.ndarray]:
+    return simulate_experiment(_WORKER_RIG, spec, exp)
+
+
+def simulate_experiment(rig: Any, spec: Spec, exp: Experiment) -> dict[str, np.ndarray]:
+    """Run one experiment of a spec on a loaded :class:`harness.cosim.Rig`; returns the dataset columns."""
+    u, plant, daq, tau, comb = _experiment_inputs(spec, exp)
+    res = rig.run(u, spec.Ts, plant=plant, daq=daq, tau_tip=tau)
+    cols = {k: res[k] for k in ("t", "u", "theta_v", "alpha_v", "theta", "alpha")}
+    if tau is not None:
+        cols["tau_tip"] = tau
+        cols["comb_angle"] = comb
+    return cols
+
+
+def simulate_spec(
+    spec: Spec,
+    fmus: dict[str, Path],
+    experiments: list[Experiment] | None = None,
+    workers: int | None = None,
+    progress: Progress | None = None,
+) -> dict[str, dict[str, np.ndarray]]:
+    """Simulate experiments (default: all of the spec) and return ``{name: columns}`` in spec order.
+
+    ``workers`` > 1 spreads experiments over processes (each loads the FMUs once); results do not depend on it.
+    """
+    exps = spec.all_experiments() if experiments is None else experiments
+    if workers is None:
+        workers = min(len(exps), os.cpu_count() or 1, 4)
+    out: dict[str, dict[str, np.ndarray]] = {}
+    if workers <= 1 or len(exps) <= 2:
+        from .cosim import Rig
+
+        with Rig(fmus["flexjoint"], fmus["daq"]) as rig:
+            for e in exps:
+                out[e.name] = simulate_experiment(rig, spec, e)
+                if progress:
+                    progress(e.name)
+        return out
+    with ProcessPoolExecutor(
+        max_workers=workers, initializer=_worker_init, initargs=(str(fmus["flexjoint"]), str(fmus["daq"]))
+    ) as pool:
+        futures = {e.name: pool.submit(_worker_run, spec, e) for e in exps}
+        for e in exps:
+            out[e.name] = futures[e.name].result()
+            if progress:
+                progress(e.name)
+    return out
+
+
+def versions() -> dict[str, str]:
+    import control
+    import fmpy
+    import pandas
+    import pyarrow
+    import scipy
+
+    return {
+        "harness": __version__,
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "scipy": scipy.__version__,
+        "fmpy": fmpy.__version__,
+        "control": control.__version__,
+        "pandas": pandas.__version__,
+        "pyarrow": pyarrow.__version__,
+    }
+
+
+def run_campaign(
+    spec: Spec,
+    out: Path,
+    fmus: dict[str, Path] | None = None,
+    workers: int | None = None,
+    progress: Progress | None = None,
+) -> dict[str, Any]:
+    """Run a spec's campaign into run directory ``out``; returns the manifest."""
+    from .build import build_all, fmu_sha256
+
+    fmus = fmus or build_all()
+    out = Path(out)
+    data = simulate_spec(spec, fmus, workers=workers, progress=progress)
+    for name, cols in data.items():
+        write_dataset(out / "data" / f"{name}.parquet", cols)
+    manifest = {
+        "kind": "campaign",
+        "spec": spec.raw,
+        "spec_file": Path(spec.path).name,
+        "spec_sha256": spec.sha256(),
+        "seed": spec.seed,
+        "sample_rate": spec.sample_rate,
+        "fmus": {k: {"file": Path(v).name, "sha256": fmu_sha256(v)} for k, v in fmus.items()},
+        "versions": versions(),
+        "experiments": [
+            {
+                "name": e.name,
+                "role": e.role,
+                "signal": e.signal,
+                "n": int(round(e.duration * spec.sample_rate)),
+                "seed": experiment_seed(spec, e),
+            }
+            for e in spec.all_experiments()
+        ],
+    }
+    write_json(out / "manifest.json", manifest)
+    return manifest
+
+
+def realtime_factor(spec: Spec, wall_s: float) -> float:
+    """Simulated seconds per wall-clock second for the identification experiments."""
+    sim = sum(e.duration for e in spec.experiments)
+    return sim / wall_s if wall_s > 0 else math.inf

@@ -1,0 +1,188 @@
+"""The ``flexjoint`` command line: a thin layer over the library. Errors are one line and a non-zero exit."""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    help="Flexible-joint rig twin, ARMAX identification, cross-fit and sim-to-real diagnosis.",
+)
+err = Console(stderr=True, highlight=False)
+out = Console(highlight=False, width=None if sys.stdout.isatty() else 140)
+
+SpecArg = Annotated[str, typer.Argument(help="campaign spec: a path or a name in specs/ (lab, nominal)")]
+SetOpt = Annotated[list[str] | None, typer.Option("--set", help="override one parameter: table.name=value")]
+
+
+def _user_errors() -> tuple[type[BaseException], ...]:
+    from .cosim import FMUError
+    from .data import DataError
+    from .spec import SpecError
+
+    return (SpecError, DataError, FMUError, ValueError, FileNotFoundError, RuntimeError)
+
+
+def _progress(label: str):
+    """A progress printer for long work (one line per finished item, on stderr)."""
+    start = time.perf_counter()
+
+    def report(item: str) -> None:
+        err.print(f"[dim]{label}[/] {item} [dim]({time.perf_counter() - start:.1f} s)[/]")
+
+    return report
+
+
+@app.command()
+def build(force: Annotated[bool, typer.Option(help="rebuild even if cached")] = False) -> None:
+    """Compile the plant and DAQ FMUs from fmus/ into the cache (only when their sources changed)."""
+    from .build import build_fmu
+
+    for name in ("flexjoint", "daq"):
+        path = build_fmu(name, force=force)
+        out.print(f"{name}: {path}")
+
+
+@app.command()
+def campaign(
+    spec: SpecArg,
+    out_dir: Annotated[Path, typer.Option("--out", help="run directory to write")],
+    set_: SetOpt = None,
+) -> None:
+    """Run a spec's experiments on the rig twin: writes manifest.json and data/<experiment>.parquet."""
+    from . import spec as specmod
+    from .campaign import run_campaign
+
+    s = specmod.load(spec, set_ or [])
+    t0 = time.perf_counter()
+    manifest = run_campaign(s, out_dir, progress=_progress("simulated"))
+    out.print(f"{len(manifest['experiments'])} experiments -> {out_dir} ({time.perf_counter() - t0:.2f} s)")
+
+
+@app.command("import")
+def import_(
+    csv: Annotated[list[Path], typer.Argument(help="CSV files with columns t,u,theta_v,alpha_v")],
+    out_dir: Annotated[Path, typer.Option("--out", help="run directory to write")],
+) -> None:
+    """Bring real measurements into a run directory (data/<name>.parquet + manifest.json)."""
+    from .data import import_csv
+
+    written = import_csv(csv, out_dir)
+    out.print(f"imported {len(written)} dataset(s) -> {out_dir}")
+
+
+@app.command()
+def identify(
+    run_dir: Annotated[Path, typer.Argument(help="run directory (from campaign or import)")],
+    set_: SetOpt = None,
+) -> None:
+    """Calibrate, then the ARMAX grid per dataset, cross-validation and selection: grid.csv, models/."""
+    from . import spec as specmod
+    from .pipeline import doubled_rate_check, identify_run
+
+    over = specmod.apply_overrides({}, set_ or []).get("identify", {})
+    res, _, cal, ident = identify_run(run_dir, over, progress=_progress("grid"))
+    g = res.grid
+    out.print(
+        f"Kp {cal.Kp:.4f} deg/V, Ke {cal.Ke:.4f} deg/V, dead zone {cal.dead_zone_v:.4f} V; "
+        f"{len(g)} orders x datasets, {int(g['causal'].sum())} causal, {int(g['survivor'].sum())} survivors"
+    )
+    out.print(crossval_table(res))
+    sel = g.loc[res.selected]
+    out.print(f"selected ARMAX({sel.na},{sel.nb},{sel.nc},{sel.nk}) from {sel.dataset}: {res.rule}")
+    if ident.get("doubled_rate", True):
+        d = doubled_rate_check(run_dir, res.models[res.selected], ident, cal)
+        if "skipped" not in d:
+            out.print(
+                f"doubled rate ({d['sample_rate_hz']:g} Hz, {d['experiment']}): 50 Hz model as is "
+                f"{d['fit_model_50hz_as_is']:.1f} %, re-identified {d['fit_reidentified_100hz']:.1f} %"
+            )
+
+
+def crossval_table(res):
+    """The seed's table 2: each dataset's best model (rows) cross-validated on every dataset (columns)."""
+    from rich.table import Table
+
+    t = Table(title="cross-validation fit % (rows: model of dataset i; columns: dataset j)")
+    t.add_column("model")
+    for j in range(1, len(res.datasets) + 1):
+        t.add_column(str(j), justify="right")
+    t.add_column("average", justify="right")
+    t.caption = "datasets: " + ", ".join(f"{j} {n}" for j, n in enumerate(res.datasets, 1))
+    for i, (name, row_i) in enumerate([*res.best.items(), ("selected", res.selected)], 1):
+        r = res.grid.loc[row_i]
+        cells = [f"{r[f'cv_{n}']:.2f}" for n in res.datasets]
+        label = f"{i} ({r.na},{r.nb},{r.nc})" if name != "selected" else f"sel ({r.na},{r.nb},{r.nc})"
+        t.add_row(label, *cells, f"{r['cv_mean']:.2f}")
+    return t
+
+
+@app.command()
+def accept(
+    run_dir: Annotated[Path, typer.Argument(help="run directory with an identified model")],
+    min_fit: Annotated[float | None, typer.Option(help="override [accept].min_fit [%]")] = None,
+    min_average_fit: Annotated[float | None, typer.Option(help="override [accept].min_average_fit [%]")] = None,
+) -> None:
+    """Exit 0 when the selected model meets the spec's fit thresholds, 1 (naming the failing cells) when not."""
+    from .accept import accept as gate
+
+    over = {k: v for k, v in (("min_fit", min_fit), ("min_average_fit", min_average_fit)) if v is not None}
+    v = gate(run_dir, over)
+    if v.passed:
+        out.print(
+            f"accepted: every dataset >= {v.thresholds['min_fit']:g} %, average {v.average:.2f} % "
+            f">= {v.thresholds['min_average_fit']:g} % ({v.source})"
+        )
+        return
+    print(f"rejected ({v.source}): " + "; ".join(v.failures), file=sys.stderr)
+    raise typer.Exit(1)
+
+
+@app.command()
+def bench(
+    out_file: Annotated[Path, typer.Option("--out", help="JSON file to write")] = Path("bench.json"),
+    quick: Annotated[bool, typer.Option(help="fewer repetitions")] = False,
+) -> None:
+    """Measure speed against the named peers (fmpy simulate_fmu, sippy-unipi) and write JSON."""
+    from .benchmarks import run_all
+
+    result = run_all(quick=quick, progress=_progress("bench"))
+    from .data import write_json
+
+    write_json(out_file, result)
+    out.print_json(data=result)
+
+
+def main() -> None:
+    """Console entry point: run the app, turning user errors into one line and exit code 2."""
+    try:
+        rc = app(standalone_mode=False)
+    except typer.Exit as e:  # raised before click takes over (e.g. --help handling differences)
+        sys.exit(e.exit_code)
+    except typer.Abort:
+        err.print("aborted")
+        sys.exit(130)
+    except Exception as e:  # noqa: BLE001 (classified below)
+        import click
+
+        if isinstance(e, click.exceptions.ClickException):
+            e.show()
+            sys.exit(e.exit_code)
+        if isinstance(e, _user_errors()):
+            msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+            print(f"error: {msg}", file=sys.stderr)
+            sys.exit(2)
+        raise
+    sys.exit(rc if isinstance(rc, int) else 0)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,225 @@
+"""The identification campaign of the first lab: ARMAX order grid per dataset, threshold, cross-validation on
+every dataset, and the selection of the simplest model near the best average (seed 000, section 3.2).
+
+Domain: the model maps the detrended command u_d [V] to y_f = H(z) y, the differentiated and low-pass filtered
+tip angle y [deg] (``harness.preprocess``); fits are MATLAB ``compare`` fits in percent on that pair.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from . import armax
+from .calibration import Calibration, alpha_deg, theta_deg
+from .preprocess import preprocess
+
+
+@dataclass
+class Prepared:
+    """One dataset ready for identification: detrended command u_d [V], filtered difference y_f [deg/sample]."""
+
+    name: str
+    u_d: np.ndarray
+    y_f: np.ndarray
+    y: np.ndarray  # the angle itself [deg]
+    u: np.ndarray  # the raw command [V]
+    Ts: float
+
+
+def output_angle(df: pd.DataFrame, cal: Calibration, output: str = "y") -> np.ndarray:
+    """The identified angle [deg] from DAQ volts: ``y`` tip = theta + alpha, ``theta`` shaft, ``alpha`` deflection."""
+    th = theta_deg(df["theta_v"].to_numpy(), cal)
+    al = alpha_deg(df["alpha_v"].to_numpy(), cal)
+    if output == "y":
+        return th + al
+    if output == "theta":
+        return th
+    if output == "alpha":
+        return al
+    raise ValueError(f"identify.output must be y, theta or alpha, got {output!r}")
+
+
+def prepare(
+    datasets: dict[str, pd.DataFrame], cal: Calibration, af: float = 0.8, output: str = "y"
+) -> dict[str, Prepared]:
+    """Convert volts to the output angle and apply the seed's preprocessing to every dataset."""
+    out = {}
+    for name, df in datasets.items():
+        y = output_angle(df, cal, output)
+        u = df["u"].to_numpy(dtype=float)
+        u_d, y_f = preprocess(u, y, af, "constant", initial="rest")
+        Ts = float(np.median(np.diff(df["t"].to_numpy())))
+        out[name] = Prepared(name, u_d, y_f, y, u, Ts)
+    return out
+
+
+def causal(na: int, nb: int, nk: int) -> bool:
+    """The seed's causality rule in the forward-shift operator: deg B(z) + nk <= deg A(z), i.e. nb + nk <= na."""
+    return nb + nk <= na
+
+
+def _orders(spec_identify: dict[str, Any]) -> list[tuple[int, int, int]]:
+    def rng(key: str) -> range:
+        v = spec_identify[key]
+        lo, hi = (v, v) if isinstance(v, int) else (int(v[0]), int(v[1]))
+        if lo < 0 or hi < lo:
+            raise ValueError(f"identify.{key} must be an integer or [lo, hi] with 0 <= lo <= hi, got {v!r}")
+        return range(lo, hi + 1)
+
+    return [(na, nb, nc) for na in rng("na") for nb in rng("nb") for nc in rng("nc")]
+
+
+def _fit_dataset(args: tuple[Prepared, list[tuple[int, int, int]], int, str]) -> list[dict[str, Any]]:
+    p, orders, nk, ic = args
+    rows = []
+    for na, nb, nc in orders:
+        row: dict[str, Any] = {"dataset": p.name, "na": na, "nb": nb, "nc": nc, "nk": nk, "n_params": na + nb + nc}
+        row["causal"] = causal(na, nb, nk)
+        if not row["causal"]:
+            rows.append({**row, "stable": False, "fit": math.nan, "model": None})
+            continue
+        m = armax.estimate(p.u_d, p.y_f, na, nb, nc, nk, Ts=p.Ts)
+        fit = armax.compare(m, p.u_d, p.y_f, ic=ic)
+        rows.append({**row, "stable": m.stable, "fit": fit, "model": m.to_dict()})
+    return rows
+
+
+@dataclass
+class GridResult:
+    """The grid (one row per fitted order and dataset), the models by row index, and the selection."""
+
+    grid: pd.DataFrame
+    models: dict[int, armax.ArmaxModel]
+    best: dict[str, int]  # dataset -> row index of that dataset's best model
+    selected: int
+    rule: str
+    datasets: list[str] = field(default_factory=list)
+
+
+def _select(grid: pd.DataFrame, rows: pd.Index, tolerance: float) -> tuple[int, str]:
+    """Simplest model (fewest na+nb+nc, then highest mean) within ``tolerance`` points of the best mean CV fit."""
+    cand = grid.loc[rows]
+    cand = cand[np.isfinite(cand["cv_mean"])]
+    if cand.empty:
+        raise ValueError("no stable causal model to select from")
+    best = float(cand["cv_mean"].max())
+    near = cand[cand["cv_mean"] >= best - tolerance]
+    pick = near.sort_values(["n_params", "cv_mean"], ascending=[True, False], kind="stable").index[0]
+    rule = (
+        f"simplest model (fewest na+nb+nc, ties by higher mean) whose mean cross-validation fit is within "
+        f"{tolerance:g} fit points of the best mean ({best:.2f} %)"
+    )
+    return int(pick), rule
+
+
+def run_grid(
+    prepared: dict[str, Prepared],
+    spec_identify: dict[str, Any],
+    workers: int | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> GridResult:
+    """Fit the order grid on every dataset, keep causal models above the threshold, cross-validate, select."""
+    orders = _orders(spec_identify)
+    nk, ic = int(spec_identify["nk"]), str(spec_identify["ic"])
+    threshold, tol = float(spec_identify["fit_threshold"]), float(spec_identify["tolerance"])
+    jobs = [(p, orders, nk, ic) for p in prepared.values()]
+    workers = workers or min(len(jobs), os.cpu_count() or 1)
+    rows: list[dict[str, Any]] = []
+    if workers > 1:
+        with ProcessPoolExecutor(max_workers=workers) as pool:
+            for name, res in zip(prepared, pool.map(_fit_dataset, jobs), strict=True):
+                rows.extend(res)
+                if progress:
+                    progress(name)
+    else:
+        for job in jobs:
+            rows.extend(_fit_dataset(job))
+            if progress:
+                progress(job[0].name)
+    models = {i: armax.ArmaxModel.from_dict(r.pop("model")) for i, r in enumerate(rows) if r["model"] is not None}
+    for r in rows:
+        r.pop("model", None)
+    grid = pd.DataFrame(rows)
+    grid["survivor"] = grid["causal"] & grid["stable"] & (grid["fit"] >= threshold)
+    names = list(prepared)
+    cv = np.full((len(grid), len(names)), np.nan)
+    for i in np.flatnonzero(grid["survivor"].to_numpy()):
+        m = models[int(i)]
+        cv[i] = [armax.compare(m, prepared[n].u_d, prepared[n].y_f, ic=ic) for n in names]
+    grid["cv_mean"] = cv.mean(axis=1)
+    for j, n in enumerate(names):
+        grid[f"cv_{n}"] = cv[:, j]
+    best = {}
+    for n in names:
+        rows_n = grid.index[(grid["dataset"] == n) & grid["survivor"]]
+        if len(rows_n) == 0:  # nothing above the threshold: keep the best stable causal fit, flagged in grid.csv
+            ok = grid.index[(grid["dataset"] == n) & grid["causal"] & grid["stable"]]
+            if len(ok) == 0:
+                raise ValueError(f"dataset {n}: no stable causal ARMAX model in the grid")
+            i = int(grid.loc[ok, "fit"].idxmax())
+            m = models[i]
+            cv[i] = [armax.compare(m, prepared[k].u_d, prepared[k].y_f, ic=ic) for k in names]
+            grid.loc[i, "cv_mean"] = cv[i].mean()
+            for j, k in enumerate(names):
+                grid.loc[i, f"cv_{k}"] = cv[i, j]
+            best[n] = i
+        else:
+            best[n], _ = _select(grid, rows_n, tol)
+    survivors = grid.index[grid["survivor"]]
+    selected, rule = _select(grid, survivors if len(survivors) else pd.Index(list(best.values())), tol)
+    return GridResult(grid, models, best, selected, rule, names)
+
+
+def model_record(res: GridResult, i: int, name: str, spec_identify: dict[str, Any], cal: Calibration) -> dict[str, Any]:
+    """The JSON written to ``models/<name>.json``."""
+    row = res.grid.loc[i]
+    m = res.models[i]
+    return {
+        "name": name,
+        "dataset": str(row["dataset"]),
+        **m.to_dict(),
+        "fit_own": float(row["fit"]),
+        "cv": {n: float(row[f"cv_{n}"]) for n in res.datasets},
+        "cv_mean": float(row["cv_mean"]),
+        "survivor": bool(row["survivor"]),
+        "preprocessing": {
+            "af": float(spec_identify["af"]),
+            "output": str(spec_identify["output"]),
+            "detrend": "constant",
+            "initial": "rest",
+            "ic": str(spec_identify["ic"]),
+        },
+        "calibration": {"Kp": cal.Kp, "Ke": cal.Ke, "gauge_offset_v": cal.gauge_offset_v},
+        "selected": i == res.selected,
+        "selection_rule": res.rule,
+    }
+
+
+def write_grid(res: GridResult, run: Path, spec_identify: dict[str, Any], cal: Calibration) -> dict[str, Path]:
+    """Write ``grid.csv`` and ``models/<dataset>.json`` + ``models/selected.json``; returns model paths by name."""
+    from .data import atomic_write_text, write_json
+
+    run = Path(run)
+    atomic_write_text(run / "grid.csv", res.grid.to_csv(index=False, float_format="%.6f"))
+    paths = {}
+    for name, i in [*res.best.items(), ("selected", res.selected)]:
+        paths[name] = run / "models" / f"{name}.json"
+        write_json(paths[name], model_record(res, i, name, spec_identify, cal))
+    return paths
+
+
+def load_model(path: Path) -> tuple[armax.ArmaxModel, dict[str, Any]]:
+    """Read ``models/<name>.json`` back: the model and its full record."""
+    import json
+
+    rec = json.loads(Path(path).read_text())
+    return armax.ArmaxModel.from_dict(rec), rec

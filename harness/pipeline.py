@@ -1,0 +1,172 @@
+"""Run-directory steps (calibrate, identify, doubled-rate check) and the whole ``flexjoint run`` pipeline."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from . import armax
+from . import spec as specmod
+from .calibration import (
+    Calibration,
+    comb_table,
+    dead_zone_estimate,
+    dead_zone_merge,
+    ke_from_comb,
+    kp_from_ramp,
+)
+from .data import load_manifest, read_dataset, write_json
+
+Progress = Callable[[str], None]
+
+# Seed 000's own numbers, used when a run has no calibration experiments (imported measurements)
+SEED_KP, SEED_KE, SEED_DEAD_ZONE = 35.5145, -3.3636, 0.3369
+
+
+def _holds(comb_angle: np.ndarray, t: np.ndarray) -> tuple[list[tuple[float, float]], np.ndarray]:
+    """Hold intervals (t_start, t_end) [s] and their comb angles [deg] from a comb_angle column (NaN between)."""
+    finite = np.isfinite(comb_angle)
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], finite.astype(int), [0]])))
+    holds, angles = [], []
+    for a, b in zip(edges[::2], edges[1::2], strict=True):
+        holds.append((float(t[a]), float(t[b - 1])))
+        angles.append(float(comb_angle[a]))
+    return holds, np.array(angles)
+
+
+def calibrate_run(run: Path, spec: specmod.Spec | None = None) -> Calibration:
+    """Calibrate the sensors from a run's calibration experiments and write ``calibration.json``.
+
+    Kp from the pot ramp through its wraps, Ke by least squares over the comb holds, the dead zone from the slow
+    up/down ramps. Missing experiments fall back to the seed's numbers, and ``source`` says so.
+    """
+    run = Path(run)
+    manifest = load_manifest(run)
+    cal_exps = {e["name"]: e for e in manifest["experiments"] if e.get("role") == "calibration"}
+    source: dict[str, Any] = {}
+    Kp, Ke, offset, dz, lag = SEED_KP, SEED_KE, 0.0, math.nan, 0.0
+
+    def data(name: str) -> pd.DataFrame:
+        return read_dataset(run / "data" / f"{name}.parquet")
+
+    pot = [n for n, e in cal_exps.items() if e["signal"] == "constant"]
+    if pot:
+        df = data(pot[0])
+        pc = kp_from_ramp(df["t"].to_numpy(), df["theta_v"].to_numpy())
+        Kp = pc.Kp
+        lag = pc.lag_s if math.isfinite(pc.lag_s) else 0.0
+        source["Kp"] = {
+            "method": "pot ramp: track slope x wrap period",
+            "experiment": pot[0],
+            "Kp_span_formula": pc.Kp_span,
+            "v_max": pc.v_max,
+            "v_min": pc.v_min,
+            "n_wraps": pc.n_wraps,
+            "lag_s": pc.lag_s,
+        }
+    else:
+        source["Kp"] = {"method": "seed 000 value (no pot ramp in this run)"}
+    comb = [n for n, e in cal_exps.items() if e["signal"] == "comb"]
+    if comb:
+        df = data(comb[0])
+        holds, angles = _holds(df["comb_angle"].to_numpy(), df["t"].to_numpy())
+        ang, volts = comb_table(df["t"].to_numpy(), df["alpha_v"].to_numpy(), angles, holds)
+        gc = ke_from_comb(ang, volts)
+        Ke, offset = gc.Ke, gc.offset_v
+        source["Ke"] = {
+            "method": "least squares over comb holds (0.5-2 s)",
+            "experiment": comb[0],
+            "angles_deg": ang.tolist(),
+            "volts": volts.tolist(),
+            "r2": gc.r2,
+        }
+    else:
+        source["Ke"] = {"method": "seed 000 value (no comb in this run)"}
+    ramps = [n for n, e in cal_exps.items() if e["signal"] == "ramp"]
+    if ramps:
+        ests = []
+        for n in ramps:
+            df = data(n)
+            th = np.unwrap(Kp * df["theta_v"].to_numpy(), period=360.0)
+            ests.append(dead_zone_estimate(df["t"].to_numpy(), df["u"].to_numpy(), th, lag_s=lag))
+        est = dead_zone_merge(*ests)
+        dz = est.v_th
+        source["dead_zone_v"] = {
+            "method": "onset of motion on slow ramps, corrected by the step lag of the pot ramp",
+            "experiments": ramps,
+            "v_up": est.v_up,
+            "v_down": est.v_down,
+            "lag_s": lag,
+        }
+    cal = Calibration(Kp=Kp, Ke=Ke, gauge_offset_v=offset, dead_zone_v=dz, source=source)
+    cal.to_json(run / "calibration.json")
+    return cal
+
+
+def load_calibration(run: Path) -> Calibration:
+    """``calibration.json`` of a run, calibrating first when it is missing."""
+    p = Path(run) / "calibration.json"
+    return Calibration.from_json(p) if p.exists() else calibrate_run(run)
+
+
+def run_spec(run: Path) -> specmod.Spec | None:
+    """The spec recorded in a campaign's manifest (None for imported data)."""
+    m = load_manifest(run)
+    return specmod.from_dict(m["spec"], m.get("spec_file", "")) if m.get("kind") == "campaign" else None
+
+
+def identify_run(run: Path, identify: dict[str, Any] | None = None, progress: Progress | None = None):
+    """Grid, cross-validation and selection on a run's identification datasets; writes grid.csv and models/."""
+    from .data import load_run
+    from .identify import prepare, run_grid, write_grid
+
+    run = Path(run)
+    spec = run_spec(run)
+    ident = dict(specmod.IDENTIFY_DEFAULTS)
+    ident.update(spec.identify if spec else {})
+    ident.update(identify or {})
+    cal = load_calibration(run)
+    prepared = prepare(load_run(run), cal, float(ident["af"]), str(ident["output"]))
+    res = run_grid(prepared, ident, progress=progress)
+    write_grid(res, run, ident, cal)
+    return res, prepared, cal, ident
+
+
+def doubled_rate_check(
+    run: Path, selected: armax.ArmaxModel, ident: dict[str, Any], cal: Calibration, experiment: str | None = None
+) -> dict[str, Any]:
+    """The seed's section 3.4: run an experiment at twice the sampling rate and score the 50 Hz model on it.
+
+    Reports the 50 Hz model applied sample by sample to 100 Hz data, as the seed did (its per-sample gain is
+    twice too large: it "thinks the effect of the input is much bigger"), and the same orders re-identified at
+    100 Hz.
+    """
+    from .campaign import simulate_spec
+    from .identify import prepare
+
+    spec = run_spec(run)
+    if spec is None:
+        return {"skipped": "imported data: no rig to re-run at a doubled rate"}
+    exp = spec.experiment(experiment or spec.experiments[len(spec.experiments) // 2].name)
+    fast = specmod.from_dict(specmod.apply_overrides(spec.raw, [f"campaign.sample_rate={2 * spec.sample_rate}"]))
+    from .build import build_all
+
+    cols = simulate_spec(fast, build_all(), experiments=[fast.experiment(exp.name)], workers=1)[exp.name]
+    p = prepare({exp.name: pd.DataFrame(cols)}, cal, float(ident["af"]), str(ident["output"]))[exp.name]
+    ic = str(ident["ic"])
+    out: dict[str, Any] = {
+        "experiment": exp.name,
+        "sample_rate_hz": fast.sample_rate,
+        "orders": [selected.na, selected.nb, selected.nc, selected.nk],
+    }
+    out["fit_model_50hz_as_is"] = armax.compare(selected, p.u_d, p.y_f, ic=ic)
+    refit = armax.estimate(p.u_d, p.y_f, selected.na, selected.nb, selected.nc, selected.nk, Ts=fast.Ts)
+    out["fit_reidentified_100hz"] = armax.compare(refit, p.u_d, p.y_f, ic=ic)
+    out["gain_ratio_as_is"] = float(np.sum(selected.B) / np.sum(selected.A)) / float(np.sum(refit.B) / np.sum(refit.A))
+    write_json(Path(run) / "doubled_rate.json", out)
+    return out

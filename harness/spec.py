@@ -1,0 +1,281 @@
+"""Campaign specs: TOML files naming the rig parameters, the sampling rate and the experiments.
+
+A spec has these tables (everything but ``[campaign]`` and one experiment is optional)::
+
+    [campaign]   name, sample_rate [Hz], seed, internal_step [s]
+    [plant]      flexjoint FMU parameters by their FMI names (Rm, Beq, coulomb_torque, n_modes, ...)
+    [daq]        daq FMU parameters by their FMI names (adc_bits, delay_samples, noise_theta, ...)
+    [[calibration]]  experiments for Kp (pot_ramp), Ke (comb) and the dead zone (ramp)
+    [[experiment]]   identification experiments: name, signal, duration [s] and the signal's parameters,
+                     optional ``plant = {...}`` / ``daq = {...}`` overrides for that experiment only
+    [identify]   na, nb, nc ranges, nk, af, output, fit_threshold [%], selection tolerance [fit points]
+    [accept]     min_fit [%] per dataset, min_average_fit [%] for the selected model
+
+Unknown keys anywhere are an error that lists the valid ones.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import math
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass, field
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+import tomllib
+
+from .signals import SIGNAL_KINDS, check_params
+
+SPEC_DIR = Path(__file__).resolve().parents[1] / "specs"
+FMU_SRC = Path(__file__).resolve().parents[1] / "fmus"
+
+CAMPAIGN_KEYS = {"name", "sample_rate", "seed", "internal_step", "description"}
+EXPERIMENT_KEYS = {"name", "signal", "duration", "plant", "daq", "role"}
+COMB_PARAMS = {"deflections_cm", "D_cm", "hold", "ramp"}
+IDENTIFY_DEFAULTS: dict[str, Any] = {
+    "na": [1, 8],
+    "nb": [1, 3],
+    "nc": [1, 8],
+    "nk": 1,
+    "af": 0.8,
+    "output": "y",
+    "fit_threshold": 89.0,
+    "tolerance": 1.0,
+    "ic": "z",
+    "doubled_rate": True,
+}
+ACCEPT_DEFAULTS: dict[str, Any] = {"min_fit": 80.0, "min_average_fit": 85.0}
+
+
+class SpecError(ValueError):
+    """A spec that cannot be run; the message is one line meant for the user."""
+
+
+@cache
+def fmu_parameters(model: str) -> dict[str, tuple[str, Any]]:
+    """Parameters of an FMU source model as ``{name: (type, start)}``, read from its modelDescription.xml."""
+    path = FMU_SRC / model / "modelDescription.xml"
+    if not path.exists():
+        raise SpecError(f"FMU source {path} is missing")
+    root = ET.parse(path).getroot()
+    out: dict[str, tuple[str, Any]] = {}
+    for sv in root.iter("ScalarVariable"):
+        if sv.get("causality") != "parameter":
+            continue
+        for kind in ("Real", "Integer", "Boolean"):
+            el = sv.find(kind)
+            if el is not None:
+                start = el.get("start")
+                if kind == "Real":
+                    value: Any = float(start) if start is not None else math.nan
+                elif kind == "Integer":
+                    value = int(start) if start is not None else 0
+                else:
+                    value = start == "true"
+                out[sv.get("name", "")] = (kind, value)
+    return out
+
+
+@dataclass(frozen=True)
+class Experiment:
+    """One experiment: the command signal and per-experiment parameter overrides."""
+
+    name: str
+    signal: str
+    duration: float
+    params: dict[str, Any] = field(default_factory=dict)
+    plant: dict[str, Any] = field(default_factory=dict)
+    daq: dict[str, Any] = field(default_factory=dict)
+    role: str = "identification"
+
+
+@dataclass
+class Spec:
+    """A parsed, validated campaign spec."""
+
+    name: str
+    sample_rate: float
+    seed: int
+    internal_step: float
+    plant: dict[str, Any]
+    daq: dict[str, Any]
+    calibration: list[Experiment]
+    experiments: list[Experiment]
+    identify: dict[str, Any]
+    accept: dict[str, Any]
+    raw: dict[str, Any]
+    path: str = ""
+
+    @property
+    def Ts(self) -> float:
+        """Sampling period [s]."""
+        return 1.0 / self.sample_rate
+
+    def sha256(self) -> str:
+        """Hash of the resolved spec (after overrides), stable across key order."""
+        return hashlib.sha256(json.dumps(self.raw, sort_keys=True).encode()).hexdigest()
+
+    def all_experiments(self) -> list[Experiment]:
+        return [*self.calibration, *self.experiments]
+
+    def experiment(self, name: str) -> Experiment:
+        for e in self.all_experiments():
+            if e.name == name:
+                return e
+        raise SpecError(f"no experiment named {name!r}; have {', '.join(e.name for e in self.all_experiments())}")
+
+
+def _check_keys(where: str, given: dict[str, Any], valid: set[str] | dict[str, Any]) -> None:
+    unknown = sorted(set(given) - set(valid))
+    if unknown:
+        raise SpecError(f"unknown key(s) {', '.join(unknown)} in {where}; valid: {', '.join(sorted(valid))}")
+
+
+def _check_params(where: str, model: str, values: dict[str, Any]) -> dict[str, Any]:
+    valid = fmu_parameters(model)
+    _check_keys(where, values, valid)
+    out = {}
+    for k, v in values.items():
+        kind = valid[k][0]
+        if kind == "Integer":
+            if isinstance(v, bool) or not (isinstance(v, int) or (isinstance(v, float) and v.is_integer())):
+                raise SpecError(f"{where}.{k} must be an integer, got {v!r}")
+            out[k] = int(v)
+        elif kind == "Boolean":
+            if not isinstance(v, bool):
+                raise SpecError(f"{where}.{k} must be true or false, got {v!r}")
+            out[k] = v
+        else:
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise SpecError(f"{where}.{k} must be a finite number, got {v!r}")
+            out[k] = float(v)
+    return out
+
+
+def _experiment(where: str, d: dict[str, Any], role: str) -> Experiment:
+    if not isinstance(d, dict):
+        raise SpecError(f"{where} must be a table")
+    for req in ("name", "signal", "duration"):
+        if req not in d:
+            raise SpecError(f"{where} is missing {req!r}")
+    signal = d["signal"]
+    kinds = (*SIGNAL_KINDS, "comb")
+    if signal not in kinds:
+        raise SpecError(f"{where}.signal {signal!r} unknown; valid: {', '.join(kinds)}")
+    params = {k: v for k, v in d.items() if k not in EXPERIMENT_KEYS}
+    if signal == "comb":
+        _check_keys(f"{where} (comb)", params, COMB_PARAMS)
+    duration = d["duration"]
+    if not isinstance(duration, (int, float)) or not duration > 0:
+        raise SpecError(f"{where}.duration must be a positive number of seconds")
+    return Experiment(
+        name=str(d["name"]),
+        signal=signal,
+        duration=float(duration),
+        params=params,
+        plant=_check_params(f"{where}.plant", "flexjoint", d.get("plant", {})),
+        daq=_check_params(f"{where}.daq", "daq", d.get("daq", {})),
+        role=str(d.get("role", role)),
+    )
+
+
+def parse_value(text: str) -> Any:
+    """Parse a ``--set`` value as a TOML literal (number, bool, string, array); bare words are strings."""
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def apply_overrides(raw: dict[str, Any], overrides: list[str]) -> dict[str, Any]:
+    """Apply ``table.name=value`` overrides (``--set plant.backlash=0.004``) to a raw spec dict."""
+    raw = copy.deepcopy(raw)
+    for item in overrides:
+        if "=" not in item or "." not in item.split("=", 1)[0]:
+            raise SpecError(f"--set {item!r}: expected table.name=value, e.g. plant.backlash=0.004")
+        key, value = item.split("=", 1)
+        table, name = key.strip().split(".", 1)
+        if table not in ("campaign", "plant", "daq", "identify", "accept"):
+            raise SpecError(f"--set {item!r}: table must be one of campaign, plant, daq, identify, accept")
+        raw.setdefault(table, {})[name.strip()] = parse_value(value.strip())
+    return raw
+
+
+def from_dict(raw: dict[str, Any], path: str = "") -> Spec:
+    """Validate a raw spec dict (as read from TOML) into a :class:`Spec`."""
+    _check_keys("spec", raw, {"campaign", "plant", "daq", "calibration", "experiment", "identify", "accept"})
+    camp = raw.get("campaign", {})
+    _check_keys("[campaign]", camp, CAMPAIGN_KEYS)
+    rate = camp.get("sample_rate", 50.0)
+    if not isinstance(rate, (int, float)) or not rate > 0:
+        raise SpecError("[campaign].sample_rate must be a positive number of Hz")
+    internal = camp.get("internal_step", 1e-3)
+    if not isinstance(internal, (int, float)) or not internal > 0:
+        raise SpecError("[campaign].internal_step must be a positive number of seconds")
+    seed = camp.get("seed", 0)
+    if not isinstance(seed, int) or isinstance(seed, bool) or seed < 0:
+        raise SpecError("[campaign].seed must be a non-negative integer")
+    plant = _check_params("[plant]", "flexjoint", raw.get("plant", {}))
+    daq = _check_params("[daq]", "daq", raw.get("daq", {}))
+    cal = [_experiment(f"[[calibration]] #{i + 1}", d, "calibration") for i, d in enumerate(raw.get("calibration", []))]
+    exps = [
+        _experiment(f"[[experiment]] #{i + 1}", d, "identification") for i, d in enumerate(raw.get("experiment", []))
+    ]
+    if not exps:
+        raise SpecError("spec has no [[experiment]]")
+    names = [e.name for e in (*cal, *exps)]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise SpecError(f"duplicate experiment name(s): {', '.join(dup)}")
+    identify = dict(IDENTIFY_DEFAULTS)
+    _check_keys("[identify]", raw.get("identify", {}), IDENTIFY_DEFAULTS)
+    identify.update(raw.get("identify", {}))
+    accept = dict(ACCEPT_DEFAULTS)
+    _check_keys("[accept]", raw.get("accept", {}), ACCEPT_DEFAULTS)
+    accept.update(raw.get("accept", {}))
+    spec = Spec(
+        name=str(camp.get("name", Path(path).stem or "campaign")),
+        sample_rate=float(rate),
+        seed=seed,
+        internal_step=float(internal),
+        plant=plant,
+        daq=daq,
+        calibration=cal,
+        experiments=exps,
+        identify=identify,
+        accept=accept,
+        raw=raw,
+        path=path,
+    )
+    for e in spec.all_experiments():
+        if e.signal != "comb":
+            try:
+                check_params(e.signal, spec.Ts, e.params)
+            except ValueError as err:
+                raise SpecError(f"experiment {e.name!r}: {err}") from None
+    return spec
+
+
+def resolve_path(spec: str | Path) -> Path:
+    """A spec path, or a bare name looked up in the project's ``specs/`` (``lab`` -> specs/lab.toml)."""
+    p = Path(spec)
+    if p.exists():
+        return p
+    for cand in (SPEC_DIR / p, SPEC_DIR / f"{p}.toml"):
+        if cand.exists():
+            return cand
+    raise SpecError(f"spec {spec} not found (looked in . and {SPEC_DIR})")
+
+
+def load(spec: str | Path, overrides: list[str] | None = None) -> Spec:
+    """Read, override and validate a spec file."""
+    path = resolve_path(spec)
+    try:
+        raw = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as err:
+        raise SpecError(f"{path}: malformed TOML: {err}") from None
+    return from_dict(apply_overrides(raw, overrides or []), str(path))

@@ -1,0 +1,63 @@
+"""Datasets: Parquet round trip, byte-stable writes, CSV import with clear rejections."""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from harness import data
+
+
+def _csv(path, n=100, Ts=0.02, **overrides):
+    t = np.arange(n) * Ts
+    df = pd.DataFrame({"t": t, "u": np.sin(t), "theta_v": 0.1 * t, "alpha_v": np.cos(t)})
+    for k, v in overrides.items():
+        if v is None:
+            df = df.drop(columns=k)
+        else:
+            df[k] = v
+    df.to_csv(path, index=False)
+    return path
+
+
+def test_write_dataset_is_byte_stable_and_round_trips(tmp_path):
+    cols = {"t": np.arange(50) * 0.02, "u": np.linspace(-1, 1, 50), "theta_v": np.zeros(50), "alpha_v": np.ones(50)}
+    data.write_dataset(tmp_path / "a.parquet", cols)
+    data.write_dataset(tmp_path / "b.parquet", cols)
+    assert (tmp_path / "a.parquet").read_bytes() == (tmp_path / "b.parquet").read_bytes()
+    df = data.read_dataset(tmp_path / "a.parquet")
+    np.testing.assert_array_equal(df["u"].to_numpy(), cols["u"])
+    assert data.sample_time(df) == pytest.approx(0.02)
+
+
+def test_import_csv_writes_run_layout(tmp_path):
+    src = _csv(tmp_path / "rig1.csv")
+    out = tmp_path / "run"
+    written = data.import_csv([src], out)
+    assert written == [out / "data" / "rig1.parquet"]
+    runs = data.load_run(out)
+    assert list(runs) == ["rig1"] and len(runs["rig1"]) == 100
+    assert data.load_manifest(out)["kind"] == "import"
+
+
+@pytest.mark.parametrize(
+    "overrides, message",
+    [
+        ({"alpha_v": None}, "missing column"),
+        ({"u": [np.nan] + [0.0] * 99}, "NaN"),
+        ({"t": np.r_[np.arange(50) * 0.02, 1.0 + np.arange(50) * 0.03]}, "non-uniform sampling"),
+        ({"t": np.r_[np.arange(50) * 0.02, np.arange(50) * 0.02]}, "not strictly increasing"),
+    ],
+)
+def test_import_rejects_bad_files_without_writing(tmp_path, overrides, message):
+    good = _csv(tmp_path / "good.csv")
+    bad = _csv(tmp_path / "bad.csv", **overrides)
+    out = tmp_path / "run"
+    with pytest.raises(data.DataError, match=message) as exc:
+        data.import_csv([good, bad], out)
+    assert "\n" not in str(exc.value)
+    assert not out.exists()  # nothing half-written
+
+
+def test_write_json_is_stable_and_nan_safe(tmp_path):
+    data.write_json(tmp_path / "x.json", {"b": np.float64(np.nan), "a": np.arange(3)})
+    assert (tmp_path / "x.json").read_text() == '{\n  "a": [\n    0,\n    1,\n    2\n  ],\n  "b": null\n}\n'
