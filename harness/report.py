@@ -1,0 +1,844 @@
+"""``report.md`` and ``figures/*.png`` of a run directory, written from the run directory alone.
+
+Also the loader of a run's results (:func:`load_results`) shared with :mod:`harness.viewer`: datasets in the
+identification domain (detrended command u_d [V], filtered difference y_f = H(z) y [deg/sample] of the tip
+angle y [deg]), the identified models, grid, cross-fit matrix, diagnosis and doubled-rate check.
+
+Figures are drawn with matplotlib's Agg canvas (no pyplot, no global backend change) at a fixed dpi and with
+no software/date metadata, so the same run directory gives the same bytes on the same library versions.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from scipy.signal import lfilter
+
+from . import armax, lti
+from .calibration import Calibration
+from .data import DataError, atomic_write_bytes, load_manifest, load_run
+from .identify import Prepared, prepare
+from .preprocess import filter_response
+from .spec import IDENTIFY_DEFAULTS
+
+__all__ = [
+    "DPI",
+    "SEED_CALIBRATION",
+    "RunResults",
+    "bode",
+    "crossfit_table",
+    "gap_rows",
+    "load_results",
+    "pole_zero",
+    "tip_from_filtered",
+    "write_report",
+]
+
+DPI = 100
+# Seed 000 (section 2): Kp = 360 / (5.0635 + 5.0732) deg/V, Ke = -3.3636 deg/V, dead zone 0.3369 V
+SEED_CALIBRATION = {"Kp": 35.5145, "Ke": -3.3636, "dead_zone_v": 0.3369}
+FILTER_AFS = (0.6, 0.8, 0.9)
+RESID_LAGS = 25
+GRID_COLUMNS = ("dataset", "na", "nb", "nc", "nk", "causal", "stable", "fit")
+PZ_VIEW_MAX = 2.5  # half-width of the pole-zero plot; farther roots are listed on it instead
+SQUARE_HZ, SQUARE_V, SQUARE_PERIODS = 0.4, 1.0, 3  # square-wave test input of the selected model
+
+
+# ----------------------------------------------------------------------------------------------- loading
+@dataclass
+class RunResults:
+    """What a run directory holds, loaded once.
+
+    ``prepared``: identification datasets (u_d [V], y_f [deg/sample], y [deg], u [V], Ts [s]), manifest order;
+    ``models``: name -> (ArmaxModel, JSON record) for ``models/<dataset>.json`` and ``models/selected.json``;
+    ``simulated``: dataset -> y_f simulated by the selected model (ic of its preprocessing record);
+    ``crossfit``: models x datasets fit [%] (no average column), ``crossfit_source`` where it came from.
+    """
+
+    run: Path
+    manifest: dict[str, Any]
+    calibration: Calibration | None = None
+    calibration_file: dict[str, Any] | None = None
+    prepared: dict[str, Prepared] = field(default_factory=dict)
+    models: dict[str, tuple[armax.ArmaxModel, dict[str, Any]]] = field(default_factory=dict)
+    simulated: dict[str, np.ndarray] = field(default_factory=dict)
+    grid: pd.DataFrame | None = None
+    crossfit: pd.DataFrame | None = None
+    crossfit_csv_average: pd.Series | None = None
+    crossfit_source: str = ""
+    diagnosis: dict[str, Any] | None = None
+    doubled_rate: dict[str, Any] | None = None
+    af: float = float(IDENTIFY_DEFAULTS["af"])
+    ic: str = str(IDENTIFY_DEFAULTS["ic"])
+
+    @property
+    def selected(self) -> tuple[armax.ArmaxModel, dict[str, Any]] | None:
+        """The selected model and its record, or None before identification."""
+        return self.models.get("selected")
+
+    @property
+    def sample_time(self) -> float:
+        """Sampling period Ts [s]: from the data, else the manifest's sample_rate, else 1 s."""
+        if self.prepared:
+            return next(iter(self.prepared.values())).Ts
+        rate = self.manifest.get("sample_rate")
+        return 1.0 / float(rate) if rate else 1.0
+
+
+def _read_json(path: Path) -> dict[str, Any] | None:
+    if not path.exists():
+        return None
+    try:
+        obj = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: not valid JSON ({exc.msg}, line {exc.lineno})") from None
+    if not isinstance(obj, dict):
+        raise ValueError(f"{path}: expected a JSON object")
+    return obj
+
+
+CalPair = tuple[Calibration | None, dict[str, Any] | None]
+
+
+def _calibration(run: Path, record: dict[str, Any] | None) -> CalPair:
+    """The calibration the models were fitted with (model record), else ``calibration.json``."""
+    raw = _read_json(run / "calibration.json")
+    file_cal = None
+    if raw is not None:
+        file_cal = Calibration.from_json(run / "calibration.json")
+    if record and isinstance(record.get("calibration"), dict):
+        c = record["calibration"]
+        base = file_cal or Calibration(Kp=c["Kp"], Ke=c["Ke"])
+        return (
+            Calibration(
+                Kp=c.get("Kp", base.Kp),
+                Ke=c.get("Ke", base.Ke),
+                gauge_offset_v=c.get("gauge_offset_v", base.gauge_offset_v),
+                pot_offset_v=c.get("pot_offset_v", base.pot_offset_v),
+                dead_zone_v=base.dead_zone_v,
+            ),
+            raw,
+        )
+    return file_cal, raw
+
+
+def load_results(run: Path) -> RunResults:
+    """Load everything :func:`write_report` and :func:`harness.viewer.log_run` need from a run directory."""
+    run = Path(run)
+    if not run.is_dir():
+        raise DataError(f"{run}: no such run directory")
+    res = RunResults(run=run, manifest=load_manifest(run))
+    exps = res.manifest.get("experiments", [])
+    names = [e["name"] for e in exps if e.get("role", "identification") == "identification"]
+    for name in [*names, "selected"]:
+        p = run / "models" / f"{name}.json"
+        rec = _read_json(p)
+        if rec is not None:
+            try:
+                res.models[name] = (armax.ArmaxModel.from_dict(rec), rec)
+            except ValueError as exc:
+                raise ValueError(f"{p}: {exc}") from None
+    sel = res.models.get("selected")
+    sel_rec = sel[1] if sel else None
+    if sel_rec:
+        pre = sel_rec.get("preprocessing", {})
+        res.af = float(pre.get("af", res.af))
+        res.ic = str(pre.get("ic", res.ic))
+    res.calibration, res.calibration_file = _calibration(run, sel_rec)
+    if names and res.calibration is not None:
+        output = str((sel_rec or {}).get("preprocessing", {}).get("output", "y"))
+        res.prepared = prepare(load_run(run, role="identification"), res.calibration, res.af, output)
+    if sel is not None:
+        model = sel[0]
+        for name, p in res.prepared.items():
+            if model.stable:
+                res.simulated[name] = armax.simulate(model, p.u_d, p.y_f, res.ic)
+    if (run / "grid.csv").exists():
+        res.grid = pd.read_csv(run / "grid.csv")
+        missing = [c for c in GRID_COLUMNS if c not in res.grid.columns]
+        if missing:
+            raise ValueError(f"{run / 'grid.csv'}: missing column(s) {', '.join(missing)}")
+    _load_crossfit(res)
+    res.diagnosis = _read_json(run / "diagnosis.json")
+    res.doubled_rate = _read_json(run / "doubled_rate.json")
+    return res
+
+
+def _load_crossfit(res: RunResults) -> None:
+    path = res.run / "crossfit.csv"
+    if path.exists():
+        df = pd.read_csv(path)
+        if "model" not in df.columns:
+            raise ValueError(f"{path}: first column must be 'model', got {list(df.columns)[:1]}")
+        df = df.set_index("model")
+        df.index = df.index.astype(str)
+        if "average" in df.columns:
+            res.crossfit_csv_average = df.pop("average").astype(float)
+        res.crossfit = df.astype(float)
+        res.crossfit_source = "crossfit.csv"
+        return
+    rows = {}
+    for name, (_, rec) in res.models.items():
+        if isinstance(rec.get("cv"), dict) and rec["cv"]:
+            rows[name] = {k: (math.nan if v is None else float(v)) for k, v in rec["cv"].items()}
+    if rows:
+        res.crossfit = pd.DataFrame.from_dict(rows, orient="index")
+        res.crossfit.index.name = "model"
+        res.crossfit_source = "models/*.json cv (Python-side simulation; crossfit.csv not written yet)"
+
+
+# ----------------------------------------------------------------------------------------------- model views
+def pole_zero(model: armax.ArmaxModel, af: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """(poles, zeros) in the z-plane of G = B/A / H(z) (``lti.with_integrator``), zeros at 0 included."""
+    g = lti.with_integrator(model, af)
+    return lti.poles(g), lti.zeros(g)
+
+
+def bode(model: armax.ArmaxModel, af: float | None, f_hz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Magnitude [dB] and unwrapped phase [deg] of G = B/A / H(z) (u [V] -> tip angle [deg]) at f_hz [Hz]."""
+    d = lti.bode_data(lti.with_integrator(model, af), f_hz)
+    return d.mag_db, d.phase_deg
+
+
+def tip_from_filtered(y_f: np.ndarray, af: float, y0: float = 0.0) -> np.ndarray:
+    """Invert H(z): the angle [deg] whose filtered difference is ``y_f``, starting at rest at ``y0`` [deg]."""
+    return y0 + lfilter([1.0, -af], [1.0 - af, -(1.0 - af)], np.asarray(y_f, dtype=float))
+
+
+def _bode_grid(Ts: float, n: int = 300) -> np.ndarray:
+    """Log-spaced frequencies [Hz] from 0.01 Hz (or 1e-3 of Nyquist) up to 0.999 Nyquist."""
+    nyq = 0.5 / Ts
+    return np.logspace(math.log10(min(0.01, 1e-3 * nyq)), math.log10(0.999 * nyq), n)
+
+
+# ----------------------------------------------------------------------------------------------- formatting
+def _fmt(x: Any, nd: int = 2) -> str:
+    if x is None:
+        return "—"
+    if isinstance(x, bool | np.bool_):
+        return "yes" if x else "no"
+    if isinstance(x, int | np.integer):
+        return str(int(x))
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        return str(x)
+    if not math.isfinite(v):
+        return "—"
+    s = f"{v:.{nd}f}"
+    return s[1:] if s.startswith("-") and float(s) == 0.0 else s  # no "-0.00"
+
+
+def _fmt_any(x: Any) -> str:
+    """Compact rendering of a JSON value for a table cell (floats to 4 significant digits)."""
+    if isinstance(x, float):
+        return "—" if not math.isfinite(x) else f"{x:.4g}"
+    if isinstance(x, dict):
+        return ", ".join(
+            f"{k}={{{_fmt_any(v)}}}" if isinstance(v, dict) else f"{k}={_fmt_any(v)}" for k, v in x.items()
+        )
+    if isinstance(x, list):
+        return "[" + ", ".join(_fmt_any(v) for v in x) + "]"
+    return "—" if x is None else str(x)
+
+
+def _vec(x: np.ndarray) -> str:
+    return np.array2string(np.asarray(x, dtype=float), precision=6, max_line_width=100, suppress_small=False)
+
+
+def _table(header: list[str], rows: list[list[str]]) -> list[str]:
+    out = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    out += ["| " + " | ".join(c.replace("|", "\\|") for c in r) + " |" for r in rows]
+    return out
+
+
+def _orders(rec: dict[str, Any]) -> str:
+    return f"({rec['na']},{rec['nb']},{rec['nc']},{rec['nk']})"
+
+
+# ----------------------------------------------------------------------------------------------- figures
+def _new_figure(w: float, h: float) -> Figure:
+    fig = Figure(figsize=(w, h), dpi=DPI)
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _write(path: Path, data: bytes) -> None:
+    """Atomic write (temp file + rename), then the usual 0644 mode instead of the temp file's 0600."""
+    atomic_write_bytes(path, data)
+    os.chmod(path, 0o644)  # mkstemp made it 0600
+
+
+def _save(fig: Figure, path: Path) -> None:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=DPI, metadata={"Software": None})
+    _write(path, buf.getvalue())
+
+
+def _fig_filter(res: RunResults, path: Path) -> None:
+    Ts = res.sample_time
+    f = _bode_grid(Ts)
+    fig = _new_figure(7, 5)
+    ax_m, ax_p = fig.subplots(2, 1, sharex=True)
+    for af in FILTER_AFS:
+        mag, ph = filter_response(af, f, Ts)
+        ax_m.semilogx(f, 20 * np.log10(mag), label=f"af = {af:g}")
+        ax_p.semilogx(f, np.degrees(ph))
+    ax_m.set_ylabel("magnitude [dB]")
+    ax_p.set_ylabel("phase [deg]")
+    ax_p.set_xlabel("frequency [Hz]")
+    ax_m.set_title(f"H(z) = (1-af)(z-1)/(z-af), Ts = {Ts:g} s")
+    ax_m.legend()
+    for ax in (ax_m, ax_p):
+        ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    _save(fig, path)
+
+
+def _fig_bode(res: RunResults, path: Path) -> None:
+    Ts = res.sample_time
+    f = _bode_grid(Ts)
+    fig = _new_figure(7, 5.5)
+    ax_m, ax_p = fig.subplots(2, 1, sharex=True)
+    for name, (m, _) in res.models.items():
+        if name == "selected":
+            continue
+        mag, ph = bode(m, res.af, f)
+        ax_m.semilogx(f, mag, color="0.7", lw=0.8)
+        ax_p.semilogx(f, ph, color="0.7", lw=0.8)
+    m, rec = res.models["selected"]
+    mag, ph = bode(m, res.af, f)
+    ax_m.semilogx(f, mag, color="C0", lw=2, label=f"selected {_orders(rec)}")
+    ax_p.semilogx(f, ph, color="C0", lw=2)
+    ax_m.plot([], [], color="0.7", label="per-dataset models")
+    ax_m.set_ylabel("magnitude [dB]")
+    ax_p.set_ylabel("phase [deg]")
+    ax_p.set_xlabel("frequency [Hz]")
+    ax_m.set_title("Bode of G = B/A / H(z): command u [V] to tip angle y [deg]")
+    ax_m.legend()
+    for ax in (ax_m, ax_p):
+        ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    _save(fig, path)
+
+
+def _fig_pz(res: RunResults, path: Path) -> None:
+    poles, zeros = pole_zero(res.models["selected"][0], res.af)
+    fig = _new_figure(5.5, 5.5)
+    ax = fig.subplots()
+    th = np.linspace(0, 2 * math.pi, 361)
+    ax.plot(np.cos(th), np.sin(th), color="0.5", lw=0.8)
+    ax.axhline(0, color="0.8", lw=0.6)
+    ax.axvline(0, color="0.8", lw=0.6)
+    ax.plot(poles.real, poles.imag, "x", color="C3", ms=9, mew=2, label=f"poles ({poles.size})")
+    ax.plot(zeros.real, zeros.imag, "o", mfc="none", color="C0", ms=8, mew=1.5, label=f"zeros ({zeros.size})")
+    both = np.concatenate([poles, zeros])
+    lim = float(np.clip(1.1 * np.max(np.abs(both), initial=1.0), 1.3, PZ_VIEW_MAX))
+    far = [
+        f"{kind} at {_fmt(x.real, 2)}{x.imag:+.2f}j"
+        for kind, xs in (("pole", poles), ("zero", zeros))
+        for x in xs
+        if abs(x.real) > lim or abs(x.imag) > lim
+    ]
+    if far:
+        ax.text(0.98, 0.02, "off view: " + ", ".join(far), transform=ax.transAxes, ha="right", fontsize=8)
+    ax.set_xlim(-lim, lim)
+    ax.set_ylim(-lim, lim)
+    ax.set_aspect("equal")
+    ax.set_xlabel("Re z")
+    ax.set_ylabel("Im z")
+    ax.set_title("pole-zero map of the selected model (with integrator)")
+    ax.legend(loc="upper left")
+    fig.tight_layout()
+    _save(fig, path)
+
+
+def _fig_time(res: RunResults, path: Path) -> None:
+    names = list(res.prepared)
+    ncol = 3 if len(names) > 4 else min(2, len(names))
+    nrow = math.ceil(len(names) / ncol)
+    fig = _new_figure(4.2 * ncol, 2.6 * nrow)
+    axes = np.atleast_1d(fig.subplots(nrow, ncol, squeeze=False)).ravel()
+    for ax, name in zip(axes, names, strict=False):
+        p = res.prepared[name]
+        t = np.arange(p.y_f.size) * p.Ts
+        ax.plot(t, p.y_f, color="k", lw=0.8, label="measured")
+        if name in res.simulated:
+            ax.plot(t, res.simulated[name], color="C1", lw=0.8, label="simulated")
+            fit = armax.fit_percent(p.y_f, res.simulated[name])
+            ax.set_title(f"{name}: fit {_fmt(fit)} %", fontsize=9)
+        else:
+            ax.set_title(name, fontsize=9)
+        ax.set_xlabel("t [s]", fontsize=8)
+        ax.set_ylabel("y_f [deg/sample]", fontsize=8)
+        ax.tick_params(labelsize=7)
+    for ax in axes[len(names) :]:
+        ax.set_visible(False)
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    _save(fig, path)
+
+
+def _fig_square(res: RunResults, path: Path) -> tuple[float, float]:
+    g = lti.with_integrator(res.models["selected"][0], res.af)
+    t, u, y = lti.square_response(g, SQUARE_HZ, SQUARE_V, SQUARE_PERIODS / SQUARE_HZ)
+    fig = _new_figure(7, 4)
+    ax1, ax2 = fig.subplots(2, 1, sharex=True)
+    ax1.plot(t, u, color="k", lw=1)
+    ax1.set_ylabel("u [V]")
+    ax2.plot(t, y, color="C0", lw=1.2)
+    ax2.set_ylabel("tip angle y [deg]")
+    ax2.set_xlabel("t [s]")
+    ax1.set_title(f"square-wave response of G = B/A / H(z) ({SQUARE_V:g} V, {SQUARE_HZ:g} Hz)")
+    for ax in (ax1, ax2):
+        ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    _save(fig, path)
+    return float(np.min(y)), float(np.max(y))
+
+
+def _fig_resid(rt: armax.ResidTest, title: str, path: Path) -> None:
+    fig = _new_figure(7, 5)
+    ax1, ax2 = fig.subplots(2, 1)
+    lags = np.arange(rt.acf.size)
+    ax1.vlines(lags, 0, rt.acf, color="C0")
+    ax1.plot(lags, rt.acf, "o", color="C0", ms=3)
+    ax2.vlines(rt.lags_ccf, 0, rt.ccf, color="C2")
+    ax2.plot(rt.lags_ccf, rt.ccf, "o", color="C2", ms=3)
+    for ax, x in ((ax1, lags), (ax2, rt.lags_ccf)):
+        ax.fill_between(x, -rt.bound, rt.bound, color="C3", alpha=0.15, label="99 % bound")
+        ax.axhline(0, color="0.5", lw=0.6)
+    ax1.set_title(title, fontsize=10)
+    ax1.set_ylabel("r_ee(k) / r_ee(0)")
+    ax1.set_xlabel("lag k")
+    ax2.set_ylabel("r_eu(k), normalised")
+    ax2.set_xlabel("lag k")
+    ax1.legend(fontsize=8)
+    fig.tight_layout()
+    _save(fig, path)
+
+
+def _fig_crossfit(cf: pd.DataFrame, path: Path) -> None:
+    vals = cf.to_numpy(dtype=float)
+    fig = _new_figure(1.2 + 0.75 * vals.shape[1], 1.0 + 0.45 * vals.shape[0])
+    ax = fig.subplots()
+    im = ax.imshow(np.where(np.isfinite(vals), vals, np.nan), cmap="viridis", aspect="auto")
+    ax.set_xticks(range(vals.shape[1]), [str(i + 1) for i in range(vals.shape[1])])
+    ax.set_yticks(range(vals.shape[0]), list(cf.index))
+    ax.set_xlabel("dataset")
+    for i in range(vals.shape[0]):
+        for j in range(vals.shape[1]):
+            ax.text(j, i, _fmt(vals[i, j], 1), ha="center", va="center", fontsize=7, color="w")
+    fig.colorbar(im, ax=ax, label="fit [%]")
+    ax.set_title("cross-fit: model (row) on dataset (column)")
+    fig.tight_layout()
+    _save(fig, path)
+
+
+def _flatten(x: Any, prefix: str = "") -> dict[str, float]:
+    """Numeric leaves of nested dicts as {"a/b": value}."""
+    if isinstance(x, dict):
+        out: dict[str, float] = {}
+        for k, v in x.items():
+            out.update(_flatten(v, f"{prefix}/{k}" if prefix else str(k)))
+        return out
+    if isinstance(x, int | float) and not isinstance(x, bool):
+        return {prefix or "value": float(x)}
+    return {}
+
+
+def _paired(label: str, before: Any, after: Any) -> list[tuple[str, float, float]]:
+    b, a = _flatten(before), _flatten(after)
+    return [(label if k == "value" else f"{label}: {k}", b[k], a[k]) for k in b if k in a]
+
+
+def gap_rows(diag: dict[str, Any]) -> list[tuple[str, float, float]]:
+    """(label, before, after) pairs from ``diagnosis.json``: each effect's ``gap_before``/``gap_after``
+    (numbers or per-experiment dicts), then the overall ``gap`` {"before": .., "after": ..}, leaf by leaf."""
+    out: list[tuple[str, float, float]] = []
+    for e in diag.get("effects", []) or []:
+        if isinstance(e, dict) and ("gap_before" in e or "gap_after" in e):
+            out += _paired(str(e.get("effect", "?")), e.get("gap_before"), e.get("gap_after"))
+    gap = diag.get("gap")
+    if isinstance(gap, dict) and isinstance(gap.get("before"), dict) and isinstance(gap.get("after"), dict):
+        out += _paired("total", gap["before"], gap["after"])
+    return out
+
+
+def _same(a: float, b: float, tol: float = 0.005) -> bool:
+    return (math.isnan(a) and math.isnan(b)) or abs(a - b) <= tol
+
+
+def _num(x: Any) -> float:
+    try:
+        return float(x)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def _fig_diagnosis(rows: list[tuple[str, float, float]], path: Path) -> None:
+    fig = _new_figure(max(5.0, 0.9 * len(rows) + 2), 4)
+    ax = fig.subplots()
+    x = np.arange(len(rows))
+    ax.bar(x - 0.2, [r[1] for r in rows], 0.4, label="gap before")
+    ax.bar(x + 0.2, [r[2] for r in rows], 0.4, label="gap after")
+    ax.set_xticks(x, [r[0] for r in rows], rotation=30, ha="right", fontsize=8)
+    ax.set_ylabel("gap")
+    ax.set_title("sim-to-real gap before / after modelling each effect")
+    ax.legend()
+    fig.tight_layout()
+    _save(fig, path)
+
+
+# ----------------------------------------------------------------------------------------------- sections
+def _section_header(res: RunResults) -> list[str]:
+    m = res.manifest
+    spec = m.get("spec", {}) or {}
+    camp = (spec.get("campaign", {}) or {}) if isinstance(spec, dict) else {}
+    name = camp.get("name", m.get("spec_file", ""))
+    lines = [f"# flexjoint run report: {name or res.run.name}", ""]
+    rows = [
+        ["kind", str(m.get("kind", "—"))],
+        ["spec sha256", f"`{m['spec_sha256']}`" if m.get("spec_sha256") else "—"],
+        ["seed", _fmt_any(m.get("seed"))],
+        ["sample rate [Hz]", _fmt_any(m.get("sample_rate"))],
+        ["experiments", str(len(m.get("experiments", [])))],
+        ["identification datasets", ", ".join(res.prepared) or "—"],
+    ]
+    for k, v in sorted((m.get("versions") or {}).items()):
+        rows.append([f"version {k}", str(v)])
+    return [*lines, *_table(["item", "value"], rows), ""]
+
+
+def _section_calibration(res: RunResults) -> list[str]:
+    lines = ["## Calibration", ""]
+    cal = res.calibration
+    if cal is None:
+        return [*lines, "No `calibration.json` in this run.", ""]
+    rows = []
+    for key, label, unit in (("Kp", "Kp", "deg/V"), ("Ke", "Ke", "deg/V"), ("dead_zone_v", "dead zone", "V")):
+        v = float(getattr(cal, key))
+        s = SEED_CALIBRATION[key]
+        diff = 100.0 * (v - s) / abs(s) if math.isfinite(v) else math.nan
+        rows.append([label, unit, _fmt(v, 4), _fmt(s, 4), _fmt(diff, 2)])
+    rows.append(["gauge offset", "V", _fmt(cal.gauge_offset_v, 4), "—", "—"])
+    rows.append(["pot offset", "V", _fmt(cal.pot_offset_v, 4), "—", "—"])
+    lines += _table(["quantity", "unit", "this run", "seed 000", "difference [%]"], rows)
+    src = (res.calibration_file or {}).get("source") or {}
+    methods = [f"- {k}: {v['method']}" for k, v in src.items() if isinstance(v, dict) and "method" in v]
+    if methods:
+        lines += ["", "Methods:", "", *methods]
+    return [*lines, ""]
+
+
+def _section_filter(res: RunResults, figdir: Path) -> list[str]:
+    _fig_filter(res, figdir / "filter_response.png")
+    Ts = res.sample_time
+    rows = []
+    for af in FILTER_AFS:
+        fc = -math.log(af) / (2 * math.pi * Ts)
+        rows.append([f"{af:g}", _fmt(fc, 3), _fmt(2 * (1 - af) / (1 + af), 4)])
+    return [
+        "## Preprocessing filter",
+        "",
+        f"H(z) = (1 - af)(z - 1)/(z - af): differentiation and low-pass in one; af = {res.af:g} used here.",
+        "",
+        *_table(["af", "pole frequency -ln(af)/(2 pi Ts) [Hz]", "gain at Nyquist"], rows),
+        "",
+        "![filter responses](figures/filter_response.png)",
+        "",
+    ]
+
+
+def _threshold(res: RunResults) -> float:
+    spec = res.manifest.get("spec") or {}
+    ident = spec.get("identify", {}) if isinstance(spec, dict) else {}
+    return float(ident.get("fit_threshold", IDENTIFY_DEFAULTS["fit_threshold"]))
+
+
+def _section_grid(res: RunResults) -> list[str]:
+    lines = ["## ARMAX grid and selection", ""]
+    g = res.grid
+    if g is not None and len(g):
+        thr = _threshold(res)
+        causal = g["causal"].astype(bool)
+        stable = g["stable"].astype(bool) & causal
+        above = stable & (pd.to_numeric(g["fit"], errors="coerce") >= thr)
+        survivors = g["survivor"].astype(bool) if "survivor" in g else above
+        rows = [
+            ["order combinations x datasets", str(len(g))],
+            ["datasets", str(g["dataset"].nunique())],
+            ["causal (nb + nk <= na), fitted", str(int(causal.sum()))],
+            ["stable", str(int(stable.sum()))],
+            [f"fit >= {thr:g} % on own dataset", str(int(above.sum()))],
+            ["survivors (cross-validated on all datasets)", str(int(survivors.sum()))],
+        ]
+        lines += _table(["grid", "count"], rows) + [""]
+    else:
+        lines += ["No `grid.csv` in this run.", ""]
+    sel = res.selected
+    if sel is None:
+        return [*lines, "No selected model (`models/selected.json`) yet.", ""]
+    m, rec = sel
+    lines += [
+        f"Selected model: ARMAX (na, nb, nc, nk) = {_orders(rec)}, trained on `{rec.get('dataset', '?')}`, "
+        f"fit on own dataset {_fmt(rec.get('fit_own'))} %, "
+        f"mean cross-validation fit {_fmt(rec.get('cv_mean'))} %.",
+        "",
+        f"Selection rule: {rec.get('selection_rule', '—')}",
+        "",
+    ]
+    per = [(n, r) for n, (_, r) in res.models.items() if n != "selected"]
+    if per:
+        rows = [[n, _orders(r), _fmt(r.get("fit_own")), _fmt(r.get("cv_mean"))] for n, r in per]
+        lines += ["Best model per dataset:", ""]
+        lines += _table(["dataset", "(na,nb,nc,nk)", "fit own [%]", "mean CV fit [%]"], rows) + [""]
+    lines += [
+        "Coefficients (full precision in `models/selected.json`):",
+        "",
+        "```",
+        f"A = {_vec(m.A)}",
+        f"B = {_vec(m.B)}",
+        f"C = {_vec(m.C)}",
+        "```",
+        "",
+    ]
+    return lines
+
+
+def crossfit_table(res: RunResults) -> list[str]:
+    """Markdown lines of the cross-fit table shaped like seed 000's table 2: models (rows) x datasets
+    (numbered columns) + ``Average``, computed as the row mean (never copied), then a dataset legend."""
+    cf = res.crossfit
+    if cf is None or cf.empty:
+        return ["No cross-fit results yet."]
+    cols = list(cf.columns)
+    avg = cf.to_numpy(dtype=float).mean(axis=1)
+    header = ["Models/Data Sets", *[str(j + 1) for j in range(len(cols))], "Average"]
+    rows = []
+    for i, name in enumerate(cf.index):
+        rec = res.models.get(name, (None, None))[1]
+        label = f"{name} {_orders(rec)}" if rec else name
+        rows.append([label, *[_fmt(v) for v in cf.iloc[i].to_numpy(dtype=float)], _fmt(avg[i])])
+    return [
+        *_table(header, rows),
+        "",
+        "Datasets: " + ", ".join(f"{j + 1} = `{c}`" for j, c in enumerate(cols)) + ".",
+    ]
+
+
+def _section_crossfit(res: RunResults, figdir: Path) -> list[str]:
+    lines = ["## Cross-fit matrix", ""]
+    cf = res.crossfit
+    if cf is None or cf.empty:
+        return [*lines, "No cross-fit results yet.", ""]
+    lines += [
+        f"Fit [%] of each model (row) simulated on each dataset (column); source: {res.crossfit_source}.",
+        "",
+    ]
+    lines += [*crossfit_table(res), ""]
+    if res.crossfit_csv_average is not None:
+        avg = cf.to_numpy(dtype=float).mean(axis=1)
+        bad = [
+            f"`{n}` ({_fmt(res.crossfit_csv_average.get(n))} in the file, {_fmt(a)} computed)"
+            for n, a in zip(cf.index, avg, strict=True)
+            if not _same(float(res.crossfit_csv_average.get(n, math.nan)), float(a))
+        ]
+        if bad:
+            lines += [
+                "Averages in `crossfit.csv` that are not the mean of their row: " + "; ".join(bad) + ".",
+                "",
+            ]
+    _fig_crossfit(cf, figdir / "crossfit.png")
+    return [*lines, "![cross-fit matrix](figures/crossfit.png)", ""]
+
+
+def _section_model(res: RunResults, figdir: Path) -> list[str]:
+    if res.selected is None:
+        return []
+    m, _ = res.selected
+    _fig_bode(res, figdir / "bode_selected.png")
+    _fig_pz(res, figdir / "pz_selected.png")
+    lo, hi = _fig_square(res, figdir / "square_response.png")
+    g = lti.with_integrator(m, res.af)
+    poles, zeros = pole_zero(m, res.af)
+    num = np.asarray(g.num[0][0], dtype=float)
+    den = np.asarray(g.den[0][0], dtype=float)
+    ss = lti.companion_ss(g)
+    rows = [[_fmt(p.real, 4), _fmt(p.imag, 4), _fmt(abs(p), 4)] for p in poles]
+    zrows = [[_fmt(z.real, 4), _fmt(z.imag, 4), _fmt(abs(z), 4)] for z in zeros]
+    nmp = int(np.sum(np.abs(zeros) > 1.0))
+    return [
+        "## Selected model with the integrator",
+        "",
+        f"G(z) = B/A / H(z) with H(z) = (1 - af)(z - 1)/(z - af), af = {res.af:g}: the command u [V] to the",
+        "tip angle y [deg] (`harness.lti.with_integrator`). Coefficients in descending powers of z:",
+        "",
+        "```",
+        f"num = {_vec(num)}",
+        f"den = {_vec(den)}",
+        "```",
+        "",
+        "Companion-form state space x(k+1) = A x(k) + B u(k), y(k) = C x(k) + D u(k) (seed eq. 10),",
+        "B = e1, A with ones on the subdiagonal and first row:",
+        "",
+        "```",
+        f"A[0, :] = {_vec(np.asarray(ss.A)[0])}",
+        f"C       = {_vec(np.asarray(ss.C)[0])}",
+        f"D       = {_vec(np.asarray(ss.D)[0])}",
+        "```",
+        "",
+        f"{poles.size} poles, {zeros.size} zeros ({nmp} outside the unit circle: non-minimum phase).",
+        "",
+        "Poles:",
+        "",
+        *_table(["Re", "Im", "modulus"], rows),
+        "",
+        "Zeros:",
+        "",
+        *_table(["Re", "Im", "modulus"], zrows),
+        "",
+        "![Bode](figures/bode_selected.png)",
+        "",
+        "![pole-zero map](figures/pz_selected.png)",
+        "",
+        f"Square-wave response ({SQUARE_V:g} V, {SQUARE_HZ:g} Hz, {SQUARE_PERIODS} periods, from rest): "
+        f"tip angle from {_fmt(lo, 3)} to {_fmt(hi, 3)} deg.",
+        "",
+        "![square-wave response](figures/square_response.png)",
+        "",
+    ]
+
+
+def _section_time(res: RunResults, figdir: Path) -> list[str]:
+    if not res.prepared:
+        return []
+    _fig_time(res, figdir / "time_responses.png")
+    lines = ["## Time responses per dataset", ""]
+    if res.simulated:
+        rows = []
+        for name, p in res.prepared.items():
+            y = res.simulated.get(name)
+            rows.append([name, _fmt(armax.fit_percent(p.y_f, y)) if y is not None else "—"])
+        lines += [
+            f"Selected model simulated (ic = '{res.ic}') on every dataset, identification domain y_f:",
+            "",
+        ]
+        lines += _table(["dataset", "fit [%]"], rows) + [""]
+    return [*lines, "![time responses](figures/time_responses.png)", ""]
+
+
+def _section_resid(res: RunResults, figdir: Path) -> list[str]:
+    if res.selected is None or not res.prepared:
+        return []
+    m, rec = res.selected
+    rows = []
+    own = rec.get("dataset") if rec.get("dataset") in res.prepared else next(iter(res.prepared))
+    own_test = None
+    for name, p in res.prepared.items():
+        rt = armax.resid(m, p.u_d, p.y_f, lags=min(RESID_LAGS, p.y_f.size // 2 - 1))
+        if name == own:
+            own_test = rt
+        rows.append(
+            [
+                name,
+                f"{rt.n_out_acf}/{rt.lags} (allowed {rt.allowed_acf})",
+                _fmt(rt.white),
+                f"{rt.n_out_ccf}/{rt.lags_ccf.size} (allowed {rt.allowed_ccf})",
+                _fmt(rt.independent),
+            ]
+        )
+    assert own_test is not None
+    _fig_resid(own_test, f"residuals of the selected model on {own}", figdir / "residuals.png")
+    return [
+        "## Residual tests",
+        "",
+        f"One-step prediction errors of the selected model; 99 % bound 2.58/sqrt(N) = "
+        f"{_fmt(own_test.bound, 4)} on `{own}`.",
+        "",
+        *_table(["dataset", "acf lags outside", "white", "ccf lags outside", "independent"], rows),
+        "",
+        "![residual correlations](figures/residuals.png)",
+        "",
+    ]
+
+
+def _section_doubled(res: RunResults) -> list[str]:
+    d = res.doubled_rate
+    if d is None:
+        return []
+    rows = [[str(k), _fmt_any(v)] for k, v in d.items()]
+    return ["## Doubled sampling rate check", "", *_table(["item", "value"], rows), ""]
+
+
+def _section_diagnosis(res: RunResults, figdir: Path) -> list[str]:
+    d = res.diagnosis
+    if d is None:
+        return []
+    lines = ["## Sim-to-real gap diagnosis", "", f"Verdict: **{d.get('verdict', '—')}**", ""]
+    effects = d.get("effects", []) or []
+    if effects:
+        rows = [
+            [
+                str(e.get("effect", "?")),
+                _fmt_any(e.get("params", {})),
+                _fmt_any(e.get("gap_before")),
+                _fmt_any(e.get("gap_after")),
+                _fmt_any(e.get("shrink_pct")),
+            ]
+            for e in effects
+        ]
+        lines += _table(["effect", "fitted parameters", "gap before", "gap after", "shrink [%]"], rows) + [""]
+    where = d.get("where")
+    if isinstance(where, dict) and where:
+        lines += ["Where the gap is:", ""]
+        lines += _table(["domain", "finding"], [[str(k), _fmt_any(v)] for k, v in where.items()]) + [""]
+    rows = [r for r in gap_rows(d) if math.isfinite(r[1]) or math.isfinite(r[2])]
+    if rows:
+        lines += ["Gap before and after modelling the effects:", ""]
+        cells = [[r[0], _fmt_any(r[1]), _fmt_any(r[2])] for r in rows]
+        lines += [*_table(["what", "before", "after"], cells), ""]
+    rest = {k: v for k, v in d.items() if k not in ("effects", "verdict", "where")}
+    if rest:
+        lines += _table(["item", "value"], [[str(k), _fmt_any(v)] for k, v in rest.items()]) + [""]
+    if rows:
+        _fig_diagnosis(rows, figdir / "diagnosis.png")
+        lines += ["![diagnosis](figures/diagnosis.png)", ""]
+    return lines
+
+
+# ----------------------------------------------------------------------------------------------- entry point
+def write_report(run: Path) -> Path:
+    """Write ``<run>/report.md`` and ``<run>/figures/*.png`` from the run directory alone; returns report.md.
+
+    Sections: run header, calibration vs seed 000, preprocessing filter (af = 0.6, 0.8, 0.9), grid summary and
+    selection, cross-fit table (averages computed), selected model with integrator (Bode, pole-zero, square
+    wave), time responses, residual tests, doubled-rate check and diagnosis when their JSON files exist.
+    Every file is written atomically (temp file + rename).
+    """
+    res = load_results(run)
+    figdir = res.run / "figures"
+    figdir.mkdir(parents=True, exist_ok=True)
+    lines = _section_header(res)
+    lines += _section_calibration(res)
+    lines += _section_filter(res, figdir)
+    lines += _section_grid(res)
+    lines += _section_crossfit(res, figdir)
+    lines += _section_model(res, figdir)
+    lines += _section_time(res, figdir)
+    lines += _section_resid(res, figdir)
+    lines += _section_doubled(res)
+    lines += _section_diagnosis(res, figdir)
+    out = res.run / "report.md"
+    _write(out, ("\n".join(lines).rstrip() + "\n").encode())
+    return out

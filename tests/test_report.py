@@ -1,0 +1,246 @@
+"""report.md + figures from a hand-built run directory whose numbers are known independently."""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from scipy.signal import lfilter
+
+from harness import armax
+from harness.data import write_dataset
+from harness.report import load_results, pole_zero, write_report
+
+AF = 0.8
+TS = 0.02
+KP, KE, OFFSET = 35.0, -3.4, 0.1
+NAMES = ("prbs_a", "prbs_b", "square_c")
+N = 600
+
+
+def _truth_model() -> armax.ArmaxModel:
+    return armax.demo_system(TS)  # stable ARMAX(4,3,4,1) at 50 Hz with a non-minimum-phase zero
+
+
+def _input(name: str, rng: np.random.Generator) -> np.ndarray:
+    if name.startswith("square"):
+        t = np.arange(N) * TS
+        return 1.5 * np.where((t * 0.4) % 1.0 < 0.5, 1.0, -1.0)
+    flips = rng.random(N) < 0.1
+    return 1.5 * np.where(np.cumsum(flips) % 2 == 0, 1.0, -1.0)
+
+
+def _record(name: str, m: armax.ArmaxModel, dataset: str, cv: dict[str, float], selected: bool) -> dict:
+    return {
+        "name": name,
+        "dataset": dataset,
+        **m.to_dict(),
+        "fit_own": cv[dataset],
+        "cv": cv,
+        "cv_mean": float(np.mean(list(cv.values()))),
+        "preprocessing": {"af": AF, "output": "y", "detrend": "constant", "ic": "z"},
+        "selected": selected,
+        "selection_rule": "simplest model within 1 fit point of the best mean",
+    }
+
+
+def build_run(root: Path) -> dict:
+    """Write a small synthetic run directory; returns the independent truth (signals, models, crossfit)."""
+    rng = np.random.default_rng(7)
+    true = _truth_model()
+    truth: dict = {"u_d": {}, "y_f": {}, "t": {}, "u": {}, "models": {}}
+    for name in NAMES:
+        u = _input(name, rng)
+        u_d = u - u.mean()
+        e = 0.02 * rng.standard_normal(N)
+        e[0] = 0.0  # y_f[0] = 0: the tip starts at rest, as preprocess(initial="rest") assumes
+        y_f = armax.generate(true, u_d, e)  # the identification-domain output the rig "measured"
+        y = 12.0 + lfilter([1.0, -AF], [1.0 - AF, -(1.0 - AF)], y_f)  # undo H(z): tip angle [deg], at rest
+        alpha_v = OFFSET + 0.05 * np.sin(np.arange(N) * 0.3)
+        theta_v = (y - KE * (alpha_v - OFFSET)) / KP
+        t = np.arange(N) * TS
+        cols = {"t": t, "u": u, "theta_v": theta_v, "alpha_v": alpha_v}
+        write_dataset(root / "data" / f"{name}.parquet", cols)
+        truth["u_d"][name], truth["y_f"][name], truth["t"][name], truth["u"][name] = u_d, y_f, t, u
+    manifest = {
+        "kind": "campaign",
+        "spec": {"campaign": {"name": "synthetic", "sample_rate": 50.0}},
+        "spec_sha256": "5e" * 32,
+        "seed": 1,
+        "sample_rate": 50.0,
+        "fmus": {},
+        "versions": {"numpy": "x"},
+        "experiments": [{"name": n, "role": "identification", "n": N, "seed": 1} for n in NAMES],
+    }
+    (root / "manifest.json").write_text(json.dumps(manifest))
+    cal = {
+        "Kp": KP,
+        "Ke": KE,
+        "gauge_offset_v": OFFSET,
+        "pot_offset_v": 0.0,
+        "dead_zone_v": 0.33,
+        "source": {},
+    }
+    (root / "calibration.json").write_text(json.dumps(cal))
+    u_d, y_f = truth["u_d"], truth["y_f"]
+    models = {n: armax.estimate(u_d[n], y_f[n], 2 + i, 2, 2, 1, Ts=TS) for i, n in enumerate(NAMES)}
+    models["selected"] = true
+    rows = {}
+    for name, m in models.items():
+        cv = {d: armax.compare(m, truth["u_d"][d], truth["y_f"][d]) for d in NAMES}
+        own = NAMES[0] if name == "selected" else name
+        rec = _record(name, m, own, cv, name == "selected")
+        (root / "models").mkdir(exist_ok=True)
+        (root / "models" / f"{name}.json").write_text(json.dumps(rec))
+        rows[name] = cv
+    cf = pd.DataFrame.from_dict(rows, orient="index")[list(NAMES)]
+    avg = cf.mean(axis=1)
+    avg.iloc[1] += 3.0  # a wrong average in the file, like seed table 2 row 4: the report must not copy it
+    cf.insert(len(NAMES), "average", avg)
+    cf.index.name = "model"
+    cf.to_csv(root / "crossfit.csv", float_format="%.6f")
+    grid = pd.DataFrame(
+        {
+            "dataset": ["prbs_a"] * 4,
+            "na": [1, 2, 3, 4],
+            "nb": [2, 2, 2, 3],
+            "nc": [1, 1, 1, 4],
+            "nk": [1] * 4,
+            "causal": [False, True, True, True],
+            "stable": [False, True, True, True],
+            "fit": [math.nan, 70.0, 92.0, 95.0],
+            "survivor": [False, False, True, True],
+        }
+    )
+    grid.to_csv(root / "grid.csv", index=False)
+    (root / "diagnosis.json").write_text(
+        json.dumps(
+            {
+                "effects": [
+                    {
+                        "effect": "coulomb_friction",
+                        "params": {"plant.coulomb_torque": 0.041},
+                        "gap_before": 8.0,
+                        "gap_after": 2.0,
+                        "shrink_pct": 75.0,
+                    }
+                ],
+                "verdict": "coulomb_friction",
+                "gap": {"before": {"fit_pct": 80.0}, "after": {"fit_pct": 92.5}, "shrink_pct": 60.0},
+                "where": {"amplitude": "error grows at small commands"},
+            }
+        )
+    )
+    doubled = {"experiment": "prbs_a", "fit_model_50hz_as_is": 41.5}
+    (root / "doubled_rate.json").write_text(json.dumps(doubled))
+    truth["models"] = models
+    truth["crossfit"] = cf.drop(columns="average")
+    return truth
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory) -> tuple[Path, dict]:
+    root = tmp_path_factory.mktemp("run")
+    return root, build_run(root)
+
+
+def _section(text: str, title: str) -> str:
+    part = text.split(f"## {title}", 1)[1]
+    return part.split("\n## ", 1)[0]
+
+
+def _rows(section: str) -> list[list[str]]:
+    out = []
+    for line in section.splitlines():
+        if line.startswith("| ") and not line.startswith("|---"):
+            out.append([c.strip() for c in line.strip().strip("|").split("|")])
+    return out
+
+
+def test_report_links_tables_and_reproducibility(run):
+    root, truth = run
+    path = write_report(root)
+    text = path.read_text()
+    links = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", text)
+    assert len(links) >= 8
+    for link in links:
+        png = root / link
+        assert not Path(link).is_absolute() and png.is_file()
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+    # cross-fit table: cells are the file's numbers, Average the row mean (not the file's wrong average)
+    rows = _rows(_section(text, "Cross-fit matrix"))
+    header, body = rows[0], rows[1:]
+    assert header[-1] == "Average" and len(header) == len(NAMES) + 2
+    cf = truth["crossfit"]
+    assert [r[0].split()[0] for r in body] == list(cf.index)
+    for r, (_, full) in zip(body, cf.iterrows(), strict=True):
+        cells = [float(c) for c in r[1:-1]]
+        assert cells == pytest.approx(full.to_numpy(), abs=0.0051)
+        assert float(r[-1]) == pytest.approx(round(float(full.mean()), 2), abs=1e-9)
+        assert float(r[-1]) == pytest.approx(np.mean(cells), abs=0.0101)
+    assert "not the mean of their row: `prbs_b`" in text
+
+    # time responses: the report's fits equal an independent compare on the generated signals
+    fits = {r[0]: float(r[1]) for r in _rows(_section(text, "Time responses per dataset"))[1:]}
+    for name in NAMES:
+        ref = armax.compare(truth["models"]["selected"], truth["u_d"][name], truth["y_f"][name])
+        assert 80.0 < ref < 100.0
+        assert fits[name] == pytest.approx(round(ref, 2), abs=0.0051)
+
+    # calibration vs seed 000: (35 - 35.5145) / 35.5145 = -1.45 %
+    cal = {r[0]: r for r in _rows(_section(text, "Calibration"))}
+    assert cal["Kp"][2] == "35.0000" and cal["Kp"][3] == "35.5145" and cal["Kp"][4] == "-1.45"
+    assert cal["Ke"][4] == "-1.08"  # (-3.4 + 3.3636) / 3.3636
+
+    # grid counts; the selected ARMAX(4,3,4,1) + integrator has 5 poles, 4 zeros (seed fig. 13)
+    grid = {r[0]: r[1] for r in _rows(_section(text, "ARMAX grid and selection"))}
+    assert grid["causal (nb + nk <= na), fitted"] == "3"
+    assert grid["fit >= 89 % on own dataset"] == "2"
+    assert "5 poles, 4 zeros (1 outside the unit circle" in text
+    assert "Verdict: **coulomb_friction**" in text and "## Doubled sampling rate check" in text
+
+    figs = {p.name: p.read_bytes() for p in (root / "figures").glob("*.png")}
+    write_report(root)
+    assert path.read_text() == text
+    assert {p.name: p.read_bytes() for p in (root / "figures").glob("*.png")} == figs
+    assert not list(root.rglob("*.tmp"))
+
+
+def test_pole_zero_with_integrator():
+    """G = B/A / H(z): poles of A plus z = 1; zeros of B, the filter pole af and the origin."""
+    m = _truth_model()
+    poles, zeros = pole_zero(m, AF)
+    expected = np.concatenate([np.roots(m.A), [1.0]])
+    assert np.sort_complex(poles) == pytest.approx(np.sort_complex(expected), abs=1e-9)
+    # B = [0, .10, .05, -.12] -> 0.10 z^2 + 0.05 z - 0.12 (one root at -1.374: non-minimum phase)
+    ref = np.concatenate([np.roots([0.10, 0.05, -0.12]), [AF, 0.0]])
+    assert np.sort_complex(zeros) == pytest.approx(np.sort_complex(ref), abs=1e-9)
+
+
+def test_loader_signals_match_generated_data(run):
+    root, truth = run
+    res = load_results(root)
+    assert list(res.prepared) == list(NAMES)
+    for name in NAMES:
+        p = res.prepared[name]
+        assert p.u_d == pytest.approx(truth["u_d"][name], abs=1e-12)
+        assert p.y_f == pytest.approx(truth["y_f"][name], abs=1e-9)
+
+
+def test_bad_run_directories(tmp_path):
+    with pytest.raises(ValueError, match="no such run directory"):
+        write_report(tmp_path / "missing")
+    with pytest.raises(ValueError, match="manifest.json"):
+        write_report(tmp_path)
+    (tmp_path / "manifest.json").write_text(json.dumps({"kind": "import", "experiments": []}))
+    (tmp_path / "models").mkdir()
+    (tmp_path / "models" / "selected.json").write_text("{not json")
+    with pytest.raises(ValueError, match=r"selected\.json: not valid JSON"):
+        write_report(tmp_path)
+    assert not (tmp_path / "report.md").exists()
