@@ -1,0 +1,299 @@
+/*
+ * daq: the rig's sensors and data acquisition, sampled and held at sample_rate [Hz].
+ *
+ * A sample is taken at every instant t_k = k / sample_rate with t_k in [t, t + h) of fmi2DoStep(t, h),
+ * from the inputs set before that call; the outputs then hold that sample.  So with the master's order
+ * (set inputs at t_k -> daq.doStep(t_k) -> read outputs) the outputs are the samples taken at t_k.
+ * fmi2ExitInitializationMode previews the first sample from the inputs set before it (without pushing
+ * it into the delay line; the doStep at the start time takes it for real, with the same noise).
+ *
+ * Command path:  u -> DAC quantisation (dac_bits over +-dac_range, 0 = ideal) -> clamp +-out_limit
+ *                -> delay by delay_samples samples (zeros before the first command) -> u_plant [V].
+ * Potentiometer: theta [rad] -> degrees wrapped to [-180, 180); on the track v = wrapped / pot_gain +
+ *                pot_offset; in the dead band (|wrapped| > 180 - pot_deadband / 2) the wiper is off the
+ *                track and reads the track end sign(wrapped) (180 - pot_deadband / 2) / pot_gain + offset.
+ * Strain gauge:  v_lin = alpha_deg / gauge_gain + gauge_offset, v = v_lin (1 + gauge_cubic (alpha_deg/10)^2).
+ * Then white Gaussian noise (noise_theta, noise_alpha V rms), then ADC quantisation (round to
+ * LSB = 2 adc_range / 2^adc_bits and clamp to +-adc_range; 0 bits = ideal, no clamp).
+ * Noise: counter-based generator, splitmix64 of (seed, stream, sample index) + Box-Muller, so the noise
+ * of sample k depends only on seed and k (same seed -> identical bytes, independent of step sizes).
+ */
+#include <math.h>
+#include <stdio.h>
+#include <string.h>
+
+#include "fmi2common.h"
+
+#define RAD2DEG 57.29577951308232
+#define TWO_PI 6.283185307179586
+
+void setStartValues(ModelInstance *comp) {
+    ModelData *d = &comp->data;
+    double *line = d->delay_line; /* keep the pointer: releaseModel frees it */
+    memset(d, 0, sizeof(*d));
+    d->delay_line = line;
+    d->sample_rate = 50.0;
+    d->dac_bits = 0;
+    d->dac_range = 10.0;
+    d->out_limit = 10.0;
+    d->delay_samples = 0;
+    d->pot_gain = 35.5145;
+    d->pot_offset = 0.0;
+    d->pot_deadband = 8.0;
+    d->gauge_gain = -3.3636;
+    d->gauge_offset = 0.0;
+    d->gauge_cubic = 0.0;
+    d->adc_bits = 0;
+    d->adc_range = 10.0;
+    d->noise_theta = 0.0;
+    d->noise_alpha = 0.0;
+    d->seed = 0;
+}
+
+#define CHECK(cond, ...)                                                                                     \
+    do {                                                                                                     \
+        if (!(cond)) {                                                                                       \
+            snprintf(msg, len, __VA_ARGS__);                                                                 \
+            return false;                                                                                    \
+        }                                                                                                    \
+    } while (0)
+
+bool validate(ModelInstance *comp, char *msg, size_t len) {
+    const ModelData *d = &comp->data;
+    const struct {
+        const char *name;
+        double value;
+    } reals[] = {{"sample_rate", d->sample_rate}, {"dac_range", d->dac_range},       {"out_limit", d->out_limit},
+                 {"pot_gain", d->pot_gain},       {"pot_offset", d->pot_offset},     {"pot_deadband", d->pot_deadband},
+                 {"gauge_gain", d->gauge_gain},   {"gauge_offset", d->gauge_offset}, {"gauge_cubic", d->gauge_cubic},
+                 {"adc_range", d->adc_range},     {"noise_theta", d->noise_theta},   {"noise_alpha", d->noise_alpha}};
+    size_t i;
+    for (i = 0; i < sizeof(reals) / sizeof(reals[0]); i++)
+        CHECK(isfinite(reals[i].value), "invalid parameter %s = %g: must be finite", reals[i].name,
+              reals[i].value);
+    CHECK(d->sample_rate > 0, "invalid parameter sample_rate = %g: must be > 0", d->sample_rate);
+    CHECK(d->dac_bits >= 0 && d->dac_bits <= 52, "invalid parameter dac_bits = %d: must be in 0..52 (0 = ideal)",
+          d->dac_bits);
+    CHECK(d->dac_range > 0, "invalid parameter dac_range = %g: must be > 0", d->dac_range);
+    CHECK(d->out_limit > 0, "invalid parameter out_limit = %g: must be > 0", d->out_limit);
+    CHECK(d->delay_samples >= 0 && d->delay_samples <= MAX_DELAY_SAMPLES,
+          "invalid parameter delay_samples = %d: must be in 0..%d", d->delay_samples, MAX_DELAY_SAMPLES);
+    CHECK(d->pot_gain != 0, "invalid parameter pot_gain = %g: must be non-zero", d->pot_gain);
+    CHECK(d->pot_deadband >= 0 && d->pot_deadband < 360, "invalid parameter pot_deadband = %g: must be in [0, 360)",
+          d->pot_deadband);
+    CHECK(d->gauge_gain != 0, "invalid parameter gauge_gain = %g: must be non-zero", d->gauge_gain);
+    CHECK(d->adc_bits >= 0 && d->adc_bits <= 52, "invalid parameter adc_bits = %d: must be in 0..52 (0 = ideal)",
+          d->adc_bits);
+    CHECK(d->adc_range > 0, "invalid parameter adc_range = %g: must be > 0", d->adc_range);
+    CHECK(d->noise_theta >= 0, "invalid parameter noise_theta = %g: must be >= 0", d->noise_theta);
+    CHECK(d->noise_alpha >= 0, "invalid parameter noise_alpha = %g: must be >= 0", d->noise_alpha);
+    return true;
+}
+
+/* ---------------------------------------------------------------- noise */
+
+static inline uint64_t mix64(uint64_t z) { /* splitmix64 output function */
+    z += 0x9E3779B97F4A7C15ULL;
+    z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ULL;
+    z = (z ^ (z >> 27)) * 0x94D049BB133111EBULL;
+    return z ^ (z >> 31);
+}
+
+/* uniform in (0, 1] from stream key and counter */
+static inline double uniform(uint64_t key, uint64_t counter) {
+    return (double)((mix64(key + mix64(counter)) >> 11) + 1) * (1.0 / 9007199254740992.0);
+}
+
+/* standard normal deviate number k of the stream (Box-Muller) */
+static double gauss(uint64_t key, int64_t k) {
+    const double u1 = uniform(key, 2 * (uint64_t)k), u2 = uniform(key, 2 * (uint64_t)k + 1);
+    return sqrt(-2.0 * log(u1)) * cos(TWO_PI * u2);
+}
+
+/* ------------------------------------------------------------ converters */
+
+static double quantize(double v, int bits, double range) {
+    double lsb;
+    if (bits <= 0) return v;
+    lsb = 2.0 * range / ldexp(1.0, bits);
+    v = round(v / lsb) * lsb;
+    return fmin(fmax(v, -range), range);
+}
+
+static double potVoltage(const ModelData *d, double theta) {
+    const double edge = 180.0 - 0.5 * d->pot_deadband;
+    double w = fmod(theta * RAD2DEG + 180.0, 360.0);
+    if (w < 0) w += 360.0;
+    w -= 180.0; /* [-180, 180) */
+    if (fabs(w) > edge) w = (w > 0 ? edge : -edge);
+    return w / d->pot_gain + d->pot_offset;
+}
+
+static double gaugeVoltage(const ModelData *d, double alpha) {
+    const double a = alpha * RAD2DEG;
+    const double r = a / 10.0;
+    return (a / d->gauge_gain + d->gauge_offset) * (1.0 + d->gauge_cubic * r * r);
+}
+
+static double command(const ModelData *d, double u) {
+    const double v = quantize(u, d->dac_bits, d->dac_range);
+    return fmin(fmax(v, -d->out_limit), d->out_limit);
+}
+
+/* sample number k of the inputs; commit = push the command into the delay line */
+static void takeSample(ModelData *d, int64_t k, int commit) {
+    const double cmd = command(d, d->u);
+    double vt = potVoltage(d, d->theta), va = gaugeVoltage(d, d->alpha_gauge);
+    if (d->delay_samples > 0) {
+        d->u_plant = d->delay_line[d->delay_head];
+        if (commit) {
+            d->delay_line[d->delay_head] = cmd;
+            d->delay_head = (d->delay_head + 1) % d->delay_samples;
+        }
+    } else {
+        d->u_plant = cmd;
+    }
+    if (d->noise_theta > 0) vt += d->noise_theta * gauss(d->key_theta, k);
+    if (d->noise_alpha > 0) va += d->noise_alpha * gauss(d->key_alpha, k);
+    d->theta_v = quantize(vt, d->adc_bits, d->adc_range);
+    d->alpha_v = quantize(va, d->adc_bits, d->adc_range);
+}
+
+/* ------------------------------------------------------------ life cycle */
+
+fmi2Status initialize(ModelInstance *comp) {
+    ModelData *d = &comp->data;
+    const uint64_t s = mix64((uint64_t)(int64_t)d->seed);
+    releaseModel(comp);
+    if (d->delay_samples > 0) {
+        d->delay_line = (double *)allocateModelMemory(comp, (size_t)d->delay_samples, sizeof(double));
+        if (!d->delay_line) {
+            logError(comp, "out of memory for delay_samples = %d", d->delay_samples);
+            return fmi2Error;
+        }
+        memset(d->delay_line, 0, (size_t)d->delay_samples * sizeof(double));
+    }
+    d->delay_head = 0;
+    d->key_theta = mix64(s ^ 0x7468657461ULL); /* "theta" */
+    d->key_alpha = mix64(s ^ 0x616c706861ULL); /* "alpha" */
+    d->next_sample = (int64_t)ceil(comp->startTime * d->sample_rate - 1e-6);
+    takeSample(d, d->next_sample, 0); /* preview of the first sample */
+    return fmi2OK;
+}
+
+void releaseModel(ModelInstance *comp) {
+    ModelData *d = &comp->data;
+    if (d->delay_line) {
+        freeModelMemory(comp, d->delay_line);
+        d->delay_line = NULL;
+    }
+}
+
+fmi2Status doStep(ModelInstance *comp, double t, double h) {
+    ModelData *d = &comp->data;
+    const double fs = d->sample_rate;
+    const double kEnd = (t + h) * fs - 1e-6; /* sample instants strictly before t + h */
+    int64_t k;
+    if (h * fs > 1e7) {
+        logError(comp, "communication step %g s spans more than 1e7 samples", h);
+        return fmi2Error;
+    }
+    if (!isfinite(d->u) || !isfinite(d->theta) || !isfinite(d->alpha_gauge)) {
+        logError(comp, "input u, theta or alpha_gauge is not finite at t = %g s", t);
+        return fmi2Error;
+    }
+    k = (int64_t)ceil(t * fs - 1e-6);
+    if (k < d->next_sample) k = d->next_sample;
+    for (; (double)k < kEnd; k++) takeSample(d, k, 1);
+    if (k > d->next_sample) d->next_sample = k;
+    return fmi2OK;
+}
+
+void calculateValues(ModelInstance *comp) { (void)comp; /* outputs change only at samples */ }
+
+/* ------------------------------------------------------- get / set */
+
+static double *realParameter(ModelData *d, fmi2ValueReference vr, const char **name) {
+    switch (vr) {
+    case vr_sample_rate: *name = "sample_rate"; return &d->sample_rate;
+    case vr_dac_range: *name = "dac_range"; return &d->dac_range;
+    case vr_out_limit: *name = "out_limit"; return &d->out_limit;
+    case vr_pot_gain: *name = "pot_gain"; return &d->pot_gain;
+    case vr_pot_offset: *name = "pot_offset"; return &d->pot_offset;
+    case vr_pot_deadband: *name = "pot_deadband"; return &d->pot_deadband;
+    case vr_gauge_gain: *name = "gauge_gain"; return &d->gauge_gain;
+    case vr_gauge_offset: *name = "gauge_offset"; return &d->gauge_offset;
+    case vr_gauge_cubic: *name = "gauge_cubic"; return &d->gauge_cubic;
+    case vr_adc_range: *name = "adc_range"; return &d->adc_range;
+    case vr_noise_theta: *name = "noise_theta"; return &d->noise_theta;
+    case vr_noise_alpha: *name = "noise_alpha"; return &d->noise_alpha;
+    default: return NULL;
+    }
+}
+
+static int *intParameter(ModelData *d, fmi2ValueReference vr, const char **name) {
+    switch (vr) {
+    case vr_dac_bits: *name = "dac_bits"; return &d->dac_bits;
+    case vr_delay_samples: *name = "delay_samples"; return &d->delay_samples;
+    case vr_adc_bits: *name = "adc_bits"; return &d->adc_bits;
+    case vr_seed: *name = "seed"; return &d->seed;
+    default: return NULL;
+    }
+}
+
+fmi2Status getFloat64(ModelInstance *comp, fmi2ValueReference vr, double *value) {
+    ModelData *d = &comp->data;
+    const char *name;
+    double *p = realParameter(d, vr, &name);
+    if (p) {
+        *value = *p;
+        return fmi2OK;
+    }
+    switch (vr) {
+    case vr_u: *value = d->u; break;
+    case vr_theta: *value = d->theta; break;
+    case vr_alpha_gauge: *value = d->alpha_gauge; break;
+    case vr_u_plant: *value = d->u_plant; break;
+    case vr_theta_v: *value = d->theta_v; break;
+    case vr_alpha_v: *value = d->alpha_v; break;
+    default: return unknownReference(comp, "Real", vr);
+    }
+    return fmi2OK;
+}
+
+fmi2Status setFloat64(ModelInstance *comp, fmi2ValueReference vr, double value) {
+    ModelData *d = &comp->data;
+    const char *name;
+    double *p = realParameter(d, vr, &name);
+    if (p) {
+        if (!parametersSettable(comp)) return fixedAfterInit(comp, name);
+        *p = value;
+        return fmi2OK;
+    }
+    switch (vr) {
+    case vr_u: d->u = value; return fmi2OK;
+    case vr_theta: d->theta = value; return fmi2OK;
+    case vr_alpha_gauge: d->alpha_gauge = value; return fmi2OK;
+    case vr_u_plant:
+    case vr_theta_v:
+    case vr_alpha_v: logError(comp, "output value reference %u cannot be set", (unsigned)vr); return fmi2Error;
+    default: return unknownReference(comp, "Real", vr);
+    }
+}
+
+fmi2Status getInt32(ModelInstance *comp, fmi2ValueReference vr, int *value) {
+    const char *name;
+    int *p = intParameter(&comp->data, vr, &name);
+    if (!p) return unknownReference(comp, "Integer", vr);
+    *value = *p;
+    return fmi2OK;
+}
+
+fmi2Status setInt32(ModelInstance *comp, fmi2ValueReference vr, int value) {
+    const char *name;
+    int *p = intParameter(&comp->data, vr, &name);
+    if (!p) return unknownReference(comp, "Integer", vr);
+    if (!parametersSettable(comp)) return fixedAfterInit(comp, name);
+    *p = value;
+    return fmi2OK;
+}

@@ -1,0 +1,704 @@
+/*
+ * flexjoint: Quanser SRV02 servo driving a flexible link (assumed modes), FMI 2.0 co-simulation.
+ * All SI units, angles in rad.
+ *
+ * Coordinates: hub (load shaft) angle theta and a_i, the tip-angle contribution of clamped-free
+ * beam mode i (alpha = sum a_i).  Mode shapes phi_i are normalised to phi_i(L) = +2, int phi_i^2 = L,
+ * which gives, in closed form (int_0^L x phi_i dx = 2 (-1)^(i+1) L^2 / (beta_i L)^2):
+ *   Jl = m L^2 / 3,  J_i = m L^2 / 4,  b_i = (-1)^(i+1) m L^2 / (beta_i L)^2,
+ *   k_i = J_i w_i^2,  w_i = w_1 (beta_i / beta_1)^2,  w_1 = sqrt(Ks / Jl),  c_i = 2 zeta J_i w_i.
+ *   M = [[Jeq + Jl, b^T], [b, diag(J_i)]],  K = diag(0, k_i).
+ * The tip torque tau_tip enters theta and every a_i with unit generalised force.
+ * Strain gauge: root curvature phi_i''(0) = 2 (-1)^(i+1) beta_i^2, so per unit a_i mode i reads
+ * g_i = (-1)^(i+1) (beta_i / beta_1)^2 times mode 1 (mode 2: -6.27); c_g scales the reading so that a
+ * static tip load (a_i = tau / k_i) reads the static tip deflection.
+ *
+ * Motor at the load shaft: tau_m = G v - Bemf omega_m, G = eta_g Kg eta_m kt / Rm, Bemf = G Kg km,
+ * v = clamp(u, +-amp_limit) when amp_limit > 0.
+ *
+ * Integration: classical RK4 with a fixed internal step h = comm_step / ceil(comm_step / h_max),
+ * h_max = min(internal_step, 2 / rho), rho an upper estimate of the spectral radius of the linear
+ * dynamics (so that an over-large internal_step cannot make RK4 unstable).
+ *
+ * With every non-smooth effect off (coulomb_torque = 0, backlash = 0, hub free) the dynamics are linear,
+ * X' = A X + f, and the same RK4 step is applied as its polynomial X <- Phi(hA) X + h P3(hA) f (matrices
+ * computed once per internal step size): identical to the stage-by-stage RK4 up to rounding, ~10x faster.
+ *
+ * Non-smooth effects are handled as a hybrid system: the mode (stuck/sliding, in contact/in the play)
+ * is fixed during an RK4 step; an event found at the end of a step (velocity reversal, gap closure)
+ * is located by regula falsi on the RK4 step length, the state is taken at the event, the event is
+ * applied, and the rest of the step is integrated in the new mode.
+ *  - Coulomb friction at the hub (Karnopp): the hub is stuck while the friction torque needed to keep
+ *    it at rest is within Fs = stiction_ratio * coulomb_torque (the link still vibrates clamped);
+ *    otherwise it slides with -coulomb_torque * sign(theta_dot).  A sliding hub whose velocity
+ *    reaches zero is set exactly to rest and re-checked: no chattering, no creep.
+ *  - Backlash: impact / dead-zone hybrid.  The gear splits Jeq into a motor side (Jm_share Jeq, with the
+ *    motor torque and back-EMF) and a hub side (the rest + link).  In contact the two sides move as one
+ *    rigid body (exactly the backlash = 0 equations); contact opens when the transmitted gear torque
+ *    would change sign; in the play both sides move freely; when the play closes, a perfectly plastic
+ *    impact (momentum-conserving impulse through the gear) brings them to a common speed.
+ *    No contact stiffness, so nothing stiff for the fixed step.  backlash = 0 uses the rigid model only.
+ */
+#include <math.h>
+#include <stdio.h>
+#include <string.h>
+
+#include "fmi2common.h"
+
+/* roots of cos(x) cosh(x) + 1 = 0: beta_i L of the clamped-free beam */
+static const double BETA_L[MAX_MODES] = {1.8751040687119611, 4.694091132974175, 7.854757438237613};
+
+#define MAX_EVENTS_PER_STEP 8
+
+void setStartValues(ModelInstance *comp) {
+    ModelData *d = &comp->data;
+    memset(d, 0, sizeof(*d));
+    d->Rm = 2.6;
+    d->kt = 7.68e-3;
+    d->km = 7.68e-3;
+    d->Kg = 70.0;
+    d->eta_g = 0.9;
+    d->eta_m = 0.69;
+    d->Jeq = 2.08e-3;
+    d->Beq = 0.004;
+    d->m_link = 0.065;
+    d->L_link = 0.419;
+    d->Ks = 1.3;
+    d->zeta_link = 0.01;
+    d->n_modes = 1;
+    d->coulomb_torque = 0.0;
+    d->stiction_ratio = 1.0;
+    d->backlash = 0.0;
+    d->Jm_share = 0.5;
+    d->amp_limit = 0.0;
+    d->internal_step = 1e-3;
+    d->theta_start = 0.0;
+    d->hub_locked = 0;
+    d->u = 0.0;
+    d->tau_tip = 0.0;
+}
+
+/* ------------------------------------------------------------ validation */
+
+#define CHECK(cond, ...)                                                                                     \
+    do {                                                                                                     \
+        if (!(cond)) {                                                                                       \
+            snprintf(msg, len, __VA_ARGS__);                                                                 \
+            return false;                                                                                    \
+        }                                                                                                    \
+    } while (0)
+
+bool validate(ModelInstance *comp, char *msg, size_t len) {
+    const ModelData *d = &comp->data;
+    const struct {
+        const char *name;
+        double value;
+    } reals[] = {{"Rm", d->Rm},
+                 {"kt", d->kt},
+                 {"km", d->km},
+                 {"Kg", d->Kg},
+                 {"eta_g", d->eta_g},
+                 {"eta_m", d->eta_m},
+                 {"Jeq", d->Jeq},
+                 {"Beq", d->Beq},
+                 {"m_link", d->m_link},
+                 {"L_link", d->L_link},
+                 {"Ks", d->Ks},
+                 {"zeta_link", d->zeta_link},
+                 {"coulomb_torque", d->coulomb_torque},
+                 {"stiction_ratio", d->stiction_ratio},
+                 {"backlash", d->backlash},
+                 {"Jm_share", d->Jm_share},
+                 {"amp_limit", d->amp_limit},
+                 {"internal_step", d->internal_step},
+                 {"theta_start", d->theta_start}};
+    size_t i;
+    for (i = 0; i < sizeof(reals) / sizeof(reals[0]); i++)
+        CHECK(isfinite(reals[i].value), "invalid parameter %s = %g: must be finite", reals[i].name,
+              reals[i].value);
+    CHECK(d->Rm > 0, "invalid parameter Rm = %g: armature resistance must be > 0", d->Rm);
+    CHECK(d->kt > 0, "invalid parameter kt = %g: torque constant must be > 0", d->kt);
+    CHECK(d->km >= 0, "invalid parameter km = %g: back-EMF constant must be >= 0", d->km);
+    CHECK(d->Kg > 0, "invalid parameter Kg = %g: gear ratio must be > 0", d->Kg);
+    CHECK(d->eta_g > 0 && d->eta_g <= 1, "invalid parameter eta_g = %g: efficiency must be in (0, 1]", d->eta_g);
+    CHECK(d->eta_m > 0 && d->eta_m <= 1, "invalid parameter eta_m = %g: efficiency must be in (0, 1]", d->eta_m);
+    CHECK(d->Jeq > 0, "invalid parameter Jeq = %g: inertia must be > 0", d->Jeq);
+    CHECK(d->Beq >= 0, "invalid parameter Beq = %g: damping must be >= 0", d->Beq);
+    CHECK(d->m_link > 0, "invalid parameter m_link = %g: link mass must be > 0", d->m_link);
+    CHECK(d->L_link > 0, "invalid parameter L_link = %g: link length must be > 0", d->L_link);
+    CHECK(d->Ks > 0, "invalid parameter Ks = %g: link stiffness must be > 0", d->Ks);
+    CHECK(d->zeta_link >= 0, "invalid parameter zeta_link = %g: damping ratio must be >= 0", d->zeta_link);
+    CHECK(d->n_modes >= 1 && d->n_modes <= MAX_MODES, "invalid parameter n_modes = %d: must be in 1..%d",
+          d->n_modes, MAX_MODES);
+    CHECK(d->coulomb_torque >= 0, "invalid parameter coulomb_torque = %g: must be >= 0", d->coulomb_torque);
+    CHECK(d->stiction_ratio >= 1, "invalid parameter stiction_ratio = %g: static/Coulomb ratio must be >= 1",
+          d->stiction_ratio);
+    CHECK(d->backlash >= 0, "invalid parameter backlash = %g: must be >= 0", d->backlash);
+    CHECK(d->Jm_share >= 0.05 && d->Jm_share <= 0.95, "invalid parameter Jm_share = %g: must be in [0.05, 0.95]",
+          d->Jm_share);
+    CHECK(d->amp_limit >= 0, "invalid parameter amp_limit = %g: must be >= 0 (0 = no saturation)", d->amp_limit);
+    CHECK(d->internal_step > 0, "invalid parameter internal_step = %g: must be > 0", d->internal_step);
+    CHECK(d->hub_locked == 0 || d->hub_locked == 1, "invalid parameter hub_locked = %d: must be 0 or 1",
+          d->hub_locked);
+    return true;
+}
+
+/* -------------------------------------------------------- initialisation */
+
+/* inverse of the arrow matrix [[a, b^T], [b, J I]] (N x N, b in b[1..N-1]) via its Schur complement */
+static void arrowInverse(double a, const double *b, double J, int N, double Minv[MAX_DOF][MAX_DOF]) {
+    double s = a;
+    int i, j;
+    for (i = 1; i < N; i++) s -= b[i] * b[i] / J;
+    Minv[0][0] = 1.0 / s;
+    for (i = 1; i < N; i++) {
+        Minv[0][i] = Minv[i][0] = -b[i] / (J * s);
+        for (j = 1; j < N; j++) Minv[i][j] = (i == j ? 1.0 / J : 0.0) + b[i] * b[j] / (J * J * s);
+    }
+}
+
+static double infNorm(const double *A, int n) {
+    double m = 0.0;
+    int i, j;
+    for (i = 0; i < n; i++) {
+        double r = 0.0;
+        for (j = 0; j < n; j++) r += fabs(A[i * n + j]);
+        if (r > m) m = r;
+    }
+    return m;
+}
+
+/* upper estimate of the spectral radius: ||A^64||^(1/64) by repeated squaring (Gelfand) */
+static double spectralRadius(const double *A, int n) {
+    double B[(2 * MAX_DOF) * (2 * MAX_DOF)], T[(2 * MAX_DOF) * (2 * MAX_DOF)];
+    double nrm = infNorm(A, n), logScale;
+    int i, j, l, k;
+    if (!(nrm > 0)) return 0.0;
+    for (i = 0; i < n * n; i++) B[i] = A[i] / nrm;
+    logScale = log(nrm);
+    for (k = 0; k < 6; k++) {
+        for (i = 0; i < n; i++)
+            for (j = 0; j < n; j++) {
+                double s = 0.0;
+                for (l = 0; l < n; l++) s += B[i * n + l] * B[l * n + j];
+                T[i * n + j] = s;
+            }
+        nrm = infNorm(T, n);
+        if (!(nrm > 0)) return 0.0;
+        for (i = 0; i < n * n; i++) B[i] = T[i] / nrm;
+        logScale = 2.0 * logScale + log(nrm);
+    }
+    return exp(logScale / 64.0);
+}
+
+/* spectral radius of the linear hub-side dynamics with inverse mass Minv and hub damping D0 */
+static double hubRadius(const ModelData *d, double Minv[MAX_DOF][MAX_DOF], double D0) {
+    const int N = d->N, n = 2 * N;
+    double A[(2 * MAX_DOF) * (2 * MAX_DOF)];
+    int i, j;
+    memset(A, 0, sizeof(A));
+    for (i = 0; i < N; i++) {
+        A[i * n + N + i] = 1.0;
+        for (j = 0; j < N; j++) {
+            A[(N + i) * n + j] = -Minv[i][j] * (j == 0 ? 0.0 : d->k[j]);
+            A[(N + i) * n + N + j] = -Minv[i][j] * (j == 0 ? D0 : d->c[j]);
+        }
+    }
+    return spectralRadius(A, n);
+}
+
+fmi2Status initialize(ModelInstance *comp) {
+    ModelData *d = &comp->data;
+    const double m = d->m_link, L = d->L_link;
+    const double Jl = m * L * L / 3.0;
+    const double w1 = sqrt(d->Ks / Jl);
+    double sumDefl = 0.0, sumGauge = 0.0, rho, r;
+    int i;
+
+    d->N = d->n_modes + 1;
+    d->Jmode = m * L * L / 4.0;
+    d->k[0] = d->c[0] = d->b[0] = d->g[0] = 0.0;
+    for (i = 1; i < d->N; i++) {
+        const double bl = BETA_L[i - 1];
+        const double ratio = (bl / BETA_L[0]) * (bl / BETA_L[0]);
+        const double sgn = (i % 2) ? 1.0 : -1.0;
+        const double w = w1 * ratio;
+        d->k[i] = d->Jmode * w * w;
+        d->c[i] = 2.0 * d->zeta_link * d->Jmode * w;
+        d->b[i] = sgn * m * L * L / (bl * bl);
+        d->g[i] = sgn * ratio;
+        sumDefl += 1.0 / d->k[i];
+        sumGauge += d->g[i] / d->k[i];
+    }
+    d->c_g = sumDefl / sumGauge;
+
+    d->G = d->eta_g * d->Kg * d->eta_m * d->kt / d->Rm;
+    d->Bemf = d->G * d->Kg * d->km;
+    d->Jm = d->Jm_share * d->Jeq;
+    d->Jh = d->Jeq - d->Jm;
+    d->Bm = d->Jm_share * d->Beq;
+    d->Bh = d->Beq - d->Bm;
+    d->Fs = d->stiction_ratio * d->coulomb_torque;
+    arrowInverse(d->Jeq + Jl, d->b, d->Jmode, d->N, d->Minv_r);
+    arrowInverse(d->Jh + Jl, d->b, d->Jmode, d->N, d->Minv_f);
+
+    /* RK4 stability: |lambda h| <= 2 for every configuration that can occur */
+    rho = hubRadius(d, d->Minv_r, d->Beq + d->Bemf);
+    for (i = 1; i < d->N; i++) rho = fmax(rho, w1 * (BETA_L[i - 1] / BETA_L[0]) * (BETA_L[i - 1] / BETA_L[0]));
+    if (d->backlash > 0) {
+        rho = fmax(rho, hubRadius(d, d->Minv_f, d->Bh));
+        rho = fmax(rho, (d->Bm + d->Bemf) / d->Jm);
+    }
+    r = rho > 0 ? 2.0 / rho : d->internal_step;
+    d->h_max = fmin(d->internal_step, r);
+    if (d->h_max < d->internal_step)
+        logInfo(comp, "internal step limited to %g s for RK4 stability (internal_step = %g s)", d->h_max,
+                d->internal_step);
+
+    memset(d->X, 0, sizeof(d->X));
+    d->X[0] = d->theta_start;
+    d->X[2 * d->N] = d->theta_start;
+    d->stuck = (d->coulomb_torque > 0) ? 1 : 0;
+    d->side = 0;
+    d->slip = 0;
+    d->linear = d->coulomb_torque == 0.0 && d->backlash == 0.0 && !d->hub_locked;
+    d->lin_h = 0.0;
+    return fmi2OK;
+}
+
+void releaseModel(ModelInstance *comp) { (void)comp; }
+
+/* -------------------------------------------------------------- dynamics */
+
+static inline int isCoupled(const ModelData *d) { return d->backlash == 0.0 || d->side != 0 || d->hub_locked; }
+
+static inline double motorTorque(const ModelData *d, double w) { return d->G * d->v_amp - d->Bemf * w; }
+
+/* modal generalised forces Q_i, i = 1..n */
+static inline void modalForces(const ModelData *d, const double *X, double *Q) {
+    const int N = d->N;
+    int i;
+    for (i = 1; i < N; i++) Q[i] = d->tau_tip - d->k[i] * X[i] - d->c[i] * X[N + i];
+}
+
+static void deriv(const ModelData *d, const double *X, double *dX) {
+    const int N = d->N;
+    const int coupled = isCoupled(d);
+    double Q[MAX_DOF];
+    int i, j;
+    for (i = 0; i < N; i++) dX[i] = X[N + i];
+    modalForces(d, X, Q);
+    if (d->hub_locked || d->stuck) {
+        dX[N] = 0.0;
+        for (i = 1; i < N; i++) dX[N + i] = Q[i] / d->Jmode;
+    } else {
+        const double v0 = X[N];
+        const double (*Minv)[MAX_DOF] = coupled ? d->Minv_r : d->Minv_f;
+        if (coupled) /* rigid gear or teeth in contact: motor and hub as one body, Jeq on the hub */
+            Q[0] = motorTorque(d, v0) - d->Beq * v0 + d->tau_tip - d->coulomb_torque * d->slip;
+        else /* in the play: hub side alone */
+            Q[0] = -d->Bh * v0 + d->tau_tip - d->coulomb_torque * d->slip;
+        for (i = 0; i < N; i++) {
+            double s = 0.0;
+            for (j = 0; j < N; j++) s += Minv[i][j] * Q[j];
+            dX[N + i] = s;
+        }
+    }
+    if (coupled) {
+        dX[2 * N] = X[N];
+        dX[2 * N + 1] = dX[N];
+    } else {
+        const double wm = X[2 * N + 1];
+        dX[2 * N] = wm;
+        dX[2 * N + 1] = (motorTorque(d, wm) - d->Bm * wm) / d->Jm;
+    }
+}
+
+static void rk4(const ModelData *d, const double *X0, double *X1, double h) {
+    const int nx = 2 * d->N + 2;
+    double k1[MAX_X], k2[MAX_X], k3[MAX_X], k4[MAX_X], T[MAX_X] = {0};
+    int i;
+    deriv(d, X0, k1);
+    for (i = 0; i < nx; i++) T[i] = X0[i] + 0.5 * h * k1[i];
+    deriv(d, T, k2);
+    for (i = 0; i < nx; i++) T[i] = X0[i] + 0.5 * h * k2[i];
+    deriv(d, T, k3);
+    for (i = 0; i < nx; i++) T[i] = X0[i] + h * k3[i];
+    deriv(d, T, k4);
+    for (i = 0; i < nx; i++) X1[i] = X0[i] + h / 6.0 * (k1[i] + 2.0 * (k2[i] + k3[i]) + k4[i]);
+}
+
+/* friction torque on the hub needed to keep it (and the motor side, if coupled) at rest [N.m] */
+static double frictionRequired(const ModelData *d) {
+    double Q[MAX_DOF], s = 0.0;
+    int i;
+    modalForces(d, d->X, Q);
+    for (i = 1; i < d->N; i++) s += d->b[i] * Q[i] / d->Jmode;
+    return s - d->tau_tip - (isCoupled(d) ? motorTorque(d, 0.0) : 0.0);
+}
+
+/* torque transmitted by the gear teeth in contact, motor to hub [N.m] */
+static double gearTorque(const ModelData *d) {
+    const int N = d->N;
+    double Q[MAX_DOF], acc0 = 0.0, v0 = d->X[N];
+    int j;
+    if (d->stuck) return motorTorque(d, 0.0);
+    modalForces(d, d->X, Q);
+    Q[0] = motorTorque(d, v0) - d->Beq * v0 + d->tau_tip - d->coulomb_torque * d->slip;
+    for (j = 0; j < N; j++) acc0 += d->Minv_r[0][j] * Q[j];
+    return motorTorque(d, v0) - d->Bm * v0 - d->Jm * acc0;
+}
+
+/* hub at rest: stick if static friction can hold it, else slide in the direction of the net torque */
+static void settle(ModelData *d) {
+    const double tr = frictionRequired(d);
+    if (fabs(tr) <= d->Fs) {
+        d->stuck = 1;
+        d->slip = 0;
+    } else {
+        d->stuck = 0;
+        d->slip = tr > 0 ? -1 : 1;
+    }
+}
+
+static void updateModes(ModelData *d) {
+    if (d->hub_locked) return;
+    if (d->backlash > 0 && d->side != 0 && d->side * gearTorque(d) < 0) d->side = 0; /* contact opens */
+    if (d->coulomb_torque > 0 && d->stuck) {
+        const double tr = frictionRequired(d);
+        if (fabs(tr) > d->Fs) { /* break away */
+            d->stuck = 0;
+            d->slip = tr > 0 ? -1 : 1;
+        }
+    }
+}
+
+/* plastic impact when the play closes on side s (+1: motor ahead of the hub) */
+static void impact(ModelData *d, int s) {
+    const int N = d->N;
+    double *X = d->X;
+    double P;
+    int i;
+    X[2 * N] = X[0] + s * 0.5 * d->backlash;
+    P = (X[2 * N + 1] - X[N]) / (1.0 / d->Jm + d->Minv_f[0][0]);
+    for (i = 0; i < N; i++) X[N + i] += d->Minv_f[i][0] * P;
+    X[2 * N + 1] = X[N];
+    d->side = s;
+    if (d->coulomb_torque > 0) {
+        if (X[N] != 0.0) {
+            d->stuck = 0;
+            d->slip = X[N] > 0 ? 1 : -1;
+        } else {
+            settle(d);
+        }
+    }
+}
+
+/* sliding hub velocity reached zero */
+static void velocityZero(ModelData *d) {
+    const int N = d->N;
+    d->X[N] = 0.0;
+    if (isCoupled(d)) d->X[2 * N + 1] = 0.0;
+    settle(d);
+}
+
+/* event function, positive before and <= 0 after the event: ev = +-1 gap closes on side ev, 2 reversal */
+static double eventValue(const ModelData *d, const double *X, int ev) {
+    const int N = d->N;
+    if (ev == 2) return d->slip * X[N];
+    return 0.5 * d->backlash - ev * (X[2 * N] - X[0]);
+}
+
+/* fraction f of the step [0, h] where the event ev occurs (Illinois regula falsi); leaves the state at f in Xf */
+static double locateEvent(const ModelData *d, const double *X0, double h, int ev, double e0, double e1, double *Xf) {
+    double fa = 0.0, fb = 1.0, ea = e0, eb = e1, f = 0.0;
+    int it, side = 0;
+    if (!(e0 > 0.0)) {
+        memcpy(Xf, X0, sizeof(double) * MAX_X);
+        return 0.0;
+    }
+    for (it = 0; it < 6; it++) {
+        double e;
+        f = fa - ea * (fb - fa) / (eb - ea);
+        f = fmin(fmax(f, fa), fb);
+        rk4(d, X0, Xf, f * h);
+        e = eventValue(d, Xf, ev);
+        if (fabs(e) <= 1e-13 * (fabs(e0) + fabs(e1))) break;
+        if (e > 0.0) {
+            fa = f;
+            ea = e;
+            if (side == 1) eb *= 0.5;
+            side = 1;
+        } else {
+            fb = f;
+            eb = e;
+            if (side == -1) ea *= 0.5;
+            side = -1;
+        }
+    }
+    return f;
+}
+
+static void substep(ModelData *d, double h) {
+    const int N = d->N;
+    const double half = 0.5 * d->backlash;
+    double X0[MAX_X], X1[MAX_X];
+    double rem = h;
+    int events = 0;
+    while (rem > 0.0) {
+        double f = 2.0, e0 = 0.0, e1 = 0.0;
+        int ev = 0;
+        updateModes(d);
+        memcpy(X0, d->X, sizeof(X0));
+        rk4(d, X0, X1, rem);
+        if (events < MAX_EVENTS_PER_STEP && !d->hub_locked) {
+            if (d->backlash > 0 && d->side == 0 && fabs(X1[2 * N] - X1[0]) > half) {
+                ev = (X1[2 * N] - X1[0]) > 0 ? 1 : -1; /* the play closes on side ev */
+                e0 = eventValue(d, X0, ev);
+                e1 = eventValue(d, X1, ev);
+                f = e0 > 0.0 ? e0 / (e0 - e1) : 0.0;
+            }
+            if (d->coulomb_torque > 0 && !d->stuck && d->slip != 0 && X1[N] * d->slip <= 0.0) {
+                const double v0 = eventValue(d, X0, 2), v1 = eventValue(d, X1, 2);
+                const double fv = v0 > 0.0 ? v0 / (v0 - v1) : 0.0;
+                if (fv < f) { /* the hub velocity reverses first */
+                    ev = 2;
+                    e0 = v0;
+                    e1 = v1;
+                }
+            }
+        }
+        if (ev == 0) {
+            memcpy(d->X, X1, sizeof(X1));
+            break;
+        }
+        events++;
+        f = locateEvent(d, X0, rem, ev, e0, e1, d->X);
+        if (ev == 2)
+            velocityZero(d);
+        else
+            impact(d, ev);
+        rem -= f * rem;
+    }
+}
+
+/* Phi = I + B + B^2/2 + B^3/6 + B^4/24 and P3h = h (I + B/2 + B^2/6 + B^3/24), B = h A (rigid gear) */
+static void linearMaps(ModelData *d, double h) {
+    const int N = d->N, n = 2 * N;
+    double Bm[2 * MAX_DOF][2 * MAX_DOF], Pw[2 * MAX_DOF][2 * MAX_DOF], T[2 * MAX_DOF][2 * MAX_DOF];
+    double fact = 1.0;
+    int i, j, l, p;
+    memset(Bm, 0, sizeof(Bm));
+    for (i = 0; i < N; i++) {
+        Bm[i][N + i] = h;
+        for (j = 0; j < N; j++) {
+            Bm[N + i][j] = -h * d->Minv_r[i][j] * (j == 0 ? 0.0 : d->k[j]);
+            Bm[N + i][N + j] = -h * d->Minv_r[i][j] * (j == 0 ? d->Beq + d->Bemf : d->c[j]);
+        }
+    }
+    for (i = 0; i < n; i++)
+        for (j = 0; j < n; j++) {
+            Pw[i][j] = (i == j) ? 1.0 : 0.0; /* B^0 */
+            d->Phi[i][j] = Pw[i][j];
+            d->P3h[i][j] = h * Pw[i][j];
+        }
+    for (p = 1; p <= 4; p++) { /* Pw = B^p */
+        for (i = 0; i < n; i++)
+            for (j = 0; j < n; j++) {
+                double s = 0.0;
+                for (l = 0; l < n; l++) s += Pw[i][l] * Bm[l][j];
+                T[i][j] = s;
+            }
+        memcpy(Pw, T, sizeof(T));
+        fact *= p;
+        for (i = 0; i < n; i++)
+            for (j = 0; j < n; j++) {
+                d->Phi[i][j] += Pw[i][j] / fact;
+                if (p < 4) d->P3h[i][j] += h * Pw[i][j] / (fact * (p + 1));
+            }
+    }
+    d->lin_h = h;
+}
+
+/* nsub RK4 steps of size hs of the linear rig with constant inputs */
+static void linearSteps(ModelData *d, double hs, long nsub) {
+    const int N = d->N, n = 2 * N;
+    double Q[MAX_DOF], f[2 * MAX_DOF], g[2 * MAX_DOF], Y[2 * MAX_DOF];
+    long k;
+    int i, j;
+    if (d->lin_h != hs) linearMaps(d, hs);
+    Q[0] = d->G * d->v_amp + d->tau_tip;
+    for (i = 1; i < N; i++) Q[i] = d->tau_tip;
+    for (i = 0; i < N; i++) {
+        double s = 0.0;
+        for (j = 0; j < N; j++) s += d->Minv_r[i][j] * Q[j];
+        f[i] = 0.0;
+        f[N + i] = s;
+    }
+    for (i = 0; i < n; i++) {
+        double s = 0.0;
+        for (j = 0; j < n; j++) s += d->P3h[i][j] * f[j];
+        g[i] = s;
+    }
+    for (k = 0; k < nsub; k++) {
+        for (i = 0; i < n; i++) {
+            double s = g[i];
+            for (j = 0; j < n; j++) s += d->Phi[i][j] * d->X[j];
+            Y[i] = s;
+        }
+        memcpy(d->X, Y, (size_t)n * sizeof(double));
+    }
+    d->X[n] = d->X[0]; /* motor side = hub without backlash */
+    d->X[n + 1] = d->X[N];
+}
+
+fmi2Status doStep(ModelInstance *comp, double t, double h) {
+    ModelData *d = &comp->data;
+    const int nx = 2 * d->N + 2;
+    double nsub_d, hs;
+    long nsub, k;
+    int i;
+    if (!isfinite(d->u) || !isfinite(d->tau_tip)) {
+        logError(comp, "input u or tau_tip is not finite at t = %g s", t);
+        return fmi2Error;
+    }
+    d->v_amp = d->u;
+    if (d->amp_limit > 0) d->v_amp = fmin(fmax(d->u, -d->amp_limit), d->amp_limit);
+    nsub_d = ceil(h / d->h_max - 1e-9);
+    if (nsub_d < 1) nsub_d = 1;
+    if (nsub_d > 1e9) {
+        logError(comp, "communication step %g s needs more than 1e9 internal steps of %g s", h, d->h_max);
+        return fmi2Error;
+    }
+    nsub = (long)nsub_d;
+    hs = h / (double)nsub;
+    if (d->linear)
+        linearSteps(d, hs, nsub);
+    else
+        for (k = 0; k < nsub; k++) substep(d, hs);
+    for (i = 0; i < nx; i++) {
+        if (!isfinite(d->X[i])) {
+            logError(comp, "state became non-finite at t = %g s (check parameters and internal_step)", t + h);
+            return fmi2Error;
+        }
+    }
+    return fmi2OK;
+}
+
+void calculateValues(ModelInstance *comp) {
+    ModelData *d = &comp->data;
+    const int N = d->N;
+    double a = 0.0, ad = 0.0, gsum = 0.0;
+    int i;
+    if (N < 2) return; /* not initialised yet */
+    for (i = 1; i < N; i++) {
+        a += d->X[i];
+        ad += d->X[N + i];
+        gsum += d->g[i] * d->X[i];
+    }
+    d->theta = d->X[0];
+    d->alpha = a;
+    d->y = d->theta + a;
+    d->theta_dot = d->X[N];
+    d->alpha_dot = ad;
+    d->alpha_gauge = d->c_g * gsum;
+    d->theta_motor = d->backlash > 0 ? d->X[2 * N] : d->X[0];
+}
+
+/* ------------------------------------------------------- get / set */
+
+fmi2Status getFloat64(ModelInstance *comp, fmi2ValueReference vr, double *value) {
+    const ModelData *d = &comp->data;
+    switch (vr) {
+    case vr_Rm: *value = d->Rm; break;
+    case vr_kt: *value = d->kt; break;
+    case vr_km: *value = d->km; break;
+    case vr_Kg: *value = d->Kg; break;
+    case vr_eta_g: *value = d->eta_g; break;
+    case vr_eta_m: *value = d->eta_m; break;
+    case vr_Jeq: *value = d->Jeq; break;
+    case vr_Beq: *value = d->Beq; break;
+    case vr_m_link: *value = d->m_link; break;
+    case vr_L_link: *value = d->L_link; break;
+    case vr_Ks: *value = d->Ks; break;
+    case vr_zeta_link: *value = d->zeta_link; break;
+    case vr_coulomb_torque: *value = d->coulomb_torque; break;
+    case vr_stiction_ratio: *value = d->stiction_ratio; break;
+    case vr_backlash: *value = d->backlash; break;
+    case vr_Jm_share: *value = d->Jm_share; break;
+    case vr_amp_limit: *value = d->amp_limit; break;
+    case vr_internal_step: *value = d->internal_step; break;
+    case vr_theta_start: *value = d->theta_start; break;
+    case vr_u: *value = d->u; break;
+    case vr_tau_tip: *value = d->tau_tip; break;
+    case vr_theta: *value = d->theta; break;
+    case vr_alpha: *value = d->alpha; break;
+    case vr_y: *value = d->y; break;
+    case vr_theta_dot: *value = d->theta_dot; break;
+    case vr_alpha_dot: *value = d->alpha_dot; break;
+    case vr_alpha_gauge: *value = d->alpha_gauge; break;
+    case vr_theta_motor: *value = d->theta_motor; break;
+    default: return unknownReference(comp, "Real", vr);
+    }
+    return fmi2OK;
+}
+
+fmi2Status setFloat64(ModelInstance *comp, fmi2ValueReference vr, double value) {
+    ModelData *d = &comp->data;
+    double *p = NULL;
+    const char *name = NULL;
+    switch (vr) {
+    case vr_u: d->u = value; return fmi2OK;
+    case vr_tau_tip: d->tau_tip = value; return fmi2OK;
+    case vr_Rm: p = &d->Rm; name = "Rm"; break;
+    case vr_kt: p = &d->kt; name = "kt"; break;
+    case vr_km: p = &d->km; name = "km"; break;
+    case vr_Kg: p = &d->Kg; name = "Kg"; break;
+    case vr_eta_g: p = &d->eta_g; name = "eta_g"; break;
+    case vr_eta_m: p = &d->eta_m; name = "eta_m"; break;
+    case vr_Jeq: p = &d->Jeq; name = "Jeq"; break;
+    case vr_Beq: p = &d->Beq; name = "Beq"; break;
+    case vr_m_link: p = &d->m_link; name = "m_link"; break;
+    case vr_L_link: p = &d->L_link; name = "L_link"; break;
+    case vr_Ks: p = &d->Ks; name = "Ks"; break;
+    case vr_zeta_link: p = &d->zeta_link; name = "zeta_link"; break;
+    case vr_coulomb_torque: p = &d->coulomb_torque; name = "coulomb_torque"; break;
+    case vr_stiction_ratio: p = &d->stiction_ratio; name = "stiction_ratio"; break;
+    case vr_backlash: p = &d->backlash; name = "backlash"; break;
+    case vr_Jm_share: p = &d->Jm_share; name = "Jm_share"; break;
+    case vr_amp_limit: p = &d->amp_limit; name = "amp_limit"; break;
+    case vr_internal_step: p = &d->internal_step; name = "internal_step"; break;
+    case vr_theta_start: p = &d->theta_start; name = "theta_start"; break;
+    default:
+        if (vr >= vr_theta && vr <= vr_theta_motor) {
+            logError(comp, "output value reference %u cannot be set", (unsigned)vr);
+            return fmi2Error;
+        }
+        return unknownReference(comp, "Real", vr);
+    }
+    if (!parametersSettable(comp)) return fixedAfterInit(comp, name);
+    *p = value;
+    return fmi2OK;
+}
+
+fmi2Status getInt32(ModelInstance *comp, fmi2ValueReference vr, int *value) {
+    switch (vr) {
+    case vr_n_modes: *value = comp->data.n_modes; return fmi2OK;
+    case vr_hub_locked: *value = comp->data.hub_locked; return fmi2OK;
+    default: return unknownReference(comp, "Integer", vr);
+    }
+}
+
+fmi2Status setInt32(ModelInstance *comp, fmi2ValueReference vr, int value) {
+    switch (vr) {
+    case vr_n_modes:
+        if (!parametersSettable(comp)) return fixedAfterInit(comp, "n_modes");
+        comp->data.n_modes = value;
+        return fmi2OK;
+    case vr_hub_locked:
+        if (!parametersSettable(comp)) return fixedAfterInit(comp, "hub_locked");
+        comp->data.hub_locked = value;
+        return fmi2OK;
+    default: return unknownReference(comp, "Integer", vr);
+    }
+}

@@ -1,0 +1,255 @@
+"""Build the rig-twin FMUs (FMI 2.0 co-simulation, C sources) with fmpy's CMake tooling.
+
+``fmus/common`` (the generic FMI 2.0 layer) and ``fmus/<name>`` (config.h, model.c,
+modelDescription.xml) are staged into a temporary FMU tree, compiled with
+``fmpy.build.build_platform_binary`` and zipped, sources included, into
+``<cache>/<name>-<sha256 of the staged sources[:12]>.fmu``.  The cache is ``$FLEXJOINT_CACHE`` or
+``~/.cache/flexjoint-harness``; the source tree is ``$FLEXJOINT_FMU_SRC`` or the repository's ``fmus/``.
+An FMU is rebuilt only when its sources change; the zip is written to a temporary file and moved in
+place with ``os.replace`` under a per-model file lock, so concurrent builds cannot corrupt the cache.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import zipfile
+from contextlib import contextmanager
+from pathlib import Path
+
+BUILD_TAG = "flexjoint-harness-build-1"  # bump when the staging or compile recipe changes
+MODELS = ("flexjoint", "daq")
+FMI_HEADERS = ("fmi2Functions.h", "fmi2FunctionTypes.h", "fmi2TypesPlatform.h")
+
+# Value references (the master reads them from modelDescription.xml by name; these are the same numbers).
+FLEXJOINT_VR: dict[str, int] = {
+    "Rm": 0, "kt": 1, "km": 2, "Kg": 3, "eta_g": 4, "eta_m": 5, "Jeq": 6, "Beq": 7, "m_link": 8,
+    "L_link": 9, "Ks": 10, "zeta_link": 11, "n_modes": 12, "coulomb_torque": 13, "stiction_ratio": 14,
+    "backlash": 15, "Jm_share": 16, "amp_limit": 17, "internal_step": 18, "theta_start": 19,
+    "hub_locked": 20, "u": 30, "tau_tip": 31, "theta": 40, "alpha": 41, "y": 42, "theta_dot": 43,
+    "alpha_dot": 44, "alpha_gauge": 45, "theta_motor": 46,
+}  # fmt: skip
+DAQ_VR: dict[str, int] = {
+    "sample_rate": 0, "dac_bits": 1, "dac_range": 2, "out_limit": 3, "delay_samples": 4, "pot_gain": 5,
+    "pot_offset": 6, "pot_deadband": 7, "gauge_gain": 8, "gauge_offset": 9, "gauge_cubic": 10,
+    "adc_bits": 11, "adc_range": 12, "noise_theta": 13, "noise_alpha": 14, "seed": 15, "u": 30,
+    "theta": 31, "alpha_gauge": 32, "u_plant": 40, "theta_v": 41, "alpha_v": 42,
+}  # fmt: skip
+VALUE_REFERENCES: dict[str, dict[str, int]] = {"flexjoint": FLEXJOINT_VR, "daq": DAQ_VR}
+
+
+class BuildError(RuntimeError):
+    """An FMU could not be staged, compiled or packed."""
+
+
+def fmu_source_dir() -> Path:
+    """The ``fmus/`` source tree: ``$FLEXJOINT_FMU_SRC`` or ``<repo>/fmus``."""
+    env = os.environ.get("FLEXJOINT_FMU_SRC")
+    return Path(env) if env else Path(__file__).resolve().parents[1] / "fmus"
+
+
+def cache_dir() -> Path:
+    """The FMU cache: ``$FLEXJOINT_CACHE`` or ``~/.cache/flexjoint-harness``."""
+    env = os.environ.get("FLEXJOINT_CACHE")
+    return Path(env) if env else Path.home() / ".cache" / "flexjoint-harness"
+
+
+def available_models() -> list[str]:
+    """Model directories under the source tree (those with a modelDescription.xml)."""
+    root = fmu_source_dir()
+    if not root.is_dir():
+        return []
+    return sorted(p.name for p in root.iterdir() if (p / "modelDescription.xml").is_file() and p.name != "common")
+
+
+def _fmpy_headers() -> dict[str, bytes]:
+    import fmpy
+
+    cdir = Path(fmpy.__file__).parent / "c-code"
+    return {h: (cdir / h).read_bytes() for h in FMI_HEADERS}
+
+
+def _with_source_files(xml: str, sources: list[str]) -> str:
+    """Add the FMI 2.0 ``<SourceFiles>`` list (what fmpy's build reads) to the CoSimulation element."""
+    files = "".join(f'\n      <File name="{s}"/>' for s in sources)
+    block = f"\n    <SourceFiles>{files}\n    </SourceFiles>\n  "
+    if re.search(r"<SourceFiles\b", xml):
+        raise BuildError("modelDescription.xml must not list SourceFiles: the build adds them")
+    new, n = re.subn(r"(<CoSimulation\b[^>]*?)\s*/>", lambda m: m.group(1) + ">" + block + "</CoSimulation>", xml)
+    if n == 0:
+        new, n = re.subn(r"</CoSimulation>", block.lstrip("\n") + "</CoSimulation>", xml, count=1)
+    if n != 1:
+        raise BuildError("modelDescription.xml has no CoSimulation element")
+    return new
+
+
+def _staged_files(name: str) -> dict[str, bytes]:
+    """All files of the FMU except the binary, as {path inside the FMU: content}."""
+    root = fmu_source_dir()
+    model_dir, common_dir = root / name, root / "common"
+    if name == "common" or not (model_dir / "modelDescription.xml").is_file():
+        raise ValueError(f"unknown FMU {name!r}: expected one of {', '.join(available_models()) or '(none)'}")
+    if not common_dir.is_dir():
+        raise BuildError(f"missing shared FMI layer {common_dir}")
+    files: dict[str, bytes] = {}
+    for d in (common_dir, model_dir):
+        for p in sorted(d.iterdir()):
+            if p.suffix in (".c", ".h"):
+                if f"sources/{p.name}" in files:
+                    raise BuildError(f"{p.name} exists in both fmus/common and fmus/{name}")
+                files[f"sources/{p.name}"] = p.read_bytes()
+    for h, content in _fmpy_headers().items():
+        files.setdefault(f"sources/{h}", content)
+    xml = (model_dir / "modelDescription.xml").read_text(encoding="utf-8")
+    _check_guid(name, xml, files)
+    c_sources = sorted(k.removeprefix("sources/") for k in files if k.endswith(".c"))
+    files["modelDescription.xml"] = _with_source_files(xml, c_sources).encode("utf-8")
+    return files
+
+
+def _check_guid(name: str, xml: str, files: dict[str, bytes]) -> None:
+    m_xml = re.search(r'\bguid="([^"]+)"', xml)
+    m_id = re.search(r'modelIdentifier="([^"]+)"', xml)
+    cfg = files.get("sources/config.h", b"").decode("utf-8", "replace")
+    m_c = re.search(r'#define\s+MODEL_GUID\s+"([^"]+)"', cfg)
+    if not (m_xml and m_c and m_xml.group(1) == m_c.group(1)):
+        raise BuildError(f"{name}: guid in modelDescription.xml and MODEL_GUID in config.h differ")
+    if not m_id or m_id.group(1) != name:
+        raise BuildError(f"{name}: modelIdentifier must equal the directory name {name!r}")
+
+
+def source_hash(name: str) -> str:
+    """sha256 (hex) of everything that goes into the FMU of ``name`` besides the binary."""
+    h = hashlib.sha256(BUILD_TAG.encode())
+    for arc, content in sorted(_staged_files(name).items()):
+        h.update(arc.encode() + b"\0" + len(content).to_bytes(8, "little") + content)
+    return h.hexdigest()
+
+
+def fmu_sha256(path: str | os.PathLike) -> str:
+    """sha256 (hex) of a file, e.g. a built FMU."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+@contextmanager
+def _file_lock(path: Path):
+    try:
+        import fcntl
+    except ImportError:  # Windows: os.replace alone keeps the cache consistent
+        yield
+        return
+    with open(path, "a") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
+def _ensure_cmake_on_path() -> None:
+    if shutil.which("cmake"):
+        return
+    try:
+        import cmake
+    except ImportError as e:
+        raise BuildError("cmake not found: pip install cmake") from e
+    os.environ["PATH"] = cmake.CMAKE_BIN_DIR + os.pathsep + os.environ.get("PATH", "")
+
+
+def _first_error_line(log: str) -> str:
+    lines = [ln.strip() for ln in log.splitlines() if ln.strip()]
+    for pat in (r"\berror\b", r"\bError\b", r"(?i)fatal", r"(?i)not found"):
+        for ln in lines:
+            if re.search(pat, ln):
+                return ln
+    return lines[-1] if lines else "no output"
+
+
+def _compile(stage: Path, build_dir: Path, name: str) -> str:
+    """Run fmpy's CMake build with stdout/stderr captured; return the log, raise BuildError on failure."""
+    from fmpy.build import build_platform_binary
+
+    _ensure_cmake_on_path()
+    options = {} if sys.platform == "win32" else {"CMAKE_C_STANDARD_LIBRARIES:STRING": "-lm"}
+    error: BaseException | None = None
+    with tempfile.TemporaryFile() as log:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        saved = (os.dup(1), os.dup(2))
+        try:
+            os.dup2(log.fileno(), 1)
+            os.dup2(log.fileno(), 2)
+            build_platform_binary(stage, build_dir=build_dir, all_warnings=True, cmake_options=options)
+        except Exception as e:  # CalledProcessError, a missing cmake, a broken tree: all reported below
+            error = e
+        finally:
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            os.close(saved[0])
+            os.close(saved[1])
+        log.seek(0)
+        text = log.read().decode("utf-8", "replace")
+    if error is not None:
+        detail = _first_error_line(text) if isinstance(error, subprocess.CalledProcessError) else str(error)
+        detail = detail.replace(f"{(stage / 'sources').as_posix()}/", "")  # model.c:12:5: error: ...
+        raise BuildError(f"building {name} failed: {detail}")
+    return text
+
+
+def build_fmu(name: str, out_dir: Path | None = None, force: bool = False) -> Path:
+    """Build (or reuse) the FMU ``name`` ('flexjoint', 'daq', ...) and return its path.
+
+    ``out_dir`` replaces the cache directory; ``force`` rebuilds even when a cached FMU exists.
+    """
+    files = _staged_files(name)
+    digest = source_hash(name)
+    target_dir = Path(out_dir) if out_dir is not None else cache_dir()
+    target_dir.mkdir(parents=True, exist_ok=True)
+    target = target_dir / f"{name}-{digest[:12]}.fmu"
+    if target.is_file() and not force:
+        return target
+    with _file_lock(target_dir / f".{name}.lock"):
+        if target.is_file() and not force:  # built by another process meanwhile
+            return target
+        with tempfile.TemporaryDirectory(prefix=f".{name}-", dir=target_dir) as tmp:
+            stage, build_dir = Path(tmp) / "fmu", Path(tmp) / "build"
+            build_dir.mkdir()
+            for arc, content in files.items():
+                p = stage / arc
+                p.parent.mkdir(parents=True, exist_ok=True)
+                p.write_bytes(content)
+            _compile(stage, build_dir, name)
+            bin_dir = stage / "binaries"
+            binaries = [p for p in bin_dir.rglob("*") if p.is_file()] if bin_dir.is_dir() else []
+            if not binaries:
+                raise BuildError(f"building {name} failed: no binary was produced")
+            tmp_zip = Path(tmp) / "out.fmu"
+            with zipfile.ZipFile(tmp_zip, "w", zipfile.ZIP_DEFLATED) as zf:
+                for arc in sorted(files):
+                    zf.write(stage / arc, arc)
+                for p in sorted(binaries):
+                    zf.write(p, p.relative_to(stage).as_posix())
+            os.replace(tmp_zip, target)
+    return target
+
+
+def build_all(out_dir: Path | None = None, force: bool = False) -> dict[str, Path]:
+    """Build the rig twin: ``{"flexjoint": Path, "daq": Path}``."""
+    return {name: build_fmu(name, out_dir=out_dir, force=force) for name in MODELS}
+
+
+def value_references(fmu: str | os.PathLike) -> dict[str, int]:
+    """{variable name: value reference} read from an FMU's modelDescription.xml."""
+    from fmpy import read_model_description
+
+    md = read_model_description(str(fmu), validate=False)
+    return {v.name: v.valueReference for v in md.modelVariables}

@@ -1,0 +1,262 @@
+"""Analytic linear model of the flexible-joint rig: the test oracle and the diagnoser's linear model.
+
+Independent of the C code of ``fmus/flexjoint`` (same physics, other route: the beam integrals are
+computed here by root finding and numerical quadrature of the clamped-free mode shapes).
+
+All SI, angles in rad.  Coordinates: hub (load shaft) angle ``theta`` and ``a_i``, the tip-angle
+contribution of assumed mode ``i`` (``alpha = sum a_i``), mode shapes normalised to ``phi_i(L) = +2``
+and ``int_0^L phi_i^2 dx = L``.  State order of :func:`state_space`:
+``[theta, a_1..a_n, theta_dot, a_dot_1..a_dot_n]``; inputs ``[u (V), tau_tip (N.m)]``; outputs
+``[theta, alpha, y, theta_dot, alpha_dot, alpha_gauge]``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields
+from functools import cache
+
+import numpy as np
+from scipy.integrate import quad
+from scipy.optimize import brentq
+
+OUTPUTS = ("theta", "alpha", "y", "theta_dot", "alpha_dot", "alpha_gauge")
+INPUTS = ("u", "tau_tip")
+MAX_MODES = 3
+
+
+@dataclass
+class PlantParams:
+    """Parameters of the flexjoint FMU (same names, units and defaults: the textbook rig, effects off)."""
+
+    Rm: float = 2.6  # armature resistance [ohm]
+    kt: float = 7.68e-3  # motor torque constant [N.m/A]
+    km: float = 7.68e-3  # back-EMF constant [V.s/rad]
+    Kg: float = 70.0  # gear ratio [-]
+    eta_g: float = 0.9  # gearbox efficiency [-]
+    eta_m: float = 0.69  # motor efficiency [-]
+    Jeq: float = 2.08e-3  # equivalent hub inertia at the load shaft [kg.m2]
+    Beq: float = 0.004  # viscous damping at the load shaft [N.m.s/rad]
+    m_link: float = 0.065  # link mass [kg]
+    L_link: float = 0.419  # link length [m]
+    Ks: float = 1.3  # link stiffness, first clamped mode sqrt(Ks / Jl) [N.m/rad]
+    zeta_link: float = 0.01  # modal damping ratio, all modes [-]
+    n_modes: int = 1  # flexible modes (1..3)
+    coulomb_torque: float = 0.0  # Coulomb friction at the hub [N.m]
+    stiction_ratio: float = 1.0  # static / Coulomb friction [-]
+    backlash: float = 0.0  # total gear play at the load shaft [rad]
+    Jm_share: float = 0.5  # fraction of Jeq on the motor side of the play [-]
+    amp_limit: float = 0.0  # amplifier saturation [V], 0 = none
+    internal_step: float = 1e-3  # largest RK4 step of the FMU [s]
+    theta_start: float = 0.0  # initial shaft angle [rad]
+    hub_locked: int = 0  # 1 clamps the hub
+
+    def validate(self) -> None:
+        """Raise ValueError (one line naming the parameter) for values the FMU would reject."""
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if not math.isfinite(v):
+                raise ValueError(f"invalid parameter {f.name} = {v}: must be finite")
+        positive = ("Rm", "kt", "Kg", "Jeq", "m_link", "L_link", "Ks", "internal_step")
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise ValueError(f"invalid parameter {name} = {getattr(self, name)}: must be > 0")
+        for name in ("km", "Beq", "zeta_link", "coulomb_torque", "backlash", "amp_limit"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"invalid parameter {name} = {getattr(self, name)}: must be >= 0")
+        for name in ("eta_g", "eta_m"):
+            if not 0 < getattr(self, name) <= 1:
+                raise ValueError(f"invalid parameter {name} = {getattr(self, name)}: must be in (0, 1]")
+        if int(self.n_modes) != self.n_modes or not 1 <= self.n_modes <= MAX_MODES:
+            raise ValueError(f"invalid parameter n_modes = {self.n_modes}: must be an integer in 1..{MAX_MODES}")
+        if self.stiction_ratio < 1:
+            raise ValueError(f"invalid parameter stiction_ratio = {self.stiction_ratio}: must be >= 1")
+        if not 0.05 <= self.Jm_share <= 0.95:
+            raise ValueError(f"invalid parameter Jm_share = {self.Jm_share}: must be in [0.05, 0.95]")
+        if self.hub_locked not in (0, 1):
+            raise ValueError(f"invalid parameter hub_locked = {self.hub_locked}: must be 0 or 1")
+
+    def to_dict(self) -> dict[str, float | int]:
+        """The parameters as {FMU name: value}."""
+        return asdict(self)
+
+
+# ------------------------------------------------------------------ beam (dimensionless)
+
+
+@cache
+def beam_roots(n: int) -> tuple[float, ...]:
+    """The first n roots beta_i L of the clamped-free frequency equation cos(x) cosh(x) + 1 = 0."""
+    roots = []
+    for i in range(1, n + 1):
+        guess = (2 * i - 1) * math.pi / 2
+        roots.append(brentq(lambda x: math.cos(x) * math.cosh(x) + 1.0, guess - 1.0, guess + 1.0, xtol=1e-15))
+    return tuple(roots)
+
+
+def _shape(bl: float, xi: float, deriv: int = 0) -> float:
+    """Un-normalised clamped-free mode shape (or its 2nd derivative in xi) at xi = x / L."""
+    s = (math.cosh(bl) + math.cos(bl)) / (math.sinh(bl) + math.sin(bl))
+    z = bl * xi
+    if deriv == 0:
+        return math.cosh(z) - math.cos(z) - s * (math.sinh(z) - math.sin(z))
+    if deriv == 2:
+        return bl**2 * (math.cosh(z) + math.cos(z) - s * (math.sinh(z) + math.sin(z)))
+    raise ValueError(f"deriv must be 0 or 2, got {deriv}")
+
+
+@cache
+def beam_integrals(n: int) -> dict[str, np.ndarray]:
+    """Dimensionless integrals of the tip-normalised shapes phi_i (phi_i(1) = 2), by quadrature.
+
+    Returns ``mass`` = int_0^1 phi_i phi_j dxi (n x n, ~identity), ``first`` = int_0^1 xi phi_i dxi,
+    ``tip`` = phi_i(1) / 2 (~1), ``curv`` = phi_i''(0) (second derivative in xi).
+    """
+    bls = beam_roots(n)
+    scale = [2.0 / _shape(bl, 1.0) for bl in bls]
+
+    def phi(i: int, xi: float) -> float:
+        return scale[i] * _shape(bls[i], xi)
+
+    opts = {"epsabs": 1e-14, "epsrel": 1e-13, "limit": 200}
+    mass = np.empty((n, n))
+    for i in range(n):
+        for j in range(n):
+            mass[i, j] = quad(lambda x, i=i, j=j: phi(i, x) * phi(j, x), 0, 1, **opts)[0]
+    first = np.array([quad(lambda x, i=i: x * phi(i, x), 0, 1, **opts)[0] for i in range(n)])
+    tip = np.array([phi(i, 1.0) / 2.0 for i in range(n)])
+    curv = np.array([scale[i] * _shape(bls[i], 0.0, deriv=2) for i in range(n)])
+    return {"mass": mass, "first": first, "tip": tip, "curv": curv}
+
+
+# ------------------------------------------------------------------ rig model
+
+
+def motor_constants(p: PlantParams) -> tuple[float, float]:
+    """(G [N.m/V], Bemf [N.m.s/rad]): load-shaft motor torque per volt and back-EMF damping."""
+    G = p.eta_g * p.Kg * p.eta_m * p.kt / p.Rm
+    return G, G * p.Kg * p.km
+
+
+def link_inertia(p: PlantParams) -> float:
+    """Rigid link inertia about the hub Jl = m L^2 / 3 [kg.m2] (by quadrature of rho x^2)."""
+    return p.m_link / p.L_link * quad(lambda x: x * x, 0.0, p.L_link)[0]
+
+
+def clamped_frequencies_rad(p: PlantParams) -> np.ndarray:
+    """Clamped (hub fixed) natural frequencies w_i = w_1 (beta_i / beta_1)^2 [rad/s], w_1 = sqrt(Ks / Jl)."""
+    bls = np.array(beam_roots(int(p.n_modes)))
+    return math.sqrt(p.Ks / link_inertia(p)) * (bls / bls[0]) ** 2
+
+
+def mass_stiffness(p: PlantParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(M, K, D) for the coordinates [theta, a_1..a_n] with the hub free (rigid gear).
+
+    M [kg.m2], K [N.m/rad], D [N.m.s/rad]; D holds Beq plus the motor's back-EMF damping on theta
+    and the modal damping 2 zeta J_i w_i on each a_i.
+    """
+    p.validate()
+    n = int(p.n_modes)
+    m, L = p.m_link, p.L_link
+    ints = beam_integrals(n)
+    Jl = link_inertia(p)
+    Jmode = m * L**2 / 4.0 * ints["mass"]  # q_i = L a_i / 2, int rho phi_i phi_j (L/2)^2
+    b = m * L**2 / 2.0 * ints["first"]  # (m/L)(L/2) int x phi_i dx
+    w = clamped_frequencies_rad(p)
+    N = n + 1
+    M = np.zeros((N, N))
+    M[0, 0] = p.Jeq + Jl
+    M[0, 1:] = M[1:, 0] = b
+    M[1:, 1:] = Jmode
+    K = np.zeros((N, N))
+    K[1:, 1:] = np.diag(np.diag(Jmode) * w**2)
+    _, Bemf = motor_constants(p)
+    D = np.zeros((N, N))
+    D[0, 0] = p.Beq + Bemf
+    D[1:, 1:] = np.diag(2.0 * p.zeta_link * np.diag(Jmode) * w)
+    return M, K, D
+
+
+def gauge_weights(p: PlantParams) -> tuple[np.ndarray, float]:
+    """(g, c_g): root-curvature weight of each a_i relative to mode 1, and the static calibration factor.
+
+    alpha_gauge = c_g * sum g_i a_i; c_g makes a static tip load (hub clamped) read the static deflection.
+    """
+    ints = beam_integrals(int(p.n_modes))
+    g = ints["curv"] / ints["curv"][0]
+    M, K, _ = mass_stiffness(p)
+    a_static = np.linalg.solve(K[1:, 1:], ints["tip"])  # unit tip torque
+    return g, float(a_static.sum() / (g @ a_static))
+
+
+def state_space(p: PlantParams) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(A, B, C, D) of the linear rig (effects off: friction, backlash, saturation ignored).
+
+    States [theta, a_1..a_n, theta_dot, a_dot_1..n] (rad, rad/s); inputs [u (V), tau_tip (N.m)];
+    outputs [theta, alpha, y, theta_dot, alpha_dot, alpha_gauge] (rad, rad/s).  With hub_locked = 1
+    the hub rows are zero (theta stays at its initial value) and the link vibrates clamped.
+    """
+    M, K, Dm = mass_stiffness(p)
+    N = M.shape[0]
+    G, _ = motor_constants(p)
+    F = np.zeros((N, 2))  # generalised forces per input
+    F[0, 0] = G
+    F[0, 1] = 1.0
+    F[1:, 1] = beam_integrals(int(p.n_modes))["tip"]
+    Minv = np.linalg.inv(M)
+    if p.hub_locked:
+        Minv = np.zeros((N, N))
+        Minv[1:, 1:] = np.linalg.inv(M[1:, 1:])
+    A = np.zeros((2 * N, 2 * N))
+    A[:N, N:] = np.eye(N)
+    A[N:, :N] = -Minv @ K
+    A[N:, N:] = -Minv @ Dm
+    B = np.zeros((2 * N, 2))
+    B[N:, :] = Minv @ F
+    g, c_g = gauge_weights(p)
+    C = np.zeros((len(OUTPUTS), 2 * N))
+    C[0, 0] = 1.0
+    C[1, 1:N] = 1.0
+    C[2, :N] = 1.0
+    C[3, N] = 1.0
+    C[4, N + 1 :] = 1.0
+    C[5, 1:N] = c_g * g
+    return A, B, C, np.zeros((len(OUTPUTS), 2))
+
+
+def mode_frequencies(p: PlantParams) -> np.ndarray:
+    """Undamped flexible-mode frequencies [Hz], shape (2, n_modes): row 0 free hub, row 1 clamped hub.
+
+    Free hub: generalised eigenvalues of (K, M) without the rigid-body zero; clamped: w_i / (2 pi).
+    """
+    M, K, _ = mass_stiffness(p)
+    from scipy.linalg import eigh
+
+    lam = np.sort(eigh(K, M, eigvals_only=True))[1:]  # drop the rigid-body mode
+    free = np.sqrt(np.maximum(lam, 0.0)) / (2 * math.pi)
+    clamped = np.sqrt(np.sort(np.linalg.eigvalsh(np.linalg.solve(M[1:, 1:], K[1:, 1:])))) / (2 * math.pi)
+    return np.vstack([free, clamped])
+
+
+def steady_speed(p: PlantParams, V: float) -> float:
+    """Steady hub speed [rad/s] for a constant command V [V], starting from rest.
+
+    Effects off this is eta_g Kg eta_m kt V / (Rm Beq + eta_g eta_m kt km Kg^2); the amplifier limit and
+    Coulomb friction are applied when set (zero if the hub cannot break away).
+    """
+    p.validate()
+    v = float(V)
+    if p.amp_limit > 0:
+        v = min(max(v, -p.amp_limit), p.amp_limit)
+    G, Bemf = motor_constants(p)
+    drive = G * v
+    if abs(drive) <= p.stiction_ratio * p.coulomb_torque:
+        return 0.0
+    return math.copysign(abs(drive) - p.coulomb_torque, drive) / (p.Beq + Bemf)
+
+
+def dead_zone_voltage(p: PlantParams) -> float:
+    """Smallest constant command [V] that breaks the hub away from rest: Fs Rm / (eta_g Kg eta_m kt)."""
+    p.validate()
+    G, _ = motor_constants(p)
+    return p.stiction_ratio * p.coulomb_torque / G

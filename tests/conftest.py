@@ -1,0 +1,132 @@
+"""Shared fixtures: the built rig-twin FMUs and a minimal fmpy stepping loop for tests."""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+from collections.abc import Mapping, Sequence
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from harness.build import build_all
+
+
+@pytest.fixture(scope="session")
+def fmus() -> dict[str, Path]:
+    """{"flexjoint": Path, "daq": Path} of the built FMUs (from the build cache when up to date)."""
+    return build_all()
+
+
+class FmuRun:
+    """Steps one FMU with fmpy's FMU2Slave: parameters by name, inputs held over each step.
+
+    ``run(params, inputs, outputs, dt, n)``: ``inputs`` maps input names to arrays of length n (value
+    held over [t_k, t_k + dt)) or to constants.  Returns ``{"init": {name: value after
+    ExitInitializationMode}, name: array of n values read after doStep(t_k)}``.
+    """
+
+    def __init__(self, fmu: Path, workdir: Path) -> None:
+        from fmpy import extract, read_model_description
+
+        self.md = read_model_description(str(fmu))
+        self.unzipdir = extract(str(fmu), unzipdir=str(workdir / fmu.stem))
+        self.vars = {v.name: v for v in self.md.modelVariables}
+        self.messages: list[str] = []
+
+    def vr(self, name: str) -> int:
+        return self.vars[name].valueReference
+
+    def _logger(self):
+        from ctypes import byref
+
+        from fmpy.fmi2 import defaultCallbacks, fmi2CallbackFunctions, fmi2CallbackLoggerTYPE
+        from fmpy.logging import addLoggerProxy
+
+        def log(env, instance, status, category, message):  # noqa: ARG001
+            self.messages.append(message.decode())
+
+        cb = fmi2CallbackFunctions()
+        cb.logger = fmi2CallbackLoggerTYPE(log)
+        cb.allocateMemory = defaultCallbacks.allocateMemory
+        cb.freeMemory = defaultCallbacks.freeMemory
+        addLoggerProxy(byref(cb))
+        self._cb = cb  # keep alive
+        return cb
+
+    @contextmanager
+    def instance(self, params: Mapping[str, float] | None = None, start: Mapping[str, float] | None = None):
+        """An initialised instance (parameters and start inputs set, ExitInitializationMode done)."""
+        from fmpy.fmi2 import FMU2Slave
+
+        fmu = FMU2Slave(
+            guid=self.md.guid,
+            unzipDirectory=self.unzipdir,
+            modelIdentifier=self.md.coSimulation.modelIdentifier,
+            instanceName="test",
+        )
+        fmu.instantiate(callbacks=self._logger())
+        try:
+            fmu.setupExperiment(startTime=0.0)
+            for name, value in (params or {}).items():
+                if self.vars[name].type == "Integer":
+                    fmu.setInteger([self.vr(name)], [int(value)])
+                else:
+                    fmu.setReal([self.vr(name)], [float(value)])
+            fmu.enterInitializationMode()
+            if start:
+                fmu.setReal([self.vr(k) for k in start], [float(v) for v in start.values()])
+            fmu.exitInitializationMode()
+            yield _Handle(fmu, self)
+        finally:
+            fmu.freeInstance()
+
+    def run(
+        self,
+        params: Mapping[str, float] | None,
+        inputs: Mapping[str, Sequence[float] | np.ndarray | float],
+        outputs: Sequence[str],
+        dt: float,
+        n: int,
+    ) -> dict:
+        in_names = list(inputs)
+        table = np.column_stack([np.broadcast_to(np.asarray(inputs[k], float), (n,)) for k in in_names])
+        with self.instance(params, dict(zip(in_names, table[0], strict=True)) if in_names else None) as h:
+            res = {"init": dict(zip(outputs, h.get(*outputs), strict=True))}
+            out = np.empty((n, len(outputs)))
+            in_vrs = [self.vr(k) for k in in_names]
+            out_vrs = [self.vr(k) for k in outputs]
+            for k in range(n):
+                if in_vrs:
+                    h.fmu.setReal(in_vrs, list(table[k]))
+                h.fmu.doStep(currentCommunicationPoint=k * dt, communicationStepSize=dt)
+                out[k] = h.fmu.getReal(out_vrs)
+        for i, name in enumerate(outputs):
+            res[name] = out[:, i]
+        return res
+
+
+class _Handle:
+    """set / step / get on one initialised FMU instance."""
+
+    def __init__(self, fmu, run: FmuRun) -> None:
+        self.fmu, self._run = fmu, run
+
+    def set(self, **values: float) -> None:
+        self.fmu.setReal([self._run.vr(k) for k in values], [float(v) for v in values.values()])
+
+    def get(self, *names: str) -> list[float]:
+        return list(self.fmu.getReal([self._run.vr(k) for k in names]))
+
+    def step(self, t: float, h: float) -> None:
+        self.fmu.doStep(currentCommunicationPoint=t, communicationStepSize=h)
+
+
+@pytest.fixture(scope="session")
+def fmu_runner(fmus):
+    """{"flexjoint": FmuRun, "daq": FmuRun} sharing one extraction per session."""
+    workdir = Path(tempfile.mkdtemp(prefix="fj-test-"))
+    yield {name: FmuRun(path, workdir) for name, path in fmus.items()}
+    shutil.rmtree(workdir, ignore_errors=True)

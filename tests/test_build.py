@@ -1,0 +1,146 @@
+"""FMU build: validation, cache behaviour, errors, self-contained sources, a second importer."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fmpy.validation import validate_fmu
+
+from harness import build
+from harness.build import BuildError, build_fmu, fmu_sha256, source_hash, value_references
+
+
+def test_fmus_validate_with_zero_problems(fmus):
+    assert set(fmus) == {"flexjoint", "daq"}
+    for path in fmus.values():
+        assert validate_fmu(str(path)) == []
+
+
+def test_value_references_and_hash_in_name(fmus):
+    for name, path in fmus.items():
+        assert value_references(path) == build.VALUE_REFERENCES[name]
+        assert path.name == f"{name}-{source_hash(name)[:12]}.fmu"
+        assert fmu_sha256(path) == hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def test_fmu_contains_sources_and_rebuilds_from_them(fmus, tmp_path):
+    """Another tool can rebuild the binary from the FMU's own sources (fmpy, FMI 2 SourceFiles)."""
+    from fmpy import read_model_description
+    from fmpy.build import build_platform_binary
+
+    with zipfile.ZipFile(fmus["daq"]) as zf:
+        names = zf.namelist()
+        zf.extractall(tmp_path / "daq")
+    for f in ("sources/model.c", "sources/fmi2common.c", "sources/fmi2Functions.h", "modelDescription.xml"):
+        assert f in names
+    md = read_model_description(str(fmus["daq"]))
+    assert sorted(md.buildConfigurations[0].sourceFileSets[0].sourceFiles) == ["fmi2common.c", "model.c"]
+    shutil.rmtree(tmp_path / "daq" / "binaries")
+    opts = {} if sys.platform == "win32" else {"CMAKE_C_STANDARD_LIBRARIES:STRING": "-lm"}
+    (tmp_path / "b").mkdir()
+    r = subprocess.run(
+        [sys.executable, "-c", f"import fmpy.build as b; b.build_platform_binary({str(tmp_path / 'daq')!r}, "
+         f"build_dir={str(tmp_path / 'b')!r}, cmake_options={opts!r})"],
+        capture_output=True, text=True, check=False,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    assert any((tmp_path / "daq" / "binaries").rglob("daq.*"))
+    assert build_platform_binary  # imported: the same tool the harness uses
+
+
+@pytest.fixture
+def src_copy(tmp_path, monkeypatch):
+    """A private copy of fmus/ and an empty cache."""
+    src = tmp_path / "fmus"
+    shutil.copytree(build.fmu_source_dir(), src, ignore=shutil.ignore_patterns("build", "*.fmu"))
+    monkeypatch.setenv("FLEXJOINT_FMU_SRC", str(src))
+    monkeypatch.setenv("FLEXJOINT_CACHE", str(tmp_path / "cache"))
+    return src
+
+
+def test_cache_reuses_and_rebuilds_on_change(src_copy):
+    p1 = build_fmu("daq")
+    assert p1.parent == Path(os.environ["FLEXJOINT_CACHE"])
+    m1 = p1.stat().st_mtime_ns
+    assert build_fmu("daq") == p1 and p1.stat().st_mtime_ns == m1  # not rebuilt
+    with open(src_copy / "daq" / "model.c", "a") as f:
+        f.write("\n/* changed */\n")
+    p2 = build_fmu("daq")
+    assert p2 != p1 and p2.is_file() and p1.stat().st_mtime_ns == m1
+    assert validate_fmu(str(p2)) == []
+    assert build_fmu("daq", force=True) == p2
+
+
+def test_concurrent_builds_do_not_corrupt_the_cache(src_copy):
+    code = "from harness.build import build_fmu; print(build_fmu('flexjoint'))"
+    procs = [
+        subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        for _ in range(2)
+    ]
+    outs = [p.communicate(timeout=120) for p in procs]
+    assert all(p.returncode == 0 for p in procs), outs
+    paths = {o[0].strip() for o in outs}
+    assert len(paths) == 1
+    path = paths.pop()
+    assert validate_fmu(path) == []
+    with zipfile.ZipFile(path) as zf:
+        assert zf.testzip() is None
+    leftovers = [p for p in Path(os.environ["FLEXJOINT_CACHE"]).iterdir() if not p.name.startswith(".flexjoint")]
+    assert [p.name for p in leftovers] == [Path(path).name]  # no temp files left behind
+
+
+def test_compile_error_is_one_clear_line(src_copy):
+    model = src_copy / "daq" / "model.c"
+    model.write_text(model.read_text() + "\nint broken( {\n")
+    with pytest.raises(BuildError) as e:
+        build_fmu("daq")
+    msg = str(e.value)
+    assert "\n" not in msg and msg.startswith("building daq failed: model.c:") and "error" in msg
+
+
+def test_unknown_model_and_guid_mismatch(src_copy):
+    with pytest.raises(ValueError, match="unknown FMU 'nope'.*daq, flexjoint"):
+        build_fmu("nope")
+    cfg = src_copy / "daq" / "config.h"
+    cfg.write_text(cfg.read_text().replace("a3d5e7f9", "00000000"))
+    with pytest.raises(BuildError, match="guid"):
+        build_fmu("daq")
+
+
+def test_libcosim_runs_the_same_fmu_as_fmpy(fmus, fmu_runner):
+    """A second FMI importer (libcosim via libcosimpy) gives the same step response as fmpy."""
+    try:
+        from libcosimpy.CosimEnums import CosimVariableType
+        from libcosimpy.CosimExecution import CosimExecution
+        from libcosimpy.CosimLogging import CosimLogLevel, log_output_level
+        from libcosimpy.CosimObserver import CosimObserver
+        from libcosimpy.CosimSlave import CosimLocalSlave
+    except (ImportError, OSError) as e:  # pragma: no cover - platform without libcosim
+        pytest.skip(f"libcosimpy cannot load on this platform: {e}")
+    log_output_level(CosimLogLevel.ERROR)
+    vr = build.FLEXJOINT_VR
+    n, step_ns = 100, 20_000_000
+    ex = CosimExecution.from_step_size(step_ns)
+    idx = ex.add_local_slave(CosimLocalSlave(fmu_path=str(fmus["flexjoint"]), instance_name="plant"))
+    ex.integer_initial_value(idx, vr["n_modes"], 2)
+    ex.real_initial_value(idx, vr["u"], 2.0)
+    obs = CosimObserver.create_time_series()
+    ex.add_observer(obs)
+    for name in ("theta", "alpha"):
+        obs.start_time_series(idx, vr[name], CosimVariableType.REAL)
+    assert ex.simulate_until(n * step_ns)
+    ref = fmu_runner["flexjoint"].run({"n_modes": 2}, {"u": 2.0}, ["theta", "alpha"], 0.02, n)
+    for name in ("theta", "alpha"):
+        # from step 1: libcosimpy trims at step number 0, so ask for the n samples after the start
+        t, steps, values = obs.time_series_real_samples(idx, vr[name], from_step=1, sample_count=n)
+        assert len(values) == n and t[0] == step_ns and steps[-1] == n
+        np.testing.assert_allclose(values, ref[name], rtol=1e-12, atol=1e-14)
+    assert abs(ref["theta"][-1]) > 1.0

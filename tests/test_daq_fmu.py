@@ -1,0 +1,195 @@
+"""The daq FMU (sensors, converters, noise, sample-and-hold) against the brief's formulas and numbers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from fmpy.fmi1 import FMICallException
+
+KP, KE = 35.5145, -3.3636  # deg/V, the seed's calibration
+OUT = ["u_plant", "theta_v", "alpha_v"]
+
+
+def pot_volts(deg: np.ndarray, kp: float = KP, deadband: float = 8.0, offset: float = 0.0) -> np.ndarray:
+    """The brief's potentiometer: wrap to [-180, 180), dead band holds the track end."""
+    w = np.mod(np.asarray(deg) + 180.0, 360.0) - 180.0
+    edge = 180.0 - deadband / 2
+    return np.where(np.abs(w) > edge, np.sign(w) * edge, w) / kp + offset
+
+
+def test_pot_wrap_and_dead_band(fmu_runner):
+    deg = np.linspace(150.0, 210.0, 61)  # 1 deg per sample through +180
+    res = fmu_runner["daq"].run(None, {"theta": np.radians(deg)}, OUT, 0.02, len(deg))
+    v = res["theta_v"]
+    np.testing.assert_allclose(v, pot_volts(deg), atol=1e-12)
+    assert v[deg == 170.0][0] == pytest.approx(170 / KP, rel=1e-12)
+    dead = (deg > 176.0) & (deg < 184.0)
+    np.testing.assert_allclose(v[dead & (deg < 180)], 176 / KP, rtol=1e-12)  # wiper off the track: held
+    np.testing.assert_allclose(v[dead & (deg >= 180)], -176 / KP, rtol=1e-12)
+    jumps = np.flatnonzero(np.diff(v) < -1.0)
+    assert len(jumps) == 1 and deg[jumps[0] + 1] == 180.0  # one jump from + to - at the wrap
+    assert v[jumps[0]] == pytest.approx(4.9557, abs=1e-4) and v[jumps[0] + 1] == pytest.approx(-4.9557, abs=1e-4)
+    # several turns and negative angles wrap the same way; offset adds everywhere
+    deg2 = np.array([-725.0, -190.0, -179.0, 0.0, 359.0, 539.0])
+    res = fmu_runner["daq"].run({"pot_offset": 0.1}, {"theta": np.radians(deg2)}, OUT, 0.02, len(deg2))
+    np.testing.assert_allclose(res["theta_v"], pot_volts(deg2, offset=0.1), atol=1e-12)
+
+
+def test_adc_and_dac_quantisation_steps_equal_the_lsb(fmu_runner):
+    n = 400
+    deg = np.linspace(-20.0, 20.0, n)
+    u = np.linspace(-3.0, 3.0, n)
+    res = fmu_runner["daq"].run({"adc_bits": 12, "dac_bits": 8}, {"theta": np.radians(deg), "u": u}, OUT, 0.02, n)
+    adc_lsb, dac_lsb = 20.0 / 4096, 20.0 / 256
+    v = res["theta_v"]
+    np.testing.assert_allclose(v / adc_lsb, np.round(v / adc_lsb), atol=1e-9)  # on the LSB grid
+    steps = np.diff(np.unique(v))
+    np.testing.assert_allclose(steps, adc_lsb, rtol=1e-9)  # a slow ramp visits every code
+    assert np.abs(v - pot_volts(deg)).max() <= adc_lsb / 2 + 1e-12
+    up = res["u_plant"]
+    np.testing.assert_allclose(np.diff(np.unique(up)), dac_lsb, rtol=1e-9)
+    assert np.abs(up - u).max() <= dac_lsb / 2 + 1e-12
+
+
+def test_clamps(fmu_runner):
+    u = np.array([-12.0, -7.0, 3.0, 7.0, 12.0])
+    res = fmu_runner["daq"].run({"out_limit": 5.0}, {"u": u}, OUT, 0.02, len(u))
+    np.testing.assert_array_equal(res["u_plant"], [-5.0, -5.0, 3.0, 5.0, 5.0])
+    res = fmu_runner["daq"].run(None, {"u": u}, OUT, 0.02, len(u))
+    np.testing.assert_array_equal(res["u_plant"], [-10.0, -7.0, 3.0, 7.0, 10.0])
+    # the ADC clamps to its range
+    res = fmu_runner["daq"].run({"adc_bits": 16, "pot_offset": 8.0}, {"theta": np.radians(150.0)}, OUT, 0.02, 2)
+    assert res["theta_v"][-1] == 10.0
+
+
+def test_delay_in_samples(fmu_runner):
+    rng = np.random.default_rng(3)
+    u = rng.uniform(-5, 5, 50)
+    res = fmu_runner["daq"].run({"delay_samples": 1}, {"u": u}, OUT, 0.02, len(u))
+    assert res["init"]["u_plant"] == 0.0
+    assert res["u_plant"][0] == 0.0
+    np.testing.assert_array_equal(res["u_plant"][1:], u[:-1])
+    # delay counts samples, not communication steps: 3 samples at comm step Ts/4 = 12 steps
+    uq = np.repeat(u, 4)
+    res = fmu_runner["daq"].run({"delay_samples": 3}, {"u": uq}, OUT, 0.005, len(uq))
+    np.testing.assert_array_equal(res["u_plant"][12:], uq[:-12])
+    assert np.all(res["u_plant"][:12] == 0.0)
+
+
+def test_sample_and_hold_with_comm_step_quarter_period(fmu_runner):
+    n = 200
+    t = np.arange(n) * 0.005
+    deg = 30 * np.sin(2 * np.pi * 1.3 * t)  # changes at every communication step
+    alpha = np.radians(2 * np.cos(2 * np.pi * 0.7 * t))
+    u = np.sin(2 * np.pi * 0.9 * t)
+    res = fmu_runner["daq"].run(None, {"u": u, "theta": np.radians(deg), "alpha_gauge": alpha}, OUT, 0.005, n)
+    held = np.repeat(np.arange(0, n, 4), 4)  # index of the last sample instant k / 50 Hz at or before t
+    np.testing.assert_allclose(res["theta_v"], pot_volts(deg[held]), atol=1e-12)
+    np.testing.assert_allclose(res["alpha_v"], np.degrees(alpha[held]) / KE, atol=1e-12)
+    np.testing.assert_array_equal(res["u_plant"], u[held])
+    # ExitInitializationMode outputs the sample of the initial inputs
+    assert res["init"]["theta_v"] == pytest.approx(pot_volts(deg[0]), abs=1e-12)
+    assert res["init"]["alpha_v"] == pytest.approx(np.degrees(alpha[0]) / KE, abs=1e-12)
+    assert res["init"]["u_plant"] == u[0]
+
+
+def test_gauge_gain_offset_and_cubic(fmu_runner):
+    deg = np.array([-10.0, -5.0, 0.0, 3.0, 10.0])
+    res = fmu_runner["daq"].run(
+        {"gauge_cubic": 0.05, "gauge_offset": 0.2}, {"alpha_gauge": np.radians(deg)}, OUT, 0.02, len(deg)
+    )
+    lin = deg / KE + 0.2
+    np.testing.assert_allclose(res["alpha_v"], lin * (1 + 0.05 * (deg / 10) ** 2), rtol=1e-12)
+    assert res["alpha_v"][-1] / lin[-1] - 1 == pytest.approx(0.05, rel=1e-9)  # 5 % at 10 deg
+    assert res["alpha_v"][2] == pytest.approx(0.2, rel=1e-12)
+
+
+def test_seeded_noise(fmu_runner):
+    n = 4000
+    run = fmu_runner["daq"].run
+    params = {"noise_theta": 0.01, "noise_alpha": 0.02, "seed": 5}
+    a = run(params, {"theta": 0.1, "alpha_gauge": 0.0}, OUT, 0.02, n)
+    b = run(params, {"theta": 0.1, "alpha_gauge": 0.0}, OUT, 0.02, n)
+    c = run({**params, "seed": 6}, {"theta": 0.1, "alpha_gauge": 0.0}, OUT, 0.02, n)
+    assert a["theta_v"].tobytes() == b["theta_v"].tobytes()
+    assert a["alpha_v"].tobytes() == b["alpha_v"].tobytes()
+    assert not np.any(a["theta_v"] == c["theta_v"])
+    e_t = a["theta_v"] - pot_volts(np.degrees(0.1))
+    e_a = a["alpha_v"]
+    assert np.std(e_t) == pytest.approx(0.01, rel=0.05)
+    assert np.std(e_a) == pytest.approx(0.02, rel=0.05)
+    assert abs(np.mean(e_t)) < 4 * 0.01 / np.sqrt(n)
+    assert np.mean(np.abs(e_t) < 0.01) == pytest.approx(0.6827, abs=0.03)  # Gaussian
+    assert abs(np.corrcoef(e_t, e_a)[0, 1]) < 0.06  # two independent streams
+    assert abs(np.corrcoef(e_t[1:], e_t[:-1])[0, 1]) < 0.06  # white
+    # the noise of sample k does not depend on the communication step
+    q = run(params, {"theta": 0.1, "alpha_gauge": 0.0}, OUT, 0.005, 400)
+    np.testing.assert_array_equal(q["theta_v"][::4], a["theta_v"][:100])
+
+
+@pytest.mark.parametrize(
+    "params, name",
+    [
+        ({"sample_rate": 0.0}, "sample_rate"),
+        ({"delay_samples": -1}, "delay_samples"),
+        ({"adc_bits": -2}, "adc_bits"),
+        ({"pot_deadband": 400.0}, "pot_deadband"),
+        ({"noise_theta": -0.1}, "noise_theta"),
+        ({"gauge_gain": float("inf")}, "gauge_gain"),
+    ],
+)
+def test_invalid_parameter_is_an_fmi_error(fmu_runner, params, name):
+    run = fmu_runner["daq"]
+    run.messages.clear()
+    with pytest.raises(FMICallException, match="fmi2ExitInitializationMode"):
+        run.run(params, {"u": 0.0}, OUT, 0.02, 1)
+    assert any(f"parameter {name} " in m for m in run.messages), run.messages
+
+
+def test_comb_static_tip_torque_through_the_twin(fmu_runner):
+    """Plant (hub clamped) + DAQ coupled as the master does: gauge reads the static deflection."""
+    from harness.plant import PlantParams, mass_stiffness
+
+    tau, h, n = 0.01, 0.02, 200
+    plant_par = {"n_modes": 2, "hub_locked": 1, "zeta_link": 0.7}
+    K = mass_stiffness(PlantParams(**plant_par))[1]
+    static = tau * np.sum(1 / np.diag(K)[1:])  # a_i = tau / k_i
+    with (
+        fmu_runner["flexjoint"].instance(plant_par, {"tau_tip": tau}) as plant,
+        fmu_runner["daq"].instance({"adc_bits": 16}) as daq,
+    ):
+        for k in range(n):
+            theta, alpha_gauge = plant.get("theta", "alpha_gauge")
+            daq.set(u=0.0, theta=theta, alpha_gauge=alpha_gauge)
+            daq.step(k * h, h)
+            (u_plant,) = daq.get("u_plant")
+            plant.set(u=u_plant, tau_tip=tau)
+            plant.step(k * h, h)
+        alpha, alpha_gauge = plant.get("alpha", "alpha_gauge")
+        (alpha_v,) = daq.get("alpha_v")
+    assert alpha == pytest.approx(static, rel=1e-8)
+    assert alpha_gauge == pytest.approx(alpha, rel=1e-8)
+    assert abs(alpha_v - np.degrees(alpha) / KE) <= 20 / 2**16 / 2 + 1e-12
+
+
+def test_reset_starts_a_fresh_run(fmu_runner):
+    params = {"delay_samples": 2, "noise_theta": 0.01, "seed": 9}
+    u = [1.0, 2.0, 3.0, 4.0]
+    runs = []
+    with fmu_runner["daq"].instance(params) as h:
+        for _ in range(2):
+            out = []
+            for k, uk in enumerate(u):
+                h.set(u=uk, theta=0.2)
+                h.step(k * 0.02, 0.02)
+                out.append(h.get("u_plant", "theta_v"))
+            runs.append(np.array(out))
+            h.fmu.reset()  # back to instantiated: parameters keep their start values until set again
+            daq = fmu_runner["daq"]
+            h.fmu.setInteger([daq.vr("delay_samples"), daq.vr("seed")], [2, 9])
+            h.fmu.setReal([daq.vr("noise_theta")], [0.01])
+            h.fmu.setupExperiment(startTime=0.0)
+            h.fmu.enterInitializationMode()
+            h.fmu.exitInitializationMode()
+    np.testing.assert_array_equal(runs[0], runs[1])
+    np.testing.assert_array_equal(runs[0][:, 0], [0.0, 0.0, 1.0, 2.0])

@@ -1,0 +1,341 @@
+"""The flexjoint plant FMU against the independent analytic model (harness.plant) and closed forms."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from fmpy.fmi1 import FMICallException
+from scipy.integrate import solve_ivp
+
+from harness.plant import (
+    OUTPUTS,
+    PlantParams,
+    beam_integrals,
+    beam_roots,
+    dead_zone_voltage,
+    gauge_weights,
+    mass_stiffness,
+    mode_frequencies,
+    state_space,
+    steady_speed,
+)
+
+BETA = (1.875104068711961, 4.694091132974175, 7.854757438237613)  # published clamped-free roots
+
+
+def zoh_reference(p: PlantParams, u: np.ndarray, tau: np.ndarray, dt: float) -> np.ndarray:
+    """Outputs at t_1..t_n of the linear rig under a zero-order-hold input, by solve_ivp (rtol 1e-10)."""
+    A, B, C, _ = state_space(p)
+    x = np.zeros(A.shape[0])
+    x[0] = p.theta_start
+    out = np.empty((len(u), C.shape[0]))
+    for k in range(len(u)):
+        f = B @ np.array([u[k], tau[k]])
+        sol = solve_ivp(lambda t, z, f=f: A @ z + f, (0.0, dt), x, method="DOP853", rtol=1e-10, atol=1e-13)
+        x = sol.y[:, -1]
+        out[k] = C @ x
+    return out
+
+
+def prony_poles(channels: list[np.ndarray], order: int, dt: float) -> np.ndarray:
+    """Continuous-time poles [1/s] of a free response (linear prediction shared by all channels)."""
+    rows, rhs = [], []
+    for x in channels:
+        for k in range(order, len(x)):
+            rows.append(x[k - order : k][::-1])
+            rhs.append(x[k])
+    c, *_ = np.linalg.lstsq(np.array(rows), np.array(rhs), rcond=None)
+    return np.log(np.roots(np.r_[1.0, -c]).astype(complex)) / dt
+
+
+# ---------------------------------------------------------------- the Python model itself
+
+
+def test_beam_quadrature_matches_closed_forms():
+    ints = beam_integrals(3)
+    np.testing.assert_allclose(beam_roots(3), BETA, rtol=1e-14)
+    sgn = np.array([1.0, -1.0, 1.0])
+    bl = np.array(BETA)
+    np.testing.assert_allclose(ints["mass"], np.eye(3), atol=1e-10)  # int phi_i phi_j = L delta_ij
+    np.testing.assert_allclose(ints["tip"], 1.0, rtol=1e-12)  # phi_i(L) = 2
+    np.testing.assert_allclose(ints["first"], 2 * sgn / bl**2, rtol=1e-10)  # int xi phi_i = 2(-1)^(i+1)/(bL)^2
+    np.testing.assert_allclose(ints["curv"], 2 * sgn * bl**2, rtol=1e-10)  # phi_i''(0)
+    # beam statics: the modes' share of the tip compliance, sum 4/(bL)^4, tends to the exact 1/3 (F L^3 / 3EI)
+    assert 0.3316 < np.sum(4 / bl**4) < 1 / 3
+
+
+def test_default_rig_numbers():
+    p = PlantParams(n_modes=2)
+    M, K, D = mass_stiffness(p)
+    Jl = 0.065 * 0.419**2 / 3
+    assert M[0, 0] == pytest.approx(2.08e-3 + Jl, rel=1e-12)
+    assert Jl == pytest.approx(3.8e-3, rel=0.01)  # the brief's table
+    f = mode_frequencies(p)
+    assert f[1, 0] == pytest.approx(math.sqrt(1.3 / Jl) / (2 * math.pi), rel=1e-12)
+    assert f[1, 0] == pytest.approx(2.94, abs=0.005)  # Quanser torsion-spring model: ~2.94 Hz
+    assert f[1, 1] / f[1, 0] == pytest.approx(6.267, abs=0.001)  # clamped-free 1 : 6.27
+    g, c_g = gauge_weights(p)
+    assert g[1] == pytest.approx(-((BETA[1] / BETA[0]) ** 2), rel=1e-10)  # mode 2 reads 6.27x (opposite sign)
+    assert gauge_weights(PlantParams())[1] == pytest.approx(1.0, abs=1e-12)  # c_g = 1 for one mode
+    r2 = (BETA[1] / BETA[0]) ** 2
+    assert c_g == pytest.approx((1 + 1 / r2**2) / (1 - 1 / r2), rel=1e-10)
+    assert dead_zone_voltage(PlantParams(coulomb_torque=0.044)) == pytest.approx(0.343, abs=0.001)
+
+
+def test_invalid_params_raise_one_line():
+    with pytest.raises(ValueError, match="n_modes"):
+        state_space(PlantParams(n_modes=4))
+    with pytest.raises(ValueError, match="Jeq"):
+        mass_stiffness(PlantParams(Jeq=-1.0))
+
+
+# ---------------------------------------------------------------- FMU vs independent solutions
+
+
+@pytest.mark.parametrize("n_modes, internal_step", [(1, 1e-3), (2, 2.5e-4)])
+def test_linear_rig_matches_state_space(fmu_runner, n_modes, internal_step):
+    dt, n = 0.01, 400
+    t = np.arange(n) * dt
+    rng = np.random.default_rng(7)
+    u = (
+        1.5 * np.sin(2 * np.pi * 0.7 * t)
+        + 0.8 * np.sin(2 * np.pi * 3.1 * t)
+        + np.repeat(rng.choice([-1.0, 1.0], n // 20), 20)
+    )
+    tau = np.where((t >= 1.0) & (t < 1.05), 0.02, 0.0) - np.where((t >= 2.5) & (t < 2.6), 0.01, 0.0)
+    p = PlantParams(n_modes=n_modes, internal_step=internal_step, theta_start=0.2)
+    res = fmu_runner["flexjoint"].run(
+        {"n_modes": n_modes, "internal_step": internal_step, "theta_start": 0.2},
+        {"u": u, "tau_tip": tau},
+        OUTPUTS,
+        dt,
+        n,
+    )
+    got = np.column_stack([res[k] for k in OUTPUTS])
+    ref = zoh_reference(p, u, tau, dt)
+    assert np.abs(ref[:, 1]).max() > 0.1 and np.abs(ref[:, 0]).max() > 1.0  # a real excitation
+    err = np.abs(got - ref).max(axis=0)
+    assert err.max() < 1e-6, dict(zip(OUTPUTS, err, strict=True))
+    assert res["init"]["theta"] == 0.2 and res["init"]["alpha"] == 0.0
+
+
+def test_steady_speed_2V(fmu_runner):
+    res = fmu_runner["flexjoint"].run({"n_modes": 2}, {"u": 2.0}, ["theta_dot", "alpha"], 0.02, 400)
+    w = 0.9 * 70 * 0.69 * 7.68e-3 * 2.0 / (2.6 * 0.004 + 0.9 * 0.69 * 7.68e-3 * 7.68e-3 * 70**2)
+    assert res["theta_dot"][-1] == pytest.approx(w, rel=1e-6)
+    assert steady_speed(PlantParams(), 2.0) == pytest.approx(w, rel=1e-12)
+    assert abs(res["alpha"][-1]) < 1e-6  # constant speed: no deflection left
+
+
+def test_non_minimum_phase_tip(fmu_runner):
+    # the linear model: the tip angle y = theta + alpha has right-half-plane zeros for any number of modes
+    from scipy.linalg import eigvals
+
+    for n_modes in (1, 2, 3):
+        A, B, C, _ = state_space(PlantParams(n_modes=n_modes))
+        nx = A.shape[0]
+        rosenbrock = np.block([[A, B[:, [0]]], [C[[2]], np.zeros((1, 1))]])
+        E = np.zeros((nx + 1, nx + 1))
+        E[:nx, :nx] = np.eye(nx)
+        z = eigvals(rosenbrock, E)
+        z = z[np.isfinite(z)]  # invariant zeros of u -> y
+        assert np.any(z.real > 10), z
+    # the FMU: a positive step bends the link back (alpha < 0) while the hub turns forward ...
+    for n_modes in (1, 2, 3):
+        res = fmu_runner["flexjoint"].run({"n_modes": n_modes}, {"u": 2.0}, ["theta", "alpha", "y"], 1e-3, 60)
+        assert np.all(res["theta"][:30] > 0) and np.all(res["alpha"][:30] < 0)
+        assert res["y"][-1] > 0
+    # ... and with one mode the tip itself first moves against the hub
+    res = fmu_runner["flexjoint"].run({"n_modes": 1}, {"u": 2.0}, ["y"], 1e-3, 200)
+    assert res["y"][:20].max() < 0 and res["y"][-1] > 0
+
+
+def test_mode_frequencies_from_free_vibration(fmu_runner):
+    dt, n = 1e-3, 2500
+    tau = np.zeros(n)
+    tau[:5] = 0.01  # tip torque pulse, then free vibration
+    p = PlantParams(n_modes=2)
+    f = mode_frequencies(p)
+    # clamped hub (the comb set-up): both modes, and their ratio
+    res = fmu_runner["flexjoint"].run(
+        {"n_modes": 2, "hub_locked": 1}, {"tau_tip": tau}, ["theta", "alpha", "alpha_gauge"], dt, n
+    )
+    assert np.all(res["theta"] == 0.0)
+    s = prony_poles([res["alpha"][10:], res["alpha_gauge"][10:]], 4, dt)
+    fc = np.sort(np.abs(s[s.imag > 0])) / (2 * np.pi)
+    np.testing.assert_allclose(fc, f[1], rtol=0.01)
+    assert fc[1] / fc[0] == pytest.approx(6.27, abs=0.01)
+    # free hub: the second mode is lightly damped (within 1 % of the undamped eigenproblem); the first is
+    # heavily damped by the back-EMF, so compare it with the eigenvalues of the damped linear model
+    res = fmu_runner["flexjoint"].run({"n_modes": 2}, {"tau_tip": tau}, ["theta_dot", "alpha", "alpha_gauge"], dt, n)
+    s = prony_poles([res["alpha"][10:], res["alpha_gauge"][10:], res["theta_dot"][10:]], 6, dt)
+    ff = np.sort(np.abs(s[(s.imag > 0) & (np.abs(s) < 2 * np.pi * 100)])) / (2 * np.pi)
+    assert ff[1] == pytest.approx(f[0, 1], rel=0.01)
+    A, *_ = state_space(p)
+    ev = np.linalg.eigvals(A)
+    np.testing.assert_allclose(ff, np.sort(np.abs(ev[ev.imag > 0])) / (2 * np.pi), rtol=0.01)
+
+
+def test_static_tip_load_gauge_reads_deflection(fmu_runner):
+    # hub clamped, constant tip torque, heavy modal damping to settle quickly
+    for n_modes in (1, 2, 3):
+        p = PlantParams(n_modes=n_modes, zeta_link=0.7, hub_locked=1)
+        res = fmu_runner["flexjoint"].run(
+            {"n_modes": n_modes, "zeta_link": 0.7, "hub_locked": 1},
+            {"tau_tip": 0.01},
+            ["alpha", "alpha_gauge"],
+            0.02,
+            150,
+        )
+        K = mass_stiffness(p)[1]
+        static = 0.01 * np.sum(1 / np.diag(K)[1:])
+        assert res["alpha"][-1] == pytest.approx(static, rel=1e-8)
+        assert res["alpha_gauge"][-1] == pytest.approx(static, rel=1e-8)
+
+
+# ---------------------------------------------------------------- effects
+
+
+def test_coulomb_dead_zone(fmu_runner):
+    fc = 0.044
+    vth = fc * 2.6 / (0.9 * 70 * 0.69 * 7.68e-3)
+    assert vth == pytest.approx(0.3427, abs=1e-4)
+    run = fmu_runner["flexjoint"].run
+    below = run(
+        {"coulomb_torque": fc, "n_modes": 2, "theta_start": 0.3}, {"u": 0.95 * vth}, ["theta", "alpha"], 0.02, 250
+    )
+    assert np.all(below["theta"] == 0.3)  # 5 s, exactly still
+    above = run({"coulomb_torque": fc, "n_modes": 2}, {"u": 1.05 * vth}, ["theta", "theta_dot"], 0.02, 250)
+    G = 0.9 * 70 * 0.69 * 7.68e-3 / 2.6
+    w = (G * 1.05 * vth - fc) / (0.004 + G * 70 * 7.68e-3)
+    assert above["theta"][-1] > 0.1
+    assert above["theta_dot"][-1] == pytest.approx(w, rel=1e-6)
+    # negative direction is symmetric
+    neg = run({"coulomb_torque": fc, "n_modes": 2}, {"u": -1.05 * vth}, ["theta"], 0.02, 250)
+    assert neg["theta"][-1] == pytest.approx(-above["theta"][-1], rel=1e-12)
+
+
+def test_coulomb_stops_without_creep_or_chatter(fmu_runner):
+    # after the command drops, the link's swing may break the hub loose a few times; then it stays put
+    u = np.r_[np.full(100, 2.0), np.zeros(400)]
+    res = fmu_runner["flexjoint"].run(
+        {"coulomb_torque": 0.044, "n_modes": 2}, {"u": u}, ["theta", "theta_dot"], 0.01, 500
+    )
+    assert np.all(res["theta"][-250:] == res["theta"][-1])  # stopped and stuck exactly
+    assert np.all(res["theta_dot"][-250:] == 0.0)
+    t = np.arange(1000) * 0.01
+    res = fmu_runner["flexjoint"].run(
+        {"coulomb_torque": 0.044, "n_modes": 2}, {"u": np.sin(2 * np.pi * 0.5 * t)}, ["theta_dot"], 0.01, 1000
+    )
+    td = res["theta_dot"]
+    changes = np.count_nonzero(np.diff(np.sign(td)))
+    assert changes == 20  # 10 reversals in 10 s: moving -> stuck -> moving the other way, nothing more
+    assert np.count_nonzero(td == 0.0) > 50  # it does stick around each reversal
+
+
+def test_backlash_hysteresis(fmu_runner):
+    b = 0.004
+    n, dt = 1000, 0.01
+    u = 0.5 * np.sin(2 * np.pi * 0.2 * np.arange(n) * dt)
+    res = fmu_runner["flexjoint"].run(
+        {"backlash": b, "coulomb_torque": 0.01}, {"u": u}, ["theta", "theta_motor", "theta_dot"], dt, n
+    )
+    gap = res["theta_motor"] - res["theta"]
+    assert np.abs(gap).max() <= b / 2 * (1 + 1e-9)  # never beyond the play
+    fwd, back = res["theta_dot"] > 0.05, res["theta_dot"] < -0.05
+    assert fwd.sum() > 100 and back.sum() > 100
+    # the hub trails the motor side by half the play in each direction: loop width = backlash
+    np.testing.assert_allclose(gap[fwd], b / 2, rtol=1e-9)
+    np.testing.assert_allclose(gap[back], -b / 2, rtol=1e-9)
+    rigid = fmu_runner["flexjoint"].run({"coulomb_torque": 0.01}, {"u": u}, ["theta"], dt, n)
+    assert np.abs(res["theta"] - rigid["theta"]).max() < b
+
+
+def test_backlash_zero_is_the_rigid_model(fmu_runner):
+    n, dt = 500, 0.01
+    u = np.sign(np.sin(2 * np.pi * 0.4 * np.arange(n) * dt))
+    outs = ["theta", "alpha", "theta_motor"]
+    a = fmu_runner["flexjoint"].run({"backlash": 0.0, "Jm_share": 0.3, "n_modes": 2}, {"u": u}, outs, dt, n)
+    b = fmu_runner["flexjoint"].run({"n_modes": 2}, {"u": u}, outs, dt, n)
+    for k in outs:
+        np.testing.assert_array_equal(a[k], b[k])
+    np.testing.assert_array_equal(a["theta_motor"], a["theta"])
+    # a tiny play converges to the rigid response
+    c = fmu_runner["flexjoint"].run({"backlash": 1e-5, "n_modes": 2}, {"u": u}, outs, dt, n)
+    assert np.abs(c["theta"] - b["theta"]).max() < 1e-4
+
+
+def test_amp_limit(fmu_runner):
+    n, dt = 300, 0.01
+    u = np.where(np.arange(n) < 150, 8.0, -8.0)
+    a = fmu_runner["flexjoint"].run({"amp_limit": 5.0, "n_modes": 2}, {"u": u}, ["theta", "alpha"], dt, n)
+    b = fmu_runner["flexjoint"].run({"n_modes": 2}, {"u": np.clip(u, -5, 5)}, ["theta", "alpha"], dt, n)
+    np.testing.assert_array_equal(a["theta"], b["theta"])
+    np.testing.assert_array_equal(a["alpha"], b["alpha"])
+    c = fmu_runner["flexjoint"].run({"n_modes": 2}, {"u": u}, ["theta"], dt, n)
+    assert np.abs(c["theta"]).max() > 1.5 * np.abs(a["theta"]).max()
+
+
+def test_large_internal_step_stays_stable(fmu_runner):
+    # internal_step larger than the RK4 stability limit of the 3rd mode: the FMU limits its step itself
+    p = PlantParams(n_modes=3, internal_step=0.02)
+    res = fmu_runner["flexjoint"].run({"n_modes": 3, "internal_step": 0.02}, {"u": 1.0}, ["theta_dot"], 0.02, 400)
+    assert res["theta_dot"][-1] == pytest.approx(steady_speed(p, 1.0), rel=1e-6)
+
+
+# ---------------------------------------------------------------- errors
+
+
+@pytest.mark.parametrize(
+    "params, name",
+    [
+        ({"Jeq": -1e-3}, "Jeq"),
+        ({"Rm": float("nan")}, "Rm"),
+        ({"n_modes": 4}, "n_modes"),
+        ({"n_modes": 0}, "n_modes"),
+        ({"backlash": -0.01}, "backlash"),
+        ({"coulomb_torque": -0.1}, "coulomb_torque"),
+        ({"stiction_ratio": 0.5}, "stiction_ratio"),
+        ({"hub_locked": 2}, "hub_locked"),
+        ({"internal_step": 0.0}, "internal_step"),
+    ],
+)
+def test_invalid_parameter_is_an_fmi_error(fmu_runner, params, name):
+    run = fmu_runner["flexjoint"]
+    run.messages.clear()
+    with pytest.raises(FMICallException, match="fmi2ExitInitializationMode"):
+        run.run(params, {"u": 0.0}, ["theta"], 0.02, 1)
+    assert any(f"parameter {name} " in m for m in run.messages), run.messages
+
+
+def test_non_finite_state_is_an_fmi_error(fmu_runner):
+    run = fmu_runner["flexjoint"]
+    run.messages.clear()
+    with pytest.raises(FMICallException, match="fmi2DoStep"):
+        run.run({}, {"u": 1e308}, ["theta"], 0.02, 3)
+    assert any("non-finite" in m for m in run.messages), run.messages
+    with pytest.raises(FMICallException, match="fmi2DoStep"):
+        run.run({}, {"u": float("nan")}, ["theta"], 0.02, 3)
+
+
+def test_fixed_parameter_cannot_change_after_init(fmu_runner):
+    run = fmu_runner["flexjoint"]
+    run.messages.clear()
+    with run.instance({"n_modes": 2}) as h, pytest.raises(FMICallException):
+        h.set(Jeq=1.0)
+    assert any("Jeq" in m and "fixed" in m for m in run.messages)
+
+
+def test_linear_fast_path_equals_the_generic_rk4_path(fmu_runner):
+    # a negligible friction torque forces the generic (hybrid) stepper; it must give the same RK4 result
+    # (up to the RK4 local error of splitting a step at each velocity reversal)
+    n, dt = 300, 0.02
+    u = 2 * np.sign(np.sin(2 * np.pi * 0.5 * np.arange(n) * dt))
+    tau = np.where(np.arange(n) == 100, 0.02, 0.0)
+    outs = ["theta", "alpha", "alpha_gauge", "theta_dot"]
+    fast = fmu_runner["flexjoint"].run({"n_modes": 2}, {"u": u, "tau_tip": tau}, outs, dt, n)
+    slow = fmu_runner["flexjoint"].run({"n_modes": 2, "coulomb_torque": 1e-15}, {"u": u, "tau_tip": tau}, outs, dt, n)
+    for k in outs:
+        np.testing.assert_allclose(slow[k], fast[k], rtol=0, atol=1e-7 * np.abs(fast[k]).max())
