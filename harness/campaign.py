@@ -75,7 +75,7 @@ def _experiment_inputs(spec: Spec, exp: Experiment) -> tuple[np.ndarray, dict, d
     seed = experiment_seed(spec, exp)
     plant = {"internal_step": spec.internal_step, **spec.plant, **exp.plant}
     daq = {**spec.daq, **exp.daq}
-    daq["seed"] = int(daq.get("seed", 0)) * 7919 + seed
+    daq["seed"] = (int(daq.get("seed", 0)) * 7919 + seed) % (2**31 - 1)  # FMI Integer is 32-bit
     if exp.signal == "comb":
         plant["hub_locked"] = 1
         tau, comb = comb_schedule(exp, Ts, plant)

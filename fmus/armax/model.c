@@ -19,63 +19,21 @@
  * compiled defaults below (equal to fmus/armax/modelDescription.xml), then overridden by the lines
  * "name value" of resources/coefficients.txt when the FMU carries one: harness.export writes it with the
  * same full-precision (repr) values as the start attributes of the exported modelDescription.xml, so the
- * FMU runs the identified model with no parameter set by the importer.  The resources folder is found from
- * the location of this shared library (<fmu>/binaries/<platform>/armax.so -> <fmu>/resources), because the
- * shared FMI layer does not keep fmuResourceLocation.
+ * FMU runs the identified model with no parameter set by the importer.  The resources folder is the one the
+ * importer passes as fmuResourceLocation to fmi2Instantiate.
  *
  * validate() rejects nk < 1, orders above NMAX, non-finite numbers, Ts <= 0, af outside [0, 1), nonzero
  * coefficients outside the declared orders and an unstable A ("model is unstable", Schur-Cohn test).
  */
-#if !defined(_WIN32) && !defined(_GNU_SOURCE)
-#define _GNU_SOURCE /* dladdr */
-#endif
-
 #include <errno.h>
 #include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
 
-#if defined(_WIN32)
-#include <windows.h>
-#else
-#include <dlfcn.h>
-#endif
-
 #include "fmi2common.h"
 
 /* ---------------------------------------------------------- coefficient file */
-
-static const char anchor = 0; /* an address inside this shared library */
-
-/* Path of <fmu>/resources/COEFFICIENT_FILE from the path of this library; false when unknown. */
-static bool coefficientFilePath(char *buf, size_t len) {
-    int i;
-    const char *suffix = "/resources/" COEFFICIENT_FILE;
-#if defined(_WIN32)
-    HMODULE h = NULL;
-    DWORD n;
-    if (!GetModuleHandleExA(GET_MODULE_HANDLE_EX_FLAG_FROM_ADDRESS | GET_MODULE_HANDLE_EX_FLAG_UNCHANGED_REFCOUNT,
-                            (LPCSTR)&anchor, &h))
-        return false;
-    n = GetModuleFileNameA(h, buf, (DWORD)len);
-    if (n == 0 || n >= len) return false;
-#else
-    Dl_info info;
-    if (!dladdr(&anchor, &info) || !info.dli_fname || strlen(info.dli_fname) >= len) return false;
-    strcpy(buf, info.dli_fname);
-#endif
-    for (i = 0; i < 3; i++) { /* drop the file name, <platform>, binaries */
-        char *s = strrchr(buf, '/');
-        char *w = strrchr(buf, '\\');
-        if (w > s) s = w;
-        if (!s) return false;
-        *s = '\0';
-    }
-    if (strlen(buf) + strlen(suffix) >= len) return false;
-    strcat(buf, suffix);
-    return true;
-}
 
 static double *realParameter(ModelData *d, fmi2ValueReference vr) {
     switch (vr) {
@@ -128,11 +86,12 @@ static long parameterReference(const char *name) {
 }
 
 /* Read "name value" lines; on a problem write one line into d->load_error. */
-static void loadCoefficients(ModelData *d) {
+static void loadCoefficients(ModelInstance *comp) {
+    ModelData *d = &comp->data;
     char path[4096], line[512], name[64], value[128], *end;
     int lineno = 0;
     FILE *f;
-    if (!coefficientFilePath(path, sizeof(path))) return;
+    if (!resourceFile(comp, COEFFICIENT_FILE, path, sizeof(path))) return;
     f = fopen(path, "r");
     if (!f) return; /* the generic FMU: compiled defaults */
     while (fgets(line, sizeof(line), f)) {
@@ -185,7 +144,7 @@ void setStartValues(ModelInstance *comp) {
     d->af = 0.8;
     d->a[1] = -0.5;
     d->b[1] = 0.5;
-    loadCoefficients(d);
+    loadCoefficients(comp);
 }
 
 #define CHECK(cond, ...)                                                                                     \

@@ -109,6 +109,48 @@ fmi2Status fmi2SetDebugLogging(fmi2Component c, fmi2Boolean loggingOn, size_t nC
     return fmi2OK;
 }
 
+/* ---------------------------------------------------------- resources */
+
+static int hexValue(char c) {
+    if (c >= '0' && c <= '9') return c - '0';
+    if (c >= 'a' && c <= 'f') return c - 'a' + 10;
+    if (c >= 'A' && c <= 'F') return c - 'A' + 10;
+    return -1;
+}
+
+/* Local path of a file: URI (file:///abs, file:/abs or file://localhost/abs; %XX decoded), or NULL. */
+static char *uriToPath(ModelInstance *comp, const char *uri) {
+    const char *p;
+    char *path, *q;
+    if (!uri || strncmp(uri, "file:", 5) != 0) return NULL;
+    p = uri + 5;
+    if (strncmp(p, "//localhost/", 12) == 0) p += 11;
+    else if (strncmp(p, "///", 3) == 0) p += 2;
+    else if (strncmp(p, "//", 2) == 0) return NULL; /* a remote host */
+#if defined(_WIN32)
+    if (p[0] == '/' && p[1] && p[2] == ':') p++; /* /C:/dir -> C:/dir */
+#endif
+    path = (char *)allocateModelMemory(comp, strlen(p) + 1, 1);
+    if (!path) return NULL;
+    for (q = path; *p; p++) {
+        if (p[0] == '%' && hexValue(p[1]) >= 0 && hexValue(p[2]) >= 0) {
+            *q++ = (char)(hexValue(p[1]) * 16 + hexValue(p[2]));
+            p += 2;
+        } else {
+            *q++ = *p;
+        }
+    }
+    *q = '\0';
+    if (q > path && q[-1] == '/') q[-1] = '\0';
+    return path;
+}
+
+bool resourceFile(const ModelInstance *comp, const char *name, char *buf, size_t len) {
+    if (!comp->resourcePath || strlen(comp->resourcePath) + 1 + strlen(name) >= len) return false;
+    snprintf(buf, len, "%s/%s", comp->resourcePath, name);
+    return true;
+}
+
 /* ---------------------------------------------------------- life cycle */
 
 fmi2Component fmi2Instantiate(fmi2String instanceName, fmi2Type fmuType, fmi2String fmuGUID,
@@ -116,7 +158,6 @@ fmi2Component fmi2Instantiate(fmi2String instanceName, fmi2Type fmuType, fmi2Str
                               fmi2Boolean visible, fmi2Boolean loggingOn) {
     ModelInstance tmp;
     ModelInstance *comp;
-    (void)fmuResourceLocation;
     (void)visible;
 
     if (!functions || !functions->logger) return NULL;
@@ -157,6 +198,7 @@ fmi2Component fmi2Instantiate(fmi2String instanceName, fmi2Type fmuType, fmi2Str
         return NULL;
     }
     strcpy(comp->instanceName, instanceName);
+    comp->resourcePath = uriToPath(comp, fmuResourceLocation);
     comp->loggingOn = loggingOn ? true : false;
     comp->state = StateInstantiated;
     setStartValues(comp);
@@ -167,6 +209,7 @@ void fmi2FreeInstance(fmi2Component c) {
     ModelInstance *comp = (ModelInstance *)c;
     if (!comp) return;
     releaseModel(comp);
+    freeModelMemory(comp, comp->resourcePath);
     freeModelMemory(comp, comp->instanceName);
     freeModelMemory(comp, comp);
 }

@@ -34,6 +34,7 @@ typedef enum {
 
 typedef struct ModelInstance {
     char *instanceName;
+    char *resourcePath; /* local path of the FMU's resources folder (from fmuResourceLocation), or NULL */
     fmi2CallbackLogger logger;
     fmi2CallbackAllocateMemory allocateMemory;
     fmi2CallbackFreeMemory freeMemory;
@@ -82,6 +83,9 @@ MODEL_API bool parametersSettable(const ModelInstance *comp);
 /* Error helper for setters: logs "<what> '<name>' cannot be set ..." and returns fmi2Error. */
 MODEL_API fmi2Status unknownReference(ModelInstance *comp, const char *type, fmi2ValueReference vr);
 MODEL_API fmi2Status fixedAfterInit(ModelInstance *comp, const char *name);
+
+/* Path of file `name` in the FMU's resources folder into buf; false when the importer gave no file: URI. */
+MODEL_API bool resourceFile(const ModelInstance *comp, const char *name, char *buf, size_t len);
 
 MODEL_API void *allocateModelMemory(ModelInstance *comp, size_t nobj, size_t size);
 MODEL_API void freeModelMemory(ModelInstance *comp, void *p);
