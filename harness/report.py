@@ -37,6 +37,7 @@ __all__ = [
     "RunResults",
     "bode",
     "crossfit_table",
+    "diagnosis_markdown",
     "gap_rows",
     "load_results",
     "pole_zero",
@@ -445,34 +446,130 @@ def _fig_crossfit(cf: pd.DataFrame, path: Path) -> None:
     _save(fig, path)
 
 
-def _flatten(x: Any, prefix: str = "") -> dict[str, float]:
-    """Numeric leaves of nested dicts as {"a/b": value}."""
-    if isinstance(x, dict):
-        out: dict[str, float] = {}
-        for k, v in x.items():
-            out.update(_flatten(v, f"{prefix}/{k}" if prefix else str(k)))
-        return out
-    if isinstance(x, int | float) and not isinstance(x, bool):
-        return {prefix or "value": float(x)}
-    return {}
+def _exp_gap(entry: Any) -> float:
+    """Gap of one experiment from its per-channel fit [%]: sqrt(mean over channels of (1 - fit/100)^2)."""
+    fit = entry.get("fit_pct") if isinstance(entry, dict) else entry
+    vals = [_num(v) for v in fit.values()] if isinstance(fit, dict) else [_num(fit)]
+    vals = [v for v in vals if math.isfinite(v)]
+    return math.sqrt(sum((1.0 - v / 100.0) ** 2 for v in vals) / len(vals)) if vals else math.nan
 
 
-def _paired(label: str, before: Any, after: Any) -> list[tuple[str, float, float]]:
-    b, a = _flatten(before), _flatten(after)
-    return [(label if k == "value" else f"{label}: {k}", b[k], a[k]) for k in b if k in a]
+def _gap_experiments(diag: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+    gap = diag.get("gap")
+    if not isinstance(gap, dict):
+        return {}, {}
+    b, a = gap.get("before"), gap.get("after")
+    eb = b.get("experiments") if isinstance(b, dict) else None
+    ea = a.get("experiments") if isinstance(a, dict) else None
+    return (eb, ea) if isinstance(eb, dict) and isinstance(ea, dict) else ({}, {})
 
 
 def gap_rows(diag: dict[str, Any]) -> list[tuple[str, float, float]]:
-    """(label, before, after) pairs from ``diagnosis.json``: each effect's ``gap_before``/``gap_after``
-    (numbers or per-experiment dicts), then the overall ``gap`` {"before": .., "after": ..}, leaf by leaf."""
-    out: list[tuple[str, float, float]] = []
-    for e in diag.get("effects", []) or []:
-        if isinstance(e, dict) and ("gap_before" in e or "gap_after" in e):
-            out += _paired(str(e.get("effect", "?")), e.get("gap_before"), e.get("gap_after"))
+    """(label, gap before, gap after) from ``diagnosis.json``: per experiment when ``gap.before/after`` hold
+    ``experiments`` (gap = sqrt(mean over channels of (1 - fit/100)^2), the diagnoser's definition), else
+    per effect from its ``gap_before``/``gap_after``."""
+    eb, ea = _gap_experiments(diag)
+    if eb:
+        return [(name, _exp_gap(eb[name]), _exp_gap(ea.get(name))) for name in eb]
+    return [
+        (str(e.get("effect", "?")), _num(e.get("gap_before")), _num(e.get("gap_after")))
+        for e in diag.get("effects", []) or []
+        if isinstance(e, dict) and ("gap_before" in e or "gap_after" in e)
+    ]
+
+
+def _channels(entry: Any) -> str:
+    fit = entry.get("fit_pct") if isinstance(entry, dict) else entry
+    if isinstance(fit, dict):
+        return ", ".join(f"{k} {_fmt(v)}" for k, v in fit.items())
+    return _fmt(fit)
+
+
+def diagnosis_markdown(diag: dict[str, Any]) -> list[str]:
+    """Markdown lines summarising ``diagnosis.json``: verdict, effects in greedy order, overall gap, per
+    experiment fits before/after, first-round candidates, noise floor, where, other scalar items."""
+    lines = [f"Verdict: **{diag.get('verdict', '—')}**", ""]
+    effects = [e for e in diag.get("effects", []) or [] if isinstance(e, dict)]
+    if effects:
+        rows = [
+            [
+                str(e.get("effect", "?")),
+                _fmt_any(e.get("params", {})),
+                _fmt_any(e.get("gap_before")),
+                _fmt_any(e.get("gap_after")),
+                _fmt_any(e.get("shrink_pct")),
+            ]
+            for e in effects
+        ]
+        lines += ["Effects, in the order they were added:", ""]
+        lines += [*_table(["effect", "fitted parameters", "gap before", "gap after", "shrink [%]"], rows), ""]
     gap = diag.get("gap")
-    if isinstance(gap, dict) and isinstance(gap.get("before"), dict) and isinstance(gap.get("after"), dict):
-        out += _paired("total", gap["before"], gap["after"])
-    return out
+    if isinstance(gap, dict):
+        rows = []
+        for key in ("gap", "fit_pct"):
+            b, a = (gap.get(w, {}) for w in ("before", "after"))
+            if isinstance(b, dict) and isinstance(a, dict) and key in b:
+                rows.append([f"{key} (all experiments)", _fmt_any(b.get(key)), _fmt_any(a.get(key))])
+        held = gap.get("held_out")
+        if isinstance(held, dict):
+            for key in ("gap", "fit_pct"):
+                if f"{key}_before" in held:
+                    rows.append(
+                        [
+                            f"{key} (held out)",
+                            _fmt_any(held[f"{key}_before"]),
+                            _fmt_any(held.get(f"{key}_after")),
+                        ]
+                    )
+        if rows:
+            lines += [*_table(["overall", "before", "after"], rows), ""]
+        shrink = [f"{k} = {_fmt_any(v)} %" for k, v in gap.items() if k.startswith("shrink")]
+        if shrink:
+            lines += ["Shrink: " + ", ".join(shrink) + ".", ""]
+    eb, ea = _gap_experiments(diag)
+    if eb:
+        roles = diag.get("experiments", {}) if isinstance(diag.get("experiments"), dict) else {}
+        held = set(roles.get("held_out", []) or [])
+        fitted = set(roles.get("fitted_on", []) or [])
+        rows = [
+            [
+                name,
+                "held out" if name in held else ("fitted" if name in fitted else "—"),
+                _channels(eb[name]),
+                _channels(ea.get(name)),
+                _fmt(_exp_gap(eb[name]), 4),
+                _fmt(_exp_gap(ea.get(name)), 4),
+            ]
+            for name in eb
+        ]
+        header = ["experiment", "role", "fit before [%]", "fit after [%]", "gap before", "gap after"]
+        lines += ["Per experiment:", "", *_table(header, rows), ""]
+    rounds = diag.get("rounds")
+    if isinstance(rounds, list) and rounds and isinstance(rounds[0], list):
+        rows = [
+            [str(c.get("effect", "?")), _fmt_any(c.get("params", {})), _fmt_any(c.get("shrink_pct"))]
+            for c in rounds[0]
+            if isinstance(c, dict)
+        ]
+        lines += [
+            "Candidates, first round (each alone):",
+            "",
+            *_table(["effect", "parameters", "shrink [%]"], rows),
+            "",
+        ]
+    noise = diag.get("noise_floor")
+    if isinstance(noise, dict):
+        keys = [k for k in ("fit_pct", "gap", "method") if k in noise]
+        lines += ["Noise floor: " + ", ".join(f"{k} = {_fmt_any(noise[k])}" for k in keys) + ".", ""]
+    where = diag.get("where")
+    if isinstance(where, dict) and where:
+        lines += ["Where the gap is:", ""]
+        lines += [*_table(["domain", "finding"], [[str(k), _fmt_any(v)] for k, v in where.items()]), ""]
+    done = {"effects", "verdict", "where", "gap", "experiments", "rounds", "candidates", "noise_floor"}
+    rest = [[str(k), _fmt_any(v)] for k, v in diag.items() if k not in done and len(_fmt_any(v)) <= 200]
+    if rest:
+        lines += [*_table(["item", "value"], rest), ""]
+    return lines
 
 
 def _same(a: float, b: float, tol: float = 0.005) -> bool:
@@ -494,7 +591,7 @@ def _fig_diagnosis(rows: list[tuple[str, float, float]], path: Path) -> None:
     ax.bar(x + 0.2, [r[2] for r in rows], 0.4, label="gap after")
     ax.set_xticks(x, [r[0] for r in rows], rotation=30, ha="right", fontsize=8)
     ax.set_ylabel("gap")
-    ax.set_title("sim-to-real gap before / after modelling each effect")
+    ax.set_title("sim-to-real gap before / after modelling the effects")
     ax.legend()
     fig.tight_layout()
     _save(fig, path)
@@ -785,33 +882,12 @@ def _section_diagnosis(res: RunResults, figdir: Path) -> list[str]:
     d = res.diagnosis
     if d is None:
         return []
-    lines = ["## Sim-to-real gap diagnosis", "", f"Verdict: **{d.get('verdict', '—')}**", ""]
-    effects = d.get("effects", []) or []
-    if effects:
-        rows = [
-            [
-                str(e.get("effect", "?")),
-                _fmt_any(e.get("params", {})),
-                _fmt_any(e.get("gap_before")),
-                _fmt_any(e.get("gap_after")),
-                _fmt_any(e.get("shrink_pct")),
-            ]
-            for e in effects
-        ]
-        lines += _table(["effect", "fitted parameters", "gap before", "gap after", "shrink [%]"], rows) + [""]
-    where = d.get("where")
-    if isinstance(where, dict) and where:
-        lines += ["Where the gap is:", ""]
-        lines += _table(["domain", "finding"], [[str(k), _fmt_any(v)] for k, v in where.items()]) + [""]
+    lines = ["## Sim-to-real gap diagnosis", "", *diagnosis_markdown(d)]
     rows = [r for r in gap_rows(d) if math.isfinite(r[1]) or math.isfinite(r[2])]
     if rows:
-        lines += ["Gap before and after modelling the effects:", ""]
-        cells = [[r[0], _fmt_any(r[1]), _fmt_any(r[2])] for r in rows]
-        lines += [*_table(["what", "before", "after"], cells), ""]
-    rest = {k: v for k, v in d.items() if k not in ("effects", "verdict", "where")}
-    if rest:
-        lines += _table(["item", "value"], [[str(k), _fmt_any(v)] for k, v in rest.items()]) + [""]
-    if rows:
+        roles = d.get("experiments") if isinstance(d.get("experiments"), dict) else {}
+        held = set(roles.get("held_out", []) or [])
+        rows = [(f"{r[0]} (held out)" if r[0] in held else r[0], r[1], r[2]) for r in rows]
         _fig_diagnosis(rows, figdir / "diagnosis.png")
         lines += ["![diagnosis](figures/diagnosis.png)", ""]
     return lines

@@ -38,6 +38,7 @@ from .report import (
     RunResults,
     bode,
     crossfit_table,
+    diagnosis_markdown,
     gap_rows,
     load_results,
     pole_zero,
@@ -207,13 +208,11 @@ def _log_diagnosis(rec: rr.RecordingStream, res: RunResults) -> None:
         after = np.array([r[2] for r in rows])
         rec.log("diagnosis/gap_before", rr.BarChart(before, abscissa=x, color=_RED), static=True)
         rec.log("diagnosis/gap_after", rr.BarChart(after, abscissa=x, color=_BLUE), static=True)
-    lines = [f"### Diagnosis: verdict **{d.get('verdict', '-')}**", ""]
+    lines = ["### Sim-to-real gap diagnosis", ""]
     if rows:
-        lines += ["| # | effect | gap before | gap after |", "|---|---|---|---|"]
-        lines += [f"| {i} | {r[0]} | {r[1]:.4g} | {r[2]:.4g} |" for i, r in enumerate(rows)]
-    where = d.get("where")
-    if isinstance(where, dict):
-        lines += ["", "Where:", ""] + [f"- **{k}**: {json.dumps(v, default=str)}" for k, v in where.items()]
+        legend = ", ".join(f"{i} = {r[0]}" for i, r in enumerate(rows))
+        lines += [f"Bars (red before, blue after) by index: {legend}", ""]
+    lines += diagnosis_markdown(d)
     doc = rr.TextDocument("\n".join(lines), media_type=rr.MediaType.MARKDOWN)
     rec.log("diagnosis/summary", doc, static=True)
 

@@ -20,6 +20,10 @@ AF = 0.8
 TS = 0.02
 KP, KE, OFFSET = 35.0, -3.4, 0.1
 NAMES = ("prbs_a", "prbs_b", "square_c")
+# diagnosis.json per-experiment fits; gap = sqrt(mean over channels (1 - fit/100)^2): 0.158114 and 0.0790569
+FIT_BEFORE = {"fit_pct": {"theta": 90.0, "alpha": 80.0}}
+FIT_AFTER = {"fit_pct": {"theta": 95.0, "alpha": 90.0}}
+GAPS = {"rig_a": (0.158114, 0.0790569), "rig_b": (0.0790569, 0.0790569)}
 N = 600
 
 
@@ -60,6 +64,7 @@ def build_run(root: Path) -> dict:
         e = 0.02 * rng.standard_normal(N)
         e[0] = 0.0  # y_f[0] = 0: the tip starts at rest, as preprocess(initial="rest") assumes
         y_f = armax.generate(true, u_d, e)  # the identification-domain output the rig "measured"
+        y_f[1:] -= y_f.sum() / (N - 1)  # zero mean and y_f[0] = 0: identical with or without detrending y_f
         y = 12.0 + lfilter([1.0, -AF], [1.0 - AF, -(1.0 - AF)], y_f)  # undo H(z): tip angle [deg], at rest
         alpha_v = OFFSET + 0.05 * np.sin(np.arange(N) * 0.3)
         theta_v = (y - KE * (alpha_v - OFFSET)) / KP
@@ -125,13 +130,18 @@ def build_run(root: Path) -> dict:
                     {
                         "effect": "coulomb_friction",
                         "params": {"plant.coulomb_torque": 0.041},
-                        "gap_before": 8.0,
-                        "gap_after": 2.0,
+                        "gap_before": 0.4,
+                        "gap_after": 0.1,
                         "shrink_pct": 75.0,
                     }
                 ],
                 "verdict": "coulomb_friction",
-                "gap": {"before": {"fit_pct": 80.0}, "after": {"fit_pct": 92.5}, "shrink_pct": 60.0},
+                "gap": {
+                    "before": {"experiments": {"rig_a": FIT_BEFORE, "rig_b": FIT_AFTER}, "fit_pct": 80.0},
+                    "after": {"experiments": {"rig_a": FIT_AFTER, "rig_b": FIT_AFTER}, "fit_pct": 92.5},
+                    "shrink_pct": 60.0,
+                },
+                "experiments": {"fitted_on": ["rig_a"], "held_out": ["rig_b"]},
                 "where": {"amplitude": "error grows at small commands"},
             }
         )
@@ -204,6 +214,15 @@ def test_report_links_tables_and_reproducibility(run):
     assert grid["fit >= 89 % on own dataset"] == "2"
     assert "5 poles, 4 zeros (1 outside the unit circle" in text
     assert "Verdict: **coulomb_friction**" in text and "## Doubled sampling rate check" in text
+    per = {r[0]: r for r in _rows(_section(text, "Sim-to-real gap diagnosis")) if r[0] in GAPS}
+    for name, (before, after) in GAPS.items():
+        assert (
+            per[name][2] == "theta 90.00, alpha 80.00"
+            if name == "rig_a"
+            else per[name][2] == "theta 95.00, alpha 90.00"
+        )
+        assert (float(per[name][4]), float(per[name][5])) == pytest.approx((before, after), abs=6e-5)
+    assert per["rig_b"][1] == "held out"
 
     figs = {p.name: p.read_bytes() for p in (root / "figures").glob("*.png")}
     write_report(root)
