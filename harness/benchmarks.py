@@ -128,7 +128,7 @@ def bench_campaign(repeats: int = 3) -> dict[str, Any]:
     e = exps[0]
     n = int(round(e.duration * spec.sample_rate))
     u = generate(e.signal, n, spec.Ts, e.params, 0)
-    sig = np.zeros(n, dtype=[("time", np.float64), ("u", np.float64)])
+    sig = np.zeros(n, dtype=[("time", np.float64), ("u", np.float64), ("tau_tip", np.float64)])
     sig["time"], sig["u"] = np.arange(n) * spec.Ts, u
     walls = []
     for _ in range(repeats):
@@ -151,6 +151,40 @@ def bench_campaign(repeats: int = 3) -> dict[str, Any]:
     return out
 
 
+def bench_identify(workers: int = 2) -> dict[str, Any]:
+    """The lab spec's identification: ARMAX grid na <= 8, nb <= 3, nc <= 8 (nk = 1) on all 9 datasets, causality
+    and threshold filter, cross-validation of every survivor on every dataset, selection. Wall time [s]."""
+    import tempfile
+    from pathlib import Path
+
+    from . import spec as specmod
+    from .build import build_all
+    from .campaign import run_campaign
+    from .data import load_run
+    from .identify import prepare, run_grid
+    from .pipeline import calibrate_run
+
+    spec = specmod.load("lab")
+    with tempfile.TemporaryDirectory() as tmp:
+        run_campaign(spec, Path(tmp), fmus=build_all())
+        cal = calibrate_run(Path(tmp))
+        prepared = prepare(load_run(Path(tmp)), cal, spec.identify["af"], spec.identify["output"])
+    t0 = time.perf_counter()
+    res = run_grid(prepared, spec.identify, workers=workers)
+    wall = time.perf_counter() - t0
+    g = res.grid
+    return {
+        "datasets": len(prepared),
+        "fits": int(g["causal"].sum()),
+        "survivors": int(g["survivor"].sum()),
+        "cross_validations": int(g["survivor"].sum()) * len(prepared),
+        "workers": workers,
+        "wall_s": wall,
+        "ms_per_fit": 1e3 * wall / max(int(g["causal"].sum()), 1),
+        "target": "grid + cross-validation < 30 s on 2 cores",
+    }
+
+
 def run_all(quick: bool = False, progress: Any = None) -> dict[str, Any]:
     """Every benchmark, each side by side with its peer, as one JSON-able dict."""
     import os
@@ -162,6 +196,7 @@ def run_all(quick: bool = False, progress: Any = None) -> dict[str, Any]:
     steps = [
         ("campaign", lambda: bench_campaign(repeats=1 if quick else 3)),
         ("armax", lambda: bench_armax(5 if quick else 20)),
+        ("identify", bench_identify),
     ]
     for name, fn in steps:
         result[name] = fn()

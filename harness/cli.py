@@ -43,10 +43,10 @@ def _progress(label: str):
 
 @app.command()
 def build(force: Annotated[bool, typer.Option(help="rebuild even if cached")] = False) -> None:
-    """Compile the plant and DAQ FMUs from fmus/ into the cache (only when their sources changed)."""
-    from .build import build_fmu
+    """Compile the FMUs in fmus/ (plant, DAQ, generic ARMAX model) into the cache, only when sources changed."""
+    from .build import MODELS, build_fmu
 
-    for name in ("flexjoint", "daq"):
+    for name in (*MODELS, "armax"):
         path = build_fmu(name, force=force)
         out.print(f"{name}: {path}")
 
@@ -144,6 +144,77 @@ def accept(
         return
     print(f"rejected ({v.source}): " + "; ".join(v.failures), file=sys.stderr)
     raise typer.Exit(1)
+
+
+@app.command()
+def crossfit(run_dir: Annotated[Path, typer.Argument(help="run directory with identified models")]) -> None:
+    """Export every model as an FMU and score each on every dataset through fmpy: crossfit.csv."""
+    from .crossfit import crossfit_run
+
+    df = crossfit_run(run_dir, progress=_progress("crossfit"))
+    out.print(df.round(2).to_string())
+
+
+@app.command()
+def diagnose(
+    real: Annotated[Path, typer.Option("--real", help="run directory of the rig (campaign or import)")],
+    sim: Annotated[str, typer.Option("--sim", help="spec of the simulation being judged")] = "nominal",
+    out_dir: Annotated[Path | None, typer.Option("--out", help="where to write diagnosis.json (default REAL)")] = None,
+) -> None:
+    """Where the sim-to-real gap lies, which unmodelled effect causes it, how far it shrinks: diagnosis.json."""
+    from .diagnose import diagnose_run
+
+    d = diagnose_run(real, sim, out_dir, progress=_progress("diagnose"))
+    out.print(diagnosis_summary(d))
+
+
+def diagnosis_summary(d: dict) -> str:
+    """A few lines for the terminal: verdict, effects in greedy order with their fitted parameters, the shrink."""
+    lines = [f"verdict: {d['verdict']}"]
+    for e in d.get("effects", []):
+        params = ", ".join(f"{k}={v:.4g}" for k, v in e["params"].items())
+        lines.append(f"  + {e['effect']} ({params}): shrink {e['shrink_pct']:.1f} % on held-out experiments")
+    gap = d.get("gap", {})
+    if "shrink_pct" in gap:
+        lines.append(
+            f"gap: fit {gap['before']['fit_pct']:.2f} % -> {gap['after']['fit_pct']:.2f} %, "
+            f"total shrink {gap['shrink_pct']:.1f} %"
+        )
+    return "\n".join(lines)
+
+
+@app.command()
+def blindtest(
+    n: Annotated[int, typer.Option("--n", help="number of hidden-effect rigs")] = 40,
+    seed: Annotated[int, typer.Option("--seed", help="seed of the draws")] = 0,
+    out_dir: Annotated[Path, typer.Option("--out", help="directory for blindtest.json")] = Path("."),
+) -> None:
+    """Score the diagnoser on rigs with hidden effects (none, one, two, outside the library): blindtest.json."""
+    from .blindtest import blindtest as run_blind
+
+    res = run_blind(n, seed, out_dir, progress=_progress("case"))
+    out.print_json(data=res.get("totals", {}))
+
+
+@app.command()
+def run(
+    spec: Annotated[str, typer.Option("--spec", help="campaign spec")] = "lab",
+    out_dir: Annotated[Path | None, typer.Option("--out", help="run directory (default runs/<timestamp>)")] = None,
+    sim: Annotated[str, typer.Option("--sim", help="simulation spec the rig is diagnosed against")] = "nominal",
+    set_: SetOpt = None,
+    rrd: Annotated[Path | None, typer.Option("--rrd", help="recording file (default RUN/run.rrd)")] = None,
+    spawn: Annotated[bool, typer.Option("--spawn", help="open a Rerun viewer")] = False,
+    connect: Annotated[str | None, typer.Option("--connect", help="stream to a running viewer at URL")] = None,
+) -> None:
+    """The whole pipeline: build, campaign, calibrate, identify, export, cross-fit, diagnose, report, Rerun."""
+    from .pipeline import run_pipeline
+
+    if out_dir is None:
+        out_dir = Path("runs") / time.strftime("%Y%m%d-%H%M%S")
+    summary = run_pipeline(
+        spec, out_dir, set_ or [], sim=sim, rrd=rrd, spawn=spawn, connect=connect, progress=_progress("run")
+    )
+    out.print(summary)
 
 
 @app.command()

@@ -170,3 +170,56 @@ def doubled_rate_check(
     out["gain_ratio_as_is"] = float(np.sum(selected.B) / np.sum(selected.A)) / float(np.sum(refit.B) / np.sum(refit.A))
     write_json(Path(run) / "doubled_rate.json", out)
     return out
+
+
+def run_pipeline(
+    spec_name: str | Path,
+    out: Path,
+    overrides: list[str] | None = None,
+    *,
+    sim: str | Path = "nominal",
+    rrd: Path | None = None,
+    spawn: bool = False,
+    connect: str | None = None,
+    progress: Progress | None = None,
+) -> str:
+    """``flexjoint run``: every step on one spec into run directory ``out``; returns a short summary."""
+    import time
+
+    from .accept import accept
+    from .build import build_all
+    from .campaign import run_campaign
+    from .crossfit import crossfit_run
+    from .diagnose import diagnose_run
+    from .report import write_report
+    from .viewer import log_run
+
+    say = progress or (lambda _msg: None)
+    t0 = time.perf_counter()
+    spec = specmod.load(spec_name, overrides or [])
+    out = Path(out)
+    fmus = build_all()
+    say("FMUs built")
+    run_campaign(spec, out, fmus=fmus)
+    say(f"campaign: {len(spec.all_experiments())} experiments")
+    cal = calibrate_run(out, spec)
+    say(f"calibration: Kp {cal.Kp:.4f} deg/V, Ke {cal.Ke:.4f} deg/V, dead zone {cal.dead_zone_v:.4f} V")
+    res, _, cal, ident = identify_run(out)
+    sel = res.grid.loc[res.selected]
+    say(f"identified: ARMAX({sel.na},{sel.nb},{sel.nc},{sel.nk}), mean cross-validation {sel.cv_mean:.2f} %")
+    if ident.get("doubled_rate", True):
+        doubled_rate_check(out, res.models[res.selected], ident, cal)
+        say("doubled-rate check")
+    cf = crossfit_run(out)
+    say(f"cross-fit through FMUs: selected average {cf.loc['selected', 'average']:.2f} %")
+    d = diagnose_run(out, sim, out)
+    say(f"diagnosis against {sim}: {d['verdict']}")
+    write_report(out)
+    log_run(out, rrd=rrd, spawn=spawn, connect=connect)
+    verdict = accept(out)
+    say("report.md and run.rrd written")
+    return (
+        f"{out}: selected ARMAX({sel.na},{sel.nb},{sel.nc},{sel.nk}); cross-fit average "
+        f"{cf.loc['selected', 'average']:.2f} %; acceptance {'passed' if verdict.passed else 'FAILED'}; "
+        f"diagnosis {d['verdict']}; {time.perf_counter() - t0:.0f} s"
+    )
