@@ -11,13 +11,14 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from scipy.optimize import minimize_scalar
+
+from .data import atomic_write_text
 
 __all__ = [
     "Calibration",
@@ -440,18 +441,7 @@ class Calibration:
             text = json.dumps(d, sort_keys=True, indent=2, allow_nan=False) + "\n"
         except (TypeError, ValueError) as exc:
             raise ValueError(f"calibration source is not JSON-serialisable: {exc}") from None
-        path = Path(path)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent or ".")
-        try:
-            with os.fdopen(fd, "w", encoding="utf-8") as fh:
-                fh.write(text)
-                fh.flush()
-                os.fsync(fh.fileno())
-            os.replace(tmp, path)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise
+        atomic_write_text(Path(path), text)
 
     @classmethod
     def from_json(cls, path: str | os.PathLike[str]) -> Calibration:

@@ -4,6 +4,7 @@ for simulated data), atomic writes, CSV import of real measurements, and run-dir
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import tempfile
@@ -142,8 +143,6 @@ def import_csv(paths: list[Path], out: Path) -> list[Path]:
 
 
 def _sha256(path: Path) -> str:
-    import hashlib
-
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 

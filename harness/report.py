@@ -13,7 +13,6 @@ from __future__ import annotations
 import io
 import json
 import math
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -274,16 +273,10 @@ def _new_figure(w: float, h: float) -> Figure:
     return fig
 
 
-def _write(path: Path, data: bytes) -> None:
-    """Atomic write (temp file + rename), then the usual 0644 mode instead of the temp file's 0600."""
-    atomic_write_bytes(path, data)
-    os.chmod(path, 0o644)  # mkstemp made it 0600
-
-
 def _save(fig: Figure, path: Path) -> None:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=DPI, metadata={"Software": None})
-    _write(path, buf.getvalue())
+    atomic_write_bytes(path, buf.getvalue())
 
 
 def _fig_filter(res: RunResults, path: Path) -> None:
@@ -916,5 +909,5 @@ def write_report(run: Path) -> Path:
     lines += _section_doubled(res)
     lines += _section_diagnosis(res, figdir)
     out = res.run / "report.md"
-    _write(out, ("\n".join(lines).rstrip() + "\n").encode())
+    atomic_write_bytes(out, ("\n".join(lines).rstrip() + "\n").encode())
     return out
