@@ -23,7 +23,7 @@ import pandas as pd
 
 from . import armax
 from .calibration import Calibration, alpha_deg, theta_deg
-from .preprocess import detrend, preprocess
+from .preprocess import preprocess
 
 
 @dataclass
@@ -36,6 +36,7 @@ class Prepared:
     y: np.ndarray  # the angle itself [deg]
     u: np.ndarray  # the raw command [V]
     Ts: float
+    y_f_offset: float = 0.0  # mean removed from y_f [deg/sample]: the operating point's mean rate
 
 
 def output_angle(df: pd.DataFrame, cal: Calibration, output: str = "y") -> np.ndarray:
@@ -60,9 +61,9 @@ def prepare(
         y = output_angle(df, cal, output)
         u = df["u"].to_numpy(dtype=float)
         u_d, y_f = preprocess(u, y, af, "constant", initial="rest")
-        y_f = detrend(y_f, "constant")
+        offset = float(np.mean(y_f))
         Ts = float(np.median(np.diff(df["t"].to_numpy())))
-        out[name] = Prepared(name, u_d, y_f, y, u, Ts)
+        out[name] = Prepared(name, u_d, y_f - offset, y, u, Ts, offset)
     return out
 
 

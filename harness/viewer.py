@@ -96,7 +96,7 @@ def _log_datasets(rec: rr.RecordingStream, res: RunResults) -> None:
             _style(rec, f"{base}/simulated", "simulated y_f", _ORANGE)
             _series(rec, f"{base}/simulated", t, ys)
             _style(rec, f"{base}/tip/simulated", "simulated tip [deg]", _ORANGE)
-            _series(rec, f"{base}/tip/simulated", t, tip_from_filtered(ys, res.af, float(p.y[0])))
+            _series(rec, f"{base}/tip/simulated", t, tip_from_filtered(ys + p.y_f_offset, res.af, float(p.y[0])))
 
 
 def _log_crossfit(rec: rr.RecordingStream, res: RunResults) -> None:
