@@ -17,6 +17,7 @@ import ctypes
 import shutil
 import tempfile
 from dataclasses import dataclass, field
+from multiprocessing.util import Finalize
 from pathlib import Path
 from typing import Any
 
@@ -49,6 +50,7 @@ class Instance:
     unzipdir: str
     log: list[str] = field(default_factory=list)
     callbacks: Any = None
+    cleanup: Any = None
 
     def vr(self, name: str) -> int:
         return self.variables[name].valueReference
@@ -70,6 +72,9 @@ def load(path: Path, instance_name: str | None = None) -> Instance:
         instanceName=instance_name or md.coSimulation.modelIdentifier,
     )
     inst = Instance(Path(path), slave, {v.name: v for v in md.modelVariables}, unzipdir)
+    # remove the extracted files even when the owner never calls free(): at garbage collection, at interpreter
+    # exit, and in pool workers, which leave through multiprocessing's exit handlers rather than atexit
+    inst.cleanup = Finalize(inst, shutil.rmtree, args=(unzipdir,), kwargs={"ignore_errors": True}, exitpriority=0)
 
     def logger(env, instance, status, category, message):  # FMI 2.0 logger callback signature
         inst.log.append(message.decode(errors="replace") if message else "")
@@ -90,7 +95,7 @@ def free(inst: Instance) -> None:
     except Exception:  # noqa: BLE001 (already failed FMUs may refuse terminate)
         pass
     inst.slave.freeInstance()
-    shutil.rmtree(inst.unzipdir, ignore_errors=True)
+    inst.cleanup()
 
 
 def set_parameters(inst: Instance, values: dict[str, Any]) -> None:
