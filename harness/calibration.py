@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from .data import atomic_write_text
+from .data import write_json
 
 __all__ = [
     "Calibration",
@@ -433,15 +433,9 @@ class Calibration:
             raise ValueError(f"calibration source must be a dict, got {type(self.source).__name__}")
 
     def to_json(self, path: str | os.PathLike[str]) -> None:
-        """Write atomically (temp file + os.replace) with sorted keys; floats in shortest round-trip form,
-        NaN as null."""
-        d = asdict(self)
-        d = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in d.items()}
-        try:
-            text = json.dumps(d, sort_keys=True, indent=2, allow_nan=False) + "\n"
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"calibration source is not JSON-serialisable: {exc}") from None
-        atomic_write_text(Path(path), text)
+        """Write atomically with sorted keys; floats in shortest round-trip form, NaN (also inside ``source``)
+        as null."""
+        write_json(Path(path), asdict(self))
 
     @classmethod
     def from_json(cls, path: str | os.PathLike[str]) -> Calibration:

@@ -58,6 +58,7 @@ from scipy.optimize import minimize_scalar
 from . import spec as specmod
 from .calibration import Calibration, alpha_deg, ke_from_comb, theta_deg
 from .data import DataError, load_manifest, read_dataset, sample_time, write_json
+from .pipeline import load_calibration
 
 Progress = Callable[[str], None]
 
@@ -522,32 +523,6 @@ def _round(x: Any, digits: int = 10) -> Any:
 # ----------------------------------------------------------------------------------------------- main
 
 
-def _calibration(real: Path) -> Calibration:
-    """The real run's calibration (``pipeline.load_calibration``). Should writing calibration.json fail (a
-    non-finite provenance number), Kp and Ke are recomputed here in memory from the same experiments."""
-    from .pipeline import SEED_KE, SEED_KP, _holds, load_calibration
-
-    try:
-        return load_calibration(real)
-    except ValueError as err:
-        if "JSON" not in str(err):
-            raise
-    from .calibration import comb_table, kp_from_ramp
-
-    cal_exps = [e for e in load_manifest(real)["experiments"] if e.get("role") == "calibration"]
-    Kp, Ke, off, src = SEED_KP, SEED_KE, 0.0, {}
-    for e in cal_exps:
-        df = read_dataset(Path(real) / "data" / f"{e['name']}.parquet")
-        if e.get("signal") == "constant" and Kp == SEED_KP:
-            Kp = kp_from_ramp(df["t"].to_numpy(), df["theta_v"].to_numpy()).Kp
-        elif e.get("signal") == "comb" and "comb_angle" in df.columns:
-            holds, angles = _holds(df["comb_angle"].to_numpy(), df["t"].to_numpy())
-            ang, volts = comb_table(df["t"].to_numpy(), df["alpha_v"].to_numpy(), angles, holds)
-            g = ke_from_comb(ang, volts)
-            Ke, off, src = g.Ke, g.offset_v, {"Ke": {"angles_deg": ang.tolist()}}
-    return Calibration(Kp=Kp, Ke=Ke, gauge_offset_v=off, source=src)
-
-
 def _comb_angles(cal: Calibration) -> np.ndarray | None:
     src = cal.source.get("Ke", {}) if isinstance(cal.source, dict) else {}
     ang = src.get("angles_deg") if isinstance(src, dict) else None
@@ -583,7 +558,7 @@ def diagnose_run(
     if not (real / "manifest.json").exists():
         raise ValueError(f"{real}: not a run directory (no manifest.json)")
     sim_spec = sim if isinstance(sim, specmod.Spec) else specmod.load(sim)
-    cal = _calibration(real)
+    cal = load_calibration(real)
     trials = load_trials(real, cal, sim_spec)
     plant, daq = sim_rig(sim_spec)
     fmus = build_all()
@@ -608,8 +583,9 @@ def diagnose_run(
     finally:
         pool.close()
     where = where_gap(setup, real)
+    dest = Path(out) if out is not None else real
     doc = {
-        "real": str(real),
+        "real": os.path.relpath(real, dest),  # relative to diagnosis.json, so a moved run dir stays the same bytes
         "sim_spec": sim_spec.name if isinstance(sim, specmod.Spec) else str(sim),
         "sim_spec_file": Path(sim_spec.path).name,
         "calibration": {"Kp": cal.Kp, "Ke": cal.Ke, "gauge_offset_v": cal.gauge_offset_v},
@@ -636,7 +612,6 @@ def diagnose_run(
         "where": where,
     }
     doc = _round(doc)
-    dest = Path(out) if out is not None else real
     write_json(dest / "diagnosis.json", doc)
     timing = time.perf_counter() - t0
     write_json(dest / "diagnosis.timing.json", {"timing_s": timing, "workers": workers})

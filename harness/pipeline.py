@@ -213,7 +213,8 @@ def run_pipeline(
     cf = crossfit_run(out)
     say(f"cross-fit through FMUs: selected average {cf.loc['selected', 'average']:.2f} %")
     d = diagnose_run(out, sim, out)
-    say(f"diagnosis against {sim}: {d['verdict']}")
+    found = " + ".join(e["effect"] for e in d.get("effects", [])) or d["verdict"]
+    say(f"diagnosis against {sim}: {found} (verdict {d['verdict']}, held-out shrink {d['gap']['shrink_pct']:.1f} %)")
     write_report(out)
     log_run(out, rrd=rrd, spawn=spawn, connect=connect)
     verdict = accept(out)
@@ -221,5 +222,5 @@ def run_pipeline(
     return (
         f"{out}: selected ARMAX({sel.na},{sel.nb},{sel.nc},{sel.nk}); cross-fit average "
         f"{cf.loc['selected', 'average']:.2f} %; acceptance {'passed' if verdict.passed else 'FAILED'}; "
-        f"diagnosis {d['verdict']}; {time.perf_counter() - t0:.0f} s"
+        f"diagnosis {found}; {time.perf_counter() - t0:.0f} s"
     )
