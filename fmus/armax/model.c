@@ -147,14 +147,6 @@ void setStartValues(ModelInstance *comp) {
     loadCoefficients(comp);
 }
 
-#define CHECK(cond, ...)                                                                                     \
-    do {                                                                                                     \
-        if (!(cond)) {                                                                                       \
-            snprintf(msg, len, __VA_ARGS__);                                                                 \
-            return false;                                                                                    \
-        }                                                                                                    \
-    } while (0)
-
 /* Schur-Cohn (step-down) test: true when every root of 1 + a1 z^-1 + .. + an z^-n lies inside |z| < 1.
    On failure *kbad is the first reflection coefficient with |k| >= 1 (or nan). */
 static bool stableA(const double *a, int n, double *kbad) {

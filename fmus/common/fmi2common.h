@@ -11,6 +11,7 @@
 
 #include <stdbool.h>
 #include <stddef.h>
+#include <stdio.h>
 
 #include "fmi2Functions.h"
 
@@ -52,6 +53,15 @@ typedef struct ModelInstance {
 MODEL_API void setStartValues(ModelInstance *comp);
 
 /* Check the parameters; on failure write one line naming the parameter into msg and return false. */
+/* Inside validate(): CHECK(condition, printf-style message) returns false with the message when it fails. */
+#define CHECK(cond, ...)                                                                                     \
+    do {                                                                                                     \
+        if (!(cond)) {                                                                                       \
+            snprintf(msg, len, __VA_ARGS__);                                                                 \
+            return false;                                                                                    \
+        }                                                                                                    \
+    } while (0)
+
 MODEL_API bool validate(ModelInstance *comp, char *msg, size_t len);
 
 /* Called after a successful validate() in fmi2ExitInitializationMode: precompute, set the initial

@@ -50,14 +50,6 @@ void setStartValues(ModelInstance *comp) {
     d->seed = 0;
 }
 
-#define CHECK(cond, ...)                                                                                     \
-    do {                                                                                                     \
-        if (!(cond)) {                                                                                       \
-            snprintf(msg, len, __VA_ARGS__);                                                                 \
-            return false;                                                                                    \
-        }                                                                                                    \
-    } while (0)
-
 bool validate(ModelInstance *comp, char *msg, size_t len) {
     const ModelData *d = &comp->data;
     const struct {
