@@ -115,7 +115,8 @@ def set_parameters(inst: Instance, values: dict[str, Any]) -> None:
             raise FMUError(f"{inst.path.stem}: parameter {name!r} has unsupported type {v.type}")
 
 
-def _initialize(inst: Instance, params: dict[str, Any], stop: float) -> None:
+def initialize(inst: Instance, params: dict[str, Any], stop: float) -> None:
+    """Reset, set parameters by name, set up an experiment from 0 to ``stop`` [s], enter initialisation mode."""
     f = inst.slave.dll
     c = inst.slave.component
     inst.log.clear()
@@ -175,8 +176,8 @@ class Rig:
         daq_params = {"sample_rate": 1.0 / Ts, **(daq or {})}
         stop = n * Ts
         pl, dq = self.plant, self.daq
-        _initialize(pl, plant or {}, stop)
-        _initialize(dq, daq_params, stop)
+        initialize(pl, plant or {}, stop)
+        initialize(dq, daq_params, stop)
 
         fp, fd = pl.slave.dll, dq.slave.dll
         cp, cd = pl.slave.component, dq.slave.component

@@ -34,7 +34,7 @@ from xml.sax.saxutils import escape
 import numpy as np
 
 from .armax import ArmaxModel
-from .cosim import FMUError, Instance, free, load, set_parameters
+from .cosim import FMUError, Instance, free, initialize, load
 from .data import atomic_write_bytes
 
 __all__ = [
@@ -285,12 +285,7 @@ class ModelFMU:
         inst = self.inst
         f, c = inst.slave.dll, inst.slave.component
         n = u.size
-        inst.log.clear()
-        inst.check(f.fmi2Reset(c), "reset")
-        if parameters:
-            set_parameters(inst, parameters)
-        inst.check(f.fmi2SetupExperiment(c, 0, 0.0, 0.0, 1, n * h), "setup experiment")
-        inst.check(f.fmi2EnterInitializationMode(c), "initialisation")
+        initialize(inst, parameters or {}, n * h)
         inst.check(f.fmi2ExitInitializationMode(c), "initialisation")
         out = np.empty((n, 2))
         buf_in = (ctypes.c_double * 1)()
