@@ -233,26 +233,14 @@ def bench(
 
 
 def main() -> None:
-    """Console entry point: run the app, turning user errors into one line and exit code 2."""
+    """Console entry point. Typer handles usage errors, --help and exit codes itself (standalone mode); a user
+    error raised by the library (bad spec, bad data, a failing FMU) becomes one line on stderr and exit code 2."""
     try:
-        rc = app(standalone_mode=False)
-    except typer.Exit as e:  # raised before click takes over (e.g. --help handling differences)
-        sys.exit(e.exit_code)
-    except typer.Abort:
-        err.print("aborted")
-        sys.exit(130)
-    except Exception as e:  # noqa: BLE001 (classified below)
-        import click
-
-        if isinstance(e, click.exceptions.ClickException):
-            e.show()
-            sys.exit(e.exit_code)
-        if isinstance(e, _user_errors()):
-            msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-            print(f"error: {msg}", file=sys.stderr)
-            sys.exit(2)
-        raise
-    sys.exit(rc if isinstance(rc, int) else 0)
+        app()
+    except _user_errors() as e:
+        msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        print(f"error: {msg}", file=sys.stderr)
+        sys.exit(2)
 
 
 if __name__ == "__main__":
