@@ -103,7 +103,11 @@ def _log_crossfit(rec: rr.RecordingStream, res: RunResults) -> None:
     cf = res.crossfit
     if cf is None or cf.empty:
         return
-    tensor = rr.Tensor(cf.to_numpy(dtype=float), dim_names=("model", "dataset"))
+    values = cf.to_numpy(dtype=float)
+    finite = values[np.isfinite(values)]
+    # colour map over the fits actually present (e.g. 86-98 %), not 0-max, or every cell looks the same
+    span = (float(np.floor(finite.min())), float(np.ceil(finite.max()))) if finite.size else None
+    tensor = rr.Tensor(values, dim_names=("model", "dataset"), value_range=span)
     rec.log("crossfit/matrix", tensor, static=True)
     text = "\n".join(
         [
