@@ -19,6 +19,7 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 
 from .data import write_json
+from .preprocess import as_signal, time_axis
 
 __all__ = [
     "Calibration",
@@ -37,24 +38,6 @@ __all__ = [
     "theta_deg",
     "tip_deg",
 ]
-
-
-def _array(name: str, x: Any, n: int | None = None) -> np.ndarray:
-    a = np.asarray(x, dtype=np.float64)
-    if a.ndim != 1:
-        raise ValueError(f"{name} must be a 1-D array, got shape {a.shape}")
-    if n is not None and a.size != n:
-        raise ValueError(f"{name} has {a.size} samples, expected {n}")
-    if not np.all(np.isfinite(a)):
-        raise ValueError(f"{name} contains NaN or inf")
-    return a
-
-
-def _time_axis(t: Any) -> np.ndarray:
-    t = _array("t", t)
-    if t.size < 2 or np.any(np.diff(t) <= 0):
-        raise ValueError("t must hold at least two strictly increasing times [s]")
-    return t
 
 
 # --- potentiometer
@@ -114,8 +97,8 @@ def kp_from_ramp(t: Any, theta_v: Any) -> PotCalibration:
     s T volts per 360 deg (s the track slope [V/s]): Kp = 360 / (s T), median over track pairs. The shaft
     must turn one way only; at least two tracks must cross mid-range (one full revolution observed).
     """
-    t = _time_axis(t)
-    v = _array("theta_v", theta_v, t.size)
+    t = time_axis(t)
+    v = as_signal("theta_v", theta_v, t.size)
     lo, hi = float(v.min()), float(v.max())
     span = hi - lo
     if span <= 0:
@@ -191,8 +174,8 @@ class GaugeCalibration:
 
 def ke_from_comb(angle_deg: Any, volts: Any) -> GaugeCalibration:
     """Ke [deg/V] by least squares of angle [deg] on voltage [V] with intercept (the seed's regression)."""
-    x = _array("volts", volts)
-    y = _array("angle_deg", angle_deg, x.size)
+    x = as_signal("volts", volts)
+    y = as_signal("angle_deg", angle_deg, x.size)
     if x.size < 3:
         raise ValueError(f"need at least 3 calibration points, got {x.size}")
     if np.ptp(x) == 0:
@@ -226,9 +209,9 @@ def comb_table(
     the seed. ``alpha_true_deg`` is either one angle per hold (e.g. -atan(l/D)) or a time series like
     ``alpha_v``, averaged over the same windows.
     """
-    t = _time_axis(t)
-    av = _array("alpha_v", alpha_v, t.size)
-    truth = _array("alpha_true_deg", alpha_true_deg)
+    t = time_axis(t)
+    av = as_signal("alpha_v", alpha_v, t.size)
+    truth = as_signal("alpha_true_deg", alpha_true_deg)
     per_sample = truth.size == t.size
     if not per_sample and truth.size != len(holds):
         raise ValueError(
@@ -349,9 +332,9 @@ def dead_zone_estimate(t: Any, u: Any, theta_deg: Any, *, lag_s: float = 0.0) ->
     lag_s = float(lag_s)
     if not (math.isfinite(lag_s) and lag_s >= 0):
         raise ValueError(f"lag_s must be a finite delay >= 0 s, got {lag_s!r}")
-    t = _time_axis(t)
-    u = _array("u", u, t.size)
-    th = _array("theta_deg", theta_deg, t.size)
+    t = time_axis(t)
+    u = as_signal("u", u, t.size)
+    th = as_signal("theta_deg", theta_deg, t.size)
     scale = float(np.max(np.abs(u)))
     if scale == 0:
         raise ValueError("the command is zero: no ramp to find the dead zone from")
@@ -369,15 +352,7 @@ def dead_zone_estimate(t: Any, u: Any, theta_deg: Any, *, lag_s: float = 0.0) ->
             found[s] = (abs(float(np.interp(t0 - lag_s, t, u))), t0)
     if not found:
         raise ValueError("no motion onset found: the ramp never moved the shaft out of its noise band")
-    up, down = found.get(1.0), found.get(-1.0)
-    vals = [x[0] for x in found.values()]
-    return DeadZone(
-        v_th=float(np.mean(vals)),
-        v_up=up[0] if up else None,
-        v_down=down[0] if down else None,
-        t_up=up[1] if up else None,
-        t_down=down[1] if down else None,
-    )
+    return _dead_zone(found.get(1.0), found.get(-1.0))
 
 
 def dead_zone_from_ramp(t: Any, u: Any, theta_deg: Any, *, lag_s: float = 0.0) -> float:
@@ -390,9 +365,14 @@ def dead_zone_merge(*estimates: DeadZone) -> DeadZone:
     first v_up and the first v_down found; v_th their mean [V]."""
     up = next(((e.v_up, e.t_up) for e in estimates if e.v_up is not None), None)
     down = next(((e.v_down, e.t_down) for e in estimates if e.v_down is not None), None)
-    vals = [x[0] for x in (up, down) if x is not None]
-    if not vals:
+    if up is None and down is None:
         raise ValueError("no dead-zone estimate to merge")
+    return _dead_zone(up, down)
+
+
+def _dead_zone(up: tuple[float, float] | None, down: tuple[float, float] | None) -> DeadZone:
+    """DeadZone from the (threshold [V], onset [s]) of the up and the down ramp; v_th their mean."""
+    vals = [x[0] for x in (up, down) if x is not None]
     return DeadZone(
         v_th=float(np.mean(vals)),
         v_up=up[0] if up else None,
@@ -463,14 +443,14 @@ class Calibration:
 def theta_deg(theta_v: Any, cal: Calibration, unwrap: bool = True) -> np.ndarray:
     """Shaft angle [deg] = Kp (theta_v - pot_offset_v); with ``unwrap`` every jump of more than 180 deg
     between samples (a wrap, ~360 deg minus the dead band) is removed by adding +-360 deg."""
-    v = _array("theta_v", theta_v)
+    v = as_signal("theta_v", theta_v)
     deg = cal.Kp * (v - cal.pot_offset_v)
     return np.unwrap(deg, period=360.0) if unwrap and deg.size else deg
 
 
 def alpha_deg(alpha_v: Any, cal: Calibration) -> np.ndarray:
     """Link deflection [deg] = Ke (alpha_v - gauge_offset_v)."""
-    return cal.Ke * (_array("alpha_v", alpha_v) - cal.gauge_offset_v)
+    return cal.Ke * (as_signal("alpha_v", alpha_v) - cal.gauge_offset_v)
 
 
 def tip_deg(theta_v: Any, alpha_v: Any, cal: Calibration, unwrap: bool = True) -> np.ndarray:

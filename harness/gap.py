@@ -35,6 +35,8 @@ from scipy.signal import lfilter, savgol_coeffs, savgol_filter, welch
 
 from harness.signals import MultisineLines
 
+from .preprocess import as_signal, time_axis
+
 __all__ = [
     "AMP_LAGS",
     "AMP_LARGE_RATIO",
@@ -85,27 +87,6 @@ _NAN = float("nan")
 # --- input checks and small helpers
 
 
-def _array(name: str, x: Any, n: int | None = None) -> np.ndarray:
-    a = np.asarray(x, dtype=np.float64)
-    if a.ndim != 1:
-        raise ValueError(f"{name} must be a 1-D array, got shape {a.shape}")
-    if a.size == 0:
-        raise ValueError(f"{name} is empty")
-    if n is not None and a.size != n:
-        raise ValueError(f"{name} has {a.size} samples, expected {n} (same as the other signals)")
-    if not np.all(np.isfinite(a)):
-        bad = int(np.flatnonzero(~np.isfinite(a))[0])
-        raise ValueError(f"{name} contains NaN or inf (first at sample {bad})")
-    return a
-
-
-def _time(t: Any) -> np.ndarray:
-    t = _array("t", t)
-    if t.size < 2 or np.any(np.diff(t) <= 0):
-        raise ValueError("t must hold at least two strictly increasing times [s]")
-    return t
-
-
 def _positive(name: str, x: Any) -> float:
     try:
         v = float(x)
@@ -152,8 +133,8 @@ def residual_by_window(t: np.ndarray, e: np.ndarray, window_s: float, *, top: in
     ``top10_share``: the energy share of the top 10 % of windows (at least one), next to ``top10_uniform``,
     the share that fraction of windows would hold if the residual were spread evenly.
     """
-    t = _time(t)
-    e = _array("e", e, t.size)
+    t = time_axis(t)
+    e = as_signal("e", e, t.size)
     w = _positive("window_s", window_s)
     idx = np.floor((t - t[0]) / w + 1e-9).astype(np.int64)
     nw = int(idx[-1]) + 1
@@ -250,21 +231,21 @@ def reversal_mask(
     on each side. Command sign changes: the same hysteresis on ``u`` [V] with threshold ``0.01 max|u|``.
     Either input may be None (not both).
     """
-    t = _time(t)
+    t = time_axis(t)
     width = _positive("width_s", width_s)
     if theta_deg is None and u is None:
         raise ValueError("reversal_mask needs theta_deg or u (or both)")
     Ts = float(np.median(np.diff(t)))
     mask = np.zeros(t.size, dtype=bool)
     if theta_deg is not None:
-        theta = np.unwrap(_array("theta_deg", theta_deg, t.size), period=360.0)
+        theta = np.unwrap(as_signal("theta_deg", theta_deg, t.size), period=360.0)
         v, sigma_v = _velocity(theta, Ts)
         thr = max(4.0 * sigma_v, 0.02 * float(np.percentile(np.abs(v), 95)))
         if thr > 0:
             i0, i1 = _sign_change_spans(v, thr)
             mask |= _spans_to_mask(t, t[i0], t[i1], width)
     if u is not None:
-        u = _array("u", u, t.size)
+        u = as_signal("u", u, t.size)
         thr = 0.01 * float(np.max(np.abs(u)))
         if thr > 0:
             i0, i1 = _sign_change_spans(u, thr)
@@ -279,8 +260,8 @@ def wrap_mask(t: np.ndarray, theta_v: np.ndarray, width_s: float = 0.2, *, jump_
     [V]; by default (0) half the observed voltage span, and at least 2 V (a wrap jumps across the whole track,
     ~10 V; smooth motion moves far less than 2 V per sample).
     """
-    t = _time(t)
-    v = _array("theta_v", theta_v, t.size)
+    t = time_axis(t)
+    v = as_signal("theta_v", theta_v, t.size)
     width = _positive("width_s", width_s)
     if not jump_v:
         jump = max(0.5 * float(v.max() - v.min()), 2.0)
@@ -297,8 +278,8 @@ def near_events(t: np.ndarray, e: np.ndarray, mask: np.ndarray) -> dict[str, Any
     ratio (1: no preference; > 1: the residual concentrates at the events; NaN without events or residual).
     ``n_events`` counts the separate runs of the mask.
     """
-    t = _time(t)
-    e = _array("e", e, t.size)
+    t = time_axis(t)
+    e = as_signal("e", e, t.size)
     m = np.asarray(mask)
     if m.shape != t.shape:
         raise ValueError(f"mask has shape {m.shape}, expected {t.shape} (one flag per sample)")
@@ -332,7 +313,7 @@ def band_edges(Ts: float, bands_hz: Sequence[float] | None = None) -> np.ndarray
     if bands_hz is None:
         edges = np.array([f for f in DEFAULT_BAND_EDGES_HZ if f < nyq] + [nyq])
     else:
-        edges = _array("bands_hz", bands_hz)
+        edges = as_signal("bands_hz", bands_hz)
         if edges.size < 2 or np.any(np.diff(edges) <= 0) or edges[0] < 0:
             raise ValueError(f"bands_hz must be >= 2 increasing band edges >= 0 Hz, got {list(edges)}")
         if edges[-1] > nyq * (1 + 1e-9):
@@ -354,11 +335,11 @@ def residual_by_band(
     ``bands``: {lo_hz, hi_hz, power [unit^2], share, ratio}, ``ratio`` = residual / signal power in the band
     when ``y`` (e.g. the measured output) is given. ``dominant``: the band with the largest share.
     """
-    e = _array("e", e)
+    e = as_signal("e", e)
     Ts = _positive("Ts", Ts)
     edges = band_edges(Ts, bands_hz)
     f, pe = _welch(e, Ts)
-    py = _welch(_array("y", y, e.size), Ts)[1] if y is not None else None
+    py = _welch(as_signal("y", y, e.size), Ts)[1] if y is not None else None
     df = float(f[1] - f[0]) if f.size > 1 else 1.0 / Ts
     which = np.searchsorted(edges, f, side="right") - 1
     which[f >= edges[-1]] = edges.size - 2  # Nyquist belongs to the last band
@@ -430,8 +411,8 @@ def by_amplitude(
     u - dz(u) is capped at the threshold: its absolute RMS still rises with |u| while its relative one falls.
     Noise in e inflates rel_rms at small |u|, so a noisy, otherwise exact model can read GROWS_SMALL.
     """
-    u = _array("u", u)
-    e = _array("e", e, u.size)
+    u = as_signal("u", u)
+    e = as_signal("e", e, u.size)
     a = np.abs(u)
     if bins is None:
         if isinstance(n_bins, bool) or not isinstance(n_bins, (int, np.integer)) or n_bins < 1:
@@ -440,7 +421,7 @@ def by_amplitude(
         if edges.size < 2:
             edges = np.array([edges[0], edges[0]])
     else:
-        edges = _array("bins", bins)
+        edges = as_signal("bins", bins)
         if edges.size < 2 or np.any(np.diff(edges) <= 0) or edges[0] < 0:
             raise ValueError(f"bins must be >= 2 increasing |u| edges >= 0 V, got {list(edges)}")
     nb = edges.size - 1
@@ -510,9 +491,9 @@ def amplitude_curve(
     ``trend`` is UNDETERMINED when a knot interval holds fewer than AMP_MIN_COUNT samples (a +-A PRBS or
     square wave), the simulated output does not move, or the ARX fit is unstable or poor (fit < 0.9).
     """
-    u = _array("u", u)
-    e = _array("e", e, u.size)
-    ys = _array("y_sim", y_sim, u.size)
+    u = as_signal("u", u)
+    e = as_signal("e", e, u.size)
+    ys = as_signal("y_sim", y_sim, u.size)
     out: dict[str, Any] = {
         "method": "hammerstein",
         "knots_v": [],
@@ -658,8 +639,8 @@ def bla(u: np.ndarray, y: np.ndarray, period_samples: int, lines: MultisineLines
         )
     if lines.period_samples != P:
         raise ValueError(f"lines were designed for a period of {lines.period_samples} samples, not {P}")
-    u = _array("u", u)
-    y = _array("y", y, u.size)
+    u = as_signal("u", u)
+    y = as_signal("y", y, u.size)
     M = u.size // P - 1
     if M < 2:
         raise ValueError(
@@ -807,11 +788,11 @@ def where(
     y_real, and u) and at pot wraps (:func:`wrap_mask`, only with theta_v), both ``width_s`` wide.
     ``rms``: RMS of e [unit]; ``rms_rate``: RMS of r [unit/s].
     """
-    t = _time(t)
+    t = time_axis(t)
     n = t.size
-    u = _array("u", u, n)
-    yr = _array("y_real", y_real, n)
-    ys = _array("y_sim", y_sim, n)
+    u = as_signal("u", u, n)
+    yr = as_signal("y_real", y_real, n)
+    ys = as_signal("y_sim", y_sim, n)
     Ts = _positive("Ts", Ts)
     if domain not in ("rate", "angle"):
         raise ValueError(f"unknown residual domain {domain!r}; valid: rate, angle")

@@ -12,13 +12,23 @@ the plain first difference y[k] - y[k-1]; ``af = 0.8`` is the labs' default. The
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import control
 import numpy as np
 from scipy.signal import detrend as _scipy_detrend
 from scipy.signal import lfilter, lfilter_zi
 
-__all__ = ["detrend", "diff_filter", "filter_coefficients", "filter_response", "filter_tf", "preprocess"]
+__all__ = [
+    "as_signal",
+    "detrend",
+    "diff_filter",
+    "filter_coefficients",
+    "filter_response",
+    "filter_tf",
+    "preprocess",
+    "time_axis",
+]
 
 DETREND_KINDS = ("constant", "linear", "none")
 
@@ -33,16 +43,27 @@ def _check_af(af: float) -> float:
     return af
 
 
-def _as_signal(name: str, x: np.ndarray) -> np.ndarray:
+def as_signal(name: str, x: Any, n: int | None = None) -> np.ndarray:
+    """``x`` as a finite 1-D float array (of ``n`` samples when given), or ValueError naming ``name``."""
     a = np.asarray(x, dtype=np.float64)
     if a.ndim != 1:
         raise ValueError(f"{name} must be a 1-D array, got shape {a.shape}")
     if a.size == 0:
         raise ValueError(f"{name} is empty")
+    if n is not None and a.size != n:
+        raise ValueError(f"{name} has {a.size} samples, expected {n} (same as the other signals)")
     if not np.all(np.isfinite(a)):
         bad = int(np.flatnonzero(~np.isfinite(a))[0])
         raise ValueError(f"{name} contains NaN or inf (first at sample {bad})")
     return a
+
+
+def time_axis(t: Any) -> np.ndarray:
+    """Sample times [s]: at least two, strictly increasing, finite."""
+    t = as_signal("t", t)
+    if t.size < 2 or np.any(np.diff(t) <= 0):
+        raise ValueError("t must hold at least two strictly increasing times [s]")
+    return t
 
 
 def filter_coefficients(af: float = 0.8) -> tuple[np.ndarray, np.ndarray]:
@@ -59,7 +80,7 @@ def diff_filter(y: np.ndarray, af: float = 0.8, *, initial: str = "zero") -> np.
     the record, so the output starts at 0. ``af = 0`` is the plain first difference.
     """
     b, a = filter_coefficients(af)
-    y = _as_signal("y", y)
+    y = as_signal("y", y)
     if initial == "zero":
         return lfilter(b, a, y)
     if initial == "rest":
@@ -93,7 +114,7 @@ def detrend(x: np.ndarray, kind: str = "constant") -> np.ndarray:
     """Remove the mean (``"constant"``), a least-squares line (``"linear"``) or nothing (``"none"``)."""
     if kind not in DETREND_KINDS:
         raise ValueError(f"unknown detrend kind {kind!r}; valid: {', '.join(DETREND_KINDS)}")
-    x = _as_signal("x", x)
+    x = as_signal("x", x)
     if kind == "none":
         return x.copy()
     return _scipy_detrend(x, type=kind)
@@ -113,8 +134,8 @@ def preprocess(
     difference). ``initial`` as in :func:`diff_filter`.
     """
     af = _check_af(af)
-    u = _as_signal("u", u)
-    y = _as_signal("y", y)
+    u = as_signal("u", u)
+    y = as_signal("y", y)
     if u.shape != y.shape:
         raise ValueError(f"u and y must have the same length, got {u.size} and {y.size}")
     return detrend(u, detrend_input), diff_filter(y, af, initial=initial)

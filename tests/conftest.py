@@ -14,6 +14,23 @@ import pytest
 from harness.build import build_all
 
 
+@pytest.fixture
+def seed_model():
+    """Seed 000's final model as printed (eq. 12, coefficients rounded to two digits): ARMAX(5,3,0,1), Ts 20 ms."""
+    from harness.armax import ArmaxModel
+
+    return ArmaxModel(
+        A=np.array([1.0, -4.33, 7.64, -6.87, 3.16, -0.59]),
+        B=np.array([0.0, -0.05, 0.14, -0.09]),
+        C=np.array([1.0]),
+        na=5,
+        nb=3,
+        nc=0,
+        nk=1,
+        Ts=0.02,
+    )
+
+
 @pytest.fixture(scope="session")
 def fmus() -> dict[str, Path]:
     """{"flexjoint": Path, "daq": Path} of the built FMUs (from the build cache when up to date)."""

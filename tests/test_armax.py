@@ -118,17 +118,8 @@ def test_daisy_order_5_is_reported_unstable(daisy, nc):
     assert rep.status == "unstable" and str(rep) == "unstable"
 
 
-def test_seed_rounded_coefficients_are_unstable_and_full_precision_round_trips():
-    seed = ax.ArmaxModel(
-        A=np.array([1.0, -4.33, 7.64, -6.87, 3.16, -0.59]),
-        B=np.array([0.0, -0.05, 0.14, -0.09]),
-        C=np.array([1.0]),
-        na=5,
-        nb=3,
-        nc=0,
-        nk=1,
-        Ts=0.02,
-    )
+def test_seed_rounded_coefficients_are_unstable_and_full_precision_round_trips(seed_model):
+    seed = seed_model
     assert np.max(np.abs(seed.poles)) == pytest.approx(1.1678, abs=1e-3)
     assert not seed.stable
     u = np.sin(0.1 * np.arange(200))

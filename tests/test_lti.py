@@ -56,18 +56,9 @@ def test_to_tf_evaluates_b_over_a_in_z_inverse():
     assert np.sum(np.abs(nmp) > 1.0) == 1  # the whiplash zero
 
 
-def test_companion_form_reproduces_seed_eq_10_from_eq_12():
+def test_companion_form_reproduces_seed_eq_10_from_eq_12(seed_model):
     # eq. (12): G(z) = (-0.05 z^4 + 0.14 z^3 - 0.09 z^2) / (z^5 - 4.33 z^4 + 7.64 z^3 - 6.87 z^2 + 3.16 z - 0.59)
-    seed = ax.ArmaxModel(
-        A=np.array([1.0, -4.33, 7.64, -6.87, 3.16, -0.59]),
-        B=np.array([0.0, -0.05, 0.14, -0.09]),
-        C=np.array([1.0]),
-        na=5,
-        nb=3,
-        nc=0,
-        nk=1,
-        Ts=0.02,
-    )
+    seed = seed_model
     s = lti.companion_ss(lti.to_tf(seed))
     np.testing.assert_allclose(s.A[0], [4.33, -7.64, 6.87, -3.16, 0.59], rtol=1e-12)
     np.testing.assert_array_equal(s.A[1:], np.eye(5)[:-1])
