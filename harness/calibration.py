@@ -39,6 +39,9 @@ __all__ = [
     "tip_deg",
 ]
 
+# Seed 000 (section 2): Kp = 360 / (5.0635 + 5.0732) deg/V, Ke = -3.3636 deg/V, dead zone 0.3369 V
+SEED_CALIBRATION = {"Kp": 35.5145, "Ke": -3.3636, "dead_zone_v": 0.3369}
+
 
 # --- potentiometer
 

@@ -8,7 +8,6 @@ the same bytes.
 
 from __future__ import annotations
 
-import math
 import os
 import platform
 import zlib
@@ -200,9 +199,3 @@ def run_campaign(
     }
     write_json(out / "manifest.json", manifest)
     return manifest
-
-
-def realtime_factor(spec: Spec, wall_s: float) -> float:
-    """Simulated seconds per wall-clock second for the identification experiments."""
-    sim = sum(e.duration for e in spec.experiments)
-    return sim / wall_s if wall_s > 0 else math.inf

@@ -199,7 +199,7 @@ class Rig:
         pl.check(p_set(cp, p_in, 2, pin), "set inputs")
         pl.check(fp.fmi2ExitInitializationMode(cp), "initialisation")
 
-        out = np.empty((n, 7))
+        out = np.empty((n, 6))
         h = ctypes.c_double(Ts)
         for k in range(n):
             t = ctypes.c_double(k * Ts)
@@ -212,7 +212,7 @@ class Rig:
             d_get(cd, d_out, 3, dout)
             pin[0], pin[1] = dout[0], tau[k]
             p_set(cp, p_in, 2, pin)
-            out[k] = (dout[0], dout[1], dout[2], pout[0], pout[1], pout[3], 0.0)
+            out[k] = (dout[0], dout[1], dout[2], pout[0], pout[1], pout[3])
             s = p_step(cp, t, h, true_b)
             if s > 1:
                 pl.check(s, f"doStep at t={k * Ts:.4f} s")

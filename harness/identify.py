@@ -23,7 +23,7 @@ import pandas as pd
 from threadpoolctl import threadpool_limits
 
 from . import armax
-from .calibration import Calibration, alpha_deg, theta_deg
+from .calibration import Calibration, alpha_deg, theta_deg, tip_deg
 from .preprocess import preprocess
 
 
@@ -42,14 +42,12 @@ class Prepared:
 
 def output_angle(df: pd.DataFrame, cal: Calibration, output: str = "y") -> np.ndarray:
     """The identified angle [deg] from DAQ volts: ``y`` tip = theta + alpha, ``theta`` shaft, ``alpha`` deflection."""
-    th = theta_deg(df["theta_v"].to_numpy(), cal)
-    al = alpha_deg(df["alpha_v"].to_numpy(), cal)
     if output == "y":
-        return th + al
+        return tip_deg(df["theta_v"].to_numpy(), df["alpha_v"].to_numpy(), cal)
     if output == "theta":
-        return th
+        return theta_deg(df["theta_v"].to_numpy(), cal)
     if output == "alpha":
-        return al
+        return alpha_deg(df["alpha_v"].to_numpy(), cal)
     raise ValueError(f"identify.output must be y, theta or alpha, got {output!r}")
 
 

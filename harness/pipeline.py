@@ -13,6 +13,7 @@ import pandas as pd
 from . import armax
 from . import spec as specmod
 from .calibration import (
+    SEED_CALIBRATION,
     Calibration,
     comb_table,
     dead_zone_estimate,
@@ -23,9 +24,6 @@ from .calibration import (
 from .data import load_manifest, read_dataset, write_json
 
 Progress = Callable[[str], None]
-
-# Seed 000's own numbers, used when a run has no calibration experiments (imported measurements)
-SEED_KP, SEED_KE, SEED_DEAD_ZONE = 35.5145, -3.3636, 0.3369
 
 
 def _holds(comb_angle: np.ndarray, t: np.ndarray) -> tuple[list[tuple[float, float]], np.ndarray]:
@@ -39,7 +37,7 @@ def _holds(comb_angle: np.ndarray, t: np.ndarray) -> tuple[list[tuple[float, flo
     return holds, np.array(angles)
 
 
-def calibrate_run(run: Path, spec: specmod.Spec | None = None) -> Calibration:
+def calibrate_run(run: Path) -> Calibration:
     """Calibrate the sensors from a run's calibration experiments and write ``calibration.json``.
 
     Kp from the pot ramp through its wraps, Ke by least squares over the comb holds, the dead zone from the slow
@@ -49,7 +47,8 @@ def calibrate_run(run: Path, spec: specmod.Spec | None = None) -> Calibration:
     manifest = load_manifest(run)
     cal_exps = {e["name"]: e for e in manifest["experiments"] if e.get("role") == "calibration"}
     source: dict[str, Any] = {}
-    Kp, Ke, offset, dz, lag = SEED_KP, SEED_KE, 0.0, math.nan, 0.0
+    # the seed's own Kp and Ke stand in when a run has no calibration experiments (imported measurements)
+    Kp, Ke, offset, dz, lag = SEED_CALIBRATION["Kp"], SEED_CALIBRATION["Ke"], 0.0, math.nan, 0.0
 
     def data(name: str) -> pd.DataFrame:
         return read_dataset(run / "data" / f"{name}.parquet")
@@ -202,7 +201,7 @@ def run_pipeline(
     say("FMUs built")
     run_campaign(spec, out, fmus=fmus)
     say(f"campaign: {len(spec.all_experiments())} experiments")
-    cal = calibrate_run(out, spec)
+    cal = calibrate_run(out)
     say(f"calibration: Kp {cal.Kp:.4f} deg/V, Ke {cal.Ke:.4f} deg/V, dead zone {cal.dead_zone_v:.4f} V")
     res, _, cal, ident = identify_run(out)
     sel = res.grid.loc[res.selected]

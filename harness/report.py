@@ -24,7 +24,7 @@ from matplotlib.figure import Figure
 from scipy.signal import lfilter
 
 from . import armax, lti
-from .calibration import Calibration
+from .calibration import SEED_CALIBRATION, Calibration
 from .data import DataError, atomic_write_bytes, load_manifest, load_run
 from .identify import Prepared, prepare
 from .preprocess import filter_response
@@ -45,8 +45,6 @@ __all__ = [
 ]
 
 DPI = 100
-# Seed 000 (section 2): Kp = 360 / (5.0635 + 5.0732) deg/V, Ke = -3.3636 deg/V, dead zone 0.3369 V
-SEED_CALIBRATION = {"Kp": 35.5145, "Ke": -3.3636, "dead_zone_v": 0.3369}
 FILTER_AFS = (0.6, 0.8, 0.9)
 RESID_LAGS = 25
 GRID_COLUMNS = ("dataset", "na", "nb", "nc", "nk", "causal", "stable", "fit")
