@@ -158,29 +158,26 @@ def run_grid(
     grid = pd.DataFrame(rows)
     grid["survivor"] = grid["causal"] & grid["stable"] & (grid["fit"] >= threshold)
     names = list(prepared)
-    cv = np.full((len(grid), len(names)), np.nan)
-    for i in np.flatnonzero(grid["survivor"].to_numpy()):
-        m = models[int(i)]
-        cv[i] = [armax.compare(m, prepared[n].u_d, prepared[n].y_f, ic=ic) for n in names]
-    grid["cv_mean"] = cv.mean(axis=1)
-    for j, n in enumerate(names):
-        grid[f"cv_{n}"] = cv[:, j]
-    best = {}
+    # a dataset with nothing above the threshold keeps its best stable causal fit (flagged by survivor=False)
+    fallback = {}
     for n in names:
-        rows_n = grid.index[(grid["dataset"] == n) & grid["survivor"]]
-        if len(rows_n) == 0:  # nothing above the threshold: keep the best stable causal fit, flagged in grid.csv
+        if not (grid["survivor"] & (grid["dataset"] == n)).any():
             ok = grid.index[(grid["dataset"] == n) & grid["causal"] & grid["stable"]]
             if len(ok) == 0:
                 raise ValueError(f"dataset {n}: no stable causal ARMAX model in the grid")
-            i = int(grid.loc[ok, "fit"].idxmax())
-            m = models[i]
-            cv[i] = [armax.compare(m, prepared[k].u_d, prepared[k].y_f, ic=ic) for k in names]
-            grid.loc[i, "cv_mean"] = cv[i].mean()
-            for j, k in enumerate(names):
-                grid.loc[i, f"cv_{k}"] = cv[i, j]
-            best[n] = i
-        else:
-            best[n], _ = _select(grid, rows_n, tol)
+            fallback[n] = int(grid.loc[ok, "fit"].idxmax())
+    cv = np.full((len(grid), len(names)), np.nan)
+    for i in sorted({*np.flatnonzero(grid["survivor"].to_numpy()).tolist(), *fallback.values()}):
+        cv[i] = [armax.compare(models[i], prepared[n].u_d, prepared[n].y_f, ic=ic) for n in names]
+    grid["cv_mean"] = cv.mean(axis=1)
+    for j, n in enumerate(names):
+        grid[f"cv_{n}"] = cv[:, j]
+    best = {
+        n: fallback[n]
+        if n in fallback
+        else _select(grid, grid.index[(grid["dataset"] == n) & grid["survivor"]], tol)[0]
+        for n in names
+    }
     survivors = grid.index[grid["survivor"]]
     selected, rule = _select(grid, survivors if len(survivors) else pd.Index(list(best.values())), tol)
     return GridResult(grid, models, best, selected, rule, names)

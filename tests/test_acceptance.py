@@ -81,3 +81,18 @@ def _first(identified):
     _, _, prepared, _ = identified
     p = next(iter(prepared.values()))
     return p.u_d, p.y_f
+
+
+def test_datasets_without_survivors_keep_their_best_fit_flagged(identified):
+    _, _, prepared, ident = identified
+    from harness.identify import run_grid
+
+    strict = {**ident, "na": [4, 5], "nb": [2, 3], "nc": [1, 2], "fit_threshold": 99.9}
+    res = run_grid(prepared, strict, workers=1)
+    g = res.grid
+    assert not g["survivor"].any()
+    for n, i in res.best.items():
+        own = g[(g["dataset"] == n) & g["causal"] & g["stable"]]
+        assert i == own["fit"].idxmax() and not g.loc[i, "survivor"]
+        assert np.isfinite(g.loc[i, [f"cv_{k}" for k in prepared]].to_numpy(float)).all()
+    assert res.selected in res.best.values()
