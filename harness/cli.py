@@ -69,13 +69,28 @@ def campaign(
 
 @app.command("import")
 def import_(
-    csv: Annotated[list[Path], typer.Argument(help="CSV files with columns t,u,theta_v,alpha_v")],
+    files: Annotated[list[Path], typer.Argument(help="records: .csv/.txt/.tsv, .mat (v5, v7.3), .parquet")],
     out_dir: Annotated[Path, typer.Option("--out", help="run directory to write")],
+    columns: Annotated[str | None, typer.Option(help="column map, e.g. time=t,Vm=u,hub=theta,tip=alpha")] = None,
+    units: Annotated[str | None, typer.Option(help="units, e.g. theta=deg,alpha=rad,u=V,t=s")] = None,
+    link_length: Annotated[float | None, typer.Option(help="link length [m] for tip deflections in m")] = None,
+    counts_per_rev: Annotated[float | None, typer.Option(help="encoder counts per revolution")] = None,
+    kp: Annotated[float | None, typer.Option("--kp", help="pot gain Kp [deg/V] of the lab's DAQ")] = None,
+    ke: Annotated[float | None, typer.Option("--ke", help="gauge gain Ke [deg/V] of the lab's DAQ")] = None,
+    calibration: Annotated[Path | None, typer.Option(help="calibration.json to carry (Kp, Ke, offsets)")] = None,
 ) -> None:
-    """Bring real measurements into a run directory (data/<name>.parquet + manifest.json)."""
-    from .data import import_csv
+    """Bring real records into a run directory: data/<name>.parquet, calibration.json, manifest.json."""
+    from .records import ImportOptions, calibration_option, import_records, parse_map
 
-    written = import_csv(csv, out_dir)
+    opts = ImportOptions(
+        columns=parse_map(columns, "--columns"),
+        units=parse_map(units, "--units"),
+        link_length=link_length,
+        counts_per_rev=counts_per_rev,
+        calibration=calibration_option(kp, ke, calibration),
+    )
+    note = lambda m: err.print(f"note: {m}", markup=False, soft_wrap=True)  # noqa: E731
+    written = import_records(files, out_dir, opts, note=note)
     out.print(f"imported {len(written)} dataset(s) -> {out_dir}")
 
 

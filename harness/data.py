@@ -1,10 +1,10 @@
-"""Datasets on disk: Parquet files with columns ``t, u, theta_v, alpha_v`` (+ true ``theta, alpha`` in degrees
-for simulated data), atomic writes, CSV import of real measurements, and run-directory helpers.
+"""Datasets on disk: Parquet files with columns ``t, u, theta_v, alpha_v`` (+ ``theta, alpha`` in degrees: the
+true angles of simulated data, the recorded ones of imports), atomic writes and run-directory helpers. Real
+records are read and normalised by :mod:`harness.records`.
 """
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import tempfile
@@ -110,40 +110,6 @@ def read_dataset(path: Path) -> pd.DataFrame:
 def sample_time(df: pd.DataFrame) -> float:
     """Sampling period Ts [s] of a validated dataset."""
     return float(np.median(np.diff(df["t"].to_numpy())))
-
-
-def import_csv(paths: list[Path], out: Path) -> list[Path]:
-    """Import CSV measurements (columns ``t,u,theta_v,alpha_v``, extra columns kept) into ``out/data/``.
-
-    Every file is validated before anything is written; a manifest records the sources.
-    """
-    frames = {}
-    for p in map(Path, paths):
-        if not p.exists():
-            raise DataError(f"{p}: no such file")
-        try:
-            df = pd.read_csv(p, comment="#")
-        except (pd.errors.ParserError, UnicodeDecodeError) as err:
-            raise DataError(f"{p.name}: not a readable CSV ({str(err).splitlines()[0]})") from None
-        df.columns = [str(c).strip() for c in df.columns]
-        frames[p.stem] = validate(df, p.name)
-    written = []
-    for name, df in frames.items():
-        cols = {c: pd.to_numeric(df[c], errors="coerce").to_numpy(float) for c in df.columns}
-        dest = Path(out) / "data" / f"{name}.parquet"
-        write_dataset(dest, cols)
-        written.append(dest)
-    manifest = {
-        "kind": "import",
-        "sources": {p.stem: {"file": p.name, "sha256": _sha256(p)} for p in map(Path, paths)},
-        "experiments": [{"name": n, "role": "identification", "n": len(f)} for n, f in frames.items()],
-    }
-    write_json(Path(out) / "manifest.json", manifest)
-    return written
-
-
-def _sha256(path: Path) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
 def load_manifest(run: Path) -> dict[str, Any]:

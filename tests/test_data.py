@@ -1,10 +1,10 @@
-"""Datasets: Parquet round trip, byte-stable writes, CSV import with clear rejections."""
+"""Datasets: Parquet round trip, byte-stable writes, validation with clear rejections."""
 
 import numpy as np
 import pandas as pd
 import pytest
 
-from harness import data
+from harness import data, records
 
 
 def _csv(path, n=100, Ts=0.02, **overrides):
@@ -29,13 +29,15 @@ def test_write_dataset_is_byte_stable_and_round_trips(tmp_path):
     assert data.sample_time(df) == pytest.approx(0.02)
 
 
-def test_import_csv_writes_run_layout(tmp_path):
+def test_imported_run_has_the_dataset_layout(tmp_path):
+    """An import (harness.records; its hostile cases are in test_import.py) reads back through load_run."""
     src = _csv(tmp_path / "rig1.csv")
     out = tmp_path / "run"
-    written = data.import_csv([src], out)
+    written = records.import_records([src], out)
     assert written == [out / "data" / "rig1.parquet"]
     runs = data.load_run(out)
     assert list(runs) == ["rig1"] and len(runs["rig1"]) == 100
+    assert list(runs["rig1"].columns) == ["t", "u", "theta_v", "alpha_v", "theta", "alpha"]
     assert data.load_manifest(out)["kind"] == "import"
 
 
@@ -48,14 +50,11 @@ def test_import_csv_writes_run_layout(tmp_path):
         ({"t": np.r_[np.arange(50) * 0.02, np.arange(50) * 0.02]}, "not strictly increasing"),
     ],
 )
-def test_import_rejects_bad_files_without_writing(tmp_path, overrides, message):
-    good = _csv(tmp_path / "good.csv")
-    bad = _csv(tmp_path / "bad.csv", **overrides)
-    out = tmp_path / "run"
+def test_validate_rejects_bad_datasets(tmp_path, overrides, message):
+    bad = pd.read_csv(_csv(tmp_path / "bad.csv", **overrides))
     with pytest.raises(data.DataError, match=message) as exc:
-        data.import_csv([good, bad], out)
+        data.validate(bad, "bad.csv")
     assert "\n" not in str(exc.value)
-    assert not out.exists()  # nothing half-written
 
 
 def test_write_json_is_stable_and_nan_safe(tmp_path):

@@ -1,0 +1,703 @@
+"""Real records in the forms labs keep them, normalised into a run directory.
+
+Formats: CSV (separator ``,`` ``;`` tab or spaces and the decimal comma detected; an optional header, an
+optional units row under it; ``#``/``%`` comment lines), MATLAB .mat v5 (scipy) and v7.3 (HDF5, h5py) with one
+vector per channel or one N x k matrix, and Parquet. Channels: time ``t``, command ``u`` [V], shaft angle
+``theta`` and link deflection ``alpha``, found by name (``t``/``time``, ``u``/``Vm``, ``theta_deg``, ``alpha_v``,
+``theta [rad]`` ...) or given with a map (``{"time": "t", "Vm": "u", "hub": "theta", "tip": "alpha"}``;
+positions ``{"0": "t", ...}`` for a headerless file). Units: t in s, ms or us; u in V; theta in V, deg, rad or
+encoder counts; alpha in V, deg, rad, counts or m (mm) of tip deflection, alpha = atan(d / link_length).
+
+Rules, no silent guesses:
+
+- time without a unit: a median sample interval <= 0.1 is seconds (>= 10 Hz); 1 < interval <= 100 is
+  milliseconds (10 Hz - 1 kHz), converted with a note; anything else is refused (0.1-1 could be 1-10 Hz in s
+  or 1-10 kHz in ms; > 100 would be < 10 Hz in ms) and ``units={"t": ...}`` decides;
+- whatever the time unit, the sample rate must be >= ``MIN_RATE`` (10 Hz);
+- host-clock jitter: time stamps within ``JITTER_LIMIT`` (10 %) of a sample interval of the least-squares
+  uniform grid are resampled onto it by linear interpolation (the pot's wrap jumps are not interpolated
+  across: the nearer sample is taken) and the largest correction is reported; beyond that: refused;
+- no calibration given: the seed's (lab 1) Kp and Ke are assumed and a note says so.
+
+The dataset written (``data/<name>.parquet``) is the same whatever the format: ``t`` [s], ``u`` [V],
+``theta_v``, ``alpha_v`` [V] as the lab's DAQ reads them (angles converted with the calibration: theta_v =
+theta / Kp + pot_offset_v, alpha_v = alpha / Ke + gauge_offset_v; an encoder angle is not wrapped like a pot),
+and ``theta``, ``alpha`` [deg] as recorded (through the calibration for a volts record).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import re
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import pyarrow.parquet as pq
+
+from .calibration import SEED_CALIBRATION, Calibration, alpha_deg, theta_deg
+from .data import DataError, validate, write_dataset, write_json
+
+__all__ = [
+    "CHANNELS",
+    "JITTER_LIMIT",
+    "MIN_RATE",
+    "ImportOptions",
+    "RawTable",
+    "calibration_option",
+    "import_records",
+    "parse_map",
+    "read_table",
+]
+
+Note = Callable[[str], None]
+CHANNELS = ("t", "u", "theta", "alpha")
+MIN_RATE = 10.0  # Hz: slower records cannot show the link's first mode (~3-4.5 Hz)
+JITTER_LIMIT = 0.1  # largest time-stamp correction resampled, as a share of the sample interval
+UNITS = {
+    "t": ("s", "ms", "us"),
+    "u": ("V",),
+    "theta": ("V", "deg", "rad", "counts"),
+    "alpha": ("V", "deg", "rad", "counts", "m", "mm"),
+}
+_UNIT_NAMES = {
+    "s": "s", "sec": "s", "secs": "s", "second": "s", "seconds": "s",
+    "ms": "ms", "msec": "ms", "millisecond": "ms", "milliseconds": "ms",
+    "us": "us", "µs": "us", "usec": "us", "microseconds": "us",
+    "v": "V", "volt": "V", "volts": "V",
+    "deg": "deg", "degree": "deg", "degrees": "deg", "°": "deg",
+    "rad": "rad", "radian": "rad", "radians": "rad",
+    "counts": "counts", "count": "counts", "cnt": "counts", "ticks": "counts",
+    "m": "m", "metre": "m", "meter": "m", "metres": "m", "meters": "m", "mm": "mm",
+}  # fmt: skip
+_ALIASES = {
+    "t": "t", "time": "t",
+    "u": "u", "vm": "u", "v_m": "u", "command": "u", "cmd": "u",
+    "theta": "theta", "alpha": "alpha",
+}  # fmt: skip
+_TIME_FACTOR = {"s": 1.0, "ms": 1e-3, "us": 1e-6}
+_SUFFIXES = sorted(_UNIT_NAMES, key=len, reverse=True)
+
+
+@dataclass(frozen=True)
+class ImportOptions:
+    """How to read records: ``columns`` source column (name or position) -> channel (t, u, theta, alpha,
+    theta_v, alpha_v or with a unit suffix, theta_deg); ``units`` channel or column -> unit; ``link_length``
+    [m] for tip deflections; ``counts_per_rev`` of an encoder; ``calibration`` to carry (None: assume lab 1's)."""
+
+    columns: dict[str, str] = field(default_factory=dict)
+    units: dict[str, str] = field(default_factory=dict)
+    link_length: float | None = None
+    counts_per_rev: float | None = None
+    calibration: Calibration | None = None
+
+
+@dataclass
+class RawTable:
+    """Numeric columns read from one file (NaN where a cell is missing or not a number), in file order.
+
+    ``units``: column -> unit named in the file (units row, ``name [unit]``); ``bad``: column -> (data row,
+    file line, text) of its first cell that is not a number; ``header``: False for a headerless matrix."""
+
+    file: str
+    form: str
+    names: list[str]
+    values: list[np.ndarray]
+    units: dict[str, str] = field(default_factory=dict)
+    bad: dict[str, tuple[int, int, str]] = field(default_factory=dict)
+    header: bool = True
+    notes: list[str] = field(default_factory=list)
+
+    def found(self) -> str:
+        """What was found, for messages: the columns and the form."""
+        cols = ", ".join(self.names) if self.header else f"{len(self.names)} numeric columns, no header"
+        return f"found {cols} ({self.form})"
+
+
+# ----------------------------------------------------------------------------------------------- units
+def unit_name(text: str) -> str | None:
+    """Canonical unit ("s", "ms", "us", "V", "deg", "rad", "counts", "m", "mm") of ``text``, or None."""
+    s = str(text).strip().strip("[]()").strip().lower()
+    return _UNIT_NAMES.get(s)
+
+
+def _split_name(name: str) -> tuple[str, str | None]:
+    """(base name, unit) of a column name: ``theta [deg]``, ``theta (rad)``, ``theta_deg``, ``time_ms``."""
+    s = str(name).strip()
+    m = re.match(r"^(.*?)\s*[\[(]\s*([^\])]*)\s*[\])]\s*$", s)
+    if m and unit_name(m.group(2)):
+        return m.group(1).strip(), unit_name(m.group(2))
+    low = s.lower()
+    for sfx in _SUFFIXES:
+        if low.endswith("_" + sfx) and len(low) > len(sfx) + 1:
+            return s[: -len(sfx) - 1], _UNIT_NAMES[sfx]
+    return s, None
+
+
+def _channel(name: str) -> tuple[str | None, str | None]:
+    """(channel, unit) a column name stands for by itself: ``alpha_v`` -> (alpha, V), ``Vm`` -> (u, None)."""
+    base, unit = _split_name(name)
+    return _ALIASES.get(re.sub(r"[\s\-]+", "_", base.lower())), unit
+
+
+def parse_map(text: str | None, what: str) -> dict[str, str]:
+    """``"a=b,c=d"`` -> {"a": "b", "c": "d"}; ``what`` names the option in the error."""
+    out: dict[str, str] = {}
+    for item in [s for s in (text or "").split(",") if s.strip()]:
+        key, sep, val = item.partition("=")
+        if not sep or not key.strip() or not val.strip():
+            example = "time=t,Vm=u,hub=theta,tip=alpha" if what == "--columns" else "theta=deg,alpha=rad,t=s"
+            raise DataError(f"{what} {text!r}: expected NAME=VALUE pairs separated by commas, e.g. {example}")
+        out[key.strip()] = val.strip()
+    return out
+
+
+# ----------------------------------------------------------------------------------------------- readers
+def read_table(path: Path) -> RawTable:
+    """Read one record file by its suffix: .csv/.txt/.dat/.tsv, .mat (v5 or v7.3), .parquet."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: no such file")
+    suffix = path.suffix.lower()
+    if suffix in (".csv", ".txt", ".dat", ".tsv"):
+        return _read_csv(path)
+    if suffix == ".mat":
+        return _read_mat(path)
+    if suffix in (".parquet", ".pq"):
+        return _read_parquet(path)
+    raise DataError(f"{path.name}: unknown record format {path.suffix!r}; use .csv, .txt, .tsv, .mat or .parquet")
+
+
+def _lines(path: Path) -> list[tuple[int, str]]:
+    raw = path.read_bytes()
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        text = raw.decode("latin-1")
+    return [(i, s.strip()) for i, s in enumerate(text.splitlines(), 1) if s.strip() and s.strip()[0] not in "#%"]
+
+
+def _split(line: str, sep: str) -> list[str]:
+    return line.split() if sep == " " else [c.strip().strip('"').strip() for c in line.split(sep)]
+
+
+_NUM = re.compile(r"^[+-]?(\d+([.,]\d*)?|[.,]\d+)([eE][+-]?\d+)?$|^[+-]?(nan|inf|infinity)$", re.IGNORECASE)
+
+
+def _sniff(path: Path, lines: list[tuple[int, str]]) -> tuple[str, str]:
+    """(separator, decimal mark) from the first 50 lines: the first of tab, ';', ',', spaces that splits
+    them all into the same number (>= 2) of fields; a decimal comma when cells read like ``1,23``."""
+    sample = [s for _, s in lines[:50]]
+    for sep in ("\t", ";", ",", " "):
+        counts = {len(_split(s, sep)) for s in sample}
+        if len(counts) == 1 and counts.pop() >= 2:
+            cells = [c for s in sample[1:] for c in _split(s, sep)]
+            comma = sep != "," and any(re.match(r"^[+-]?\d*,\d+([eE][+-]?\d+)?$", c) for c in cells)
+            return sep, "," if comma else "."
+    fields = sorted({len(_split(s, sep)) for s in sample for sep in (",", ";")})
+    raise DataError(
+        f"{path.name}: cannot tell the columns apart: the first {len(sample)} lines split into "
+        f"{'/'.join(map(str, fields))} fields with ',' or ';' and unevenly with tabs or spaces"
+    )
+
+
+def _is_num(cell: str, dec: str) -> bool:
+    return bool(_NUM.match(cell)) and (dec == "," or "," not in cell)
+
+
+def _read_csv(path: Path) -> RawTable:
+    lines = _lines(path)
+    if len(lines) < 2:
+        raise DataError(f"{path.name}: {len(lines)} line(s) of data; need a header and at least 16 samples")
+    sep, dec = _sniff(path, lines)
+    sep_name = {"\t": "tab", " ": "spaces"}.get(sep, repr(sep))
+    form = f"CSV, separator {sep_name}" + (", decimal comma" if dec == "," else "")
+    rows = [_split(s, sep) for _, s in lines]
+    header = not all(_is_num(c, dec) for c in rows[0])
+    start = 1 if header else 0
+    names = [c or f"column {j}" for j, c in enumerate(rows[0])] if header else [str(j) for j in range(len(rows[0]))]
+    units: dict[str, str] = {}
+    notes: list[str] = []
+    if header:
+        for name in names:
+            _, unit = _split_name(name)
+            if unit:
+                units[name] = unit
+    if header and len(rows) > 1 and not any(_is_num(c, dec) for c in rows[1]):
+        cells = rows[1]
+        if all(unit_name(c) for c in cells if c):
+            units.update({n: unit_name(c) for n, c in zip(names, cells, strict=True) if c})
+            notes.append(f"line {lines[1][0]} under the header read as units: {', '.join(cells)}")
+            start = 2
+        else:
+            raise DataError(
+                f"{path.name}: line {lines[1][0]} under the header is neither numbers nor units "
+                f"({', '.join(repr(c) for c in cells[:6])}); {form}, columns {', '.join(names)}; "
+                f"known units: s, ms, us, V, deg, rad, counts, m, mm"
+            )
+    body = rows[start:]
+    table = pd.DataFrame(body, columns=names, dtype=str) if body else pd.DataFrame(columns=names)
+    values, bad = [], {}
+    for name in names:
+        col = table[name].fillna("")
+        text = col.str.replace(",", ".", regex=False) if dec == "," else col
+        num = pd.to_numeric(text, errors="coerce").to_numpy(dtype=float)
+        wrong = np.flatnonzero(np.isnan(num) & ~col.str.lower().isin(["nan", "-nan", "+nan"]).to_numpy())
+        if wrong.size:
+            k = int(wrong[0])
+            bad[name] = (k, lines[start + k][0], col.iloc[k])
+        values.append(num)
+    return RawTable(path.name, form, names, values, units, bad, header, notes)
+
+
+def _is_vector(v: np.ndarray) -> bool:
+    return v.ndim == 1 or (v.ndim == 2 and min(v.shape) == 1)
+
+
+def _mat_columns(items: dict[str, np.ndarray], path: Path, form: str, variables: list[str]) -> RawTable:
+    """One column per numeric vector (the most common length, >= 16), or the columns of a lone N x k matrix."""
+    vectors = {k: v.ravel() for k, v in items.items() if _is_vector(v) and v.size >= 16}
+    if vectors:
+        sizes = [v.size for v in vectors.values()]
+        n = max(set(sizes), key=lambda s: (sizes.count(s), s))
+        names = [k for k, v in vectors.items() if v.size == n]
+        other = [k for k in vectors if k not in names]
+        notes = [f"ignored vectors of another length: {', '.join(other)}"] if other else []
+        return RawTable(path.name, form, names, [vectors[k] for k in names], notes=notes)
+    mats = {k: v for k, v in items.items() if v.ndim == 2 and min(v.shape) >= 2}
+    if len(mats) == 1:
+        ((name, m),) = mats.items()
+        m = m if m.shape[0] >= m.shape[1] else m.T
+        cols = [str(j) for j in range(m.shape[1])]
+        return RawTable(path.name, f"{form}, matrix {name!r} {m.shape[0]} x {m.shape[1]}", cols,
+                        [m[:, j] for j in range(m.shape[1])], header=False)  # fmt: skip
+    raise DataError(
+        f"{path.name}: no numeric vectors of >= 16 samples nor a single matrix in this {form} file "
+        f"(variables: {', '.join(variables) or 'none'})"
+    )
+
+
+def _flatten(prefix: str, obj: Any, out: dict[str, np.ndarray], seen: list[str]) -> None:
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            _flatten(f"{prefix}{k}.", v, out, seen)
+        return
+    name = prefix[:-1]
+    arr = np.asarray(obj)
+    seen.append(f"{name} ({arr.dtype.kind}{'x'.join(map(str, arr.shape))})")
+    if arr.dtype.kind in "biuf" and arr.size:
+        out[name] = arr.astype(float)
+
+
+def _leaf_names(items: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Struct fields by their last name (``rec.theta`` -> ``theta``) when that is unambiguous."""
+    leaves = [k.rsplit(".", 1)[-1] for k in items]
+    return {(k.rsplit(".", 1)[-1] if leaves.count(k.rsplit(".", 1)[-1]) == 1 else k): v for k, v in items.items()}
+
+
+def _read_mat(path: Path) -> RawTable:
+    import h5py
+    import scipy.io
+
+    items: dict[str, np.ndarray] = {}
+    seen: list[str] = []
+    if h5py.is_hdf5(path):
+        form = "MATLAB v7.3 (HDF5)"
+        with h5py.File(path, "r") as f:
+
+            def visit(group: Any, prefix: str) -> None:
+                for key, obj in group.items():
+                    if key.startswith("#"):
+                        continue
+                    cls = obj.attrs.get("MATLAB_class", b"")
+                    cls = cls.decode() if isinstance(cls, bytes) else str(cls)
+                    if isinstance(obj, h5py.Group):
+                        visit(obj, f"{prefix}{key}.")
+                    elif cls in ("double", "single", "int8", "int16", "int32", "int64", "uint8", "uint16",
+                                 "uint32", "uint64", ""):  # fmt: skip
+                        arr = np.asarray(obj[()])
+                        seen.append(f"{prefix}{key}")
+                        if arr.dtype.kind in "biuf" and arr.size:
+                            items[f"{prefix}{key}"] = arr.T.astype(float)  # MATLAB stores column-major
+                    else:
+                        seen.append(f"{prefix}{key} ({cls})")
+
+            visit(f, "")
+    else:
+        form = "MATLAB v5"
+        try:
+            mat = scipy.io.loadmat(path, simplify_cells=True)
+        except (ValueError, NotImplementedError, TypeError, OSError) as exc:
+            first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise DataError(f"{path.name}: not a readable MATLAB .mat file ({first})") from None
+        for k, v in mat.items():
+            if not k.startswith("__"):
+                _flatten(f"{k}.", v, items, seen)
+    return _mat_columns(_leaf_names(items), path, form, seen)
+
+
+def _read_parquet(path: Path) -> RawTable:
+    try:
+        df = pq.read_table(path).to_pandas()
+    except Exception as exc:  # noqa: BLE001 - pyarrow raises several types for a bad file
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise DataError(f"{path.name}: not a readable Parquet file ({first})") from None
+    names = [str(c) for c in df.columns]
+    values, bad = [], {}
+    for name, col in zip(names, df.columns, strict=True):
+        num = pd.to_numeric(df[col], errors="coerce").to_numpy(dtype=float)
+        wrong = np.flatnonzero(np.isnan(num) & df[col].notna().to_numpy())
+        if wrong.size:
+            bad[name] = (int(wrong[0]), 0, str(df[col].iloc[int(wrong[0])]))
+        values.append(num)
+    units = {n: u for n in names if (u := _split_name(n)[1])}
+    return RawTable(path.name, "Parquet", names, values, units, bad)
+
+
+# ----------------------------------------------------------------------------------------------- channels
+@dataclass
+class Channel:
+    """A channel as found: its column in the file, values, unit."""
+
+    column: str
+    values: np.ndarray
+    unit: str | None
+
+
+def _lookup(table: RawTable, key: str) -> int | None:
+    if key in table.names:
+        return table.names.index(key)
+    low = [n.lower() for n in table.names]
+    if key.lower() in low:
+        return low.index(key.lower())
+    bases = [_split_name(n)[0].lower() for n in table.names]
+    if bases.count(key.lower()) == 1:
+        return bases.index(key.lower())
+    if key.isdigit() and int(key) < len(table.names):
+        return int(key)
+    return None
+
+
+def resolve(table: RawTable, opts: ImportOptions) -> dict[str, Channel]:
+    """The t, u, theta, alpha channels of ``table`` with their units (map, then names; volts preferred)."""
+    picked: dict[str, list[tuple[int, str | None, bool]]] = {c: [] for c in CHANNELS}
+    mapped: set[int] = set()
+    for key, target in opts.columns.items():
+        ch, unit = _channel(target)
+        if ch is None:
+            raise DataError(f"--columns {key}={target}: unknown channel {target!r}; use t, u, theta, alpha, "
+                            f"theta_v, alpha_v (or a unit suffix: theta_deg)")  # fmt: skip
+        j = _lookup(table, key)
+        if j is None:
+            raise DataError(f"{table.file}: --columns names {key!r}, not in the file: {table.found()}")
+        picked[ch].append((j, unit, True))
+        mapped.add(j)
+    for j, name in enumerate(table.names):
+        ch, unit = _channel(name) if table.header else (None, None)
+        if j not in mapped and ch is not None and not any(m for *_, m in picked[ch]):
+            picked[ch].append((j, unit, False))
+    out: dict[str, Channel] = {}
+    for ch in CHANNELS:
+        cands = picked[ch]
+        if not cands:
+            if not table.header:
+                raise DataError(
+                    f"{table.file}: no header: {len(table.names)} numeric columns found "
+                    f"(first row {', '.join(f'{v[0]:g}' for v in table.values[:6])}); name them by position, "
+                    f"e.g. --columns 0=t,1=u,2=theta_v,3=alpha_v"
+                )
+            raise DataError(f"{table.file}: no column for {ch}; {table.found()}; name it with --columns NAME={ch}")
+        if len(cands) > 1:
+            volts = [c for c in cands if _unit_of(table, ch, c, opts) == "V"]
+            if len(volts) != 1:
+                names = " and ".join(repr(table.names[c[0]]) for c in cands)
+                raise DataError(f"{table.file}: several columns for {ch}: {names}; choose one with --columns")
+            table.notes.append(
+                f"{ch}: used the volts column {table.names[volts[0][0]]!r}, ignored "
+                + ", ".join(repr(table.names[c[0]]) for c in cands if c is not volts[0])
+            )
+            cands = volts
+        j, _, _ = cands[0]
+        out[ch] = Channel(table.names[j], table.values[j], _unit_of(table, ch, cands[0], opts))
+    return out
+
+
+def _unit_of(table: RawTable, ch: str, cand: tuple[int, str | None, bool], opts: ImportOptions) -> str | None:
+    """Unit of a channel: --units (by channel or column), the map's suffix, the file, the name, the default."""
+    j, map_unit, _ = cand
+    name = table.names[j]
+    given = opts.units.get(ch) or opts.units.get(name)
+    if given is not None:
+        unit = unit_name(given)
+        if unit is None:
+            raise DataError(f"--units {ch}={given}: unknown unit; use one of {', '.join(UNITS[ch])}")
+        return unit
+    return map_unit or table.units.get(name) or _split_name(name)[1] or ("V" if ch == "u" else None)
+
+
+# ----------------------------------------------------------------------------------------------- normalising
+def _bad_cells(table: RawTable, chans: dict[str, Channel]) -> None:
+    for ch, c in chans.items():
+        nan = np.flatnonzero(~np.isfinite(c.values))
+        if nan.size:
+            row, line, text = table.bad.get(c.column, (int(nan[0]), 0, "nan"))
+            row = min(row, int(nan[0]))
+            where = f"row {row}" + (f" (line {line})" if line else "")
+            raise DataError(
+                f"{table.file}: column {c.column!r} ({ch}) has {nan.size} NaN/missing/non-numeric value(s), "
+                f"first at {where}: {text!r}; {table.form}"
+            )
+
+
+def time_seconds(t: np.ndarray, unit: str | None, table: RawTable, column: str, note: Note) -> tuple[np.ndarray, str]:
+    """(time [s], unit it was in) from a column in ``unit``; without one, by the sample-interval rule of the
+    module docstring."""
+    if unit is not None:
+        if unit not in _TIME_FACTOR:
+            raise DataError(f"{table.file}: time column {column!r} in {unit}; use s, ms or us")
+        return t * _TIME_FACTOR[unit], unit
+    dt = float(np.median(np.diff(t))) if t.size > 1 else math.nan
+    if 0 < dt <= 0.1:
+        return t, "s"
+    if 1 < dt <= 100:
+        note(f"time column {column!r} has a sample interval of {dt:g}: taken as milliseconds ({1000 / dt:g} Hz); "
+             f"--units t=s refuses this, t=ms silences it")  # fmt: skip
+        return t * 1e-3, "ms"
+    if not dt > 0:
+        return t, "s"  # not increasing: uniform_time names the row
+    reason = (
+        f"{1 / dt:.3g} Hz in seconds (too slow for the link's ~3 Hz mode) or {1000 / dt:.3g} Hz in milliseconds"
+        if dt <= 1
+        else f"{1000 / dt:.3g} Hz in milliseconds (too slow for the link's ~3 Hz mode)"
+    )
+    raise DataError(
+        f"{table.file}: time column {column!r} has a sample interval of {dt:g}: {reason}; "
+        f"say which with --units t=s, t=ms or t=us"
+    )
+
+
+def _grid(t: np.ndarray) -> tuple[np.ndarray, float, int]:
+    """Least-squares uniform grid a + k Ts of time stamps ``t`` [s] (integer rate when as good); returns
+    (grid, largest |t - grid| [s], its row)."""
+    k = np.arange(t.size, dtype=float)
+    Ts, a = np.polyfit(k, t - t[0], 1)
+    best = a + t[0] + k * Ts
+    rate = round(1.0 / Ts)
+    if rate > 0:
+        nice = t[0] + float(np.mean(t - t[0] - k / rate)) + k / rate
+        if np.max(np.abs(t - nice)) <= 1.5 * np.max(np.abs(t - best)):
+            best = nice
+    err = np.abs(t - best)
+    return best, float(err.max()), int(err.argmax())
+
+
+def _resample(t: np.ndarray, grid: np.ndarray, v: np.ndarray, wraps: bool) -> np.ndarray:
+    """Linear interpolation onto ``grid``; with ``wraps`` (a pot's volts) jumps larger than half the span are
+    not interpolated across (the nearer sample is taken)."""
+    out = np.interp(grid, t, v)
+    if wraps and v.size > 1:
+        jumps = np.flatnonzero(np.abs(np.diff(v)) > max(0.5 * float(np.ptp(v)), 2.0))
+        for i in jumps:
+            inside = (grid > t[i]) & (grid < t[i + 1])
+            near = np.where(grid[inside] - t[i] <= t[i + 1] - grid[inside], v[i], v[i + 1])
+            out[inside] = near
+    return out
+
+
+def uniform_time(t: np.ndarray, table: RawTable, column: str) -> tuple[np.ndarray | None, float, float]:
+    """(grid or None when ``t`` [s] is uniform already, largest correction [s], Ts [s]); refuses what is not
+    increasing or strays more than JITTER_LIMIT of a sample from a uniform grid."""
+    dt = np.diff(t)
+    bad = np.flatnonzero(dt <= 0)
+    if bad.size:
+        k = int(bad[0]) + 1
+        raise DataError(
+            f"{table.file}: time column {column!r} is not strictly increasing: row {k} has t = {t[k]:g} s "
+            f"after {t[k - 1]:g} s; {table.form}"
+        )
+    Ts = float(np.median(dt))
+    if np.max(np.abs(dt - Ts)) <= 1e-6 * Ts + 1e-9:
+        return None, 0.0, Ts
+    grid, worst, row = _grid(t)
+    Ts = float((grid[-1] - grid[0]) / (grid.size - 1))
+    if worst > JITTER_LIMIT * Ts:
+        first = int(np.argmax(np.abs(t - grid) > JITTER_LIMIT * Ts))
+        raise DataError(
+            f"{table.file}: non-uniform sampling: time stamps stray up to {1e3 * worst:.3g} ms (row {row}) from "
+            f"the uniform {1 / Ts:.6g} Hz grid, first beyond {100 * JITTER_LIMIT:g} % of the "
+            f"{1e3 * Ts:.4g} ms interval at row {first}; gaps and clock jumps are not resampled"
+        )
+    return grid, worst, Ts
+
+
+def _angle(ch: str, c: Channel, opts: ImportOptions, file: str) -> np.ndarray:
+    """Angle [deg] of a theta/alpha channel recorded in deg, rad, counts or m/mm of tip deflection."""
+    if c.unit == "deg":
+        return c.values
+    if c.unit == "rad":
+        return np.degrees(c.values)
+    if c.unit == "counts":
+        if not opts.counts_per_rev:
+            raise DataError(f"{file}: {ch} column {c.column!r} is in encoder counts: give --counts-per-rev (e.g. 4096)")
+        return c.values * (360.0 / float(opts.counts_per_rev))
+    length = opts.link_length
+    if not length:
+        raise DataError(f"{file}: {ch} column {c.column!r} is a tip deflection in {c.unit}: give --link-length "
+                        f"in m (e.g. 0.419)")  # fmt: skip
+    d = c.values * (1e-3 if c.unit == "mm" else 1.0)
+    return np.degrees(np.arctan2(d, float(length)))
+
+
+def normalise(table: RawTable, opts: ImportOptions, cal: Calibration, note: Note) -> tuple[dict, dict]:
+    """(dataset columns, {"entry": manifest entry, "form", "notes"}) of one record: channels resolved, units
+    converted, time checked and made uniform, angles turned into the DAQ's volts with ``cal``. ``note``
+    receives each remark, prefixed with the file name."""
+    notes: list[str] = []
+
+    def remark(msg: str) -> None:
+        notes.append(msg)
+        note(f"{table.file}: {msg}")
+
+    for msg in table.notes:
+        remark(msg)
+    table.notes = []
+    chans = resolve(table, opts)
+    for msg in table.notes:
+        remark(msg)
+    for ch, c in chans.items():
+        if c.unit is None and ch != "t":
+            raise DataError(
+                f"{table.file}: unit of {ch} (column {c.column!r}) not known; give --units {ch}=UNIT with UNIT one "
+                f"of {', '.join(UNITS[ch])}"
+            )
+        if ch != "t" and c.unit not in UNITS[ch]:
+            raise DataError(f"{table.file}: {ch} (column {c.column!r}) in {c.unit}; use {', '.join(UNITS[ch])}")
+    if table.values[0].size < 16:
+        raise DataError(f"{table.file}: only {table.values[0].size} rows; need at least 16 samples")
+    _bad_cells(table, chans)
+    t, chans["t"].unit = time_seconds(chans["t"].values, chans["t"].unit, table, chans["t"].column, remark)
+    grid, worst, Ts = uniform_time(t, table, chans["t"].column)
+    if Ts > 1.0 / MIN_RATE:
+        raise DataError(
+            f"{table.file}: time column {chans['t'].column!r} in {chans['t'].unit} has a sample interval of "
+            f"{Ts:g} s ({1 / Ts:.3g} Hz): below {MIN_RATE:g} Hz, too slow for the link's ~3 Hz mode; "
+            f"is it in ms (--units t=ms)?"
+        )
+    cols: dict[str, np.ndarray] = {}
+    for ch in ("theta", "alpha"):
+        c = chans[ch]
+        if c.unit == "V":
+            cols[f"{ch}_v"] = c.values
+            cols[ch] = theta_deg(c.values, cal) if ch == "theta" else alpha_deg(c.values, cal)
+        else:
+            deg = _angle(ch, c, opts, table.file)
+            off, gain = (cal.pot_offset_v, cal.Kp) if ch == "theta" else (cal.gauge_offset_v, cal.Ke)
+            cols[f"{ch}_v"], cols[ch] = deg / gain + off, deg
+    cols = {"t": t, "u": chans["u"].values, **cols}
+    if grid is not None:
+        wrapped = chans["theta"].unit == "V"
+        cols = {k: _resample(t, grid, v, wrapped and k == "theta_v") for k, v in cols.items() if k != "t"}
+        cols = {"t": grid, **cols}
+        if wrapped:
+            cols["theta"] = theta_deg(cols["theta_v"], cal)
+        remark(f"host-clock jitter up to {1e6 * worst:.3g} us ({100 * worst / Ts:.2g} % of the {1e3 * Ts:.4g} ms "
+               f"interval): resampled onto the uniform {1 / Ts:.6g} Hz grid by linear interpolation")  # fmt: skip
+    order = ("t", "u", "theta_v", "alpha_v", "theta", "alpha")
+    cols = {k: np.asarray(cols[k], dtype=float) for k in order}
+    validate(pd.DataFrame(cols), table.file)
+    rate = 1.0 / Ts
+    rate = float(round(rate)) if abs(rate - round(rate)) <= 1e-9 * rate else rate
+    entry = {
+        "role": "identification",
+        "signal": "imported",
+        "n": int(t.size),
+        "sample_rate": rate,
+        "columns": {ch: c.column for ch, c in chans.items()},
+        "units": {ch: c.unit for ch, c in chans.items()},
+        "jitter_corrected_s": worst,
+    }
+    for ch in ("theta", "alpha"):
+        if chans[ch].unit == "counts":
+            entry.setdefault("lattice_deg", {})[ch] = 360.0 / float(opts.counts_per_rev or 1)
+    return cols, {"entry": entry, "form": table.form, "notes": notes}
+
+
+# ----------------------------------------------------------------------------------------------- entry point
+def calibration_option(kp: float | None, ke: float | None, file: Path | None) -> Calibration | None:
+    """The calibration given at import: ``kp`` and ``ke`` [deg/V] together, or a calibration.json ``file``;
+    None when nothing is given."""
+    if file is not None:
+        if kp is not None or ke is not None:
+            raise DataError("give either --kp/--ke or --calibration FILE, not both")
+        if not Path(file).is_file():
+            raise DataError(f"--calibration {file}: no such file")
+        cal = Calibration.from_json(file)
+        cal.source = {**cal.source, "imported_from": Path(file).name}
+        return cal
+    if (kp is None) != (ke is None):
+        raise DataError(f"--kp and --ke go together (got only {'--kp' if kp is not None else '--ke'})")
+    if kp is None:
+        return None
+    why = {"method": "given at import (--kp/--ke)"}
+    return Calibration(Kp=kp, Ke=ke, source={"Kp": why, "Ke": why})
+
+
+def _calibration(opts: ImportOptions) -> Calibration:
+    if opts.calibration is not None:
+        return opts.calibration
+    s = SEED_CALIBRATION
+    why = {"method": "assumed at import: lab 1's value (no calibration given)"}
+    return Calibration(Kp=s["Kp"], Ke=s["Ke"], source={"Kp": why, "Ke": why, "assumed": True})
+
+
+def import_records(paths: list[Path], out: Path, opts: ImportOptions | None = None, note: Note | None = None):
+    """Import record files into run directory ``out``: ``data/<stem>.parquet``, ``calibration.json`` and a
+    ``manifest.json`` of kind "import". Every file is read and checked before anything is written; returns the
+    dataset paths. ``note`` receives one-line remarks (units taken, resampling, the calibration assumed)."""
+    opts = opts or ImportOptions()
+    say = note or (lambda _m: None)
+    paths = [Path(p) for p in paths]
+    if not paths:
+        raise DataError("no record files given")
+    stems = [p.stem for p in paths]
+    dup = sorted({s for s in stems if stems.count(s) > 1})
+    if dup:
+        raise DataError(f"two records named {dup[0]!r}: dataset names come from the file names, rename one")
+    out = Path(out)
+    for q in (out, *out.parents):
+        if q.exists() and not q.is_dir():
+            raise DataError(f"--out {out}: {q} is a file, not a directory")
+    cal = _calibration(opts)
+    done = {p.stem: (p, *normalise(read_table(p), opts, cal, say)) for p in paths}
+    if opts.calibration is None:
+        say(f"calibration: none given; assumed lab 1's Kp {cal.Kp:g} deg/V, Ke {cal.Ke:g} deg/V, gauge offset 0 V "
+            f"(give --kp/--ke or --calibration FILE)")  # fmt: skip
+    written = []
+    for name, (_, cols, _) in done.items():
+        dest = out / "data" / f"{name}.parquet"
+        write_dataset(dest, cols)
+        written.append(dest)
+    cal.to_json(out / "calibration.json")
+    rates = sorted({info["entry"]["sample_rate"] for _, _, info in done.values()})
+    if len(rates) > 1:
+        say(f"records at different sample rates ({', '.join(f'{r:g}' for r in rates)} Hz): identify them apart")
+    manifest = {
+        "kind": "import",
+        "sample_rate": rates[0] if len(rates) == 1 else None,
+        "sources": {
+            name: {"file": p.name, "sha256": _sha256(p), "format": info["form"], "notes": info["notes"]}
+            for name, (p, _, info) in done.items()
+        },
+        "calibration": "assumed" if opts.calibration is None else "given",
+        "experiments": [{"name": name, **info["entry"]} for name, (_, _, info) in done.items()],
+    }
+    write_json(out / "manifest.json", manifest)
+    return written
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()

@@ -1,0 +1,399 @@
+"""Real records in the forms labs keep them (CSV with any separator and decimal comma, .mat v5 and v7.3, Parquet;
+volts, degrees, radians, encoder counts, metres of tip deflection; 50 Hz, 500 Hz, 1 kHz) reach the same run
+directory, and `diagnose` gives the same numbers as on the equivalent volts CSV. Every fixture is written here
+from a short campaign of the rig twin. Hostile inputs end in one line naming what was found."""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pandas as pd
+import pytest
+import scipy.io
+
+from harness import spec as specmod
+from harness.calibration import Calibration
+from harness.campaign import run_campaign
+from harness.data import DataError, load_manifest, read_dataset
+from harness.diagnose import diagnose_run
+from harness.records import ImportOptions, import_records
+
+KP, KE, GAUGE_OFFSET = 35.5145, -3.3636, 0.0125  # the lab's DAQ calibration carried by every import here
+CAL = Calibration(Kp=KP, Ke=KE, gauge_offset_v=GAUGE_OFFSET)
+LINK = 0.419  # m
+CPR = 4096  # encoder counts per revolution
+VOLTS = ("t", "u", "theta_v", "alpha_v")
+
+
+def flexjoint(*args):
+    return subprocess.run(
+        [sys.executable, "-m", "harness.cli", *map(str, args)], capture_output=True, text=True, timeout=600
+    )
+
+
+def _error_line(r) -> str:
+    assert r.returncode == 2, r.stdout + r.stderr
+    lines = [x for x in r.stderr.splitlines() if x.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: ") and "Traceback" not in r.stderr, r.stderr
+    return lines[0]
+
+
+def _twin(dest: Path, rate: float, seconds: float, names: tuple[str, ...]) -> dict[str, pd.DataFrame]:
+    """A short campaign of the blind rig (no calibration experiments) at ``rate`` Hz; commands small enough that
+    the pot never wraps, so a record in angles and its volts carry the same information."""
+    raw = copy.deepcopy(specmod.load("blind").raw)
+    raw["calibration"] = []
+    raw["campaign"]["sample_rate"] = rate
+    raw["experiment"] = [dict(e, duration=seconds) for e in raw["experiment"] if e["name"] in names]
+    for e in raw["experiment"]:
+        if e["signal"] == "chirp":
+            e["amplitude"] = 0.8
+    run_campaign(specmod.from_dict(raw, "blind.toml"), dest, workers=1)
+    out = {n: read_dataset(dest / "data" / f"{n}.parquet")[list(VOLTS)] for n in names}
+    for df in out.values():
+        assert np.max(np.abs(np.diff(df["theta_v"]))) < 1.0  # no pot wrap
+    return out
+
+
+def _deg(df: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
+    """The angles [deg] the lab's calibration gives for the twin's volts."""
+    return KP * df["theta_v"].to_numpy(), KE * (df["alpha_v"].to_numpy() - GAUGE_OFFSET)
+
+
+def _volts_csv(path: Path, t, u, theta_deg, alpha_deg) -> Path:
+    """The equivalent volts CSV of a record in angles: theta_v = theta / Kp, alpha_v = alpha / Ke + offset."""
+    df = pd.DataFrame({"t": t, "u": u, "theta_v": theta_deg / KP, "alpha_v": alpha_deg / KE + GAUGE_OFFSET})
+    path.parent.mkdir(parents=True, exist_ok=True)
+    df.to_csv(path, index=False)
+    return path
+
+
+def _import(files: list[Path], out: Path, **kw) -> Path:
+    import_records(files, out, ImportOptions(calibration=CAL, **kw))
+    return out
+
+
+@pytest.fixture(scope="module")
+def twins(tmp_path_factory, fmus):
+    tmp = tmp_path_factory.mktemp("twins")
+    return {
+        50: _twin(tmp / "r50", 50.0, 8.0, ("prbs_small", "square_small", "chirp_slow")),
+        500: _twin(tmp / "r500", 500.0, 2.0, ("prbs_small", "square_small")),
+        1000: _twin(tmp / "r1000", 1000.0, 1.5, ("prbs_small", "square_small")),
+    }
+
+
+def _same_data(a: Path, b: Path, names: list[str]) -> None:
+    for n in names:
+        da, db = (pd.read_parquet(r / "data" / f"{n}.parquet") for r in (a, b))
+        assert list(da.columns) == [*VOLTS, "theta", "alpha"] == list(db.columns)
+        np.testing.assert_allclose(da.to_numpy(), db.to_numpy(), rtol=1e-12, atol=1e-12)
+    assert (
+        json.loads((a / "calibration.json").read_text())["Kp"] == json.loads((b / "calibration.json").read_text())["Kp"]
+    )
+
+
+def _differences(a, b, rel: float, path: str = "diagnosis") -> list[str]:
+    """Where two diagnoses differ: structure, strings, or numbers beyond ``rel`` (relative; 1e-9 absolute)."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        if set(a) != set(b):
+            return [f"{path}: keys {sorted(set(a) ^ set(b))}"]
+        return [d for k in a for d in _differences(a[k], b[k], rel, f"{path}.{k}")]
+    if isinstance(a, list) and isinstance(b, list):
+        if len(a) != len(b):
+            return [f"{path}: {len(a)} vs {len(b)} items"]
+        pairs = enumerate(zip(a, b, strict=True))
+        return [d for i, (x, y) in pairs for d in _differences(x, y, rel, f"{path}[{i}]")]
+    if isinstance(a, float) and isinstance(b, float):
+        return [] if b == pytest.approx(a, rel=rel, abs=1e-9, nan_ok=True) else [f"{path}: {a!r} vs {b!r}"]
+    return [] if a == b else [f"{path}: {a!r} vs {b!r}"]
+
+
+def _same_numbers(a: dict, b: dict) -> None:
+    """The same diagnosis: identical structure, verdict, effects and strings; what compares the data with the
+    simulation as given (gap before, noise floor, where before) to 1e-9; what passes through the optimisers
+    (recalibrated parameters, fitted effects, gaps after) to 1e-3, since inputs equal to the last bit give fits
+    that agree to their stopping tolerance (~1e-8 in a parameter) and residual statistics amplify that."""
+    exact = {"gap": {"before": a["gap"]["before"]}, "noise_floor": a["noise_floor"]}
+    where = a.get("where", {})
+    exact["where"] = where.get("before", where)
+    other = {"gap": {"before": b["gap"]["before"]}, "noise_floor": b["noise_floor"]}
+    other["where"] = b.get("where", {}).get("before", b.get("where", {}))
+    diffs = _differences(exact, other, 1e-9) + _differences(a, b, 1e-3)
+    assert not diffs, f"{len(diffs)} differences, e.g. " + "; ".join(diffs[:8])
+
+
+# ----------------------------------------------------------------------------------------------- 50 Hz
+@pytest.fixture(scope="module")
+def lab50(twins, tmp_path_factory):
+    """The 50 Hz twin as a volts CSV and as a CSV of degrees, each imported and diagnosed through the CLI."""
+    tmp = tmp_path_factory.mktemp("lab50")
+    volts, deg = [], []
+    for name, df in twins[50].items():
+        th, al = _deg(df)
+        volts.append(tmp / "volts" / f"{name}.csv")
+        volts[-1].parent.mkdir(exist_ok=True)
+        df.to_csv(volts[-1], index=False)
+        deg.append(tmp / "deg" / f"{name}.csv")
+        deg[-1].parent.mkdir(exist_ok=True)
+        pd.DataFrame({"time": df["t"], "Vm": df["u"], "theta_deg": th, "alpha [deg]": al}).to_csv(deg[-1], index=False)
+    runs = {}
+    CAL.to_json(tmp / "lab_calibration.json")
+    for kind, files in (("volts", volts), ("deg", deg)):
+        r = flexjoint("import", *files, "--out", tmp / f"run_{kind}", "--calibration", tmp / "lab_calibration.json")
+        assert r.returncode == 0, r.stderr
+        r = flexjoint("diagnose", "--real", tmp / f"run_{kind}")
+        assert r.returncode == 0, r.stderr
+        runs[kind] = tmp / f"run_{kind}"
+    return runs
+
+
+def test_degrees_and_volts_reach_the_same_diagnosis(lab50, twins):
+    """`flexjoint diagnose --real` on the import from degrees gives the numbers of the import from volts."""
+    names = list(twins[50])
+    _same_data(lab50["volts"], lab50["deg"], names)
+    da, dd = (json.loads((lab50[k] / "diagnosis.json").read_text()) for k in ("volts", "deg"))
+    _same_numbers(da, dd)
+    assert da["verdict"] == dd["verdict"] and da["gap"]["before"]["gap"] > 0
+    m = load_manifest(lab50["deg"])
+    assert m["kind"] == "import" and m["sample_rate"] == 50.0 and m["calibration"] == "given"
+    assert m["experiments"][0]["units"] == {"t": "s", "u": "V", "theta": "deg", "alpha": "deg"}
+    assert m["experiments"][0]["columns"] == {"t": "time", "u": "Vm", "theta": "theta_deg", "alpha": "alpha [deg]"}
+    assert m["sources"]["prbs_small"]["format"] == "CSV, separator ','"
+
+
+def test_other_formats_at_50_hz_give_the_same_dataset(lab50, twins, tmp_path):
+    """Radians in Parquet, a MATLAB v5 struct in degrees, a v7.3 file in radians, a headerless matrix of volts:
+    the same run directory as the volts CSV (so the same diagnosis)."""
+    names = list(twins[50])
+    files = {"parquet": [], "v5": [], "v73": [], "matrix": []}
+    for name, df in twins[50].items():
+        th, al = _deg(df)
+        t, u = df["t"].to_numpy(), df["u"].to_numpy()
+        p = tmp_path / "pq" / f"{name}.parquet"
+        p.parent.mkdir(exist_ok=True)
+        pd.DataFrame({"t": t, "u": u, "theta_rad": np.radians(th), "alpha_rad": np.radians(al)}).to_parquet(p)
+        files["parquet"].append(p)
+        p = tmp_path / "v5" / f"{name}.mat"
+        p.parent.mkdir(exist_ok=True)
+        scipy.io.savemat(p, {"rec": {"t": t[:, None], "u": u[:, None], "theta_deg": th, "alpha_deg": al}, "Ts": 0.02})
+        files["v5"].append(p)
+        v73 = {"t": t, "u": u, "hub": np.radians(th), "tip": np.radians(al)}
+        files["v73"].append(_mat73(tmp_path / "v73" / f"{name}.mat", v73))
+        p = tmp_path / "matrix" / f"{name}.mat"
+        p.parent.mkdir(exist_ok=True)
+        scipy.io.savemat(p, {"data": df[list(VOLTS)].to_numpy()})
+        files["matrix"].append(p)
+    ref = lab50["volts"]
+    _same_data(ref, _import(files["parquet"], tmp_path / "a"), names)
+    _same_data(ref, _import(files["v5"], tmp_path / "b"), names)
+    mapping = {"columns": {"hub": "theta", "tip": "alpha"}, "units": {"theta": "rad", "alpha": "rad"}}
+    run = _import(files["v73"], tmp_path / "c", **mapping)
+    _same_data(ref, run, names)
+    assert load_manifest(run)["sources"]["prbs_small"]["format"] == "MATLAB v7.3 (HDF5)"
+    with pytest.raises(DataError, match=r"no header: 4 numeric columns found .*--columns 0=t,1=u,2=theta_v,3=alpha_v"):
+        _import(files["matrix"], tmp_path / "d")
+    _same_data(ref, _import(files["matrix"], tmp_path / "d", columns=dict(zip("0123", VOLTS, strict=True))), names)
+    assert not (tmp_path / "d" / "report.md").exists()
+
+
+def _mat73(path: Path, variables: dict[str, np.ndarray]) -> Path:
+    """A MATLAB v7.3 file as MATLAB writes it: HDF5 with a 512-byte MATLAB header, column vectors stored as
+    1 x N datasets (column-major), MATLAB_class attributes."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with h5py.File(path, "w", userblock_size=512) as f:
+        for k, v in variables.items():
+            ds = f.create_dataset(k, data=np.asarray(v, dtype=float)[None, :])
+            ds.attrs["MATLAB_class"] = np.bytes_("double")
+    header = b"MATLAB 7.3 MAT-file, Platform: GLNXA64, Created on: Mon Jan  1 00:00:00 2024 HDF5 schema 1.00 ."
+    with open(path, "r+b") as f:
+        f.write(header.ljust(116, b" ") + b"\x00" * 8 + b"\x00\x02IM")
+    return path
+
+
+# ----------------------------------------------------------------------------------------------- 500 Hz, 1 kHz
+@pytest.fixture(scope="module")
+def fast_rates(twins, tmp_path_factory):
+    """500 Hz: a v7.3 .mat with an encoder's integer counts (360/4096 deg) and radians; 1 kHz: a semicolon CSV with
+    decimal commas, time in ms, the tip deflection in metres; each with its equivalent volts CSV; all diagnosed."""
+    tmp = tmp_path_factory.mktemp("fast")
+    out = {}
+    rec, ref = [], []
+    for name, df in twins[500].items():
+        th, al = _deg(df)
+        counts = np.round(th * CPR / 360.0)
+        enc = {"t": df["t"], "u": df["u"], "theta_counts": counts, "alpha_rad": np.radians(al)}
+        rec.append(_mat73(tmp / "enc" / f"{name}.mat", enc))
+        ref.append(_volts_csv(tmp / "v500" / f"{name}.csv", df["t"], df["u"], counts * 360.0 / CPR, al))
+    out[500] = (_import(rec, tmp / "enc_run", counts_per_rev=CPR), _import(ref, tmp / "v500_run"))
+    rec, ref = [], []
+    for name, df in twins[1000].items():
+        th, al = _deg(df)
+        d = LINK * np.tan(np.radians(al))
+        p = tmp / "m" / f"{name}.csv"
+        p.parent.mkdir(parents=True, exist_ok=True)
+        frame = pd.DataFrame({"time": 1000.0 * df["t"], "Vm": df["u"], "theta": th, "tip": d})
+        text = frame.to_csv(sep=";", index=False, float_format="%.17g", decimal=",")
+        p.write_text(text.replace("time;Vm;theta;tip", "time;Vm;theta;tip\nms;V;deg;m"))
+        rec.append(p)
+        ref.append(_volts_csv(tmp / "v1000" / f"{name}.csv", df["t"], df["u"], th, al))
+    out[1000] = (
+        _import(rec, tmp / "m_run", columns={"tip": "alpha"}, link_length=LINK),
+        _import(ref, tmp / "v1000_run"),
+    )
+    diag = {}
+    for rate, runs in out.items():
+        diag[rate] = [diagnose_run(r, "nominal", workers=2) for r in runs]
+    return out, diag
+
+
+@pytest.mark.parametrize("rate", [500, 1000])
+def test_fast_records_reach_the_same_diagnosis(fast_rates, twins, rate):
+    runs, diag = fast_rates
+    rec, ref = runs[rate]
+    _same_data(rec, ref, list(twins[rate]))
+    a, b = ({k: v for k, v in d.items() if k != "timing_s"} for d in diag[rate])
+    _same_numbers(b, a)
+    m = load_manifest(rec)
+    assert m["sample_rate"] == float(rate)
+    assert read_dataset(rec / "data" / "prbs_small.parquet")["t"].diff().median() == pytest.approx(1.0 / rate)
+    e = m["experiments"][0]
+    if rate == 500:
+        assert e["units"]["theta"] == "counts" and e["lattice_deg"] == {"theta": 360.0 / CPR}
+        assert m["sources"]["prbs_small"]["format"] == "MATLAB v7.3 (HDF5)"
+    else:
+        assert e["units"] == {"t": "ms", "u": "V", "theta": "deg", "alpha": "m"}
+        assert m["sources"]["prbs_small"]["format"] == "CSV, separator ';', decimal comma"
+        assert any("read as units: ms, V, deg, m" in n for n in m["sources"]["prbs_small"]["notes"])
+
+
+# ----------------------------------------------------------------------------------------------- hostile inputs
+def _record(n: int = 200, Ts: float = 0.02) -> pd.DataFrame:
+    t = np.arange(n) * Ts
+    u = np.where(np.random.default_rng(3).random(n) < 0.5, 1.0, -1.0)  # changes at the sample rate
+    return pd.DataFrame({"t": t, "u": u, "theta_v": 0.05 * np.sin(t), "alpha_v": 0.01 * np.cos(3 * t)})
+
+
+def test_time_in_milliseconds_is_converted_with_a_note(tmp_path):
+    df = _record()
+    df["t"] = np.arange(len(df)) * 20.0  # ms
+    df.to_csv(tmp_path / "ms.csv", index=False)
+    r = flexjoint("import", tmp_path / "ms.csv", "--out", tmp_path / "run")
+    assert r.returncode == 0, r.stderr
+    notes = [x for x in r.stderr.splitlines() if x.startswith("note: ")]
+    assert any("sample interval of 20: taken as milliseconds (50 Hz)" in x for x in notes), r.stderr
+    assert any("calibration: none given; assumed lab 1's Kp 35.5145 deg/V, Ke -3.3636 deg/V" in x for x in notes)
+    assert read_dataset(tmp_path / "run" / "data" / "ms.parquet")["t"].iloc[1] == pytest.approx(0.02)
+    cal = json.loads((tmp_path / "run" / "calibration.json").read_text())
+    assert cal["Kp"] == 35.5145 and cal["source"]["assumed"] is True
+    with pytest.raises(DataError, match=r"time column 't' in s has a sample interval of 20 s \(0.05 Hz\): below 10"):
+        _import([tmp_path / "ms.csv"], tmp_path / "r2", units={"t": "s"})
+    df["t"] = np.arange(len(df)) * 0.5  # 2 Hz in s or 2 kHz in ms: refused
+    df.to_csv(tmp_path / "half.csv", index=False)
+    with pytest.raises(DataError, match=r"sample interval of 0.5: 2 Hz in seconds .* or 2e\+03 Hz in milliseconds"):
+        _import([tmp_path / "half.csv"], tmp_path / "r3")
+    assert not (tmp_path / "r3").exists()
+
+
+def test_units_row_is_read_and_unknown_second_row_refused(tmp_path):
+    df = _record()
+    th, al = np.degrees(df["theta_v"]), np.degrees(df["alpha_v"])
+    body = pd.DataFrame({"t": df["t"], "u": df["u"], "theta": th, "alpha": al}).to_csv(index=False)
+    (tmp_path / "units.csv").write_text(body.replace("t,u,theta,alpha\n", "t,u,theta,alpha\ns,V,deg,rad\n"))
+    run = _import([tmp_path / "units.csv"], tmp_path / "run")
+    d = read_dataset(run / "data" / "units.parquet")
+    np.testing.assert_allclose(d["theta"], th)
+    np.testing.assert_allclose(d["alpha"], np.degrees(al))  # the units row says alpha is in rad
+    (tmp_path / "two.csv").write_text(body.replace("t,u,theta,alpha\n", "t,u,theta,alpha\ntime,cmd,hub,tip\n"))
+    with pytest.raises(DataError, match=r"two.csv: line 2 under the header is neither numbers nor units"):
+        _import([tmp_path / "two.csv"], tmp_path / "r2")
+    (tmp_path / "nounit.csv").write_text(body)
+    with pytest.raises(DataError, match=r"unit of theta \(column 'theta'\) not known; give --units theta=UNIT"):
+        _import([tmp_path / "nounit.csv"], tmp_path / "r3")
+
+
+def test_headerless_writematrix_needs_positions(tmp_path):
+    _record().to_csv(tmp_path / "m.csv", index=False, header=False)
+    line = _error_line(flexjoint("import", tmp_path / "m.csv", "--out", tmp_path / "run"))
+    assert "no header: 4 numeric columns found (first row 0, " in line and "--columns 0=t,1=u,2=theta_v" in line
+    _import([tmp_path / "m.csv"], tmp_path / "run", columns={"0": "t", "1": "u", "2": "theta_v", "3": "alpha_v"})
+    np.testing.assert_allclose(read_dataset(tmp_path / "run" / "data" / "m.parquet")["u"], _record()["u"])
+
+
+def test_clock_jitter_small_resampled_large_refused(tmp_path):
+    rng = np.random.default_rng(5)
+    n, Ts = 500, 0.02
+    grid = np.arange(n) * Ts
+    t = grid + rng.uniform(-50e-6, 50e-6, n)  # host clock: +-50 us at 50 Hz
+    t[0] = 0.0
+    df = pd.DataFrame({"t": t, "u": np.sin(2 * t), "theta_v": 0.1 * np.sin(t), "alpha_v": 0.02 * np.cos(5 * t)})
+    df.to_csv(tmp_path / "jit.csv", index=False)
+    seen: list[str] = []
+    import_records([tmp_path / "jit.csv"], tmp_path / "run", ImportOptions(calibration=CAL), seen.append)
+    d = read_dataset(tmp_path / "run" / "data" / "jit.parquet")
+    np.testing.assert_allclose(np.diff(d["t"]), Ts, rtol=1e-9)
+    corr = load_manifest(tmp_path / "run")["experiments"][0]["jitter_corrected_s"]
+    assert 30e-6 < corr <= 60e-6
+    assert any("host-clock jitter up to" in s and "resampled onto the uniform 50 Hz grid" in s for s in seen), seen
+    # resampled values are the signals at the grid times (interpolation error of 50 us on a 1 rad/s sine)
+    np.testing.assert_allclose(d["theta_v"], 0.1 * np.sin(d["t"]), atol=1e-5)
+    df["t"] = grid + rng.uniform(-5e-3, 5e-3, n)  # +-5 ms: not jitter to paper over
+    df.to_csv(tmp_path / "bad.csv", index=False)
+    line = _error_line(flexjoint("import", tmp_path / "bad.csv", "--out", tmp_path / "r2"))
+    assert "non-uniform sampling: time stamps stray up to" in line and "10 % of the 20 ms interval at row" in line
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        ({"alpha_v": None}, r"no column for alpha; found t, u, theta_v \(CSV, separator ','\)"),
+        ({"u": "nan17"}, r"column 'u' \(u\) has 1 NaN/missing/non-numeric value\(s\), first at row 17 \(line 19\)"),
+        ({"u": "text5"}, r"first at row 5 \(line 7\): 'oops'"),
+        ({"t": "repeat"}, r"not strictly increasing: row 100 has t = 0 s after 1.98 s"),
+        ({"theta_v": "counts"}, r"theta column 'theta_counts' is in encoder counts: give --counts-per-rev"),
+        ({"alpha_v": "metres"}, r"alpha column 'alpha_m' is a tip deflection in m: give --link-length"),
+    ],
+)
+def test_hostile_records_refused_without_writing(tmp_path, change, message):
+    df = _record()
+    ((col, what),) = change.items()
+    if what is None:
+        df = df.drop(columns=col)
+    elif what == "nan17":
+        df[col] = df[col].astype(object)
+        df.loc[17, col] = ""
+    elif what == "text5":
+        df[col] = df[col].astype(object)
+        df.loc[5, col] = "oops"
+    elif what == "repeat":
+        df["t"] = np.r_[df["t"][:100], df["t"][:100]]
+    elif what == "counts":
+        df = df.rename(columns={"theta_v": "theta_counts"})
+    else:
+        df = df.rename(columns={"alpha_v": "alpha_m"})
+    df.to_csv(tmp_path / "bad.csv", index=False)
+    _record().to_csv(tmp_path / "good.csv", index=False)
+    with pytest.raises(DataError, match=message) as exc:
+        _import([tmp_path / "good.csv", tmp_path / "bad.csv"], tmp_path / "run")
+    assert "\n" not in str(exc.value)
+    assert not (tmp_path / "run").exists()
+
+
+def test_calibration_options(tmp_path):
+    _record().to_csv(tmp_path / "a.csv", index=False)
+    line = _error_line(flexjoint("import", tmp_path / "a.csv", "--out", tmp_path / "r", "--kp", "35"))
+    assert "--kp and --ke go together" in line
+    CAL.to_json(tmp_path / "cal.json")
+    r = flexjoint("import", tmp_path / "a.csv", "--out", tmp_path / "r", "--calibration", tmp_path / "cal.json")
+    assert r.returncode == 0 and "assumed" not in r.stderr, r.stderr
+    cal = json.loads((tmp_path / "r" / "calibration.json").read_text())
+    assert (cal["Kp"], cal["Ke"], cal["gauge_offset_v"]) == (KP, KE, GAUGE_OFFSET)
+    assert load_manifest(tmp_path / "r")["calibration"] == "given"
+    assert not math.isnan(read_dataset(tmp_path / "r" / "data" / "a.parquet")["theta"].iloc[3])
