@@ -8,11 +8,9 @@ the same bytes.
 
 from __future__ import annotations
 
-import os
 import platform
 import zlib
-from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +18,7 @@ import numpy as np
 
 from . import __version__
 from .data import write_dataset, write_json
+from .executor import Executor, FmuBytes, fmu_bytes, worker_rig
 from .signals import generate
 from .spec import Experiment, Spec
 
@@ -83,20 +82,6 @@ def _experiment_inputs(spec: Spec, exp: Experiment) -> tuple[np.ndarray, dict, d
     return u, plant, daq, None, None
 
 
-_WORKER_RIG = None
-
-
-def _worker_init(plant_fmu: str, daq_fmu: str) -> None:
-    global _WORKER_RIG
-    from .cosim import Rig
-
-    _WORKER_RIG = Rig(Path(plant_fmu), Path(daq_fmu))
-
-
-def _worker_run(spec: Spec, exp: Experiment) -> dict[str, np.ndarray]:
-    return simulate_experiment(_WORKER_RIG, spec, exp)
-
-
 def simulate_experiment(rig: Any, spec: Spec, exp: Experiment) -> dict[str, np.ndarray]:
     """Run one experiment of a spec on a loaded :class:`harness.cosim.Rig`; returns the dataset columns."""
     u, plant, daq, tau, comb = _experiment_inputs(spec, exp)
@@ -108,39 +93,32 @@ def simulate_experiment(rig: Any, spec: Spec, exp: Experiment) -> dict[str, np.n
     return cols
 
 
+def _simulate_task(exp: Experiment, spec: Spec, fmus: Mapping[str, FmuBytes]) -> dict[str, np.ndarray]:
+    """One experiment on this worker's rig (loaded once per worker process)."""
+    return simulate_experiment(worker_rig(fmus), spec, exp)
+
+
 def simulate_spec(
     spec: Spec,
-    fmus: dict[str, Path],
+    fmus: Mapping[str, Path | FmuBytes],
     experiments: list[Experiment] | None = None,
     workers: int | None = None,
     progress: Progress | None = None,
+    scheduler: str | None = None,
 ) -> dict[str, dict[str, np.ndarray]]:
     """Simulate experiments (default: all of the spec) and return ``{name: columns}`` in spec order.
 
-    ``workers`` > 1 spreads experiments over processes (each loads the FMUs once); results do not depend on it.
+    Experiments are tasks of a :class:`harness.executor.Executor` (``workers`` None: the default cluster or the
+    enclosing session's, 1: serial in this process; ``scheduler``: a Dask scheduler address); the FMUs travel as
+    bytes and each worker loads the rig once. Results do not depend on where they ran.
     """
     exps = spec.all_experiments() if experiments is None else experiments
-    if workers is None:
-        workers = min(len(exps), os.cpu_count() or 1, 4)
-    out: dict[str, dict[str, np.ndarray]] = {}
-    if workers <= 1 or len(exps) <= 2:
-        from .cosim import Rig
-
-        with Rig(fmus["flexjoint"], fmus["daq"]) as rig:
-            for e in exps:
-                out[e.name] = simulate_experiment(rig, spec, e)
-                if progress:
-                    progress(e.name)
-        return out
-    with ProcessPoolExecutor(
-        max_workers=workers, initializer=_worker_init, initargs=(str(fmus["flexjoint"]), str(fmus["daq"]))
-    ) as pool:
-        futures = {e.name: pool.submit(_worker_run, spec, e) for e in exps}
-        for e in exps:
-            out[e.name] = futures[e.name].result()
-            if progress:
-                progress(e.name)
-    return out
+    shipped = {k: v if isinstance(v, FmuBytes) else fmu_bytes(v) for k, v in fmus.items()}
+    if len(exps) <= 1 and scheduler is None:
+        workers = 1  # one task: a cluster would only add its start-up
+    with Executor(workers, scheduler, progress) as ex:
+        cols = ex.map(_simulate_task, exps, spec, shipped, labels=[e.name for e in exps])
+    return {e.name: c for e, c in zip(exps, cols, strict=True)}
 
 
 def versions() -> dict[str, str]:
@@ -168,13 +146,15 @@ def run_campaign(
     fmus: dict[str, Path] | None = None,
     workers: int | None = None,
     progress: Progress | None = None,
+    scheduler: str | None = None,
 ) -> dict[str, Any]:
-    """Run a spec's campaign into run directory ``out``; returns the manifest."""
+    """Run a spec's campaign into run directory ``out`` (simulated by :func:`simulate_spec`, written here, by
+    the client only); returns the manifest."""
     from .build import build_all, fmu_sha256
 
     fmus = fmus or build_all()
     out = Path(out)
-    data = simulate_spec(spec, fmus, workers=workers, progress=progress)
+    data = simulate_spec(spec, fmus, workers=workers, progress=progress, scheduler=scheduler)
     for name, cols in data.items():
         write_dataset(out / "data" / f"{name}.parquet", cols)
     manifest = {

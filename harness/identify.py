@@ -11,19 +11,17 @@ that mean produces is then an error no model of u_d can fit, so both sides are d
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
-from threadpoolctl import threadpool_limits
 
 from . import armax
 from .calibration import Calibration, alpha_deg, theta_deg, tip_deg
+from .executor import Executor
 from .preprocess import preprocess
 
 
@@ -82,13 +80,9 @@ def _orders(spec_identify: dict[str, Any]) -> list[tuple[int, int, int]]:
     return [(na, nb, nc) for na in rng("na") for nb in rng("nb") for nc in rng("nc")]
 
 
-def _fit_dataset(args: tuple[Prepared, list[tuple[int, int, int]], int, str]) -> list[dict[str, Any]]:
-    """Every order of the grid on one dataset: a row per order, with the model as a dict (causal ones only)."""
-    p, orders, nk, ic = args
-    # One BLAS thread: the regressions are small (N x <= 19) and each dataset runs in its own process, so BLAS
-    # threads only oversubscribe the cores (the lab's 9-dataset grid: 26.7 s with them, 9.5 s without, 2 cores).
-    with threadpool_limits(limits=1, user_api="blas"):
-        return [_fit_order(p, na, nb, nc, nk, ic) for na, nb, nc in orders]
+def _fit_dataset(p: Prepared, orders: list[tuple[int, int, int]], nk: int, ic: str) -> list[dict[str, Any]]:
+    """Every order of the grid on one dataset (one task): a row per order, the model as a dict (causal ones)."""
+    return [_fit_order(p, na, nb, nc, nk, ic) for na, nb, nc in orders]
 
 
 def _fit_order(p: Prepared, na: int, nb: int, nc: int, nk: int, ic: str) -> dict[str, Any]:
@@ -133,25 +127,20 @@ def run_grid(
     spec_identify: dict[str, Any],
     workers: int | None = None,
     progress: Callable[[str], None] | None = None,
+    scheduler: str | None = None,
 ) -> GridResult:
-    """Fit the order grid on every dataset, keep causal models above the threshold, cross-validate, select."""
+    """Fit the order grid on every dataset, keep causal models above the threshold, cross-validate, select.
+
+    The per-dataset grids are tasks of a :class:`harness.executor.Executor` (``workers`` None: default cluster
+    or the enclosing session's, 1: serial; ``scheduler``: a Dask scheduler address)."""
     orders = _orders(spec_identify)
     nk, ic = int(spec_identify["nk"]), str(spec_identify["ic"])
     threshold, tol = float(spec_identify["fit_threshold"]), float(spec_identify["tolerance"])
-    jobs = [(p, orders, nk, ic) for p in prepared.values()]
-    workers = workers or min(len(jobs), os.cpu_count() or 1)
     rows: list[dict[str, Any]] = []
-    if workers > 1:
-        with ProcessPoolExecutor(max_workers=workers) as pool:
-            for name, res in zip(prepared, pool.map(_fit_dataset, jobs), strict=True):
-                rows.extend(res)
-                if progress:
-                    progress(name)
-    else:
-        for job in jobs:
-            rows.extend(_fit_dataset(job))
-            if progress:
-                progress(job[0].name)
+    # one task per dataset on the executor (BLAS at one thread per worker: the fits are N x <= 19 regressions)
+    with Executor(workers, scheduler, progress) as ex:
+        for res in ex.map(_fit_dataset, list(prepared.values()), orders, nk, ic, labels=list(prepared)):
+            rows.extend(res)
     models = {i: armax.ArmaxModel.from_dict(r.pop("model")) for i, r in enumerate(rows) if r["model"] is not None}
     for r in rows:
         r.pop("model", None)
