@@ -21,6 +21,17 @@ out = Console(highlight=False, width=None if sys.stdout.isatty() else 140)
 
 SpecArg = Annotated[str, typer.Argument(help="campaign spec: a path or a name in specs/ (lab, nominal)")]
 SetOpt = Annotated[list[str] | None, typer.Option("--set", help="override one parameter: table.name=value")]
+SchedulerOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--scheduler",
+        envvar="FLEXJOINT_SCHEDULER",
+        help="Dask scheduler address (tcp://HOST:8786) to run on; default: an embedded local cluster",
+    ),
+]
+WorkersOpt = Annotated[
+    int | None, typer.Option("--workers", min=1, help="local worker processes (default 2; 1: serial, in-process)")
+]
 
 
 def _user_errors() -> tuple[type[BaseException], ...]:
@@ -56,6 +67,8 @@ def campaign(
     spec: SpecArg,
     out_dir: Annotated[Path, typer.Option("--out", help="run directory to write")],
     set_: SetOpt = None,
+    scheduler: SchedulerOpt = None,
+    workers: WorkersOpt = None,
 ) -> None:
     """Run a spec's experiments on the rig twin: writes manifest.json and data/<experiment>.parquet."""
     from . import spec as specmod
@@ -63,7 +76,7 @@ def campaign(
 
     s = specmod.load(spec, set_ or [])
     t0 = time.perf_counter()
-    manifest = run_campaign(s, out_dir, progress=_progress("simulated"))
+    manifest = run_campaign(s, out_dir, progress=_progress("simulated"), workers=workers, scheduler=scheduler)
     out.print(f"{len(manifest['experiments'])} experiments -> {out_dir} ({time.perf_counter() - t0:.2f} s)")
 
 
@@ -98,13 +111,17 @@ def import_(
 def identify(
     run_dir: Annotated[Path, typer.Argument(help="run directory (from campaign or import)")],
     set_: SetOpt = None,
+    scheduler: SchedulerOpt = None,
+    workers: WorkersOpt = None,
 ) -> None:
     """Calibrate, then the ARMAX grid per dataset, cross-validation and selection: grid.csv, models/."""
     from . import spec as specmod
+    from .executor import session
     from .pipeline import doubled_rate_check, identify_run
 
     over = specmod.apply_overrides({}, set_ or []).get("identify", {})
-    res, _, cal, ident = identify_run(run_dir, over, progress=_progress("grid"))
+    with session(workers, scheduler):  # the grid's tasks run on this session's cluster
+        res, _, cal, ident = identify_run(run_dir, over, progress=_progress("grid"))
     g = res.grid
     out.print(
         f"Kp {cal.Kp:.4f} deg/V, Ke {cal.Ke:.4f} deg/V, dead zone {cal.dead_zone_v:.4f} V; "
@@ -175,12 +192,66 @@ def diagnose(
     real: Annotated[Path, typer.Option("--real", help="run directory of the rig (campaign or import)")],
     sim: Annotated[str, typer.Option("--sim", help="spec of the simulation being judged")] = "nominal",
     out_dir: Annotated[Path | None, typer.Option("--out", help="where to write diagnosis.json (default REAL)")] = None,
+    scheduler: SchedulerOpt = None,
+    workers: WorkersOpt = None,
 ) -> None:
     """Where the sim-to-real gap lies, which unmodelled effect causes it, how far it shrinks: diagnosis.json."""
     from .diagnose import diagnose_run
 
-    d = diagnose_run(real, sim, out_dir, progress=_progress("diagnose"))
+    d = diagnose_run(real, sim, out_dir, progress=_progress("diagnose"), **_parallel(workers, scheduler))
     out.print(diagnosis_summary(d))
+
+
+def _parallel(workers: int | None, scheduler: str | None) -> dict:
+    """``workers=`` / ``scheduler=`` keyword arguments for a parallel library call, only those given."""
+    return {k: v for k, v in (("workers", workers), ("scheduler", scheduler)) if v is not None}
+
+
+@app.command()
+def sweep(
+    spec: SpecArg,
+    vary: Annotated[
+        list[str],
+        typer.Option(
+            "--vary",
+            help="table.name=DIST: normal(mu,sigma), uniform(lo,hi), lognormal(median,s), triangular(lo,mode,hi)",
+        ),
+    ],
+    out_dir: Annotated[Path, typer.Option("--out", help="directory for sweep.parquet, sweep.json, report.md")],
+    n: Annotated[int, typer.Option("--n", min=1, help="number of rigs")] = 50,
+    seed: Annotated[int, typer.Option("--seed", min=0, help="seed of the draws and of each rig's noise")] = 0,
+    model: Annotated[Path | None, typer.Option("--model", help="score this models/<m>.json on every rig")] = None,
+    orders: Annotated[str | None, typer.Option("--orders", help="identify one order na,nb,nc per rig")] = None,
+    sampler: Annotated[str, typer.Option("--sampler", help="lhs (Latin hypercube) or sobol")] = "lhs",
+    set_: SetOpt = None,
+    scheduler: SchedulerOpt = None,
+    workers: WorkersOpt = None,
+) -> None:
+    """Monte Carlo over rig tolerances: N rigs, each one's campaign, identification and acceptance, as tasks."""
+    from . import spec as specmod
+    from .sweep import run_sweep
+
+    s = specmod.load(spec, set_ or [])
+    doc = run_sweep(
+        s,
+        vary,
+        n,
+        seed,
+        out_dir,
+        model=model,
+        orders=orders,
+        sampler=sampler,
+        workers=workers,
+        scheduler=scheduler,
+        progress=_progress("done"),
+    )
+    p, sens = doc["summary"]["pass"], doc["summary"]["sensitivity"]
+    top = sens["ranking"][0]
+    out.print(
+        f"{p['n']} rigs: {p['passed']} pass = {100 * p['rate']:.1f} % (95 % CI {100 * p['ci95'][0]:.1f}-"
+        f"{100 * p['ci95'][1]:.1f} %); most sensitive: {top['param']} (SRRC {top['srrc']:+.2f}); "
+        f"{doc['wall_s']:.1f} s -> {out_dir}"
+    )
 
 
 def diagnosis_summary(d: dict) -> str:
@@ -203,11 +274,13 @@ def blindtest(
     n: Annotated[int, typer.Option("--n", help="number of hidden-effect rigs")] = 40,
     seed: Annotated[int, typer.Option("--seed", help="seed of the draws")] = 0,
     out_dir: Annotated[Path, typer.Option("--out", help="directory for blindtest.json")] = Path("."),
+    scheduler: SchedulerOpt = None,
+    workers: WorkersOpt = None,
 ) -> None:
     """Score the diagnoser on rigs with hidden effects (none, one, two, outside the library): blindtest.json."""
     from .blindtest import blindtest as run_blind
 
-    res = run_blind(n, seed, out_dir, progress=_progress("case"))
+    res = run_blind(n, seed, out_dir, progress=_progress("case"), **_parallel(workers, scheduler))
     out.print_json(data=res.get("totals", {}))
 
 
@@ -220,15 +293,20 @@ def run(
     rrd: Annotated[Path | None, typer.Option("--rrd", help="recording file (default RUN/run.rrd)")] = None,
     spawn: Annotated[bool, typer.Option("--spawn", help="open a Rerun viewer")] = False,
     connect: Annotated[str | None, typer.Option("--connect", help="stream to a running viewer at URL")] = None,
+    scheduler: SchedulerOpt = None,
+    workers: WorkersOpt = None,
 ) -> None:
     """The whole pipeline: build, campaign, calibrate, identify, export, cross-fit, diagnose, report, Rerun."""
     from .pipeline import run_pipeline
 
     if out_dir is None:
         out_dir = Path("runs") / time.strftime("%Y%m%d-%H%M%S")
-    summary = run_pipeline(
-        spec, out_dir, set_ or [], sim=sim, rrd=rrd, spawn=spawn, connect=connect, progress=_progress("run")
-    )
+    from .executor import session
+
+    with session(workers, scheduler):  # one cluster for every parallel step of the pipeline
+        summary = run_pipeline(
+            spec, out_dir, set_ or [], sim=sim, rrd=rrd, spawn=spawn, connect=connect, progress=_progress("run")
+        )
     out.print(summary)
 
 

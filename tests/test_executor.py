@@ -1,0 +1,201 @@
+"""The Dask executor: serial path, a real ``dask scheduler`` with two ``dask worker`` processes on 127.0.0.1,
+the same bytes either way, and worker errors surfacing as the original exception (one line in the CLI)."""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import operator
+import os
+import signal
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from harness.executor import Executor, FmuBytes, fmu_bytes, fmu_file, in_worker, worker_cache
+
+# a campaign of a few seconds: short calibration (pot ramp, 3-hold comb) and two 12 s identification experiments
+TINY_SPEC = """
+[campaign]
+name = "tiny"
+sample_rate = 50.0
+seed = 3
+
+[plant]
+n_modes = 1
+
+[daq]
+noise_theta = 0.002
+noise_alpha = 0.002
+
+[[calibration]]
+name = "pot_ramp"
+signal = "constant"
+amplitude = 2.0
+duration = 12.0
+
+[[calibration]]
+name = "comb"
+signal = "comb"
+deflections_cm = [-3.7, 0.0, 3.9]
+D_cm = 40.0
+hold = 2.5
+ramp = 0.8
+duration = 10.0
+
+[[experiment]]
+name = "prbs"
+signal = "prbs"
+B = 0.10
+amplitude = 1.5
+duration = 12.0
+
+[[experiment]]
+name = "square"
+signal = "square"
+f = 0.4
+amplitude = 1.5
+duration = 12.0
+
+[identify]
+na = [3, 4]
+nb = [1, 2]
+nc = [1, 2]
+fit_threshold = 50.0
+
+[accept]
+min_fit = 80.0
+min_average_fit = 85.0
+"""
+
+
+def tiny_spec(tmp_path: Path) -> Path:
+    p = tmp_path / "tiny.toml"
+    p.write_text(TINY_SPEC)
+    return p
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class DaskCluster:
+    """A real ``dask scheduler`` and ``n`` ``dask worker`` processes (one thread, no nanny, so a kill is final,
+    harness preloaded) on 127.0.0.1 with free ports. Started on entering (without waiting, so the test can do its
+    serial work meanwhile); :meth:`wait` blocks until the workers are up; everything is stopped on exit. The
+    processes also stop by themselves: the scheduler after 5 idle minutes, the workers 30 s after it is gone."""
+
+    def __init__(self, n: int = 2) -> None:
+        self.n = n
+        self.address = f"tcp://127.0.0.1:{_free_port()}"
+        self.scheduler: subprocess.Popen | None = None
+        self.workers: list[subprocess.Popen] = []
+
+    def __enter__(self) -> DaskCluster:
+        dask = [sys.executable, "-m", "dask"]
+        quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL, "start_new_session": True}
+        http = ["--no-dashboard", "--dashboard-address", "127.0.0.1:0"]
+        port = self.address.rsplit(":", 1)[1]
+        cmd = [*dask, "scheduler", "--host", "127.0.0.1", "--port", port, *http, "--idle-timeout", "300"]
+        self.scheduler = subprocess.Popen(cmd, **quiet)
+        cmd = [*dask, "worker", self.address, "--nthreads", "1", "--no-nanny", "--host", "127.0.0.1", *http]
+        cmd += ["--death-timeout", "30", "--preload", "harness.sweep"]
+        self.workers = [subprocess.Popen(cmd, **quiet) for _ in range(self.n)]
+        return self
+
+    def wait(self) -> str:
+        """Block until every worker has joined; returns the scheduler address."""
+        from distributed import Client
+
+        with Client(self.address, timeout=60, set_as_default=False) as c:
+            c.wait_for_workers(self.n, timeout=90)
+        return self.address
+
+    def __exit__(self, *exc: object) -> None:
+        procs = [p for p in (self.scheduler, *self.workers) if p is not None]
+        for p in procs:  # the scheduler first: workers without one close at once
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(p.pid, signal.SIGTERM)
+        for p in procs:
+            try:
+                p.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                os.killpg(p.pid, signal.SIGKILL)
+                p.wait()
+
+
+def flexjoint(*args: object) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "harness.cli", *map(str, args)], capture_output=True, text=True, timeout=300
+    )
+
+
+def test_serial_path_keeps_order_reports_progress_and_raises_the_original_error():
+    seen: list[str] = []
+    with Executor(workers=1, progress=seen.append) as ex:
+        assert ex.kind == "serial" and ex.n_workers == 1
+        assert ex.map(operator.mul, [3, 1, 2], 10, desc="mul", labels=["a", "b", "c"]) == [30, 10, 20]
+        assert ex.map(operator.call, [in_worker]) == [False]
+        with pytest.raises(ValueError, match="math domain error"):
+            ex.map(math.sqrt, [4.0, -1.0])
+    assert seen == ["mul a [1/3]", "mul b [2/3]", "mul c [3/3]", "0 [1/1]", "0 [1/2]"]
+    with pytest.raises(ValueError, match="positive integer"):
+        Executor(workers=0)
+
+
+def test_fmu_bytes_are_written_once_per_process_and_worker_cache_memoises(fmus):
+    fb = fmu_bytes(fmus["daq"])
+    assert isinstance(fb, FmuBytes) and fb.data == Path(fmus["daq"]).read_bytes() and len(fb.sha256) == 64
+    p1, p2 = fmu_file(fb), fmu_file(fb)
+    assert p1 == p2 and p1.read_bytes() == fb.data and p1.name == Path(fmus["daq"]).name
+    with pytest.raises(ValueError, match="sha256"):
+        fmu_file(FmuBytes("x.fmu", b"not the content", fb.sha256[::-1]))
+    calls: list[int] = []
+    make = lambda: calls.append(1) or object()  # noqa: E731
+    assert worker_cache("test-key", make) is worker_cache("test-key", make) and calls == [1]
+
+
+def test_remote_cluster_gives_the_serial_bytes_and_the_workers_errors(tmp_path, fmus, capsys, monkeypatch):
+    from harness import cli
+    from harness import spec as specmod
+    from harness.campaign import run_campaign
+
+    spec = tiny_spec(tmp_path)
+    with DaskCluster(2) as cluster:
+        run_campaign(specmod.load(spec), tmp_path / "serial", fmus=fmus, workers=1)  # while the workers start
+        addr = cluster.wait()
+        with Executor(scheduler=addr) as ex:
+            assert ex.kind == "remote" and ex.n_workers == 2
+            # tasks really run in worker processes, in item order, and a task's error is the original one
+            assert ex.map(operator.call, [in_worker] * 4) == [True] * 4
+            assert ex.map(operator.truediv, [6.0, 3.0], 3.0) == [2.0, 1.0]
+            with pytest.raises(ZeroDivisionError):
+                ex.map(operator.truediv, [1.0, 2.0], 0.0)
+        remote = flexjoint("campaign", spec, "--out", tmp_path / "remote", "--scheduler", addr)
+        assert remote.returncode == 0, remote.stderr
+        assert "[4/4]" in remote.stderr  # progress per finished task
+        # an FMU error raised on a worker, through the CLI: one line with the FMU's own message, exit 2
+        argv = ["flexjoint", "campaign", str(spec), "--out", str(tmp_path / "bad"), "--set", "plant.n_modes=9"]
+        monkeypatch.setattr(sys, "argv", [*argv, "--scheduler", addr])
+        capsys.readouterr()
+        with pytest.raises(SystemExit) as code:
+            cli.main()
+    bad = capsys.readouterr().err
+    assert code.value.code == 2 and "Traceback" not in bad
+    errors = [x for x in bad.splitlines() if x.startswith("error")]
+    assert len(errors) == 1 and "n_modes = 9" in errors[0], bad
+    files = sorted(p.relative_to(tmp_path / "serial") for p in (tmp_path / "serial").rglob("*") if p.is_file())
+    assert len(files) == 5  # manifest + 4 datasets
+    for f in files:
+        assert (tmp_path / "serial" / f).read_bytes() == (tmp_path / "remote" / f).read_bytes(), f
+
+
+def test_unreachable_scheduler_is_one_clear_error(monkeypatch):
+    monkeypatch.setattr("harness.executor.CONNECT_TIMEOUT_S", 1.0)
+    with pytest.raises(RuntimeError, match="cannot connect to the Dask scheduler"):
+        Executor(scheduler=f"tcp://127.0.0.1:{_free_port()}")
