@@ -13,7 +13,7 @@ from scipy.signal import lfilter
 
 from harness import armax as ax
 
-DAISY = Path(__file__).resolve().parents[2] / "shared" / "reference" / "daisy_robot_arm.dat"
+DAISY = Path(__file__).resolve().parent / "fixtures" / "daisy_robot_arm.dat"  # provenance: fixtures/README.md
 
 
 def _loss(theta: np.ndarray, u: np.ndarray, y: np.ndarray, na: int, nb: int, nc: int, nk: int) -> np.ndarray:

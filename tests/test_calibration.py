@@ -10,7 +10,7 @@ import pytest
 
 from harness import calibration as cal
 
-REF = Path(__file__).resolve().parents[2] / "shared" / "reference"
+REF = Path(__file__).resolve().parent / "fixtures"  # provenance: fixtures/README.md
 LSB_12BIT = 20.0 / 4096  # V, 12-bit ADC over +-10 V
 
 

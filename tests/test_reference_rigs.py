@@ -1,5 +1,5 @@
 """The twin against a rig nobody here built: the Quanser Rotary Flexible Link frequency responses in
-shared/reference (two measurement campaigns). Their two antiresonances are the clamped modes of the link; the
+tests/fixtures (two measurement campaigns). Their two antiresonances are the clamped modes of the link; the
 twin's assumed-modes link must place its first two clamped modes in the same ratio, and, with its stiffness set
 to the measured first antiresonance, the second one where that rig shows it."""
 
@@ -11,7 +11,7 @@ import pytest
 
 from harness.plant import PlantParams, mode_frequencies
 
-REF = Path(__file__).resolve().parents[2] / "shared" / "reference"
+REF = Path(__file__).resolve().parent / "fixtures"  # provenance: fixtures/README.md
 FILES = ["quanser_rfl_frf_2025-04-16.csv", "quanser_rfl_frf_2025-05-07.csv"]
 
 
