@@ -4,9 +4,12 @@
 modelDescription.xml) are staged into a temporary FMU tree, compiled with
 ``fmpy.build.build_platform_binary`` and zipped, sources included, into
 ``<cache>/<name>-<sha256 of the staged sources[:12]>.fmu``.  The cache is ``$FLEXJOINT_CACHE`` or
-``~/.cache/flexjoint-harness``; the source tree is ``$FLEXJOINT_FMU_SRC`` or the repository's ``fmus/``.
+``~/.cache/flexjoint-harness``; the source tree is ``$FLEXJOINT_FMU_SRC``, else the sources shipped inside the
+installed package (``harness/_fmus``, read with :mod:`importlib.resources`), else the clone's ``fmus/``.
 An FMU is rebuilt only when its sources change; the zip is written to a temporary file and moved in
 place with ``os.replace`` under a per-model file lock, so concurrent builds cannot corrupt the cache.
+The sha256 of each zip is recorded beside it at build time (``<fmu>.sha256``); a cached FMU whose bytes no
+longer match (an interrupted copy, a full disk, a hand edit) is rebuilt instead of being handed to fmpy.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ import sys
 import tempfile
 import zipfile
 from contextlib import contextmanager
+from importlib import resources
 from pathlib import Path
 
 BUILD_TAG = "flexjoint-harness-build-1"  # bump when the staging or compile recipe changes
@@ -47,10 +51,26 @@ class BuildError(RuntimeError):
     """An FMU could not be staged, compiled or packed."""
 
 
+def bundled_dir(kind: str) -> Path:
+    """Where the package's data tree ``kind`` ('fmus' or 'specs') lives.
+
+    An installed wheel ships it as package data (``harness/_fmus``, ``harness/_specs``); an editable install or a
+    plain checkout reads the clone's top-level ``fmus/`` and ``specs/``. Returns the first that exists (the
+    packaged path when neither does, so that error messages name where it was looked for).
+    """
+    if kind not in ("fmus", "specs"):
+        raise ValueError(f"unknown data tree {kind!r}")
+    packaged = Path(str(resources.files("harness").joinpath(f"_{kind}")))
+    if packaged.is_dir():
+        return packaged
+    clone = Path(__file__).resolve().parents[1] / kind
+    return clone if clone.is_dir() else packaged
+
+
 def fmu_source_dir() -> Path:
-    """The ``fmus/`` source tree: ``$FLEXJOINT_FMU_SRC`` or ``<repo>/fmus``."""
+    """The FMU source tree: ``$FLEXJOINT_FMU_SRC``, else the bundled sources (see :func:`bundled_dir`)."""
     env = os.environ.get("FLEXJOINT_FMU_SRC")
-    return Path(env) if env else Path(__file__).resolve().parents[1] / "fmus"
+    return Path(env) if env else bundled_dir("fmus")
 
 
 def cache_dir() -> Path:
@@ -205,20 +225,37 @@ def _compile(stage: Path, build_dir: Path, name: str) -> str:
     return text
 
 
+def _hash_file(fmu: Path) -> Path:
+    return fmu.with_name(fmu.name + ".sha256")
+
+
+def cached_fmu_ok(fmu: Path) -> bool:
+    """True when ``fmu`` exists and its sha256 equals the one recorded when it was built."""
+    try:
+        recorded = _hash_file(fmu).read_text().split()[0]
+    except (OSError, IndexError):
+        return False
+    return fmu.is_file() and fmu_sha256(fmu) == recorded
+
+
 def build_fmu(name: str, out_dir: Path | None = None, force: bool = False) -> Path:
     """Build (or reuse) the FMU ``name`` ('flexjoint', 'daq', ...) and return its path.
 
-    ``out_dir`` replaces the cache directory; ``force`` rebuilds even when a cached FMU exists.
+    ``out_dir`` replaces the cache directory; ``force`` rebuilds even when a cached FMU exists. A cached FMU is
+    reused only when its sha256 matches the one recorded at build time; otherwise it is rebuilt.
     """
     files = _staged_files(name)
     digest = source_hash(name)
     target_dir = Path(out_dir) if out_dir is not None else cache_dir()
-    target_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        target_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise BuildError(f"cannot create the FMU cache {target_dir}: {e.strerror or e}") from None
     target = target_dir / f"{name}-{digest[:12]}.fmu"
-    if target.is_file() and not force:
+    if not force and cached_fmu_ok(target):
         return target
     with _file_lock(target_dir / f".{name}.lock"):
-        if target.is_file() and not force:  # built by another process meanwhile
+        if not force and cached_fmu_ok(target):  # built by another process meanwhile
             return target
         with tempfile.TemporaryDirectory(prefix=f".{name}-", dir=target_dir) as tmp:
             stage, build_dir = Path(tmp) / "fmu", Path(tmp) / "build"
@@ -232,13 +269,19 @@ def build_fmu(name: str, out_dir: Path | None = None, force: bool = False) -> Pa
             binaries = [p for p in bin_dir.rglob("*") if p.is_file()] if bin_dir.is_dir() else []
             if not binaries:
                 raise BuildError(f"building {name} failed: no binary was produced")
-            tmp_zip = Path(tmp) / "out.fmu"
-            with zipfile.ZipFile(tmp_zip, "w", zipfile.ZIP_DEFLATED) as zf:
-                for arc in sorted(files):
-                    zf.write(stage / arc, arc)
-                for p in sorted(binaries):
-                    zf.write(p, p.relative_to(stage).as_posix())
-            os.replace(tmp_zip, target)
+            tmp_zip, tmp_hash = Path(tmp) / "out.fmu", Path(tmp) / "out.sha256"
+            try:
+                with zipfile.ZipFile(tmp_zip, "w", zipfile.ZIP_DEFLATED) as zf:
+                    for arc in sorted(files):
+                        zf.write(stage / arc, arc)
+                    for p in sorted(binaries):
+                        zf.write(p, p.relative_to(stage).as_posix())
+                tmp_hash.write_text(f"{fmu_sha256(tmp_zip)}  {target.name}\n")
+                # the FMU first, then its hash: a stop in between leaves a mismatch (a rebuild), never a bad FMU
+                os.replace(tmp_zip, target)
+                os.replace(tmp_hash, _hash_file(target))
+            except OSError as e:
+                raise BuildError(f"writing {target} failed: {e.strerror or e}") from None
     return target
 
 

@@ -20,6 +20,7 @@ import copy
 import hashlib
 import json
 import math
+import os
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from functools import cache
@@ -28,10 +29,11 @@ from typing import Any
 
 import tomllib
 
+from .build import bundled_dir, fmu_source_dir
 from .signals import SIGNAL_KINDS, check_params
 
-SPEC_DIR = Path(__file__).resolve().parents[1] / "specs"
-FMU_SRC = Path(__file__).resolve().parents[1] / "fmus"
+SPEC_DIR = bundled_dir("specs")  # the bundled specs: harness/_specs in a wheel, specs/ in a clone
+FMU_SRC = bundled_dir("fmus")  # the bundled FMU sources; $FLEXJOINT_FMU_SRC overrides them (fmu_source_dir)
 
 CAMPAIGN_KEYS = {"name", "sample_rate", "seed", "internal_step", "description"}
 EXPERIMENT_KEYS = {"name", "signal", "duration", "plant", "daq", "role"}
@@ -55,10 +57,15 @@ class SpecError(ValueError):
     """A spec that cannot be run; the message is one line meant for the user."""
 
 
-@cache
 def fmu_parameters(model: str) -> dict[str, tuple[str, Any]]:
-    """Parameters of an FMU source model as ``{name: (type, start)}``, read from its modelDescription.xml."""
-    path = FMU_SRC / model / "modelDescription.xml"
+    """Parameters of an FMU source model as ``{name: (type, start)}``, read from its modelDescription.xml in
+    the FMU source tree (``$FLEXJOINT_FMU_SRC`` or the bundled sources)."""
+    return _fmu_parameters(str(fmu_source_dir() / model / "modelDescription.xml"))
+
+
+@cache
+def _fmu_parameters(xml: str) -> dict[str, tuple[str, Any]]:
+    path = Path(xml)
     if not path.exists():
         raise SpecError(f"FMU source {path} is missing")
     root = ET.parse(path).getroot()
@@ -251,6 +258,7 @@ def from_dict(raw: dict[str, Any], path: str = "") -> Spec:
         raw=raw,
         path=path,
     )
+    check_memory(spec)  # before the signal checks below generate any signal at this rate
     for e in spec.all_experiments():
         if e.signal != "comb":
             try:
@@ -261,14 +269,102 @@ def from_dict(raw: dict[str, Any], path: str = "") -> Spec:
 
 
 def resolve_path(spec: str | Path) -> Path:
-    """A spec path, or a bare name looked up in the project's ``specs/`` (``lab`` -> specs/lab.toml)."""
+    """A spec path, or a bare name looked up in the bundled specs (``lab`` -> specs/lab.toml)."""
     p = Path(spec)
-    if p.exists():
+    if p.is_file():
         return p
+    if p.is_dir():
+        raise SpecError(f"spec {spec} is a directory, not a TOML file")
     for cand in (SPEC_DIR / p, SPEC_DIR / f"{p}.toml"):
-        if cand.exists():
+        if cand.is_file():
             return cand
-    raise SpecError(f"spec {spec} not found (looked in . and {SPEC_DIR})")
+    have = ", ".join(bundled_specs()) or "none"
+    raise SpecError(f"spec {spec} not found (looked in . and {SPEC_DIR}; bundled: {have})")
+
+
+def bundled_specs() -> dict[str, str]:
+    """The specs shipped with the package: ``{name: description}`` (``[campaign].description``, else the first
+    comment line of the file)."""
+    out: dict[str, str] = {}
+    if not SPEC_DIR.is_dir():
+        return out
+    for path in sorted(SPEC_DIR.glob("*.toml")):
+        text = path.read_text(encoding="utf-8")
+        try:
+            desc = str(tomllib.loads(text).get("campaign", {}).get("description", ""))
+        except tomllib.TOMLDecodeError:
+            desc = ""
+        if not desc:
+            comments = [ln.lstrip("#").strip() for ln in text.splitlines() if ln.startswith("#")]
+            desc = next((c for c in comments if c), "")
+        out[path.stem] = desc
+    return out
+
+
+# --- what a campaign needs before it runs -------------------------------------------------------------------
+
+RK4_WORK_ARRAYS = 24  # float64 arrays of n samples alive per running experiment: command, torque, the (n, 6)
+# output table of the co-simulation loop, t and the converted angles, signal temporaries and the Arrow copy
+
+
+def memory_estimate(spec: Spec, workers: int | None = None) -> dict[str, Any]:
+    """Bytes a campaign of ``spec`` needs: every dataset held until it is written (samples x columns x 8 bytes
+    over all experiments) plus the co-simulation work of the experiments running at once (``workers``, default
+    as :func:`harness.campaign.simulate_spec`: at most 4 processes)."""
+    exps = spec.all_experiments()
+    ns = [int(round(e.duration * spec.sample_rate)) for e in exps]
+    cols = [8 if e.signal == "comb" else 6 for e in exps]
+    if workers is None:
+        workers = min(len(exps), os.cpu_count() or 1, 4)
+    running = sorted(ns, reverse=True)[: max(1, workers)]
+    data = sum(n * c * 8 for n, c in zip(ns, cols, strict=True))
+    work = sum(running) * RK4_WORK_ARRAYS * 8
+    return {
+        "bytes": data + work,
+        "data": data,
+        "work": work,
+        "samples": sum(ns),
+        "columns": sorted(set(cols)),
+        "experiments": len(exps),
+    }
+
+
+def machine_memory() -> int | None:
+    """Physical memory of this machine in bytes (``os.sysconf``), lowered to a cgroup memory limit when one is
+    set; ``None`` when the platform does not say."""
+    try:
+        total = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+    for limit_file in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
+        try:
+            text = Path(limit_file).read_text().strip()
+        except OSError:
+            continue
+        if text.isdigit() and 0 < int(text) < total:
+            total = int(text)
+    return total if total > 0 else None
+
+
+def _gib(n: float) -> str:
+    """Bytes in MiB, GiB or TiB, three significant digits."""
+    unit = "MiB" if n < 2**30 else "GiB" if n < 2**40 else "TiB"
+    return f"{n / 2 ** {'MiB': 20, 'GiB': 30, 'TiB': 40}[unit]:.3g} {unit}"
+
+
+def check_memory(spec: Spec, workers: int | None = None, available: int | None = None) -> dict[str, Any]:
+    """Refuse (:class:`SpecError`, one line with the estimate) a campaign that needs more memory than the machine
+    has (``available`` bytes, default :func:`machine_memory`); returns the estimate otherwise."""
+    est = memory_estimate(spec, workers)
+    have = machine_memory() if available is None else available
+    if have is not None and est["bytes"] > have:
+        raise SpecError(
+            f"campaign {spec.name!r} needs ~{_gib(est['bytes'])} of memory ({est['samples']:,} samples x "
+            f"{'-'.join(map(str, est['columns']))} columns x 8 bytes = {_gib(est['data'])} over "
+            f"{est['experiments']} experiments, plus {_gib(est['work'])} of RK4 work) but this machine has "
+            f"{_gib(have)}: lower campaign.sample_rate ({spec.sample_rate:g} Hz) or the durations"
+        )
+    return est
 
 
 def load(spec: str | Path, overrides: list[str] | None = None) -> Spec:

@@ -94,7 +94,9 @@ def test_concurrent_builds_do_not_corrupt_the_cache(src_copy):
     with zipfile.ZipFile(path) as zf:
         assert zf.testzip() is None
     leftovers = [p for p in Path(os.environ["FLEXJOINT_CACHE"]).iterdir() if not p.name.startswith(".flexjoint")]
-    assert [p.name for p in leftovers] == [Path(path).name]  # no temp files left behind
+    name = Path(path).name
+    assert sorted(p.name for p in leftovers) == [name, f"{name}.sha256"]  # the FMU, its hash, no temp files
+    assert build.cached_fmu_ok(Path(path))
 
 
 def test_compile_error_is_one_clear_line(src_copy):
@@ -144,3 +146,64 @@ def test_libcosim_runs_the_same_fmu_as_fmpy(fmus, fmu_runner):
         assert len(values) == n and t[0] == step_ns and steps[-1] == n
         np.testing.assert_allclose(values, ref[name], rtol=1e-12, atol=1e-14)
     assert abs(ref["theta"][-1]) > 1.0
+
+
+def test_packaged_fmu_tree_lists_every_model_directory():
+    """Each directory under fmus/ ships in the wheel: pyproject lists it as a package with its C and XML files."""
+    import tomllib
+
+    cfg = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())["tool"]["setuptools"]
+    assert cfg["package-dir"] == {"harness._fmus": "fmus", "harness._specs": "specs"}
+    dirs = sorted(p.name for p in build.bundled_dir("fmus").iterdir() if p.is_dir() and p.name != "__pycache__")
+    shipped = sorted(n.removeprefix("harness._fmus.") for n in cfg["packages"] if n.startswith("harness._fmus."))
+    assert shipped == dirs
+    for d in dirs:
+        patterns = cfg["package-data"][f"harness._fmus.{d}"]
+        exts = {p.suffix for p in (build.bundled_dir("fmus") / d).iterdir() if p.is_file()}
+        assert exts <= {Path(x).suffix for x in patterns}, (d, exts, patterns)
+    assert cfg["package-data"]["harness._specs"] == ["*.toml"]
+
+
+def test_source_tree_is_the_bundled_one_unless_overridden(monkeypatch, tmp_path):
+    monkeypatch.delenv("FLEXJOINT_FMU_SRC", raising=False)
+    assert build.fmu_source_dir() == build.bundled_dir("fmus")
+    assert build.available_models() == ["armax", "daq", "flexjoint"]
+    monkeypatch.setenv("FLEXJOINT_FMU_SRC", str(tmp_path))
+    assert build.fmu_source_dir() == tmp_path and build.available_models() == []
+    with pytest.raises(ValueError, match=r"unknown FMU 'daq': expected one of \(none\)"):
+        build_fmu("daq")
+
+
+def _seed_cache(fmus, cache: Path, names=("flexjoint", "daq")) -> dict[str, Path]:
+    """Copy the session's built FMUs and their recorded hashes into an empty cache."""
+    cache.mkdir(parents=True, exist_ok=True)
+    out = {}
+    for name in names:
+        src = fmus[name]
+        shutil.copy2(src, cache / src.name)
+        shutil.copy2(src.with_name(src.name + ".sha256"), cache / (src.name + ".sha256"))
+        out[name] = cache / src.name
+    return out
+
+
+@pytest.mark.parametrize("damage", ["truncate", "garble", "no_hash"])
+def test_damaged_cached_fmu_is_rebuilt(fmus, tmp_path, monkeypatch, damage):
+    """An interrupted build or a full disk leaves a bad zip: it is detected by its recorded hash and rebuilt."""
+    monkeypatch.setenv("FLEXJOINT_CACHE", str(tmp_path / "cache"))
+    path = _seed_cache(fmus, tmp_path / "cache", ["daq"])["daq"]
+    good = fmu_sha256(path)
+    assert build.cached_fmu_ok(path) and build_fmu("daq") == path and fmu_sha256(path) == good  # reused as is
+    if damage == "truncate":
+        path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    elif damage == "garble":
+        data = bytearray(path.read_bytes())
+        data[len(data) // 2] ^= 0xFF
+        path.write_bytes(bytes(data))
+    else:
+        path.with_name(path.name + ".sha256").unlink()
+    assert not build.cached_fmu_ok(path)
+    assert build_fmu("daq") == path
+    assert build.cached_fmu_ok(path)
+    with zipfile.ZipFile(path) as zf:
+        assert zf.testzip() is None
+    assert validate_fmu(str(path)) == []

@@ -74,3 +74,60 @@ def test_parse_value_reads_toml_literals():
     assert specmod.parse_value("true") is True
     assert specmod.parse_value("[1, 8]") == [1, 8]
     assert specmod.parse_value("zoh") == "zoh"
+
+
+def test_bundled_specs_have_names_and_descriptions():
+    found = specmod.bundled_specs()
+    assert {"lab", "nominal", "blind"} <= set(found)
+    assert all(found.values()) and "first lab" in found["lab"]
+    assert specmod.resolve_path("lab") == specmod.SPEC_DIR / "lab.toml"
+
+
+def test_missing_spec_names_the_bundled_ones(tmp_path):
+    with pytest.raises(specmod.SpecError, match=r"spec nope not found .*bundled: blind, lab, nominal"):
+        specmod.load("nope")
+    with pytest.raises(specmod.SpecError, match="is a directory"):
+        specmod.load(tmp_path)
+
+
+def test_spec_loader_honours_flexjoint_fmu_src(tmp_path, monkeypatch):
+    """The parameter names a spec may set come from the FMU source tree the build uses, $FLEXJOINT_FMU_SRC too."""
+    import shutil
+
+    from harness.build import bundled_dir
+
+    src = tmp_path / "fmus"
+    shutil.copytree(bundled_dir("fmus"), src)
+    xml = src / "flexjoint" / "modelDescription.xml"
+    xml.write_text(xml.read_text().replace('name="backlash"', 'name="gear_play"'))
+    monkeypatch.setenv("FLEXJOINT_FMU_SRC", str(src))
+    assert specmod.load("lab", ["plant.gear_play=0.004"]).plant["gear_play"] == 0.004
+    with pytest.raises(specmod.SpecError, match="unknown key.*backlash.*gear_play"):
+        specmod.load("lab", ["plant.backlash=0.004"])
+    monkeypatch.setenv("FLEXJOINT_FMU_SRC", str(tmp_path / "nowhere"))
+    with pytest.raises(specmod.SpecError, match="nowhere/flexjoint/modelDescription.xml is missing"):
+        specmod.load("lab")
+    monkeypatch.delenv("FLEXJOINT_FMU_SRC")
+    assert "backlash" in specmod.fmu_parameters("flexjoint")
+
+
+def test_memory_estimate_counts_samples_columns_and_work():
+    s = specmod.load("lab")
+    est = specmod.memory_estimate(s, workers=2)
+    n = [round(e.duration * s.sample_rate) for e in s.all_experiments()]
+    cols = [8 if e.signal == "comb" else 6 for e in s.all_experiments()]
+    assert est["samples"] == sum(n) and est["experiments"] == len(n) and est["columns"] == [6, 8]
+    assert est["data"] == 8 * sum(a * b for a, b in zip(n, cols, strict=True))
+    assert est["work"] == 8 * specmod.RK4_WORK_ARRAYS * sum(sorted(n)[-2:])
+    assert est["bytes"] == est["data"] + est["work"] < 10 * 2**20  # the lab campaign needs a few MiB
+    assert specmod.check_memory(s, workers=2, available=2**30) == est
+    with pytest.raises(specmod.SpecError, match=r"needs ~[\d.]+ MiB of memory .* this machine has 1 MiB") as e:
+        specmod.check_memory(s, workers=2, available=2**20)
+    assert "this machine has" in str(e.value) and "\n" not in str(e.value)
+
+
+def test_a_campaign_larger_than_the_machine_is_refused_before_any_allocation():
+    """sample_rate = 1e9 would need tens of TiB; refused with the estimate, before a signal is generated."""
+    assert specmod.machine_memory() > 2**28
+    with pytest.raises(specmod.SpecError, match=r"needs ~[\d.]+ TiB of memory .* this machine has [\d.]+ GiB"):
+        specmod.load("lab", ["campaign.sample_rate=1e9"])
