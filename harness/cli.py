@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import os
+import signal
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated
 
@@ -39,17 +42,84 @@ def _user_errors() -> tuple[type[BaseException], ...]:
     from .data import DataError
     from .spec import SpecError
 
-    return (SpecError, DataError, FMUError, ValueError, FileNotFoundError, RuntimeError)
+    return (
+        SpecError,
+        DataError,
+        FMUError,
+        ValueError,
+        FileNotFoundError,
+        RuntimeError,
+        NotADirectoryError,
+        IsADirectoryError,
+        FileExistsError,
+        PermissionError,
+    )
 
 
-def _progress(label: str):
-    """A progress printer for long work (one line per finished item, on stderr)."""
+def _out_dir(path: Path, option: str = "--out") -> Path:
+    """Refuse an output directory that cannot be one (an existing file, or a file on its path) before any work."""
+    for p in (path, *path.parents):
+        if p.exists() and not p.is_dir():
+            where = "" if p == path else f" ({p} is a file)"
+            raise NotADirectoryError(f"{option} {path}: not a directory{where}; give a new or existing directory")
+    return path
+
+
+class _Elapsed:
+    """A rich renderable: the last progress message and the seconds since the stage started, redrawn live."""
+
+    def __init__(self, label: str, start: float) -> None:
+        self.label, self.start, self.item = label, start, "starting"
+
+    def __rich__(self) -> str:
+        return f"[dim]{self.label}[/] {self.item} [dim]({time.perf_counter() - self.start:.0f} s)[/]"
+
+
+_status = None  # the live status line of the running command (stopped in main)
+
+
+def _progress(label: str) -> Callable[[str], None]:
+    """A progress printer for long work, the ``progress: Callable[[str], None]`` the library calls: one line per
+    message on stderr with the elapsed time; in an interactive terminal also a live status line (spinner, last
+    message, a running clock) so that a long silent stage still shows that it works."""
+    global _status
     start = time.perf_counter()
+    live = _Elapsed(label, start)
+    if err.is_terminal and out.is_terminal:  # interactive only: never redirect a piped stdout into stderr
+        if _status is not None:
+            _status.stop()
+        _status = err.status(live, spinner="dots")
+        _status.start()
 
     def report(item: str) -> None:
-        err.print(f"[dim]{label}[/] {item} [dim]({time.perf_counter() - start:.1f} s)[/]")
+        live.item = item
+        err.print(f"[dim]{label}[/] {item} [dim]({time.perf_counter() - start:.1f} s)[/]", soft_wrap=True)
 
     return report
+
+
+def _stop_status() -> None:
+    global _status
+    if _status is not None:
+        _status.stop()
+        _status = None
+
+
+def _version(value: bool) -> None:
+    if value:
+        from . import __version__
+
+        out.print(f"flexjoint-harness {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _main(
+    version: Annotated[
+        bool, typer.Option("--version", callback=_version, is_eager=True, help="print the version and exit")
+    ] = False,
+) -> None:
+    pass
 
 
 @app.command()
@@ -59,7 +129,42 @@ def build(force: Annotated[bool, typer.Option(help="rebuild even if cached")] = 
 
     for name in (*MODELS, "armax"):
         path = build_fmu(name, force=force)
-        out.print(f"{name}: {path}")
+        out.print(f"{name}: {path}", soft_wrap=True)
+
+
+@app.command()
+def specs() -> None:
+    """List the bundled campaign specs (name and description); use a name wherever a SPEC is expected."""
+    from .spec import SPEC_DIR, bundled_specs
+
+    found = bundled_specs()
+    if not found:
+        raise FileNotFoundError(f"no bundled specs in {SPEC_DIR}")
+    width = max(map(len, found))
+    for name, desc in found.items():
+        out.print(f"{name:<{width}}  {desc}", markup=False)
+    out.print(f"[dim]({SPEC_DIR}; `flexjoint init DIR --spec NAME` copies one to edit)[/]")
+
+
+@app.command()
+def init(
+    directory: Annotated[Path, typer.Argument(help="directory to copy the spec into (created if missing)")],
+    spec: Annotated[str, typer.Option("--spec", help="bundled spec to copy (see `flexjoint specs`)")] = "lab",
+    force: Annotated[bool, typer.Option(help="overwrite an existing file")] = False,
+) -> None:
+    """Copy a bundled spec into DIRECTORY to edit, then run it with `flexjoint campaign DIRECTORY/NAME.toml`."""
+    from .spec import SPEC_DIR, SpecError, bundled_specs
+
+    found = bundled_specs()
+    name = spec.removesuffix(".toml")
+    if name not in found:
+        raise SpecError(f"no bundled spec {spec!r}; bundled: {', '.join(found) or 'none'}")
+    dest = _out_dir(directory, "DIRECTORY") / f"{name}.toml"
+    if dest.exists() and not force:
+        raise FileExistsError(f"{dest} exists; pass --force to overwrite it")
+    directory.mkdir(parents=True, exist_ok=True)
+    dest.write_text((SPEC_DIR / f"{name}.toml").read_text(encoding="utf-8"), encoding="utf-8")
+    out.print(f"{dest} (edit it, then: flexjoint campaign {dest} --out RUN)")
 
 
 @app.command()
@@ -74,6 +179,7 @@ def campaign(
     from . import spec as specmod
     from .campaign import run_campaign
 
+    _out_dir(out_dir)
     s = specmod.load(spec, set_ or [])
     t0 = time.perf_counter()
     manifest = run_campaign(s, out_dir, progress=_progress("simulated"), workers=workers, scheduler=scheduler)
@@ -198,6 +304,8 @@ def diagnose(
     """Where the sim-to-real gap lies, which unmodelled effect causes it, how far it shrinks: diagnosis.json."""
     from .diagnose import diagnose_run
 
+    if out_dir is not None:
+        _out_dir(out_dir)
     d = diagnose_run(real, sim, out_dir, progress=_progress("diagnose"), **_parallel(workers, scheduler))
     out.print(diagnosis_summary(d))
 
@@ -297,10 +405,13 @@ def run(
     workers: WorkersOpt = None,
 ) -> None:
     """The whole pipeline: build, campaign, calibrate, identify, export, cross-fit, diagnose, report, Rerun."""
+    from . import spec as specmod
     from .pipeline import run_pipeline
 
     if out_dir is None:
         out_dir = Path("runs") / time.strftime("%Y%m%d-%H%M%S")
+    _out_dir(out_dir)
+    specmod.load(spec, set_ or [])  # a bad spec, or one too large for this machine, fails before any work
     from .executor import session
 
     with session(workers, scheduler):  # one cluster for every parallel step of the pipeline
@@ -325,15 +436,43 @@ def bench(
     out.print_json(data=result)
 
 
+def _quiet_workers_on_interrupt() -> None:
+    """Ctrl-C reaches every process of the terminal's group: the command itself raises KeyboardInterrupt (typer
+    turns it into exit code 130) while a forked worker (process pools of campaign and diagnose) ends at once,
+    by the signal, instead of printing its own traceback."""
+    main_pid = os.getpid()
+
+    def on_sigint(signum: int, frame: object) -> None:
+        if os.getpid() != main_pid:
+            signal.signal(signal.SIGINT, signal.SIG_DFL)
+            os.kill(os.getpid(), signal.SIGINT)
+        raise KeyboardInterrupt
+
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        signal.signal(signal.SIGINT, on_sigint)
+
+
 def main() -> None:
     """Console entry point. Typer handles usage errors, --help and exit codes itself (standalone mode); a user
-    error raised by the library (bad spec, bad data, a failing FMU) becomes one line on stderr and exit code 2."""
+    error raised by the library (bad spec, bad data, a failing FMU) becomes one line on stderr and exit code 2;
+    Ctrl-C one line and exit code 130."""
+    _quiet_workers_on_interrupt()
     try:
         app()
-    except _user_errors() as e:
+    except SystemExit as e:  # first: an interrupt may have left a module half-imported, which _user_errors imports
+        if e.code == 130:
+            _stop_status()
+            print("error: interrupted", file=sys.stderr)
+        raise
+    except Exception as e:
+        if not isinstance(e, _user_errors()):
+            raise
+        _stop_status()
         msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         print(f"error: {msg}", file=sys.stderr)
         sys.exit(2)
+    finally:
+        _stop_status()
 
 
 if __name__ == "__main__":

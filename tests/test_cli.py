@@ -1,17 +1,28 @@
 """The command line: user mistakes are one line on stderr and a non-zero exit, never a traceback."""
 
 import json
+import os
+import shutil
+import signal
 import subprocess
 import sys
+import time
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
 
 
-def flexjoint(*args, cwd=None):
+def flexjoint(*args, cwd=None, env=None):
+    env = None if env is None else {**os.environ, **env}
     return subprocess.run(
-        [sys.executable, "-m", "harness.cli", *map(str, args)], capture_output=True, text=True, cwd=cwd, timeout=300
+        [sys.executable, "-m", "harness.cli", *map(str, args)],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        env=env,
+        timeout=300,
     )
 
 
@@ -73,3 +84,103 @@ def test_accept_gates_the_selected_model(tmp_path, fits, code):
     assert r.returncode == code, r.stderr + r.stdout
     if code:
         assert "b: 79.00 % < 80 %" in r.stderr and "c: unstable" in r.stderr
+
+
+TINY = (
+    '[campaign]\nname = "tiny"\nsample_rate = 50.0\n[plant]\ncoulomb_torque = 0.044\n'
+    '[[experiment]]\nname = "sq"\nsignal = "square"\nf = 0.5\namplitude = 1.0\nduration = 4.0\n'
+)
+
+
+def test_version():
+    from harness import __version__
+
+    r = flexjoint("--version")
+    assert r.returncode == 0 and r.stdout.strip() == f"flexjoint-harness {__version__}"
+
+
+def test_out_that_is_a_file_is_one_line(tmp_path):
+    f = tmp_path / "existing"
+    f.write_text("not a run")
+    line = _one_line_error(flexjoint("campaign", "specs/lab.toml", "--out", f, cwd=Path(__file__).parents[1]))
+    assert line == f"error: --out {f}: not a directory; give a new or existing directory"
+    line = _one_line_error(flexjoint("campaign", "lab", "--out", f / "run"))
+    assert f"({f} is a file)" in line
+    assert "not a directory" in _one_line_error(flexjoint("diagnose", "--real", tmp_path, "--out", f))
+    assert f.read_text() == "not a run"
+
+
+def test_campaign_too_large_for_the_machine_is_refused_with_the_estimate(tmp_path):
+    t0 = time.perf_counter()
+    line = _one_line_error(flexjoint("campaign", "lab", "--out", tmp_path / "r", "--set", "campaign.sample_rate=1e9"))
+    assert time.perf_counter() - t0 < 60  # refused before allocating anything
+    assert "needs ~" in line and "TiB of memory" in line and "this machine has" in line and "sample_rate" in line
+    assert not (tmp_path / "r").exists()
+
+
+def test_specs_lists_the_bundled_specs_and_init_copies_one(tmp_path):
+    r = flexjoint("specs")
+    assert r.returncode == 0, r.stderr
+    names = [ln.split()[0] for ln in r.stdout.splitlines()[:-1]]
+    assert {"lab", "nominal", "blind"} <= set(names) and "first lab" in r.stdout
+    r = flexjoint("init", tmp_path / "mine", "--spec", "nominal")
+    assert r.returncode == 0, r.stderr
+    copied = tmp_path / "mine" / "nominal.toml"
+    from harness.spec import SPEC_DIR
+
+    assert copied.read_text() == (SPEC_DIR / "nominal.toml").read_text()
+    assert "exists; pass --force" in _one_line_error(flexjoint("init", tmp_path / "mine", "--spec", "nominal"))
+    assert flexjoint("init", tmp_path / "mine", "--spec", "nominal", "--force").returncode == 0
+    assert "bundled: blind, lab, nominal" in _one_line_error(flexjoint("init", tmp_path, "--spec", "nope"))
+
+
+def test_build_failure_exits_non_zero(tmp_path):
+    from harness.build import bundled_dir
+
+    src = tmp_path / "fmus"
+    shutil.copytree(bundled_dir("fmus"), src)
+    model = src / "flexjoint" / "model.c"
+    model.write_text(model.read_text() + "\nint broken( {\n")
+    env = {"FLEXJOINT_FMU_SRC": str(src), "FLEXJOINT_CACHE": str(tmp_path / "cache")}
+    line = _one_line_error(flexjoint("build", env=env))
+    assert line.startswith("error: building flexjoint failed: model.c:") and "error" in line[6:]
+    env["FLEXJOINT_FMU_SRC"] = str(tmp_path / "empty")
+    assert "unknown FMU 'flexjoint'" in _one_line_error(flexjoint("build", env=env))
+
+
+def test_truncated_fmu_in_the_cache_is_rebuilt_not_a_crash(fmus, tmp_path):
+    """An interrupted build or a full disk left half an FMU in the cache: the campaign rebuilds it and runs."""
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    for path in fmus.values():
+        for f in (path, path.with_name(path.name + ".sha256")):
+            shutil.copy2(f, cache / f.name)
+    bad = cache / fmus["flexjoint"].name
+    bad.write_bytes(bad.read_bytes()[:1000])
+    spec = tmp_path / "tiny.toml"
+    spec.write_text(TINY)
+    r = flexjoint("campaign", spec, "--out", tmp_path / "run", env={"FLEXJOINT_CACHE": str(cache)})
+    assert r.returncode == 0, r.stderr
+    from harness.build import cached_fmu_ok
+
+    assert "Traceback" not in r.stderr and cached_fmu_ok(bad) and bad.stat().st_size > 1000
+    assert (tmp_path / "run" / "manifest.json").exists()
+
+
+def test_ctrl_c_is_one_line_and_exit_130(tmp_path):
+    """Ctrl-C reaches the whole process group (the command and its worker processes): one line, no traceback."""
+    cmd = [sys.executable, "-m", "harness.cli", "campaign", "lab", "--out", tmp_path / "r"]
+    p = subprocess.Popen(
+        [*map(str, cmd), "--set", "campaign.sample_rate=1000"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        env={**os.environ, "FLEXJOINT_WORKERS": "1"},  # serial: the CLI's own handling, not Dask's shutdown
+    )
+    time.sleep(4.0)
+    os.killpg(p.pid, signal.SIGINT)
+    _, stderr = p.communicate(timeout=60)
+    assert p.returncode == 130, stderr
+    assert "Traceback" not in stderr and stderr.strip().splitlines()[-1] == "error: interrupted", stderr
+    assert not (tmp_path / "r" / "manifest.json").exists()
