@@ -362,6 +362,22 @@ def sweep(
     )
 
 
+@app.command()
+def report(
+    run_dir: Annotated[Path, typer.Argument(help="run directory (from run, campaign, import, identify, diagnose)")],
+    rrd: Annotated[Path | None, typer.Option("--rrd", help="recording file (default RUN/run.rrd)")] = None,
+    spawn: Annotated[bool, typer.Option("--spawn", help="open a Rerun viewer")] = False,
+    connect: Annotated[str | None, typer.Option("--connect", help="stream to a running viewer at URL")] = None,
+) -> None:
+    """Write report.md, figures/ and run.rrd for any run directory, each section from what the directory holds."""
+    from .report import write_report
+    from .viewer import log_run
+
+    path = write_report(run_dir)
+    recording = log_run(run_dir, rrd=rrd, spawn=spawn, connect=connect)
+    out.print(f"{path} ({path.stat().st_size / 1024:.1f} kB), {path.parent / 'figures'}, {recording}")
+
+
 def diagnosis_summary(d: dict) -> str:
     """A few lines for the terminal: verdict, effects in greedy order with their fitted parameters, the shrink."""
     lines = [f"verdict: {d['verdict']}"]

@@ -37,10 +37,12 @@ __all__ = [
     "bode",
     "crossfit_table",
     "diagnosis_markdown",
+    "fold_roles",
     "gap_rows",
     "load_results",
     "pole_zero",
     "tip_from_filtered",
+    "waterfall",
     "write_report",
 ]
 
@@ -437,6 +439,17 @@ def _fig_crossfit(cf: pd.DataFrame, path: Path) -> None:
     _save(fig, path)
 
 
+# ----------------------------------------------------------------------------------------------- diagnosis
+VERDICT_MEANING = {
+    "none": "no gap beyond the measurement noise: the simulation explains the rig",
+    "quantization": "no gap beyond the measurement noise, but every sample sits on an ADC lattice: the rig's "
+    "converter quantises (found by this signature in the data, not by closing a gap)",
+    "unexplained": "the candidate effects together do not close enough of the gap beyond noise; the gap has a "
+    "cause outside the library (the partial candidates are listed with their honest shrink)",
+}
+STAGE_LABELS = {"before": "simulation as given", "after_recalibration": "after recalibration"}
+
+
 def _exp_gap(entry: Any) -> float:
     """Gap of one experiment from its per-channel fit [%]: sqrt(mean over channels of (1 - fit/100)^2)."""
     fit = entry.get("fit_pct") if isinstance(entry, dict) else entry
@@ -469,6 +482,31 @@ def gap_rows(diag: dict[str, Any]) -> list[tuple[str, float, float]]:
     ]
 
 
+def fold_roles(diag: dict[str, Any]) -> dict[str, str]:
+    """Experiment -> its fold of the diagnoser's 2-fold cross-fit (``folds`` {"A": [...], "B": [...]}):
+    "fold A" (parameters fitted on B score it), "fold B", or "A and B" for a lone experiment."""
+    folds = diag.get("folds")
+    roles: dict[str, str] = {}
+    if isinstance(folds, dict):
+        for k in ("A", "B"):
+            for name in folds.get(k) or []:
+                roles[str(name)] = "A and B" if name in roles else f"fold {k}"
+    return roles
+
+
+def waterfall(diag: dict[str, Any]) -> list[tuple[str, float, float]]:
+    """(stage, gap after it, share of the excess gap it closed [%]) from ``gap.decomposition``, starting with
+    ("simulation as given", gap before, nan); empty when the diagnosis has no decomposition."""
+    dec = (diag.get("gap") or {}).get("decomposition")
+    if not isinstance(dec, dict) or not math.isfinite(_num(dec.get("before"))):
+        return []
+    rows = [("simulation as given", _num(dec["before"]), math.nan)]
+    for s in dec.get("steps") or []:
+        if isinstance(s, dict):
+            rows.append((str(s.get("stage", "?")), _num(s.get("gap_after")), _num(s.get("closed_pct"))))
+    return rows
+
+
 def _channels(entry: Any) -> str:
     fit = entry.get("fit_pct") if isinstance(entry, dict) else entry
     if isinstance(fit, dict):
@@ -476,90 +514,265 @@ def _channels(entry: Any) -> str:
     return _fmt(fit)
 
 
-def diagnosis_markdown(diag: dict[str, Any]) -> list[str]:
-    """Markdown lines summarising ``diagnosis.json``: verdict, effects in greedy order, overall gap, per
-    experiment fits before/after, first-round candidates, noise floor, where, other scalar items."""
-    lines = [f"Verdict: **{diag.get('verdict', '—')}**", ""]
+def _params_text(params: Any) -> str:
+    if not isinstance(params, dict) or not params:
+        return "—"
+    return ", ".join(f"{k} = {_fmt_any(v)}" for k, v in params.items())
+
+
+def _verdict_lines(diag: dict[str, Any]) -> list[str]:
+    verdict = str(diag.get("verdict", "—"))
+    lines = [f"Verdict: **{verdict}**", ""]
     effects = [e for e in diag.get("effects", []) or [] if isinstance(e, dict)]
-    if effects:
-        rows = [
-            [
-                str(e.get("effect", "?")),
-                _fmt_any(e.get("params", {})),
-                _fmt_any(e.get("gap_before")),
-                _fmt_any(e.get("gap_after")),
-                _fmt_any(e.get("shrink_pct")),
-            ]
-            for e in effects
-        ]
-        lines += ["Effects, in the order they were added:", ""]
-        lines += [*_table(["effect", "fitted parameters", "gap before", "gap after", "shrink [%]"], rows), ""]
-    gap = diag.get("gap")
-    if isinstance(gap, dict):
-        rows = []
-        for key in ("gap", "fit_pct"):
-            b, a = (gap.get(w, {}) for w in ("before", "after"))
-            if isinstance(b, dict) and isinstance(a, dict) and key in b:
-                rows.append([f"{key} (all experiments)", _fmt_any(b.get(key)), _fmt_any(a.get(key))])
-        held = gap.get("held_out")
-        if isinstance(held, dict):
-            for key in ("gap", "fit_pct"):
-                if f"{key}_before" in held:
-                    rows.append(
-                        [
-                            f"{key} (held out)",
-                            _fmt_any(held[f"{key}_before"]),
-                            _fmt_any(held.get(f"{key}_after")),
-                        ]
-                    )
-        if rows:
-            lines += [*_table(["overall", "before", "after"], rows), ""]
-        shrink = [f"{k} = {_fmt_any(v)} %" for k, v in gap.items() if k.startswith("shrink")]
-        if shrink:
-            lines += ["Shrink: " + ", ".join(shrink) + ".", ""]
-    eb, ea = _gap_experiments(diag)
-    if eb:
-        roles = diag.get("experiments", {}) if isinstance(diag.get("experiments"), dict) else {}
-        held = set(roles.get("held_out", []) or [])
-        fitted = set(roles.get("fitted_on", []) or [])
-        rows = [
-            [
-                name,
-                "held out" if name in held else ("fitted" if name in fitted else "—"),
-                _channels(eb[name]),
-                _channels(ea.get(name)),
-                _fmt(_exp_gap(eb[name]), 4),
-                _fmt(_exp_gap(ea.get(name)), 4),
-            ]
-            for name in eb
-        ]
-        header = ["experiment", "role", "fit before [%]", "fit after [%]", "gap before", "gap after"]
-        lines += ["Per experiment:", "", *_table(header, rows), ""]
-    rounds = diag.get("rounds")
-    if isinstance(rounds, list) and rounds and isinstance(rounds[0], list):
-        rows = [
-            [str(c.get("effect", "?")), _fmt_any(c.get("params", {})), _fmt_any(c.get("shrink_pct"))]
-            for c in rounds[0]
-            if isinstance(c, dict)
-        ]
+    if verdict in VERDICT_MEANING:
+        lines += [f"`{verdict}`: {VERDICT_MEANING[verdict]}.", ""]
+    elif len(effects) == 1:
+        share = _fmt((diag.get("gap") or {}).get("explained_pct"), 1)
+        lines += [f"The only effect found; modelled, it closes {share} % of the gap beyond noise on held-out data.", ""]
+    elif effects:
+        first = str(effects[0].get("effect"))
+        why = "" if first == verdict else f" (`{first}` was added first, because it closed most of the gap alone)"
         lines += [
-            "Candidates, first round (each alone):",
-            "",
-            *_table(["effect", "parameters", "shrink [%]"], rows),
+            f"{len(effects)} effects found. The verdict is the one whose removal from the final model reopens most of "
+            f"the gap (drop-one importance below){why}.",
             "",
         ]
-    noise = diag.get("noise_floor")
-    if isinstance(noise, dict):
-        keys = [k for k in ("fit_pct", "gap", "method") if k in noise]
-        lines += ["Noise floor: " + ", ".join(f"{k} = {_fmt_any(noise[k])}" for k in keys) + ".", ""]
+    params = diag.get("parameters")
+    findings = [
+        str(p["finding"])
+        for p in (params.values() if isinstance(params, dict) else [])
+        if isinstance(p, dict) and p.get("finding") and "matches" not in str(p["finding"])
+    ]
+    if findings:
+        lines += ["Linear findings: " + "; ".join(findings) + ".", ""]
+    return lines
+
+
+def _effects_lines(diag: dict[str, Any]) -> list[str]:
+    effects = [e for e in diag.get("effects", []) or [] if isinstance(e, dict)]
+    if not effects:
+        return []
+    rows = [
+        [
+            str(e.get("effect", "?")),
+            _params_text(e.get("params")),
+            _fmt(e.get("importance_pct"), 1),
+            _fmt(e.get("gap_before"), 4),
+            _fmt(e.get("gap_after"), 4),
+            _fmt(e.get("shrink_pct"), 1),
+            str(e.get("selected_by", "—")),
+        ]
+        for e in effects
+    ]
+    header = ["effect", "fitted parameters", "importance [%]", "gap before", "gap after", "shrink [%]", "found by"]
+    lines = ["Effects, in the order they were added (gaps on held-out experiments):", "", *_table(header, rows), ""]
+    lines += [
+        "Importance: the share of the excess gap (above the noise floor) that reopens when the effect alone is "
+        "removed from the final model; shrink: how much the gap fell when the effect was added.",
+        "",
+    ]
+    if any("lattice" in str(e.get("selected_by", "")) for e in effects):
+        lines += [
+            "An effect found by its signature in the data (every sample on the ADC lattice) is added for the record, "
+            "not because it closes the gap: quantisation error looks like noise, so its shrink can be negative.",
+            "",
+        ]
+    return lines
+
+
+def _parameters_lines(diag: dict[str, Any]) -> list[str]:
+    params = diag.get("parameters")
+    if not isinstance(params, dict) or not params:
+        return []
+    rows = []
+    for name, p in params.items():
+        if not isinstance(p, dict):
+            continue
+        ci = p.get("ci95")
+        ci_text = f"{_fmt_any(ci[0])} .. {_fmt_any(ci[1])}" if isinstance(ci, list) and len(ci) == 2 else "—"
+        rows.append(
+            [
+                str(name),
+                str(p.get("unit", "—")),
+                _fmt_any(p.get("nominal")),
+                _fmt_any(p.get("fitted")),
+                ci_text,
+                _fmt(p.get("change_pct"), 1),
+                str(p.get("finding", "—")),
+            ]
+        )
+    applied = diag.get("recalibration_applied")
+    note = "" if applied is None else (" It was applied." if applied else " It closed too little to be kept.")
+    header = ["parameter", "unit", "nominal", "fitted", "95 % CI", "change [%]", "finding"]
+    return [
+        "Linear parameters of the simulation recalibrated against the data (within physical bounds): a linear "
+        f"mismatch is a finding about the rig, not an unmodelled effect.{note}",
+        "",
+        *_table(header, rows),
+        "",
+    ]
+
+
+def _decomposition_lines(diag: dict[str, Any], figure: str | None) -> list[str]:
+    rows = waterfall(diag)
+    if not rows:
+        return []
+    dec = diag["gap"]["decomposition"]
+    body = [[stage, _fmt(g, 4), _fmt(100.0 * (1.0 - g), 2), _fmt(c, 1)] for stage, g, c in rows]
+    noise = _num(dec.get("noise_floor"))
+    body.append(["noise floor", _fmt(noise, 4), _fmt(100.0 * (1.0 - noise), 2), "—"])
+    lines = [
+        "How far the gap shrinks, stage by stage (held-out experiments; fit % = 100 (1 - gap); closed: share of the "
+        "excess squared gap above the noise floor that the stage closes):",
+        "",
+        *_table(["stage", "gap", "fit [%]", "closed [%]"], body),
+        "",
+    ]
+    return [*lines, f"![gap waterfall]({figure})", ""] if figure else lines
+
+
+def _overall_lines(diag: dict[str, Any]) -> list[str]:
+    gap = diag.get("gap")
+    if not isinstance(gap, dict):
+        return []
+    rows = []
+    held = gap.get("held_out")
+    if isinstance(held, dict):
+        gaps = [_fmt(held.get("gap_before"), 4), _fmt(held.get("gap_after"), 4)]
+        rows.append(
+            [
+                "held out (fitted on the other fold)",
+                *gaps,
+                _fmt(held.get("fit_pct_before")),
+                _fmt(held.get("fit_pct_after")),
+            ]
+        )
+    b, a = gap.get("before"), gap.get("after")
+    if isinstance(b, dict) and isinstance(a, dict) and "gap" in b:
+        rows.append(
+            [
+                "all experiments, final parameters",
+                _fmt(b.get("gap"), 4),
+                _fmt(a.get("gap"), 4),
+                _fmt(b.get("fit_pct")),
+                _fmt(a.get("fit_pct")),
+            ]
+        )
+    if not rows:
+        return []
+    lines = [*_table(["gap", "before", "after", "fit before [%]", "fit after [%]"], rows), ""]
+    if "shrink_pct" in gap:
+        shrink = _fmt(gap.get("shrink_pct"), 1)
+        lines += [f"Held-out shrink {shrink} % (in sample {_fmt(gap.get('shrink_pct_in_sample'), 1)} %).", ""]
+    return lines
+
+
+def _experiments_lines(diag: dict[str, Any]) -> list[str]:
+    eb, ea = _gap_experiments(diag)
+    if not eb:
+        return []
+    roles = fold_roles(diag)
+    rows = [
+        [
+            name,
+            roles.get(name, "—"),
+            _channels(eb[name]),
+            _channels(ea.get(name)),
+            _fmt(_exp_gap(eb[name]), 4),
+            _fmt(_exp_gap(ea.get(name)), 4),
+        ]
+        for name in eb
+    ]
+    header = ["experiment", "fold", "fit before [%]", "fit after [%]", "gap before", "gap after"]
+    return [
+        "Per experiment (2-fold cross-fit: what is fitted on one fold is scored on the other, so every experiment "
+        "is held out once; 'after' here uses the final parameters):",
+        "",
+        *_table(header, rows),
+        "",
+    ]
+
+
+def _candidates_lines(diag: dict[str, Any]) -> list[str]:
+    cands = [c for c in diag.get("candidates", []) or [] if isinstance(c, dict)]
+    if not cands:
+        return []
+    rows = [
+        [
+            str(c.get("effect", "?")),
+            _params_text(c.get("params")),
+            _fmt(c.get("held_out_share_pct"), 1),
+            _fmt(c.get("shrink_pct"), 1),
+            str(c.get("note", "")) or "—",
+        ]
+        for c in cands
+    ]
+    header = ["candidate", "fitted parameters", "closes [%] of the excess", "shrink [%]", "note"]
+    return ["Candidates, each alone on the first round (held out):", "", *_table(header, rows), ""]
+
+
+def _where_stages(where: dict[str, Any]) -> list[tuple[str, dict[str, Any]]]:
+    """(label, where-dict) per stage: {"before": ..., "after_recalibration": ...}, or today's flat structure."""
+    staged = [(STAGE_LABELS[k], where[k]) for k in STAGE_LABELS if isinstance(where.get(k), dict)]
+    return staged or [("simulation as given", where)]
+
+
+def _where_cells(s: dict[str, Any]) -> list[str]:
+    """Dominant band, amplitude regime, events and headline of one channel's pooled where-summary."""
+    fr = s.get("frequency") or {}
+    band = fr.get("dominant_band")
+    band_text = f"{band} ({_fmt(100.0 * _num(fr.get('dominant_share')), 0)} %)" if band else "—"
+    regime = str((s.get("amplitude") or {}).get("regime", "—"))
+    ev = s.get("events") or {}
+    conc = [k for k in ("reversals", "wraps") if isinstance(ev.get(k), dict) and ev[k].get("concentrates")]
+    return [band_text, regime, ", ".join(conc) or "none", str(s.get("headline", "—"))]
+
+
+def _where_lines(diag: dict[str, Any]) -> list[str]:
     where = diag.get("where")
-    if isinstance(where, dict) and where:
-        lines += ["Where the gap is:", ""]
-        lines += [*_table(["domain", "finding"], [[str(k), _fmt_any(v)] for k, v in where.items()]), ""]
-    done = {"effects", "verdict", "where", "gap", "experiments", "rounds", "candidates", "noise_floor"}
-    rest = [[str(k), _fmt_any(v)] for k, v in diag.items() if k not in done and len(_fmt_any(v)) <= 200]
-    if rest:
-        lines += [*_table(["item", "value"], rest), ""]
+    if not isinstance(where, dict) or not where:
+        return []
+    if "skipped" in where:
+        return [f"Where the gap is: not analysed ({where['skipped']}).", ""]
+    rows = []
+    for label, w in _where_stages(where):
+        for ch in ("theta", "alpha"):
+            s = w.get(ch)
+            if isinstance(s, dict) and s:
+                rows.append([label, ch, *_where_cells(s)])
+    lines = []
+    if rows:
+        header = ["residual of", "channel", "dominant band", "amplitude", "concentrates at", "finding"]
+        lines += ["Where the gap is (pooled over experiments; per experiment in `diagnosis.json`):", ""]
+        lines += [*_table(header, rows), ""]
+    masked = where.get("masked")
+    if isinstance(masked, dict) and masked:
+        share = ", ".join(f"{k} {_fmt(100.0 * _num(v), 1)} %" for k, v in masked.items())
+        lines += [f"Samples masked as invalid (pot dead band, ADC clipping) and left out of every gap: {share}.", ""]
+    return lines
+
+
+def diagnosis_markdown(diag: dict[str, Any], waterfall_figure: str | None = None) -> list[str]:
+    """Markdown lines summarising ``diagnosis.json`` for a person: verdict and what it means, recalibrated
+    parameters, effects with their importance, the gap stage by stage (with ``waterfall_figure`` when given),
+    overall and per-experiment gaps with the folds, first-round candidates, noise floor and where the gap is.
+    Absent parts are skipped; nothing is printed as a raw dictionary."""
+    lines = _verdict_lines(diag)
+    lines += _parameters_lines(diag)
+    lines += _effects_lines(diag)
+    lines += _decomposition_lines(diag, waterfall_figure)
+    lines += _overall_lines(diag)
+    lines += _experiments_lines(diag)
+    lines += _candidates_lines(diag)
+    noise = diag.get("noise_floor")
+    if isinstance(noise, dict) and "gap" in noise:
+        parts = [f"gap {_fmt(noise.get('gap'), 4)} (fit {_fmt(noise.get('fit_pct'))} %)"]
+        for ch in ("theta", "alpha"):
+            if f"{ch}_deg" in noise:
+                parts.append(f"{ch} {_fmt_any(noise[f'{ch}_deg'])} deg rms")
+        how = f", {noise['method']}" if isinstance(noise.get("method"), str) else ""
+        lines += [f"Noise floor (from the data{how}): " + ", ".join(parts) + ".", ""]
+    lines += _where_lines(diag)
     return lines
 
 
@@ -582,8 +795,32 @@ def _fig_diagnosis(rows: list[tuple[str, float, float]], path: Path) -> None:
     ax.bar(x + 0.2, [r[2] for r in rows], 0.4, label="gap after")
     ax.set_xticks(x, [r[0] for r in rows], rotation=30, ha="right", fontsize=8)
     ax.set_ylabel("gap")
-    ax.set_title("sim-to-real gap before / after modelling the effects")
+    ax.set_title("sim-to-real gap per experiment before / after modelling the effects")
     ax.legend()
+    fig.tight_layout()
+    _save(fig, path)
+
+
+def _fig_waterfall(rows: list[tuple[str, float, float]], noise: float, path: Path) -> None:
+    """The held-out gap stage by stage: the first bar is the gap before, each next one floats from the previous
+    gap to the gap after its stage (green when it closes, red when it reopens), the noise floor dashed."""
+    fig = _new_figure(max(5.0, 1.1 * len(rows) + 2), 4)
+    ax = fig.subplots()
+    prev = rows[0][1]
+    ax.bar(0, prev, 0.6, color="C0")
+    for i, (_, g, _) in enumerate(rows[1:], 1):
+        lo, hi = min(prev, g), max(prev, g)
+        ax.bar(i, hi - lo, 0.6, bottom=lo, color="C2" if g <= prev else "C3")
+        ax.plot([i - 1.3, i + 0.3], [prev, prev], color="0.5", lw=0.6)
+        prev = g
+    ax.bar(len(rows), prev, 0.6, color="C0")
+    if math.isfinite(noise):
+        ax.axhline(noise, color="k", ls="--", lw=0.8, label=f"noise floor {noise:.4f}")
+        ax.legend(fontsize=8)
+    labels = [r[0] for r in rows] + ["final"]
+    ax.set_xticks(np.arange(len(labels)), labels, rotation=30, ha="right", fontsize=8)
+    ax.set_ylabel("held-out gap (fit % = 100 (1 - gap))")
+    ax.set_title("gap waterfall: recalibration, then each effect")
     fig.tight_layout()
     _save(fig, path)
 
@@ -597,15 +834,33 @@ def _section_header(res: RunResults) -> list[str]:
     lines = [f"# flexjoint run report: {name or res.run.name}", ""]
     rows = [
         ["kind", str(m.get("kind", "—"))],
-        ["spec sha256", f"`{m['spec_sha256']}`" if m.get("spec_sha256") else "—"],
-        ["seed", _fmt_any(m.get("seed"))],
+        ["spec sha256", f"`{m['spec_sha256']}`" if m.get("spec_sha256") else ""],
+        ["random seed", _fmt_any(m.get("seed")) if m.get("seed") is not None else ""],
         ["sample rate [Hz]", _fmt_any(m.get("sample_rate"))],
         ["experiments", str(len(m.get("experiments", [])))],
         ["identification datasets", ", ".join(res.prepared) or "—"],
     ]
+    rows = [r for r in rows if r[1]]
     for k, v in sorted((m.get("versions") or {}).items()):
         rows.append([f"version {k}", str(v)])
-    return [*lines, *_table(["item", "value"], rows), ""]
+    lines += [*_table(["item", "value"], rows), ""]
+    sources = m.get("sources")
+    if m.get("kind") == "import" and isinstance(sources, dict) and sources:
+        units = {e.get("name"): e.get("units", {}) for e in m.get("experiments", []) if isinstance(e, dict)}
+        body = [
+            [
+                name,
+                f"`{src.get('file', '?')}`",
+                str(src.get("format", "—")),
+                ", ".join(f"{k} {units[name][k]}" for k in ("t", "u", "theta", "alpha") if k in units.get(name, {}))
+                or "—",
+                "; ".join(src.get("notes") or []) or "—",
+            ]
+            for name, src in sources.items()
+            if isinstance(src, dict)
+        ]
+        lines += ["Imported records:", "", *_table(["dataset", "file", "format", "units", "notes"], body), ""]
+    return lines
 
 
 def _section_calibration(res: RunResults) -> list[str]:
@@ -621,7 +876,7 @@ def _section_calibration(res: RunResults) -> list[str]:
         rows.append([label, unit, _fmt(v, 4), _fmt(s, 4), _fmt(diff, 2)])
     rows.append(["gauge offset", "V", _fmt(cal.gauge_offset_v, 4), "—", "—"])
     rows.append(["pot offset", "V", _fmt(cal.pot_offset_v, 4), "—", "—"])
-    lines += _table(["quantity", "unit", "this run", "seed 000", "difference [%]"], rows)
+    lines += _table(["quantity", "unit", "this run", "lab 1", "difference [%]"], rows)
     src = (res.calibration_file or {}).get("source") or {}
     methods = [f"- {k}: {v['method']}" for k, v in src.items() if isinstance(v, dict) and "method" in v]
     if methods:
@@ -689,7 +944,7 @@ def _section_grid(res: RunResults) -> list[str]:
     per = [(n, r) for n, (_, r) in res.models.items() if n != "selected"]
     if per:
         rows = [[n, _orders(r), _fmt(r.get("fit_own")), _fmt(r.get("cv_mean"))] for n, r in per]
-        lines += ["Best model per dataset:", ""]
+        lines += ["Model chosen per dataset (by the selection rule; the highest fit of each is in `grid.csv`):", ""]
         lines += _table(["dataset", "(na,nb,nc,nk)", "fit own [%]", "mean CV fit [%]"], rows) + [""]
     lines += [
         "Coefficients (full precision in `models/selected.json`):",
@@ -848,6 +1103,14 @@ def _section_resid(res: RunResults, figdir: Path) -> list[str]:
         )
     assert own_test is not None
     _fig_resid(own_test, f"residuals of the selected model on {own}", figdir / "residuals.png")
+    coloured = [r[0] for r in rows if r[2] == "no"]
+    verdict = (
+        f"The residuals are not white on {len(coloured)} of {len(rows)} datasets: the noise model C misses part of "
+        "the disturbance (or the dynamics are undermodelled); the fit thresholds of `flexjoint accept` do not test "
+        "this."
+        if coloured
+        else "The residuals are white on every dataset."
+    )
     return [
         "## Residual tests",
         "",
@@ -855,6 +1118,8 @@ def _section_resid(res: RunResults, figdir: Path) -> list[str]:
         f"{_fmt(own_test.bound, 4)} on `{own}`.",
         "",
         *_table(["dataset", "acf lags outside", "white", "ccf lags outside", "independent"], rows),
+        "",
+        verdict,
         "",
         "![residual correlations](figures/residuals.png)",
         "",
@@ -873,14 +1138,23 @@ def _section_diagnosis(res: RunResults, figdir: Path) -> list[str]:
     d = res.diagnosis
     if d is None:
         return []
-    lines = ["## Sim-to-real gap diagnosis", "", *diagnosis_markdown(d)]
+    steps = waterfall(d)
+    fig = None
+    if len(steps) > 1:
+        noise = _num(d["gap"]["decomposition"].get("noise_floor"))
+        _fig_waterfall(steps, noise, figdir / "gap_waterfall.png")
+        fig = "figures/gap_waterfall.png"
+    sim = d.get("sim_spec")
+    lines = ["## Sim-to-real gap diagnosis", ""]
+    if sim:
+        lines += [f"The data of this run against the simulation `{sim}`; every number is in `diagnosis.json`.", ""]
+    lines += diagnosis_markdown(d, fig)
     rows = [r for r in gap_rows(d) if math.isfinite(r[1]) or math.isfinite(r[2])]
     if rows:
-        roles = d.get("experiments") if isinstance(d.get("experiments"), dict) else {}
-        held = set(roles.get("held_out", []) or [])
-        rows = [(f"{r[0]} (held out)" if r[0] in held else r[0], r[1], r[2]) for r in rows]
+        roles = fold_roles(d)
+        rows = [(f"{r[0]} ({roles[r[0]]})" if r[0] in roles else r[0], r[1], r[2]) for r in rows]
         _fig_diagnosis(rows, figdir / "diagnosis.png")
-        lines += ["![diagnosis](figures/diagnosis.png)", ""]
+        lines += ["![gap per experiment](figures/diagnosis.png)", ""]
     return lines
 
 
@@ -888,9 +1162,12 @@ def _section_diagnosis(res: RunResults, figdir: Path) -> list[str]:
 def write_report(run: Path) -> Path:
     """Write ``<run>/report.md`` and ``<run>/figures/*.png`` from the run directory alone; returns report.md.
 
-    Sections: run header, calibration vs seed 000, preprocessing filter (af = 0.6, 0.8, 0.9), grid summary and
-    selection, cross-fit table (averages computed), selected model with integrator (Bode, pole-zero, square
-    wave), time responses, residual tests, doubled-rate check and diagnosis when their JSON files exist.
+    Any run directory (a campaign, an import, identified or not, diagnosed or not): each section is written from
+    what the directory holds and skipped (or one line) when it has nothing for it. Sections: run header (with the
+    imported records' formats and units), calibration vs lab 1, preprocessing filter (af = 0.6, 0.8, 0.9), grid
+    summary and selection, cross-fit table (averages computed), selected model with integrator (Bode, pole-zero,
+    square wave), time responses, residual tests, doubled-rate check and the diagnosis (verdict and what it
+    means, recalibrated parameters, effects with their drop-one importance, gap waterfall, folds, where).
     Every file is written atomically (temp file + rename).
     """
     res = load_results(run)

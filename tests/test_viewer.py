@@ -1,8 +1,12 @@
-"""run.rrd of a hand-built run directory read back with rerun.chunk.RrdReader, checked against its inputs."""
+"""run.rrd read back with rerun.chunk.RrdReader (rerun-sdk 0.41): the data checked against its inputs, and the
+blueprint checked view by view: every view's contents resolve to entities that hold data of the view's kind,
+static or on the time panel's timeline, so no view opens blank."""
 
 from __future__ import annotations
 
 import json
+import math
+import shutil
 import socket
 from pathlib import Path
 
@@ -12,25 +16,44 @@ import rerun as rr
 from rerun.chunk import RrdReader
 
 from harness import armax
-from harness.viewer import APPLICATION_ID, log_run, recording_id
+from harness.viewer import APPLICATION_ID, CORR_HEIGHT, DB_PER_UNIT, log_run, recording_id
 
 try:
-    from test_report import AF, GAPS, NAMES, TS, build_run
+    from test_report import AF, NAMES, TS, build_run, diagnosed_twin, exp_gap
 except ImportError:  # tests/ imported as a package
-    from tests.test_report import AF, GAPS, NAMES, TS, build_run
+    from tests.test_report import AF, NAMES, TS, build_run, diagnosed_twin, exp_gap
+
+# what each kind of view draws (the component that carries the data)
+VIEW_DATA = {
+    "TimeSeries": {"Scalars:scalars"},
+    "2D": {"LineStrips2D:strips", "Points2D:positions", "Image:buffer"},
+    "Tensor": {"Tensor:data"},
+    "TextDocument": {"TextDocument:text"},
+    "BarChart": {"BarChart:values"},
+}
+DATA = set().union(*VIEW_DATA.values())
+
+
+def read_chunks(rrd: Path) -> dict[str, list[dict]]:
+    chunks: dict[str, list[dict]] = {}
+    for c in RrdReader(rrd).stream():
+        chunks.setdefault(c.entity_path, []).append(c.to_record_batch().to_pydict())
+    return chunks
 
 
 @pytest.fixture(scope="module")
-def logged(tmp_path_factory) -> tuple[Path, dict, dict[str, list[dict]], Path]:
+def twin(tmp_path_factory, fmus) -> tuple[Path, dict]:
+    path = diagnosed_twin(tmp_path_factory)
+    return path, json.loads((path / "diagnosis.json").read_text())
+
+
+@pytest.fixture(scope="module")
+def logged(tmp_path_factory, twin) -> tuple[Path, dict, dict[str, list[dict]], Path]:
     rr.set_strict_mode(True)
     root = tmp_path_factory.mktemp("vrun")
-    truth = build_run(root)
+    truth = build_run(root, twin[1])
     rrd = log_run(root)
-    chunks: dict[str, list[dict]] = {}
-    reader = RrdReader(rrd)
-    for c in reader.stream():
-        chunks.setdefault(c.entity_path, []).append(c.to_record_batch().to_pydict())
-    return root, truth, chunks, rrd
+    return root, truth, read_chunks(rrd), rrd
 
 
 def _column(chunks: dict[str, list[dict]], path: str, col: str) -> list:
@@ -40,23 +63,111 @@ def _column(chunks: dict[str, list[dict]], path: str, col: str) -> list:
     raise KeyError(f"{path} has no column {col}")
 
 
-def test_recording_ids_and_blueprint(logged):
+# ----------------------------------------------------------------------------------------------- the blueprint
+def blueprint_views(rrd: Path) -> tuple[list[dict], str]:
+    """The views of the recording's blueprint ({class, name, origin, queries}) and the time panel's timeline."""
+    reader = RrdReader(rrd)
+    (store,) = reader.blueprints()
+    views: dict[str, dict] = {}
+    timeline = ""
+    for c in reader.stream(store=store):
+        d = c.to_record_batch().to_pydict()
+        parts = c.entity_path.strip("/").split("/")
+        if "TimePanelBlueprint:timeline" in d:
+            timeline = d["TimePanelBlueprint:timeline"][-1][0]
+        if parts[0] != "view":
+            continue
+        v = views.setdefault(parts[1], {"queries": ["$origin/**"]})
+        for key, field in (("class", "class_identifier"), ("name", "display_name"), ("origin", "space_origin")):
+            if d.get(f"ViewBlueprint:{field}"):
+                v[key] = d[f"ViewBlueprint:{field}"][-1][0]
+        if d.get("ViewContents:query"):
+            v["queries"] = d["ViewContents:query"][-1]
+    return list(views.values()), timeline
+
+
+def data_index(rrd: Path) -> dict[str, dict[str, set[str]]]:
+    """entity -> {"static" or timeline name: data components logged there}."""
+    out: dict[str, dict[str, set[str]]] = {}
+    for c in RrdReader(rrd).stream():
+        cols = {k for k, v in c.to_record_batch().to_pydict().items() if k in DATA and any(x is not None for x in v)}
+        if not cols:
+            continue
+        where = out.setdefault(c.entity_path, {})
+        for key in ["static"] if c.is_static else c.timeline_names:
+            where.setdefault(key, set()).update(cols)
+    return out
+
+
+def resolve(origin: str, queries: list[str], entities: list[str]) -> list[str]:
+    """Entities a view's contents select: ``$origin/x`` exact, ``.../**`` a subtree, ``- expr`` excluded."""
+
+    def match(expr: str, path: str) -> bool:
+        expr = "/" + expr.replace("$origin", origin.strip("/")).strip("/")
+        if expr.endswith("/**"):
+            root = expr[:-3].rstrip("/")
+            return path == root or path.startswith(root + "/") or root == ""
+        return path == expr
+
+    chosen = []
+    for path in entities:
+        plus = [q for q in queries if not q.strip().startswith("-")]
+        minus = [q.strip()[1:].strip() for q in queries if q.strip().startswith("-")]
+        if any(match(q.strip().lstrip("+").strip(), path) for q in plus) and not any(match(q, path) for q in minus):
+            chosen.append(path)
+    return chosen
+
+
+def check_every_view_shows_data(rrd: Path) -> list[dict]:
+    views, timeline = blueprint_views(rrd)
+    assert timeline == "time"
+    index = data_index(rrd)
+    for v in views:
+        wanted = VIEW_DATA[v["class"]]
+        ents = resolve(v["origin"], v["queries"], list(index))
+        shown = [e for e in ents if any(wanted & cols for cols in index[e].values())]
+        assert shown, f"view {v['name']!r} ({v['class']}, {v['origin']}) selects no entity with {sorted(wanted)}"
+        for e in shown:
+            visible = {k for k, cols in index[e].items() if wanted & cols}
+            if v["class"] == "TimeSeries":
+                assert visible == {timeline}, f"{v['name']!r}: {e} has its series on {visible}, not {timeline!r}"
+            else:
+                assert visible <= {"static", timeline}, f"{v['name']!r}: {e} is only on timeline(s) {visible}"
+    return views
+
+
+def test_every_view_of_the_blueprint_shows_data(logged):
+    _, _, _, rrd = logged
+    views = check_every_view_shows_data(rrd)
+    kinds = {v["class"] for v in views}
+    assert {"TimeSeries", "Tensor", "TextDocument", "2D", "BarChart"} <= kinds
+    names = [v["name"] for v in views]
+    for label in ("Bode magnitude [dB] vs log10 f [Hz]", "Bode phase [deg] vs log10 f [Hz]",
+                  "residual autocorrelation r_ee vs lag [samples]"):  # fmt: skip
+        assert label in names
+    bode = [v for v in views if v["origin"].strip("/").startswith("bode")]
+    assert bode and all(v["class"] == "2D" for v in bode)  # not a TimeSeries on a frequency timeline
+
+
+def test_every_view_shows_data_for_a_run_without_models(twin, tmp_path):
+    run = tmp_path / "twin"
+    shutil.copytree(twin[0], run)
+    views = check_every_view_shows_data(log_run(run))
+    assert {v["class"] for v in views} == {"TimeSeries", "TextDocument", "BarChart"}
+
+
+def test_recording_ids(logged):
     root, _, _, rrd = logged
     assert rrd == root / "run.rrd"
-    reader = RrdReader(rrd)
-    (recording,) = reader.recordings()
+    (recording,) = RrdReader(rrd).recordings()
     assert recording.application_id == APPLICATION_ID == "flexjoint"
     manifest = json.loads((root / "manifest.json").read_text())
     assert recording.recording_id == recording_id(manifest)
     assert recording_id(manifest) != recording_id({**manifest, "spec_sha256": "00" * 32})
-    views = set()
-    for c in reader.stream(store=reader.blueprints()[0]):
-        d = c.to_record_batch().to_pydict()
-        views.update(v[0] for v in d.get("ViewBlueprint:class_identifier", []) if v)
-    assert {"TimeSeries", "Tensor", "TextDocument", "2D", "BarChart"} <= views
     assert not list(root.glob(".run.rrd*"))
 
 
+# ----------------------------------------------------------------------------------------------- the data
 def test_series_match_the_data(logged):
     _, truth, chunks, _ = logged
     for name in NAMES:
@@ -77,56 +188,89 @@ def test_series_match_the_data(logged):
         assert names == [["simulated y_f"]]
 
 
-def test_crossfit_tensor_and_table(logged):
+def test_crossfit_tensor_heatmap_and_table(logged):
     _, truth, chunks, _ = logged
     (tensor,) = _column(chunks, "/crossfit/matrix", "Tensor:data")[0]
     assert tensor["names"] == ["model", "dataset"]
     cf = truth["crossfit"]
     assert tensor["shape"] == [len(cf), len(NAMES)]
     np.testing.assert_allclose(np.reshape(tensor["buffer"], tensor["shape"]), cf.to_numpy(), atol=5e-7)
-    assert _column(chunks, "/crossfit/table", "TextDocument:media_type") == [["text/markdown"]]
+    # the heat map: a value per cell, the models by name, the datasets numbered 1..n as in the table
+    values = _column(chunks, "/crossfit/heatmap/values", "Points2D:labels")[0]
+    assert values == [f"{v:.1f}" for v in cf.to_numpy().ravel()]
+    assert _column(chunks, "/crossfit/heatmap/rows", "Points2D:labels")[0] == list(cf.index)
+    assert _column(chunks, "/crossfit/heatmap/columns", "Points2D:labels")[0] == ["1", "2", "3"]
+    scale = _column(chunks, "/crossfit/heatmap/scale", "Points2D:labels")[0]
+    assert (
+        scale[0] == f"{math.ceil(cf.to_numpy().max()):.0f} %"
+        and scale[-1] == f"{math.floor(cf.to_numpy().min()):.0f} %"
+    )
     text = _column(chunks, "/crossfit/table", "TextDocument:text")[0][0]
+    header = next(line for line in text.splitlines() if line.startswith("| Models/Data Sets"))
+    assert [c.strip() for c in header.strip("|").split("|")][1:4] == ["1", "2", "3"]
+    assert "1 = `prbs_a`, 2 = `prbs_b`, 3 = `square_c`" in text
     row = next(line for line in text.splitlines() if line.startswith("| selected"))
     assert row.split("|")[-2].strip() == f"{cf.loc['selected'].mean():.2f}"
 
 
-def test_pole_zero_bode_resid_diagnosis(logged):
+def test_pole_zero_and_bode_in_2d(logged):
     _, truth, chunks, _ = logged
     m = truth["models"]["selected"]
     poles = np.array(_column(chunks, "/models/selected/pz/poles", "Points2D:positions")[0])
     ref = np.roots(np.convolve(m.A, [1.0, -1.0]))
-    got = poles[:, 0] + 1j * poles[:, 1]
+    got = poles[:, 0] - 1j * poles[:, 1]  # drawn at (Re, -Im): 2D views point y down
     np.testing.assert_allclose(np.sort_complex(got), np.sort_complex(ref), atol=1e-6)  # stored as float32
     assert len(_column(chunks, "/models/selected/pz/zeros", "Points2D:positions")[0]) == 4
-    circle = np.array(_column(chunks, "/models/selected/pz/unit_circle", "LineStrips2D:strips")[0][0])
-    np.testing.assert_allclose(np.hypot(circle[:, 0], circle[:, 1]), 1.0, atol=1e-6)
 
-    # Bode of the selected model at 1 Hz: |B/A / H| evaluated directly, H = (1-af)(1-z^-1)/(1-af z^-1)
-    f_mhz = np.array(_column(chunks, "/bode/magnitude/selected", "frequency_mHz"))
-    mag = np.array(_column(chunks, "/bode/magnitude/selected", "Scalars:scalars"))[:, 0]
-    k = int(np.argmin(np.abs(f_mhz - 1000)))
-    zi = np.exp(-2j * np.pi * f_mhz[k] / 1000.0 * TS)
+    # Bode of the selected model near 1 Hz: x = log10 f, y = -magnitude / 20 dB; |B/A / H| evaluated directly
+    (strip,) = _column(chunks, "/bode/magnitude/selected", "LineStrips2D:strips")[0]
+    xy = np.array(strip, dtype=float)
+    assert np.all(np.diff(xy[:, 0]) > 0) and xy[-1, 0] == pytest.approx(np.log10(0.999 * 0.5 / TS), abs=1e-5)
+    k = int(np.argmin(np.abs(xy[:, 0])))
+    f = 10.0 ** xy[k, 0]
+    zi = np.exp(-2j * np.pi * f * TS)
     h = np.polyval(m.B[::-1], zi) / np.polyval(m.A[::-1], zi) * (1 - AF * zi) / ((1 - AF) * (1 - zi))
-    assert mag[k] == pytest.approx(20 * np.log10(abs(h)), abs=1e-9)
+    assert -DB_PER_UNIT * xy[k, 1] == pytest.approx(20 * np.log10(abs(h)), abs=2e-3)  # float32 positions
     for name in NAMES:
         assert f"/bode/phase/{name}" in chunks
+    ticks = _column(chunks, "/bode/magnitude/axes/ticks", "Points2D:labels")[0]
+    assert "1 Hz" in ticks and any(t.endswith(" dB") for t in ticks)
 
-    acf = np.array(_column(chunks, f"/resid/acf/{NAMES[0]}", "Scalars:scalars"))[:, 0]
-    assert acf[0] == pytest.approx(1.0)
-    lags = _column(chunks, f"/resid/ccf/{NAMES[0]}", "lag")
-    assert lags[0] == -25 and lags[-1] == 25
-    bound = np.array(_column(chunks, "/resid/acf/bound_upper", "Scalars:scalars"))[:, 0]
-    assert bound[0] == pytest.approx(2.58 / np.sqrt(truth["y_f"][NAMES[0]].size))
-    before = _column(chunks, "/diagnosis/gap_before", "BarChart:values")[0][0]
-    after = _column(chunks, "/diagnosis/gap_after", "BarChart:values")[0][0]
-    gaps = np.array(list(GAPS.values()))
-    np.testing.assert_allclose(before["buffer"], gaps[:, 0], atol=1e-6)
-    np.testing.assert_allclose(after["buffer"], gaps[:, 1], atol=1e-6)
+
+def test_residual_correlations_in_2d(logged):
+    _, truth, chunks, _ = logged
+    (acf,) = _column(chunks, f"/resid/acf/{NAMES[0]}", "LineStrips2D:strips")[0]
+    acf = np.array(acf, dtype=float)
+    assert acf[0, 0] == 0.0 and -acf[0, 1] / CORR_HEIGHT == pytest.approx(1.0, abs=1e-6)  # r_ee(0) = 1
+    (ccf,) = _column(chunks, f"/resid/ccf/{NAMES[0]}", "LineStrips2D:strips")[0]
+    ccf = np.array(ccf, dtype=float)
+    assert ccf.shape[0] == 51 and ccf[0, 0] == pytest.approx(-ccf[-1, 0])  # lags -25..25
+    bounds = _column(chunks, "/resid/acf/bounds", "LineStrips2D:strips")[0]
+    bound = 2.58 / np.sqrt(truth["y_f"][NAMES[0]].size)
+    assert abs(np.array(bounds[0], dtype=float)[0, 1]) / CORR_HEIGHT == pytest.approx(bound, rel=1e-5)
+
+
+def test_diagnosis_bars_show_before_and_after(logged, twin):
+    _, _, chunks, _ = logged
+    d = twin[1]
+    exps = d["gap"]["before"]["experiments"]
+    before = _column(chunks, "/diagnosis/gap/before", "BarChart:values")[0][0]
+    after = _column(chunks, "/diagnosis/gap/after", "BarChart:values")[0][0]
+    np.testing.assert_allclose(before["buffer"], [exp_gap(exps[n]) for n in exps], atol=1e-6)
+    np.testing.assert_allclose(after["buffer"], [exp_gap(d["gap"]["after"]["experiments"][n]) for n in exps], atol=1e-6)
+    # side by side, not on top of each other: left and right halves of each slot
+    xb = np.array(_column(chunks, "/diagnosis/gap/before", "BarChart:abscissa")[0][0]["buffer"])
+    xa = np.array(_column(chunks, "/diagnosis/gap/after", "BarChart:abscissa")[0][0]["buffer"])
+    wb = np.array(_column(chunks, "/diagnosis/gap/before", "BarChart:widths")[0])
+    assert np.all(xb + wb / 2 <= xa - wb / 2 + 1e-6)  # widths are float32
     summary = _column(chunks, "/diagnosis/summary", "TextDocument:text")[0][0]
-    assert "0 = rig_a, 1 = rig_b" in summary and "Verdict: **coulomb_friction**" in summary
+    assert "Verdict: **coulomb_friction**" in summary and "red (left) before and blue (right) after" in summary
+    if "decomposition" in d["gap"]:
+        stages = _column(chunks, "/diagnosis/waterfall", "BarChart:values")[0][0]["buffer"]
+        assert stages[0] == pytest.approx(d["gap"]["decomposition"]["before"], rel=1e-6)
 
 
-def test_connect_and_errors_leave_no_half_file(logged, tmp_path):
+def test_connect_and_errors_leave_no_half_file(logged, twin, tmp_path):
     root, _, _, rrd = logged
     with pytest.raises(ValueError, match="invalid viewer URL"):
         log_run(root, rrd=tmp_path / "x.rrd", connect="http://localhost:9876")
@@ -144,7 +288,7 @@ def test_connect_and_errors_leave_no_half_file(logged, tmp_path):
 
     before = rrd.read_bytes()
     bad = tmp_path / "bad"
-    build_run(bad)
+    build_run(bad, twin[1])
     (bad / "models" / "selected.json").write_text('{"na": 2}')
     with pytest.raises(ValueError, match=r"selected\.json: ARMAX model dict lacks the key"):
         log_run(bad)
