@@ -339,6 +339,7 @@ def sweep(
     from . import spec as specmod
     from .sweep import run_sweep
 
+    _out_dir(out_dir)
     s = specmod.load(spec, set_ or [])
     doc = run_sweep(
         s,
@@ -357,7 +358,7 @@ def sweep(
     top = sens["ranking"][0]
     out.print(
         f"{p['n']} rigs: {p['passed']} pass = {100 * p['rate']:.1f} % (95 % CI {100 * p['ci95'][0]:.1f}-"
-        f"{100 * p['ci95'][1]:.1f} %); most sensitive: {top['param']} (SRRC {top['srrc']:+.2f}); "
+        f"{100 * p['ci95'][1]:.1f} %); most sensitive: {top['param']} (S1 {top['s1']:.2f}); "
         f"{doc['wall_s']:.1f} s -> {out_dir}"
     )
 

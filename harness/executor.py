@@ -270,7 +270,7 @@ class Executor:
         """Workers the tasks are spread over now (1 on the serial path)."""
         if self.client is None:
             return 1
-        return max(len(self.client.scheduler_info(n_workers=-1).get("workers", {})), 1)
+        return max(len(self.client.nthreads()), 1)
 
     def close(self) -> None:
         """Release the scattered data, and close the client and the local cluster if this executor started them."""

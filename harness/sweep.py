@@ -15,8 +15,10 @@ mapped through the inverse CDF of its parameter's distribution:
 - ``lognormal(median, s)``: log(x) ~ normal(log(median), s), so s is about the relative spread (x > 0);
 - ``triangular(lo, mode, hi)``: triangular on [lo, hi] with its peak at mode.
 
-Integer FMU parameters are rounded to the nearest integer. Each rig gets its own measurement-noise seed
-(``campaign.seed`` derived from ``seed`` and the rig's index): rigs differ in their noise as real ones do.
+Integer FMU parameters are rounded to the nearest integer. Every rig is driven by the spec's own commands (the
+same PRBS realisations, as a lab reuses its excitation files) and gets its own measurement-noise seed
+(``daq.seed``, derived from ``seed`` and the rig's index): rigs differ in their build and in their noise, not in
+the test they are put through.
 
 Fits [%] are MATLAB ``compare`` fits in the identification domain (see :mod:`harness.identify`): with the grid,
 the selected model's cross-validation fit on each dataset; with a given model, that model's fit on each dataset
@@ -27,13 +29,15 @@ causal model fails).
 Summary statistics:
 
 - pass rate k/n with the Wilson score 95 % interval (``scipy.stats.binomtest(...).proportion_ci``);
-- sensitivity of the mean fit to each varied parameter: standardised rank regression coefficients (SRRC:
-  least squares of the rank-transformed, standardised mean fit on the rank-transformed, standardised
-  parameters; a failed rig's missing fit ranks lowest), ranked by |SRRC|, with the rank regression's R^2 (how
-  much of the fit's variation a monotone additive model of the parameters explains) and each parameter's
-  Spearman rank correlation. SRRC is the usual regression-based index for Latin-hypercube samples of monotone
-  responses; a response that is not monotone in a parameter (e.g. a fit that peaks at the nominal value) shows
-  a low SRRC and a low R^2, and then the scatter figures are the thing to read.
+- sensitivity of the mean fit to each varied parameter, ranked by its first-order index S1, the share of the
+  mean fit's variance explained by that parameter alone: the correlation ratio Var(E[fit | x_i]) / Var(fit)
+  (McKay's index for Latin-hypercube samples), estimated from the sweep's own rigs by sorting them on x_i into
+  B = round(sqrt(n)) equal-count bins, and adjusted for the bias of B bin means (eta^2_adj = 1 - (1 - eta^2)
+  (n - 1) / (n - B), floored at 0). It holds for responses that are not monotone, such as a given model's fit
+  that peaks at the nominal parameter value. Alongside: standardised rank regression coefficients (SRRC: least
+  squares of the standardised ranks of the mean fit on those of the parameters) give the direction of a
+  monotone effect, with the rank regression's R^2, and Spearman rank correlations. A failed rig's missing fit
+  counts as the worst fit in every index.
 
 Outputs (written by the client only): ``sweep.parquet`` (one row per rig), ``sweep.json`` (configuration and
 summary, byte-stable), ``sweep.timing.json`` (wall time), ``report.md``, ``figures/sweep_*.png`` and the Rerun
@@ -62,7 +66,7 @@ from . import armax
 from . import spec as specmod
 from .executor import Executor, FmuBytes, fmu_bytes
 
-__all__ = ["DISTRIBUTIONS", "Vary", "draw", "parse_vary", "pass_interval", "run_sweep", "sensitivity"]
+__all__ = ["DISTRIBUTIONS", "Vary", "draw", "first_order", "parse_vary", "pass_interval", "run_sweep", "sensitivity"]
 
 Progress = Callable[[str], None]
 
@@ -139,6 +143,8 @@ def parse_vary(text: str) -> Vary:
     params = specmod.fmu_parameters(_MODELS[table])
     if name not in params:
         raise specmod.SpecError(f"--vary {text!r}: unknown {table} parameter {name!r}; valid: {', '.join(params)}")
+    if (table, name) == ("daq", "seed"):
+        raise specmod.SpecError(f"--vary {text!r}: each rig's noise seed is drawn from --seed, not varied")
     if params[name][0] == "Boolean":
         raise specmod.SpecError(f"--vary {text!r}: {table}.{name} is a Boolean and cannot be drawn")
     if dist not in DISTRIBUTIONS:
@@ -196,7 +202,7 @@ def draw(varies: Sequence[Vary], n: int, seed: int, sampler: str = "lhs") -> pd.
 
 
 def rig_seed(seed: int, i: int) -> int:
-    """Campaign seed of rig ``i`` of a sweep seeded with ``seed`` (a 31-bit integer)."""
+    """Noise seed (``daq.seed``) of rig ``i`` of a sweep seeded with ``seed`` (a 31-bit integer)."""
     return int(np.random.SeedSequence([int(seed), int(i)]).generate_state(1)[0] % (2**31 - 1))
 
 
@@ -213,14 +219,14 @@ class Plan:
 
 
 def rig_spec(base: specmod.Spec, params: Mapping[str, float], seed: int) -> specmod.Spec:
-    """The base spec with one rig's parameters (``{"plant.Ks": 1.31, ...}``) and campaign seed, validated; the
-    analysis experiments are dropped (a sweep only identifies)."""
+    """The base spec with one rig's parameters (``{"plant.Ks": 1.31, ...}``) and noise seed (``daq.seed``),
+    validated; the analysis experiments are dropped (a sweep only identifies)."""
     raw = copy.deepcopy(base.raw)
     for key, value in params.items():
         table, name = key.split(".", 1)
         kind = specmod.fmu_parameters(_MODELS[table])[name][0]
         raw.setdefault(table, {})[name] = int(value) if kind == "Integer" else float(value)
-    raw.setdefault("campaign", {})["seed"] = int(seed)
+    raw.setdefault("daq", {})["seed"] = int(seed)
     raw["experiment"] = [e for e in raw.get("experiment", []) if e.get("role", "identification") == "identification"]
     return specmod.from_dict(raw, base.path)
 
@@ -251,7 +257,7 @@ def run_rig(item: tuple[int, dict[str, float], int], plan: Plan) -> dict[str, An
     data = simulate_spec(spec, plan.fmus, workers=1)
     cal = _calibrate(spec, data)
     ident = {e.name: pd.DataFrame(data[e.name]) for e in spec.experiments}
-    row: dict[str, Any] = {"rig": i, "campaign_seed": seed, **params}
+    row: dict[str, Any] = {"rig": i, "noise_seed": seed, **params}
     row.update(Kp=cal.Kp, Ke=cal.Ke, dead_zone_v=cal.dead_zone_v)
     names = list(ident)
     if plan.model is not None:
@@ -292,13 +298,29 @@ def pass_interval(k: int, n: int, confidence: float = 0.95) -> tuple[float, floa
     return float(ci.low), float(ci.high)
 
 
+def first_order(x: np.ndarray, y: np.ndarray, bins: int) -> float:
+    """Bias-adjusted correlation ratio of ``y`` on ``x`` with ``bins`` equal-count bins of sorted ``x`` (see the
+    module docstring); NaN when y does not vary or there are too few rigs for the bins."""
+    n = y.size
+    sst = float(np.sum((y - y.mean()) ** 2))
+    if sst == 0.0 or n <= bins or bins < 2:
+        return math.nan
+    groups = np.array_split(np.argsort(x, kind="stable"), bins)
+    ssb = sum(g.size * (float(y[g].mean()) - float(y.mean())) ** 2 for g in groups)
+    return max(0.0, 1.0 - (1.0 - ssb / sst) * (n - 1) / (n - bins))
+
+
 def sensitivity(x: pd.DataFrame, y: np.ndarray) -> dict[str, Any]:
-    """SRRC and Spearman correlation of ``y`` (NaN = worst) on each column of ``x``, ranked by |SRRC|."""
+    """First-order index S1 (ranking), SRRC and Spearman correlation of ``y`` (NaN = worst) on each column of
+    ``x``; see the module docstring."""
     from scipy.stats import rankdata, spearmanr
 
-    yv = np.where(np.isfinite(y), np.asarray(y, dtype=float), -np.inf)
+    y = np.asarray(y, dtype=float)
+    finite = np.isfinite(y)
+    yv = np.where(finite, y, np.min(y[finite]) if finite.any() else 0.0)  # a failed rig: the worst fit
     n, d = x.shape
-    ry = rankdata(yv)
+    bins = max(2, int(round(math.sqrt(n))))
+    ry = rankdata(np.where(finite, y, -np.inf))
     rx = np.column_stack([rankdata(x[c].to_numpy()) for c in x.columns]) if d else np.empty((n, 0))
     sx, sy = rx.std(axis=0), ry.std()
     live = sx > 0
@@ -313,15 +335,22 @@ def sensitivity(x: pd.DataFrame, y: np.ndarray) -> dict[str, Any]:
     rows = []
     for j, c in enumerate(x.columns):
         rho = float(spearmanr(rx[:, j], ry)[0]) if live[j] and sy > 0 else math.nan
-        rows.append({"param": c, "srrc": float(srrc[j]), "spearman": rho})
-    key = lambda r: -abs(r["srrc"]) if math.isfinite(r["srrc"]) else -abs(r["spearman"] or 0.0)  # noqa: E731
-    rows.sort(key=lambda r: (key(r) if math.isfinite(key(r)) else 0.0, r["param"]))
+        s1 = first_order(x[c].to_numpy(dtype=float), yv, bins) if live[j] else math.nan
+        rows.append({"param": c, "s1": s1, "srrc": float(srrc[j]), "spearman": rho})
+
+    def order(r: dict[str, Any]) -> tuple[float, float, str]:
+        s1, b = r["s1"], r["srrc"]
+        return (-s1 if math.isfinite(s1) else 1.0, -abs(b) if math.isfinite(b) else 0.0, r["param"])
+
+    rows.sort(key=order)
     for rank, r in enumerate(rows, 1):
         r["rank"] = rank
     return {
         "target": "fit_mean",
-        "method": "standardised rank regression coefficients (SRRC) of the mean fit on the varied parameters; "
-        "failed rigs rank lowest; Spearman rank correlations alongside",
+        "method": f"first-order index S1: bias-adjusted correlation ratio of the mean fit on each parameter "
+        f"({bins} equal-count bins); SRRC and Spearman rank correlations alongside; failed rigs count as the "
+        "worst fit",
+        "bins": bins,
         "r2_rank": r2,
         "ranking": rows,
     }
@@ -409,7 +438,7 @@ def _save(fig: Any, path: Path) -> None:
 
 def write_figures(out: Path, table: pd.DataFrame, summary: dict[str, Any], th: Mapping[str, float]) -> list[str]:
     """``figures/sweep_fit.png`` (mean-fit histogram), ``sweep_scatter.png`` (mean fit against each varied
-    parameter, pass/fail coloured), ``sweep_sensitivity.png`` (|SRRC| bars); returns their relative paths."""
+    parameter, pass/fail coloured), ``sweep_sensitivity.png`` (S1 bars); returns their relative paths."""
     figs = out / "figures"
     ok = table["passed"].to_numpy(bool)
     fm = table["fit_mean"].to_numpy(float)
@@ -441,9 +470,9 @@ def write_figures(out: Path, table: pd.DataFrame, summary: dict[str, Any], th: M
     rank = summary["sensitivity"]["ranking"]
     fig = _figure(6, 0.6 * len(rank) + 1.2)
     ax = fig.subplots()
-    vals = [abs(r["srrc"]) if math.isfinite(r["srrc"]) else 0.0 for r in rank]
+    vals = [r["s1"] if math.isfinite(r["s1"]) else 0.0 for r in rank]
     ax.barh([r["param"] for r in rank][::-1], vals[::-1], color="#4a7ab5")
-    ax.set_xlabel("|SRRC| of the mean fit")
+    ax.set_xlabel("first-order index S1 of the mean fit")
     ax.set_xlim(0, max(1.0, max(vals, default=0.0)))
     fig.tight_layout()
     _save(fig, figs / "sweep_sensitivity.png")
@@ -492,11 +521,12 @@ def report_markdown(doc: dict[str, Any], figures: Sequence[str]) -> str:
         "",
         f"{s['sensitivity']['method']}; rank regression R^2 = {_num(s['sensitivity']['r2_rank'], '.3f')}.",
         "",
-        "| rank | parameter | SRRC | Spearman |",
-        "|---|---|---|---|",
+        "| rank | parameter | S1 | SRRC | Spearman |",
+        "|---|---|---|---|---|",
     ]
     for r in s["sensitivity"]["ranking"]:
-        lines.append(f"| {r['rank']} | `{r['param']}` | {_num(r['srrc'], '+.3f')} | {_num(r['spearman'], '+.3f')} |")
+        cells = [_num(r["s1"], ".3f"), _num(r["srrc"], "+.3f"), _num(r["spearman"], "+.3f")]
+        lines.append(f"| {r['rank']} | `{r['param']}` | {' | '.join(cells)} |")
     lines += ["", "## Figures", ""] + [f"![{Path(f).stem}]({f})" for f in figures]
     lines += ["", "Data: `sweep.parquet` (one row per rig), summary: `sweep.json`, Rerun: `sweep.rrd`.", ""]
     return "\n".join(lines)
@@ -536,7 +566,7 @@ def write_rrd(out: Path, table: pd.DataFrame, doc: dict[str, Any], markdown: str
                 name="rigs",
             ),
             rrb.Tabs(*scatter_tabs, name="fit vs parameter"),
-            rrb.BarChartView(origin="sensitivity", name="|SRRC| (ranked)"),
+            rrb.BarChartView(origin="sensitivity", name="first-order index S1 (ranked)"),
         ),
         rrb.TimePanel(timeline="rig"),
     )
@@ -566,7 +596,7 @@ def write_rrd(out: Path, table: pd.DataFrame, doc: dict[str, Any], markdown: str
                 vals = np.where(np.isfinite(fm[mask]), fm[mask], 0.0)
                 rec.send_columns(p, indexes=[idx], columns=rr.Scalars.columns(scalars=vals))
         rank = doc["summary"]["sensitivity"]["ranking"]
-        bars = np.array([abs(r["srrc"]) if math.isfinite(r["srrc"]) else 0.0 for r in rank])
+        bars = np.array([r["s1"] if math.isfinite(r["s1"]) else 0.0 for r in rank])
         rec.log("sensitivity", rr.BarChart(bars, abscissa=np.arange(len(rank), dtype=float)), static=True)
         rec.flush()
         rec.disconnect()

@@ -76,8 +76,13 @@ def test_pass_interval_and_sensitivity_numbers():
     y = 90 - 10 * x["a"].to_numpy() + 0.05 * rng.normal(size=100)
     y[3] = np.nan  # a rig without a model ranks lowest
     s = sensitivity(x, y)
-    assert [r["param"] for r in s["ranking"]] == ["a", "b"] and s["ranking"][0]["srrc"] < -0.9
-    assert abs(s["ranking"][1]["srrc"]) < 0.1 and s["r2_rank"] > 0.85
+    a, b = s["ranking"]
+    assert (a["param"], b["param"]) == ("a", "b") and a["s1"] > 0.85 and a["srrc"] < -0.9
+    assert b["s1"] < 0.25 and abs(b["srrc"]) < 0.1 and s["r2_rank"] > 0.85 and s["bins"] == 10
+    # a fit that peaks at the nominal value of b: no monotone trend (SRRC ~ 0), yet b explains most of it
+    y = 90 - 40 * (x["b"].to_numpy() - 0.5) ** 2 - 0.5 * x["a"].to_numpy()
+    b, a = sensitivity(x, y)["ranking"]
+    assert b["param"] == "b" and b["s1"] > 0.8 and abs(b["srrc"]) < 0.2 and a["s1"] < 0.2
 
 
 def _selected_model(run, spec_path, fmus):
@@ -145,6 +150,17 @@ def test_sweep_same_bytes_serial_and_on_a_cluster_that_loses_a_worker(tmp_path, 
     assert p["ci95"][0] < p["rate"] < p["ci95"][1]
     # only Ks moves the fit (an amplifier limit of 20-30 V never acts on 1.5 V commands): Ks ranks first
     rank = doc["summary"]["sensitivity"]["ranking"]
-    assert rank[0]["param"] == "plant.Ks" and rank[0]["srrc"] < -0.8 and abs(rank[1]["srrc"]) < 0.3
-    assert (tmp_path / "serial" / "sweep.rrd").stat().st_size > 0
+    assert rank[0]["param"] == "plant.Ks" and rank[0]["s1"] > 0.8 and rank[0]["srrc"] < -0.8
+    assert rank[1]["s1"] < 0.3 and abs(rank[1]["srrc"]) < 0.3
+    # the Rerun recording carries the same numbers: mean fit per rig on the rig timeline, |SRRC| bars
+    from rerun.chunk import RrdReader
+
+    chunks: dict[str, list[dict]] = {}
+    for c in RrdReader(tmp_path / "serial" / "sweep.rrd").stream():
+        chunks.setdefault(c.entity_path, []).append(c.to_record_batch().to_pydict())
+    mean = next(d for d in chunks["/rigs/fit/mean"] if "Scalars:scalars" in d)
+    assert mean["rig"] == list(range(n))
+    assert [v[0] for v in mean["Scalars:scalars"]] == table["fit_mean"].tolist()
+    bars = next(d for d in chunks["/sensitivity"] if "BarChart:values" in d)["BarChart:values"][0][0]["buffer"]
+    assert bars == pytest.approx([r["s1"] for r in rank])
     assert "Pass rate" in (tmp_path / "serial" / "report.md").read_text()
