@@ -221,7 +221,7 @@ def _read_csv(path: Path) -> RawTable:
     start = 1 if header else 0
     names = [c or f"column {j}" for j, c in enumerate(rows[0])] if header else [str(j) for j in range(len(rows[0]))]
     units: dict[str, str] = {}
-    notes: list[str] = []
+    notes: list[str] = [f"read as {form}"] if sep != "," or dec == "," else []
     if header:
         for name in names:
             _, unit = _split_name(name)
@@ -449,7 +449,7 @@ def _bad_cells(table: RawTable, chans: dict[str, Channel]) -> None:
             where = f"row {row}" + (f" (line {line})" if line else "")
             raise DataError(
                 f"{table.file}: column {c.column!r} ({ch}) has {nan.size} NaN/missing/non-numeric value(s), "
-                f"first at {where}: {text!r}; {table.form}"
+                f"first at {where}: {repr(text) if text.strip() else 'an empty cell'}; {table.form}"
             )
 
 
