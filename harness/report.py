@@ -21,7 +21,7 @@ import numpy as np
 import pandas as pd
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
-from scipy.signal import lfilter
+from scipy.signal import coherence, csd, lfilter, welch
 
 from . import armax, lti
 from .calibration import SEED_CALIBRATION, Calibration
@@ -52,6 +52,8 @@ RESID_LAGS = 25
 GRID_COLUMNS = ("dataset", "na", "nb", "nc", "nk", "causal", "stable", "fit")
 PZ_VIEW_MAX = 2.5  # half-width of the pole-zero plot; farther roots are listed on it instead
 SQUARE_HZ, SQUARE_V, SQUARE_PERIODS = 0.4, 1.0, 3  # square-wave test input of the selected model
+ZOOM_S = 4.0  # s: the zoom window of the time-response panels, where the residual is largest
+MIN_COHERENCE = 0.8  # measured FRF points shown on the Bode plot where the coherence u -> y_f reaches this
 
 
 # ----------------------------------------------------------------------------------------------- loading
@@ -215,6 +217,26 @@ def tip_from_filtered(y_f: np.ndarray, af: float, y0: float = 0.0) -> np.ndarray
     return y0 + lfilter([1.0, -af], [1.0 - af, -(1.0 - af)], np.asarray(y_f, dtype=float))
 
 
+def measured_frf(res: RunResults, dataset: str) -> tuple[np.ndarray, np.ndarray] | None:
+    """Nonparametric frequency response u [V] -> tip angle y [deg] of one dataset: the H1 estimate (Welch,
+    Hann, 50 % overlap) of u_d -> y_f divided by H(z), at the frequencies [Hz] where the coherence reaches
+    MIN_COHERENCE; None when the dataset is absent or too short."""
+    p = res.prepared.get(dataset)
+    if p is None or p.y_f.size < 64:
+        return None
+    fs = 1.0 / p.Ts
+    nper = min(256, p.y_f.size // 4)
+    f, puu = welch(p.u_d, fs=fs, nperseg=nper)
+    _, puy = csd(p.u_d, p.y_f, fs=fs, nperseg=nper)
+    _, coh = coherence(p.u_d, p.y_f, fs=fs, nperseg=nper)
+    keep = (f > 0) & (puu > 0) & (coh >= MIN_COHERENCE)
+    if not keep.any():
+        return None
+    z = np.exp(1j * 2 * np.pi * f[keep] * p.Ts)
+    h = (1 - res.af) * (z - 1) / (z - res.af)
+    return f[keep], (puy[keep] / puu[keep]) / h
+
+
 def _bode_grid(Ts: float, n: int = 300) -> np.ndarray:
     """Log-spaced frequencies [Hz] from 0.01 Hz (or 1e-3 of Nyquist) up to 0.999 Nyquist."""
     nyq = 0.5 / Ts
@@ -315,6 +337,14 @@ def _fig_bode(res: RunResults, path: Path) -> None:
     ax_m.semilogx(f, mag, color="C0", lw=2, label=f"selected {_orders(rec)}")
     ax_p.semilogx(f, ph, color="C0", lw=2)
     ax_m.plot([], [], color="0.7", label="per-dataset models")
+    meas = measured_frf(res, str(rec.get("dataset", "")))
+    if meas is not None:
+        fm, gm = meas
+        pm = np.degrees(np.unwrap(np.angle(gm)))
+        pm += 360.0 * np.round((np.interp(fm[0], f, ph) - pm[0]) / 360.0)  # the model's branch of the phase
+        label = f"measured on {rec.get('dataset')} (H1, coherence >= {MIN_COHERENCE:g})"
+        ax_m.semilogx(fm, 20 * np.log10(np.abs(gm)), ".", color="k", ms=3, label=label)
+        ax_p.semilogx(fm, pm, ".", color="k", ms=3)
     ax_m.set_ylabel("magnitude [dB]")
     ax_p.set_ylabel("phase [deg]")
     ax_p.set_xlabel("frequency [Hz]")
@@ -357,28 +387,47 @@ def _fig_pz(res: RunResults, path: Path) -> None:
     _save(fig, path)
 
 
+def _zoom(t: np.ndarray, r: np.ndarray, width: float) -> tuple[float, float]:
+    """The ``width`` s window [t0, t1] where the residual ``r`` has the most energy."""
+    n = max(2, min(t.size, int(round(width / (t[1] - t[0])))))
+    energy = np.convolve(r**2, np.ones(n), "valid")
+    k = int(np.argmax(energy))
+    return float(t[k]), float(t[k + n - 1])
+
+
 def _fig_time(res: RunResults, path: Path) -> None:
+    """Per dataset: the whole record (measured, simulated, residual) and, under it, a ZOOM_S window where the
+    residual is largest, so that measurement and simulation can be told apart."""
     names = list(res.prepared)
     ncol = 3 if len(names) > 4 else min(2, len(names))
     nrow = math.ceil(len(names) / ncol)
-    fig = _new_figure(4.2 * ncol, 2.6 * nrow)
-    axes = np.atleast_1d(fig.subplots(nrow, ncol, squeeze=False)).ravel()
-    for ax, name in zip(axes, names, strict=False):
+    fig = _new_figure(4.2 * ncol, 4.2 * nrow)
+    grid = fig.subplots(2 * nrow, ncol, squeeze=False)
+    for i, name in enumerate(names):
+        top, zoom = grid[2 * (i // ncol), i % ncol], grid[2 * (i // ncol) + 1, i % ncol]
         p = res.prepared[name]
         t = np.arange(p.y_f.size) * p.Ts
-        ax.plot(t, p.y_f, color="k", lw=0.8, label="measured")
-        if name in res.simulated:
-            ax.plot(t, res.simulated[name], color="C1", lw=0.8, label="simulated")
-            fit = armax.fit_percent(p.y_f, res.simulated[name])
-            ax.set_title(f"{name}: fit {_fmt(fit)} %", fontsize=9)
+        sim = res.simulated.get(name)
+        for ax in (top, zoom):
+            ax.plot(t, p.y_f, color="k", lw=0.8, label="measured")
+            if sim is not None:
+                ax.plot(t, sim, color="C1", lw=0.8, label="simulated")
+                ax.plot(t, p.y_f - sim, color="C3", lw=0.6, label="residual")
+            ax.tick_params(labelsize=7)
+            ax.set_ylabel("y_f [deg/sample]", fontsize=7)
+        if sim is not None:
+            top.set_title(f"{name}: fit {_fmt(armax.fit_percent(p.y_f, sim))} %", fontsize=9)
+            t0, t1 = _zoom(t, p.y_f - sim, ZOOM_S)
         else:
-            ax.set_title(name, fontsize=9)
-        ax.set_xlabel("t [s]", fontsize=8)
-        ax.set_ylabel("y_f [deg/sample]", fontsize=8)
-        ax.tick_params(labelsize=7)
-    for ax in axes[len(names) :]:
-        ax.set_visible(False)
-    axes[0].legend(fontsize=7)
+            top.set_title(name, fontsize=9)
+            t0, t1 = 0.0, min(ZOOM_S, float(t[-1]))
+        top.axvspan(t0, t1, color="C0", alpha=0.12)
+        zoom.set_xlim(t0, t1)
+        zoom.set_xlabel(f"t [s] (zoom: largest residual over {ZOOM_S:g} s)", fontsize=7)
+    for i in range(len(names), nrow * ncol):
+        grid[2 * (i // ncol), i % ncol].set_visible(False)
+        grid[2 * (i // ncol) + 1, i % ncol].set_visible(False)
+    grid[0, 0].legend(fontsize=7)
     fig.tight_layout()
     _save(fig, path)
 
@@ -956,6 +1005,38 @@ def _section_grid(res: RunResults) -> list[str]:
         "```",
         "",
     ]
+    return lines + _estimates_lines(res, m, rec)
+
+
+def _estimates_lines(res: RunResults, m: armax.ArmaxModel, rec: dict[str, Any]) -> list[str]:
+    """Free parameters with their standard deviations (from ``cov``) and the information criteria of the selected
+    model on its training dataset, as MATLAB's ``present``/``fpe``/``aic`` give them."""
+    names = [f"a{i}" for i in range(1, m.na + 1)]
+    names += [f"b{i}" for i in range(m.nk, m.nk + m.nb)] + [f"c{i}" for i in range(1, m.nc + 1)]
+    values = np.concatenate([m.A[1:], m.B[m.nk :], m.C[1:]])
+    std = m.std
+    if std.size != len(names) or values.size != len(names) or not np.isfinite(std).any():
+        return []  # no covariance recorded
+    rows = [[n, f"{v:.6g}", f"{sd:.3g}", _fmt(100.0 * sd / abs(v), 1) if v else "—"] for n, v, sd in
+            zip(names, values, std, strict=True)]  # fmt: skip
+    lines = [
+        "Free parameters of the selected model with one standard deviation (square root of the covariance "
+        "diagonal in the model JSON):",
+        "",
+        *_table(["parameter", "estimate", "std", "std [% of estimate]"], rows),
+        "",
+    ]
+    p = res.prepared.get(str(rec.get("dataset")))
+    V = _num(m.loss)
+    if p is not None and math.isfinite(V) and V > 0:
+        N, d = p.y_f.size, m.n_params
+        fpe = V * (1 + d / N) / (1 - d / N) if N > d else math.nan
+        aic = N * math.log(V) + 2 * d
+        lines += [
+            f"On `{rec.get('dataset')}` (N = {N}, d = {d} parameters): loss V = {V:.6g}, FPE = V (1 + d/N)/(1 - d/N) = "
+            f"{fpe:.6g}, AIC = N ln V + 2 d = {aic:.2f}.",
+            "",
+        ]
     return lines
 
 
@@ -1051,6 +1132,9 @@ def _section_model(res: RunResults, figdir: Path) -> list[str]:
         "",
         *_table(["Re", "Im", "modulus"], zrows),
         "",
+        "Bode plot with the measured (nonparametric, H1) response of the selected model's dataset where its "
+        f"coherence reaches {MIN_COHERENCE:g}:",
+        "",
         "![Bode](figures/bode_selected.png)",
         "",
         "![pole-zero map](figures/pz_selected.png)",
@@ -1078,6 +1162,11 @@ def _section_time(res: RunResults, figdir: Path) -> list[str]:
             "",
         ]
         lines += _table(["dataset", "fit [%]"], rows) + [""]
+    lines += [
+        f"Each panel: the whole record with the residual (red), and under it the {ZOOM_S:g} s where the residual is "
+        "largest (shaded above).",
+        "",
+    ]
     return [*lines, "![time responses](figures/time_responses.png)", ""]
 
 

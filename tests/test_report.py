@@ -32,6 +32,7 @@ TS = 0.02
 KP, KE, OFFSET = 35.0, -3.4, 0.1
 NAMES = ("prbs_a", "prbs_b", "square_c")
 N = 600
+N_SAMPLES = N
 TWIN_EXPERIMENTS = ("prbs_small", "square_large", "chirp_slow")  # 10 s each: ~10 s to diagnose on 2 cores
 
 
@@ -248,6 +249,39 @@ def test_pole_zero_with_integrator():
     # B = [0, .10, .05, -.12] -> 0.10 z^2 + 0.05 z - 0.12 (one root at -1.374: non-minimum phase)
     ref = np.concatenate([np.roots([0.10, 0.05, -0.12]), [AF, 0.0]])
     assert np.sort_complex(zeros) == pytest.approx(np.sort_complex(ref), abs=1e-9)
+
+
+def test_parameter_deviations_and_information_criteria(run):
+    """The selected model's free parameters with sqrt(diag(cov)), and MATLAB's FPE and AIC on its dataset."""
+    from harness.report import _estimates_lines
+
+    root, truth = run
+    res = load_results(root)
+    m = truth["models"]["prbs_b"]  # estimated by PEM: it carries a covariance
+    rows = _rows("\n".join(_estimates_lines(res, m, {"dataset": "prbs_b"})))[1:]
+    assert [r[0] for r in rows] == ["a1", "a2", "a3", "b1", "b2", "c1", "c2"]
+    ref = np.concatenate([m.A[1:], m.B[1:], m.C[1:]])
+    assert [float(r[1]) for r in rows] == pytest.approx(ref, rel=1e-5)
+    assert [float(r[2]) for r in rows] == pytest.approx(np.sqrt(np.diag(m.cov)), rel=5.1e-3)  # 3 digits
+    text = "\n".join(_estimates_lines(res, m, {"dataset": "prbs_b"}))
+    N, d, V = N_SAMPLES, 7, m.loss
+    assert f"FPE = V (1 + d/N)/(1 - d/N) = {V * (1 + d / N) / (1 - d / N):.6g}" in text
+    assert f"AIC = N ln V + 2 d = {N * math.log(V) + 2 * d:.2f}" in text
+    assert _estimates_lines(res, truth["models"]["selected"], {"dataset": "prbs_a"}) == []  # no covariance
+
+
+def test_measured_frf_follows_the_true_system(run):
+    """The nonparametric H1 response on the Bode plot: times H(z) it is B/A of the system that made the data."""
+    from harness.report import measured_frf
+
+    root, truth = run
+    f, g = measured_frf(load_results(root), "prbs_a")
+    assert f.size >= 10
+    zi = np.exp(-2j * np.pi * f * TS)
+    m = truth["models"]["selected"]
+    ba = np.polyval(m.B[::-1], zi) / np.polyval(m.A[::-1], zi)
+    h = (1 - AF) * (1 - zi) / (1 - AF * zi)
+    assert np.median(np.abs(20 * np.log10(np.abs(g * h / ba)))) < 1.0  # dB
 
 
 def test_loader_signals_match_generated_data(run):
