@@ -60,11 +60,21 @@ def _fresh_venv(tmp: Path, wheel: Path) -> Path:
     py = venv / "bin" / "python"
     _run([sys.executable, "-m", "pip", "--python", str(py), "install", "--no-deps", "--no-index", str(wheel)], cwd=tmp)
     purelib = _run([str(py), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"], cwd=tmp).strip()
-    user = site.getusersitepackages()
-    dirs = [*site.getsitepackages(), *([user] if os.path.isdir(user) else [])]
-    dirs = [d for d in dirs if Path(d).resolve() != ROOT and ROOT not in Path(d).resolve().parents]
-    (Path(purelib) / "zz_test_dependencies.pth").write_text("".join(f"{d}\n" for d in dirs))
+    (Path(purelib) / "zz_test_dependencies.pth").write_text("".join(f"{d}\n" for d in _dependency_dirs()))
     return venv
+
+
+def _dependency_dirs() -> list[str]:
+    """Where this interpreter finds the dependencies (its site dirs and whatever .pth files added), minus the
+    clone and any directory that holds a ``harness`` package of its own."""
+    user = site.getusersitepackages()
+    out: list[str] = []
+    for d in [*site.getsitepackages(), *([user] if os.path.isdir(user) else []), *sys.path]:
+        p = Path(d or ".").resolve()
+        if not p.is_dir() or p == ROOT or ROOT in p.parents or (p / "harness").exists() or str(p) in out:
+            continue
+        out.append(str(p))
+    return out
 
 
 def test_wheel_in_a_fresh_venv_builds_runs_a_campaign_and_diagnoses(tmp_path):
@@ -96,12 +106,14 @@ def test_wheel_in_a_fresh_venv_builds_runs_a_campaign_and_diagnoses(tmp_path):
     assert [n.split("-")[0] for n in cache] == ["armax", "daq", "flexjoint"], built
     assert all((tmp_path / "cache" / f"{n}.sha256").is_file() for n in cache)
 
-    _run([fj, "campaign", "lab", "--out", "lab"], cwd=work, env=env)
+    # campaigns serially (no cluster start-up to pay twice); the diagnosis below runs on Dask's local workers,
+    # processes that must import harness from the wheel too
+    _run([fj, "campaign", "lab", "--out", "lab", "--workers", "1"], cwd=work, env=env)
     assert len(list((work / "lab" / "data").glob("*.parquet"))) == 14
 
     _run([fj, "init", "specs", "--spec", "blind"], cwd=work, env=env)
     _run(
-        [fj, "campaign", "specs/blind.toml", "--out", "rig",
+        [fj, "campaign", "specs/blind.toml", "--out", "rig", "--workers", "1",
          "--set", "plant.coulomb_torque=0.03", "--set", "daq.delay_samples=1"],
         cwd=work, env=env,
     )  # fmt: skip
