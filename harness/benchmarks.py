@@ -221,10 +221,12 @@ def bench_executor(n_tasks: int = 40, n_trivial: int = 200) -> dict[str, Any]:
       wall per task, serial subtracted; and the same for ``n_tasks`` real tasks (below): (Dask 1 worker -
       serial) / n_tasks.
     - Parallel efficiency [%] of ``n_tasks`` equal tasks, each one rig's whole blind-test campaign (specs/
-      blind.toml: calibration and 6 experiments, 324 s at 50 Hz, ~16 k coupled steps; arrays returned to the
-      client): T(1 worker) / (2 T(2 workers)), both clusters warm (started, rigs loaded, before the clock).
+      blind.toml, its own noise seed; arrays returned to the client): T(1 worker) / (2 T(2 workers)), both
+      clusters warm (started, rigs loaded, before the clock). Wall times: other load on the machine lowers it
+      (the 1-minute load average is reported).
     """
     import operator
+    import os
 
     from . import spec as specmod
     from .build import build_all
@@ -265,6 +267,7 @@ def bench_executor(n_tasks: int = 40, n_trivial: int = 200) -> dict[str, Any]:
         "parallel_efficiency_pct": 100.0 * walls["dask1"] / (2.0 * walls["dask2"]),
         "speedup_2_workers_vs_serial": walls["serial"] / walls["dask2"],
         "cluster_start_s": {"1_worker": starts[1], "2_workers": starts[2]},
+        "load_average_1min": os.getloadavg()[0],  # other processes on the 2 cores lower the efficiency
         "target": "parallel efficiency >= 85 % on 2 cores",
     }
 
