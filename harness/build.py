@@ -111,6 +111,9 @@ def _with_source_files(xml: str, sources: list[str]) -> str:
 def _staged_files(name: str) -> dict[str, bytes]:
     """All files of the FMU except the binary, as {path inside the FMU: content}."""
     root = fmu_source_dir()
+    if not root.is_dir():
+        how = "$FLEXJOINT_FMU_SRC" if os.environ.get("FLEXJOINT_FMU_SRC") else "the package's bundled sources"
+        raise BuildError(f"FMU source tree {root} ({how}) does not exist")
     model_dir, common_dir = root / name, root / "common"
     if name == "common" or not (model_dir / "modelDescription.xml").is_file():
         raise ValueError(f"unknown FMU {name!r}: expected one of {', '.join(available_models()) or '(none)'}")

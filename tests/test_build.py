@@ -172,6 +172,9 @@ def test_source_tree_is_the_bundled_one_unless_overridden(monkeypatch, tmp_path)
     assert build.fmu_source_dir() == tmp_path and build.available_models() == []
     with pytest.raises(ValueError, match=r"unknown FMU 'daq': expected one of \(none\)"):
         build_fmu("daq")
+    monkeypatch.setenv("FLEXJOINT_FMU_SRC", str(tmp_path / "nowhere"))
+    with pytest.raises(BuildError, match=r"nowhere \(\$FLEXJOINT_FMU_SRC\) does not exist"):
+        build_fmu("daq")
 
 
 def _seed_cache(fmus, cache: Path, names=("flexjoint", "daq")) -> dict[str, Path]:

@@ -145,7 +145,7 @@ def test_build_failure_exits_non_zero(tmp_path):
     line = _one_line_error(flexjoint("build", env=env))
     assert line.startswith("error: building flexjoint failed: model.c:") and "error" in line[6:]
     env["FLEXJOINT_FMU_SRC"] = str(tmp_path / "empty")
-    assert "unknown FMU 'flexjoint'" in _one_line_error(flexjoint("build", env=env))
+    assert "empty ($FLEXJOINT_FMU_SRC) does not exist" in _one_line_error(flexjoint("build", env=env))
 
 
 def test_truncated_fmu_in_the_cache_is_rebuilt_not_a_crash(fmus, tmp_path):
