@@ -78,6 +78,26 @@ class _Elapsed:
 _status = None  # the live status line of the running command (stopped in main)
 
 
+class _StdoutEndsStatus:
+    """``out``'s file while a live status runs: a command's result on stdout first ends the status line (which
+    would otherwise share the terminal line with it), then goes to the real stdout."""
+
+    encoding = "utf-8"
+
+    def write(self, text: str) -> int:
+        _stop_status()
+        return sys.stdout.write(text)
+
+    def flush(self) -> None:
+        sys.stdout.flush()
+
+    def isatty(self) -> bool:
+        return sys.stdout.isatty()
+
+    def fileno(self) -> int:
+        return sys.stdout.fileno()
+
+
 def _progress(label: str) -> Callable[[str], None]:
     """A progress printer for long work, the ``progress: Callable[[str], None]`` the library calls: one line per
     message on stderr with the elapsed time; in an interactive terminal also a live status line (spinner, last
@@ -90,6 +110,7 @@ def _progress(label: str) -> Callable[[str], None]:
             _status.stop()
         _status = err.status(live, spinner="dots")
         _status.start()
+        out.file = _StdoutEndsStatus()  # type: ignore[assignment]
 
     def report(item: str) -> None:
         live.item = item
@@ -101,8 +122,9 @@ def _progress(label: str) -> Callable[[str], None]:
 def _stop_status() -> None:
     global _status
     if _status is not None:
-        _status.stop()
-        _status = None
+        status, _status = _status, None
+        status.stop()
+        out.file = None  # type: ignore[assignment]  # back to the current sys.stdout
 
 
 def _version(value: bool) -> None:

@@ -184,3 +184,26 @@ def test_ctrl_c_is_one_line_and_exit_130(tmp_path):
     assert p.returncode == 130, stderr
     assert "Traceback" not in stderr and stderr.strip().splitlines()[-1] == "error: interrupted", stderr
     assert not (tmp_path / "r" / "manifest.json").exists()
+
+
+def test_progress_is_a_live_status_in_a_terminal_and_lines_elsewhere(monkeypatch):
+    """The library's progress(str) callable: per-item lines with the elapsed time; in a terminal also a live status
+    line, which the command's result on stdout ends first."""
+    import io
+
+    from rich.console import Console
+
+    from harness import cli
+
+    for tty in (False, True):
+        err_buf, out_buf = io.StringIO(), io.StringIO()
+        monkeypatch.setattr(cli, "err", Console(file=err_buf, force_terminal=tty, width=100))
+        monkeypatch.setattr(cli, "out", Console(file=out_buf, force_terminal=tty, width=100))
+        say = cli._progress("simulated")
+        assert (cli._status is not None) == tty
+        say("prbs_b005 [1/9]")
+        time.sleep(0.2)
+        cli.out.print("9 experiments")
+        assert cli._status is None  # stopped by the result (or never started)
+        assert "prbs_b005 [1/9]" in err_buf.getvalue() and " s)" in err_buf.getvalue()
+        cli._stop_status()
