@@ -1,31 +1,49 @@
 """Blind test of the diagnoser: rigs with hidden effects, diagnosed against the textbook simulation, scored.
 
-Each case draws a rig from ``specs/blind.toml`` (textbook linear rig + measurement noise, a compact campaign):
+Each case draws a rig on the blind campaign (``specs/blind.toml``: textbook linear rig + measurement noise, a
+compact campaign) in one of three families:
 
-- ``none``: the rig as it is (noise only);
+- ``twin``: our own FMUs with the textbook linear parameters (the linear part of rig and simulation agree);
+- ``nuisance``: our own FMUs with the linear parameters drawn off the datasheet as on a real rig (:data:`NUISANCE`:
+  Ks +-25 %, Beq x0.5..x2, zeta_link x0.5..x3, Jeq +-15 %, motor gain +-10 %, the motor gain carried by kt);
+- ``independent``: rigs from an independent simulator that uses neither our FMUs nor ``harness.plant``
+  (``tests/indeprig.py`` of a source checkout: scipy ``solve_ivp``, Stribeck friction, backlash as a dead-band
+  contact spring between motor and hub inertias, link modes from the beam's E I, its own pot, gauge and DAQ), with
+  the same nuisance draws. Without a source checkout this family is skipped (said in the result).
+
+and of one kind:
+
+- ``none``: the rig as it is (noise, and the family's nuisance);
 - ``single``: one in-library effect at a physically meaningful magnitude for this campaign (table
   :data:`RANGES`; continuous magnitudes log-uniform);
 - ``two``: two different in-library effects at once;
-- ``out``: an effect outside the candidate library: ``third_mode`` (plant.n_modes = 3, while the library's
-  second_mode is n_modes = 2), ``gauge_drift`` (the strain-gauge gain drifting linearly in time by +10..+30 %
-  over every non-calibration experiment, applied to alpha_v after the campaign, about the gauge offset; the
-  comb calibration is left intact), ``beq_x2`` (viscous damping Beq 2..3x the textbook value).
+- ``out``: an effect outside the candidate library: ``gauge_drift`` (the strain-gauge gain drifting linearly in
+  time by +10..+30 % over every non-calibration experiment, applied to alpha_v after the campaign, about the
+  gauge offset; the comb calibration is left intact), ``pot_nonlinearity`` (the potentiometer's linearity error,
+  a bow of 1..2 % of its span across the track, applied to theta_v after the campaign). Viscous damping off the
+  datasheet, out of library before recalibration, is now a nuisance; a third mode (~53 Hz on this link) lies
+  above the 25 Hz Nyquist frequency of the 50 Hz campaign and aliases into what a stiffer two-mode link explains
+  (measured: second_mode closes 93 % of its gap), so it is not drawn as out of library here.
 
 The campaign runs with a per-case seed (new noise), the truth is removed from the run's manifest (its spec
 tables are those of blind.toml), and :func:`harness.diagnose.diagnose_run` judges it against blind.toml.
-Scores (the MISSION's): top-1 effect on single cases, fitted magnitude within 20 % (integers: exact) on single
-cases, ``none`` never turned into an effect, out-of-library cases answered ``unexplained`` or with a candidate
-that closes most (>= 50 %) of the held-out gap, both effects found on two-effect cases.
+Scores (issue 8's): top-1 effect and fitted magnitude within 25 % (integers: exact; within 20 % also reported)
+on single cases; ``none`` answered on rigs with no effect (never an effect); recalibrated Ks and Beq within 10 %
+and 25 % of the rig's on the nuisance and independent families; out-of-library cases answered
+``unexplained``; both effects found on two-effect cases. Every score per family and pooled.
 """
 
 from __future__ import annotations
 
+import importlib.util
 import math
 import shutil
+import sys
 import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
 import numpy as np
@@ -37,6 +55,7 @@ from .diagnose import EFFECTS
 Progress = Callable[[str], None]
 
 BLIND_SPEC = specmod.SPEC_DIR / "blind.toml"
+FAMILIES = ("twin", "nuisance", "independent")
 
 # in-library effect -> (parameter, low, high, kind): magnitudes that matter on the blind campaign
 RANGES: dict[str, tuple[str, float, float, str]] = {
@@ -48,9 +67,17 @@ RANGES: dict[str, tuple[str, float, float, str]] = {
     "quantization": ("daq.adc_bits", 8, 12, "int"),
     "gauge_nonlinearity": ("daq.gauge_cubic", 0.02, 0.1, "log"),
 }
-OUT_OF_LIBRARY = ("third_mode", "gauge_drift", "beq_x2")
-MAG_TOL = 0.20  # fitted magnitude within 20 %
-MOST = 50.0  # an out-of-library answer naming a candidate counts when it shrinks the held-out gap >= 50 %
+# linear parameter -> (low factor, high factor, log-uniform) of the textbook value: a real rig's spread
+NUISANCE: dict[str, tuple[float, float, bool]] = {
+    "plant.Ks": (0.75, 1.25, False),
+    "plant.Beq": (0.5, 2.0, True),
+    "plant.zeta_link": (0.5, 3.0, True),
+    "plant.Jeq": (0.85, 1.15, False),
+    "plant.kt": (0.9, 1.1, False),  # the motor gain kt eta_g eta_m
+}
+OUT_OF_LIBRARY = ("gauge_drift", "pot_nonlinearity")
+MAG_TOL = 0.25  # fitted magnitude within 25 %
+KS_TOL, BEQ_TOL = 0.10, 0.25  # recalibrated Ks and Beq within 10 % and 25 % of the rig's
 
 
 def _draw_value(rng: np.random.Generator, effect: str) -> float | int:
@@ -60,13 +87,29 @@ def _draw_value(rng: np.random.Generator, effect: str) -> float | int:
     return float(math.exp(rng.uniform(math.log(lo), math.log(hi))))
 
 
-def plan(n: int, seed: int) -> list[dict[str, Any]]:
+def _textbook(param: str) -> float:
+    return float(specmod.fmu_parameters("flexjoint")[param.split(".", 1)[1]][1])
+
+
+def _draw_nuisance(rng: np.random.Generator) -> dict[str, float]:
+    out = {}
+    for p, (lo, hi, log) in NUISANCE.items():
+        f = math.exp(rng.uniform(math.log(lo), math.log(hi))) if log else rng.uniform(lo, hi)
+        out[p] = _textbook(p) * float(f)
+    return out
+
+
+def plan(n: int, seed: int, families: tuple[str, ...] = ("twin",)) -> list[dict[str, Any]]:
     """The cases: ~12 % none, ~12 % two effects, ~16 % out of library, the rest single effects (cycling
-    through the library), in a shuffled order; each with its hidden truth and a campaign seed."""
+    through the library), in a shuffled order, the families taking turns; each with its hidden truth (effects,
+    and the nuisance of the linear parameters on the nuisance and independent families) and a campaign seed."""
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise ValueError(f"n must be a positive number of cases, got {n!r}")
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
+    bad = [f for f in families if f not in FAMILIES]
+    if bad or not families:
+        raise ValueError(f"unknown family {bad[0] if bad else '(none given)'}: expected some of {', '.join(FAMILIES)}")
     rng = np.random.Generator(np.random.PCG64(seed))
     n_none = max(1, round(0.12 * n)) if n >= 4 else 0
     n_two = max(1, round(0.12 * n)) if n >= 4 else 0
@@ -81,6 +124,7 @@ def plan(n: int, seed: int) -> list[dict[str, Any]]:
     cases = []
     for i, j in enumerate(order):
         kind, what = kinds[int(j)]
+        family = families[i % len(families)]
         truth: dict[str, Any] = {}
         effects: list[str] = []
         if kind == "single":
@@ -91,19 +135,19 @@ def plan(n: int, seed: int) -> list[dict[str, Any]]:
         for e in effects:
             truth[RANGES[e][0]] = _draw_value(rng, e)
         extra: dict[str, Any] = {}
-        if what == "third_mode":
-            truth["plant.n_modes"] = 3
-        elif what == "beq_x2":
-            beq = float(specmod.fmu_parameters("flexjoint")["Beq"][1])
-            truth["plant.Beq"] = beq * float(rng.uniform(2.0, 3.0))
-        elif what == "gauge_drift":
+        if what == "gauge_drift":
             extra["gauge_drift"] = float(rng.uniform(0.10, 0.30))
+        elif what == "pot_nonlinearity":
+            extra["pot_nonlinearity"] = float(rng.uniform(0.01, 0.02))
+        nuisance = _draw_nuisance(rng) if family != "twin" else {}
         cases.append(
             {
                 "case": i,
+                "family": family,
                 "kind": kind,
                 "truth_effects": effects if kind != "out" else [what],
                 "truth_params": truth,
+                "nuisance": nuisance,
                 "post": extra,
                 "campaign_seed": int(rng.integers(1, 2**31 - 1)),
             }
@@ -126,32 +170,78 @@ def campaign_spec(quick: bool = False, overrides: list[str] | None = None) -> sp
     return specmod.from_dict(specmod.apply_overrides(raw, overrides or []), str(BLIND_SPEC))
 
 
+def independent_simulator() -> ModuleType | None:
+    """The independent rig simulator of a source checkout (``tests/indeprig.py`` beside the package, or the file
+    named by ``FLEXJOINT_INDEPENDENT_RIG``), imported as module ``indeprig``; None when there is none."""
+    import os
+
+    path = Path(
+        os.environ.get("FLEXJOINT_INDEPENDENT_RIG", Path(__file__).resolve().parents[1] / "tests" / "indeprig.py")
+    )
+    if not path.is_file():
+        return None
+    if "indeprig" in sys.modules:
+        return sys.modules["indeprig"]
+    spec = importlib.util.spec_from_file_location("indeprig", path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["indeprig"] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _independent_rig(ind: ModuleType, case: dict[str, Any]) -> Any:
+    """The case's rig on the independent simulator: the same effect and nuisance values by their FMU names (the
+    motor gain as a factor, Ks as the link's E I)."""
+    params = {**case["nuisance"], **case["truth_params"]}
+    kw: dict[str, Any] = {k.split(".", 1)[1]: v for k, v in params.items() if k not in ("plant.Ks", "plant.kt")}
+    if "plant.kt" in params:
+        kw["motor_gain"] = params["plant.kt"] / _textbook("plant.kt")
+    return ind.IndepRig.from_Ks(float(params.get("plant.Ks", _textbook("plant.Ks"))), **kw)
+
+
+def _post(dest: Path, spec: specmod.Spec, post: dict[str, float]) -> None:
+    """Apply the out-of-library sensor effects to a written run: gauge gain drift (identification experiments)
+    and the pot's linearity error (every experiment)."""
+    manifest = load_manifest(dest)
+    daq = specmod.fmu_parameters("daq")
+    for e in manifest["experiments"]:
+        p = dest / "data" / f"{e['name']}.parquet"
+        df = read_dataset(p)
+        cols = {c: df[c].to_numpy(float) for c in df.columns}
+        if post.get("gauge_drift") and e["role"] != "calibration":
+            off = float(spec.daq.get("gauge_offset", daq["gauge_offset"][1]))
+            t = cols["t"]
+            gain = 1.0 + post["gauge_drift"] * (t - t[0]) / max(t[-1] - t[0], 1e-12)
+            cols["alpha_v"] = off + (cols["alpha_v"] - off) * gain
+        if post.get("pot_nonlinearity"):
+            half = 180.0 / float(spec.daq.get("pot_gain", daq["pot_gain"][1]))  # V at the track end
+            cols["theta_v"] = cols["theta_v"] + post["pot_nonlinearity"] * half * np.sin(np.pi * cols["theta_v"] / half)
+        write_dataset(p, cols)
+
+
 def make_rig_run(case: dict[str, Any], dest: Path, fmus: dict[str, Path] | None = None, quick: bool = False) -> Path:
-    """Run the case's hidden rig on the blind campaign into ``dest`` and hide the truth from its manifest."""
+    """Run the case's hidden rig on the blind campaign into ``dest`` (our FMUs, or the independent simulator for
+    that family) and hide the truth from its manifest."""
     from .campaign import run_campaign
 
     base = campaign_spec(quick)
-    sets = [f"{k}={v}" for k, v in case["truth_params"].items()]
-    sets.append(f"campaign.seed={case['campaign_seed']}")
-    spec = campaign_spec(quick, sets)
-    run_campaign(spec, dest, fmus=fmus, workers=1)
-    drift = case.get("post", {}).get("gauge_drift")
+    seed = [f"campaign.seed={case['campaign_seed']}"]
+    if case.get("family") == "independent":
+        ind = independent_simulator()
+        if ind is None:
+            raise ValueError("the independent family needs tests/indeprig.py of a source checkout")
+        spec = campaign_spec(quick, seed)
+        ind.make_run(dest, spec, _independent_rig(ind, case), seed=case["campaign_seed"])
+    else:
+        sets = [f"{k}={v}" for k, v in {**case.get("nuisance", {}), **case["truth_params"]}.items()] + seed
+        spec = campaign_spec(quick, sets)
+        run_campaign(spec, dest, fmus=fmus, workers=1)
+    if case.get("post"):
+        _post(dest, spec, case["post"])
     manifest = load_manifest(dest)
-    if drift:
-        off = float(spec.daq.get("gauge_offset", specmod.fmu_parameters("daq")["gauge_offset"][1]))
-        for e in manifest["experiments"]:
-            if e["role"] == "calibration":
-                continue
-            p = dest / "data" / f"{e['name']}.parquet"
-            df = read_dataset(p)
-            t = df["t"].to_numpy()
-            gain = 1.0 + drift * (t - t[0]) / max(t[-1] - t[0], 1e-12)
-            cols = {c: df[c].to_numpy(float) for c in df.columns}
-            cols["alpha_v"] = off + (cols["alpha_v"] - off) * gain
-            write_dataset(p, cols)
-    hidden = specmod.apply_overrides(base.raw, [f"campaign.seed={case['campaign_seed']}"])
-    manifest["spec"] = hidden
+    manifest["spec"] = specmod.apply_overrides(base.raw, seed)
     manifest["spec_sha256"] = "hidden"
+    manifest.pop("generator", None)
     write_json(dest / "manifest.json", manifest)
     return dest
 
@@ -174,7 +264,8 @@ def score_case(case: dict[str, Any], diag: dict[str, Any]) -> dict[str, Any]:
         eff = case["truth_effects"][0]
         param = EFFECTS[eff].param
         err = _rel_err(case["truth_params"][param], fitted.get(param) if eff in found else None)
-        out.update(top1=verdict == eff, param_error=err, param_ok=bool(err <= MAG_TOL + 1e-12))
+        out.update(top1=verdict == eff, param_error=err, param_ok=bool(err <= MAG_TOL + 1e-12),
+                   param_ok_20=bool(err <= 0.20 + 1e-12))  # fmt: skip
     elif kind == "none":
         out.update(correct=verdict == "none", turned_into_effect=verdict in EFFECTS)
     elif kind == "two":
@@ -186,68 +277,132 @@ def score_case(case: dict[str, Any], diag: dict[str, Any]) -> dict[str, Any]:
         }  # fmt: skip
         out.update(both=all(e in found for e in effs), top1_in_truth=verdict in effs, param_errors=errs)
     else:
-        ok = verdict == "unexplained" or (verdict in EFFECTS and shrink >= MOST)
-        out.update(correct=bool(ok))
+        out.update(correct=verdict == "unexplained")
+    params = diag.get("parameters", {})
+    if case.get("nuisance") and "plant.Ks" in params:
+        ks = _rel_err(case["nuisance"]["plant.Ks"], params["plant.Ks"]["fitted"])
+        beq = _rel_err(case["nuisance"]["plant.Beq"], params["plant.Beq"]["fitted"])
+        out.update(ks_error=ks, beq_error=beq, recal_ok=bool(ks <= KS_TOL and beq <= BEQ_TOL))
     return out
 
 
-def totals(cases: list[dict[str, Any]]) -> dict[str, Any]:
-    """Pooled scores with the MISSION's targets."""
+def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """Wilson score 95 % interval [%] of a share of k successes in n trials."""
+    if n == 0:
+        return (math.nan, math.nan)
+    p = k / n
+    c = (p + z * z / (2 * n)) / (1 + z * z / n)
+    h = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return (100.0 * max(c - h, 0.0), 100.0 * min(c + h, 1.0))
 
-    def share(xs: list[bool]) -> float:
-        return 100.0 * float(np.mean(xs)) if xs else math.nan
 
+def _share(flags: list[bool]) -> dict[str, Any]:
+    k = int(sum(bool(f) for f in flags))
+    return {
+        "pct": 100.0 * k / len(flags) if flags else math.nan,
+        "k": k,
+        "n": len(flags),
+        "ci95": list(wilson(k, len(flags))),
+    }
+
+
+def scores(cases: list[dict[str, Any]]) -> dict[str, Any]:
+    """The scores of a set of scored cases, each share with its count and Wilson 95 % interval."""
     single = [c for c in cases if c["kind"] == "single"]
     none = [c for c in cases if c["kind"] == "none"]
     two = [c for c in cases if c["kind"] == "two"]
     out = [c for c in cases if c["kind"] == "out"]
+    recal = [c for c in cases if "recal_ok" in c["score"]]
     per_effect = {}
     for eff in RANGES:
         cs = [c for c in single if c["truth_effects"][0] == eff]
         if cs:
             per_effect[eff] = {
                 "n": len(cs),
-                "top1_pct": share([c["score"]["top1"] for c in cs]),
-                "param_ok_pct": share([c["score"]["param_ok"] for c in cs]),
+                "top1_pct": _share([c["score"]["top1"] for c in cs])["pct"],
+                "param_ok_pct": _share([c["score"]["param_ok"] for c in cs])["pct"],
                 "median_shrink_pct": float(np.median([c["score"]["shrink_pct"] for c in cs])),
             }
-    res = {
+    return {
         "n_cases": len(cases),
         "single": {
             "n": len(single),
-            "top1_pct": share([c["score"]["top1"] for c in single]),
-            "param_within_20pct_pct": share([c["score"]["param_ok"] for c in single]),
+            "top1": _share([c["score"]["top1"] for c in single]),
+            "param_within_25pct": _share([c["score"]["param_ok"] for c in single]),
+            "param_within_20pct": _share([c["score"]["param_ok_20"] for c in single]),
             "median_shrink_pct": float(np.median([c["score"]["shrink_pct"] for c in single])) if single else math.nan,
             "per_effect": per_effect,
         },
         "none": {
             "n": len(none),
-            "correct_pct": share([c["score"]["correct"] for c in none]),
+            "correct": _share([c["score"]["correct"] for c in none]),
             "turned_into_effect": int(sum(c["score"]["turned_into_effect"] for c in none)),
         },
         "two": {
             "n": len(two),
-            "both_found_pct": share([c["score"]["both"] for c in two]),
-            "top1_in_truth_pct": share([c["score"]["top1_in_truth"] for c in two]),
-            "params_within_20pct_pct": share(
+            "both_found": _share([c["score"]["both"] for c in two]),
+            "top1_in_truth": _share([c["score"]["top1_in_truth"] for c in two]),
+            "params_within_25pct": _share(
                 [err <= MAG_TOL + 1e-12 for c in two for err in c["score"]["param_errors"].values()]
             ),
         },
-        "out_of_library": {"n": len(out), "correct_pct": share([c["score"]["correct"] for c in out])},
-        "targets": {
-            "single_top1_pct": 90.0,
-            "single_param_within_20pct_pct": 80.0,
-            "none_turned_into_effect": 0,
-            "out_of_library_correct_pct": 75.0,
+        "out_of_library": {"n": len(out), "unexplained": _share([c["score"]["correct"] for c in out])},
+        "recalibration": {
+            "n": len(recal),
+            "ks_within_10pct_and_beq_within_25pct": _share([c["score"]["recal_ok"] for c in recal]),
+            "ks_within_10pct": _share([c["score"]["ks_error"] <= KS_TOL for c in recal]),
+            "beq_within_25pct": _share([c["score"]["beq_error"] <= BEQ_TOL for c in recal]),
+            "median_ks_error_pct": 100.0 * float(np.median([c["score"]["ks_error"] for c in recal]))
+            if recal
+            else math.nan,
+            "median_beq_error_pct": 100.0 * float(np.median([c["score"]["beq_error"] for c in recal]))
+            if recal
+            else math.nan,
         },
     }
-    res["passed"] = bool(
-        (res["single"]["top1_pct"] >= 90.0 or not single)
-        and (res["single"]["param_within_20pct_pct"] >= 80.0 or not single)
-        and res["none"]["turned_into_effect"] == 0
-        and (res["out_of_library"]["correct_pct"] >= 75.0 or not out)
-    )
+
+
+TARGETS = {
+    "single top-1 %": 90.0,
+    "single magnitude within 25 % %": 80.0,
+    "none answered none %": 90.0,
+    "recalibrated Ks within 10 % and Beq within 25 % %": 80.0,
+    "out of library unexplained %": 75.0,
+}
+
+
+def totals(cases: list[dict[str, Any]]) -> dict[str, Any]:
+    """Pooled scores, the scores per family, the targets of issue 8 and whether the pooled scores meet them."""
+    res = scores(cases)
+    res["families"] = {f: scores([c for c in cases if c.get("family", "twin") == f]) for f in FAMILIES}
+    res["families"] = {f: v for f, v in res["families"].items() if v["n_cases"]}
+    got = {
+        "single top-1 %": res["single"]["top1"]["pct"],
+        "single magnitude within 25 % %": res["single"]["param_within_25pct"]["pct"],
+        "none answered none %": res["none"]["correct"]["pct"],
+        "recalibrated Ks within 10 % and Beq within 25 % %": res["recalibration"][
+            "ks_within_10pct_and_beq_within_25pct"
+        ]["pct"],
+        "out of library unexplained %": res["out_of_library"]["unexplained"]["pct"],
+    }
+    res["targets"] = {
+        k: {"target": v, "got": got[k], "met": bool(math.isnan(got[k]) or got[k] >= v)} for k, v in TARGETS.items()
+    }
+    res["passed"] = bool(all(t["met"] for t in res["targets"].values()) and res["none"]["turned_into_effect"] == 0)
     return res
+
+
+def run_case(case: dict[str, Any], root: Path, quick: bool, fmus: dict[str, Path] | None = None) -> dict[str, Any]:
+    """One blind case: its hidden rig's campaign into ``root/case_NNN``, the diagnosis (serial), the score."""
+    from .diagnose import diagnose_run
+
+    d = Path(root) / f"case_{case['case']:03d}"
+    if d.exists():
+        shutil.rmtree(d)
+    tc = time.perf_counter()
+    make_rig_run(case, d, fmus, quick)
+    diag = diagnose_run(d, campaign_spec(quick), d, workers=1)
+    return {**case, "score": score_case(case, diag), "timing_s": time.perf_counter() - tc}
 
 
 def blindtest(
@@ -258,43 +413,45 @@ def blindtest(
     workers: int | None = None,
     keep: bool = False,
     quick: bool = False,
+    families: tuple[str, ...] = FAMILIES,
+    scheduler: str | None = None,
 ) -> dict[str, Any]:
-    """Run ``n`` blind cases drawn with ``seed``; writes ``out/blindtest.json`` (every case and the totals) and
-    returns it. ``workers``: processes per diagnosis (default 2); ``keep`` keeps the case run directories
-    under ``out/blind_cases/``; ``quick`` runs the shortened campaign of :func:`campaign_spec`."""
+    """Run ``n`` blind cases drawn with ``seed`` over ``families``; writes ``out/blindtest.json`` (every case and
+    the totals) and returns it. Cases run in parallel (``workers`` processes, or the Dask cluster at
+    ``scheduler``), each diagnosis serially inside its task; ``keep`` keeps the case run directories under
+    ``out/blind_cases/``; ``quick`` runs the shortened campaign of :func:`campaign_spec`. The independent family
+    is skipped, and said so, when there is no independent simulator (no source checkout)."""
     from .build import build_all
-    from .diagnose import diagnose_run
+    from .executor import Executor
 
     say = progress or (lambda _m: None)
     t0 = time.perf_counter()
-    cases = plan(n, seed)
-    sim = campaign_spec(quick)
-    fmus = build_all()
+    skipped = []
+    if "independent" in families and independent_simulator() is None:
+        families = tuple(f for f in families if f != "independent")
+        skipped.append("independent: no tests/indeprig.py (a source checkout) to simulate it")
+        say(f"skipped family {skipped[-1]}")
+    cases = plan(n, seed, families)
+    build_all()
     out = Path(out)
     root = out / "blind_cases" if keep else Path(tempfile.mkdtemp(prefix="flexjoint-blind-"))
     results = []
     try:
-        for case in cases:
-            d = root / f"case_{case['case']:03d}"
-            if d.exists():
-                shutil.rmtree(d)
-            tc = time.perf_counter()
-            make_rig_run(case, d, fmus, quick)
-            diag = diagnose_run(d, sim, d, workers=workers)
-            sc = score_case(case, diag)
-            results.append({**case, "score": sc, "timing_s": time.perf_counter() - tc})
-            say(
-                f"case {case['case']}: {case['kind']} {case['truth_effects']} {case['truth_params']} "
-                f"-> {sc['verdict']} {sc['fitted']} shrink {sc['shrink_pct']:.1f} %"
-            )
+        with Executor(workers=workers, scheduler=scheduler, progress=progress) as ex:
+            results = ex.map(run_case, cases, root, quick, desc="blind case")
     finally:
         if not keep:
             shutil.rmtree(root, ignore_errors=True)
+    for r in results:
+        sc = r["score"]
+        say(f"case {r['case']} ({r['family']}): {r['kind']} {r['truth_effects']} -> {sc['verdict']} {sc['fitted']}")
     doc = {
         "n": n,
         "seed": seed,
         "spec": BLIND_SPEC.name,
         "quick": quick,
+        "families": list(families),
+        "skipped": skipped,
         "cases": sorted(results, key=lambda c: c["case"]),
         "totals": totals(results),
         "timing_s": time.perf_counter() - t0,

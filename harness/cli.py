@@ -404,10 +404,19 @@ def report(
 def diagnosis_summary(d: dict) -> str:
     """A few lines for the terminal: verdict, effects in greedy order with their fitted parameters, the shrink."""
     lines = [f"verdict: {d['verdict']}"]
+    for name, row in d.get("parameters", {}).items():
+        if "finding" in row:
+            lo, hi = row["ci95"]
+            lines.append(f"  {name}: {row['finding']} (95 % interval {lo:.4g}..{hi:.4g})")
     for e in d.get("effects", []):
         params = ", ".join(f"{k}={v:.4g}" for k, v in e["params"].items())
         lines.append(f"  + {e['effect']} ({params}): shrink {e['shrink_pct']:.1f} % on held-out experiments")
     gap = d.get("gap", {})
+    dec = gap.get("decomposition")
+    if dec:
+        fits = [f"{k.replace('_', ' ')} {100 * (1 - dec[k]):.2f} %" for k in
+                ("before", "after_recalibration", "after_effects", "noise_floor")]  # fmt: skip
+        lines.append("held-out fit: " + ", ".join(fits))
     if "shrink_pct" in gap:
         lines.append(
             f"gap: fit {gap['before']['fit_pct']:.2f} % -> {gap['after']['fit_pct']:.2f} %, "
@@ -421,14 +430,58 @@ def blindtest(
     n: Annotated[int, typer.Option("--n", help="number of hidden-effect rigs")] = 40,
     seed: Annotated[int, typer.Option("--seed", help="seed of the draws")] = 0,
     out_dir: Annotated[Path, typer.Option("--out", help="directory for blindtest.json")] = Path("."),
+    family: Annotated[
+        list[str] | None, typer.Option("--family", help="twin, nuisance, independent (repeat; default all three)")
+    ] = None,
+    quick: Annotated[bool, typer.Option("--quick", help="the shortened blind campaign (12 s experiments)")] = False,
+    keep: Annotated[bool, typer.Option("--keep", help="keep the case run directories in OUT/blind_cases")] = False,
     scheduler: SchedulerOpt = None,
     workers: WorkersOpt = None,
 ) -> None:
-    """Score the diagnoser on rigs with hidden effects (none, one, two, outside the library): blindtest.json."""
+    """Score the diagnoser on rigs with hidden effects (none, one, two, outside the library), on our twin, on the
+    twin with its linear parameters off the datasheet and on an independent simulator: blindtest.json."""
+    from .blindtest import FAMILIES
     from .blindtest import blindtest as run_blind
 
-    res = run_blind(n, seed, out_dir, progress=_progress("case"), **_parallel(workers, scheduler))
-    out.print_json(data=res.get("totals", {}))
+    fams = tuple(family) if family else FAMILIES
+    res = run_blind(
+        n, seed, out_dir, progress=_progress("case"), families=fams, quick=quick, keep=keep,
+        **_parallel(workers, scheduler),
+    )  # fmt: skip
+    out.print(blindtest_table(res["totals"]))
+    out.print(f"{res['n']} cases in {res['timing_s']:.0f} s -> {Path(out_dir) / 'blindtest.json'}")
+    for why in res.get("skipped", []):
+        out.print(f"skipped family {why}")
+
+
+def blindtest_table(tot: dict):
+    """The blind test's scores per family and pooled, each share with its 95 % interval and count."""
+    from rich.table import Table
+
+    def cell(share: dict) -> str:
+        if not share["n"]:
+            return "-"
+        lo, hi = share["ci95"]
+        return f"{share['pct']:.0f} % [{lo:.0f}-{hi:.0f}] ({share['k']}/{share['n']})"
+
+    rows = (
+        ("single: top-1", lambda t: t["single"]["top1"]),
+        ("single: magnitude within 25 %", lambda t: t["single"]["param_within_25pct"]),
+        ("none answered none", lambda t: t["none"]["correct"]),
+        ("two: both found", lambda t: t["two"]["both_found"]),
+        ("recalibrated Ks +-10 % and Beq +-25 %", lambda t: t["recalibration"]["ks_within_10pct_and_beq_within_25pct"]),
+        ("out of library: unexplained", lambda t: t["out_of_library"]["unexplained"]),
+    )
+    cols = [*tot.get("families", {}), "pooled"]
+    t = Table(title="blind test (share, 95 % Wilson interval, count)")
+    t.add_column("score")
+    for c in cols:
+        t.add_column(c, justify="right")
+    for label, get in rows:
+        t.add_row(label, *[cell(get(tot["families"][c] if c != "pooled" else tot)) for c in cols])
+    t.caption = "targets: " + "; ".join(f"{k} >= {v['target']:g} ({'met' if v['met'] else 'NOT met'})"
+                                        for k, v in tot["targets"].items())  # fmt: skip
+    return t
 
 
 @app.command()
