@@ -52,10 +52,12 @@ to a few decimals; the coarsest lattice gives the bits) and added last with its 
 
 Verdict: ``none`` when the held-out gap after recalibration is within NONE_RATIO (2) x the floor and no lattice
 (``quantization`` with one); otherwise the effect found whose removal reopens most of the gap (drop-one), if the
-effects found close >= EXPLAINED (90 %) of the excess squared gap left after recalibration on held-out data;
-else ``unexplained`` (the candidates stay listed with their honest shrink). Measured on the blind test and the
-independent simulator (tests/indeprig.py): in-library effects close 99-100 %; a contact-spring backlash that
-bounces, against the twin's plastic impacts, ~70 % (``unexplained``, with backlash fitted within 10 %).
+effects found close >= EXPLAINED (50 %) of the excess squared gap left after recalibration on held-out data;
+else ``unexplained`` (no candidate closes a meaningful part of the gap; they stay listed with their honest
+shrink). Measured on the blind test, twin and independent simulator (tests/indeprig.py): in-library effects on
+the twin close 99-100 %; on the independent rigs 99-100 %, except a contact-spring backlash that bounces,
+against the twin's plastic impacts, 53-71 % (named, fitted within 10 %); the nearest candidate to an
+out-of-library sensor effect (a drifting gauge gain, the pot's linearity error) closes 0-26 %.
 """
 
 from __future__ import annotations
@@ -83,7 +85,7 @@ Progress = Callable[[str], None]
 # Decision thresholds (see the module docstring for why these values)
 NONE_RATIO = 2.0  # gap within 2x the noise gap (E within 4x E_noise): no gap beyond noise
 MIN_CLOSURE = 0.3  # a candidate must close >= 30 % of the excess squared gap left on held-out experiments
-EXPLAINED = 0.9  # the effects found must close >= 90 % of the excess squared gap for a verdict naming one
+EXPLAINED = 0.5  # the effects found must close >= half the excess squared gap left for a verdict naming one
 CHANNELS = ("theta", "alpha")
 TRANSIENT_S = 8.0  # s dropped at the start of a periodic experiment before its periods are compared
 FIT_SECONDS = 20.0  # parameters are fitted on the first 20 s of each experiment (scored on all of it)
