@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from .data import write_json
+from .data import load_manifest, read_dataset, write_json
 from .preprocess import as_signal, time_axis
 
 __all__ = [
@@ -463,3 +463,93 @@ def tip_deg(theta_v: Any, alpha_v: Any, cal: Calibration, unwrap: bool = True) -
     if th.size != al.size:
         raise ValueError(f"theta_v and alpha_v differ in length: {th.size} vs {al.size}")
     return th + al
+
+
+# ----------------------------------------------------------------------------------------------- a run directory
+
+
+def _holds(comb_angle: np.ndarray, t: np.ndarray) -> tuple[list[tuple[float, float]], np.ndarray]:
+    """Hold intervals (t_start, t_end) [s] and their comb angles [deg] from a comb_angle column (NaN between)."""
+    finite = np.isfinite(comb_angle)
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], finite.astype(int), [0]])))
+    holds, angles = [], []
+    for a, b in zip(edges[::2], edges[1::2], strict=True):
+        holds.append((float(t[a]), float(t[b - 1])))
+        angles.append(float(comb_angle[a]))
+    return holds, np.array(angles)
+
+
+def calibrate_run(run: Path) -> Calibration:
+    """Calibrate the sensors from a run's calibration experiments and write ``calibration.json``.
+
+    Kp from the pot ramp through its wraps, Ke by least squares over the comb holds, the dead zone from the slow
+    up/down ramps. Missing experiments fall back to the seed's numbers, and ``source`` says so.
+    """
+    run = Path(run)
+    manifest = load_manifest(run)
+    cal_exps = {e["name"]: e for e in manifest["experiments"] if e.get("role") == "calibration"}
+    source: dict[str, Any] = {}
+    # the seed's own Kp and Ke stand in when a run has no calibration experiments (imported measurements)
+    Kp, Ke, offset, dz, lag = SEED_CALIBRATION["Kp"], SEED_CALIBRATION["Ke"], 0.0, math.nan, 0.0
+
+    def data(name: str):
+        return read_dataset(run / "data" / f"{name}.parquet")
+
+    pot = [n for n, e in cal_exps.items() if e["signal"] == "constant"]
+    if pot:
+        df = data(pot[0])
+        pc = kp_from_ramp(df["t"].to_numpy(), df["theta_v"].to_numpy())
+        Kp = pc.Kp
+        lag = pc.lag_s if math.isfinite(pc.lag_s) else 0.0
+        source["Kp"] = {
+            "method": "pot ramp: track slope x wrap period",
+            "experiment": pot[0],
+            "Kp_span_formula": pc.Kp_span,
+            "v_max": pc.v_max,
+            "v_min": pc.v_min,
+            "n_wraps": pc.n_wraps,
+            "lag_s": pc.lag_s,
+        }
+    else:
+        source["Kp"] = {"method": "seed 000 value (no pot ramp in this run)"}
+    comb = [n for n, e in cal_exps.items() if e["signal"] == "comb"]
+    if comb:
+        df = data(comb[0])
+        holds, angles = _holds(df["comb_angle"].to_numpy(), df["t"].to_numpy())
+        ang, volts = comb_table(df["t"].to_numpy(), df["alpha_v"].to_numpy(), angles, holds)
+        gc = ke_from_comb(ang, volts)
+        Ke, offset = gc.Ke, gc.offset_v
+        source["Ke"] = {
+            "method": "least squares over comb holds (0.5-2 s)",
+            "experiment": comb[0],
+            "angles_deg": ang.tolist(),
+            "volts": volts.tolist(),
+            "r2": gc.r2,
+        }
+    else:
+        source["Ke"] = {"method": "seed 000 value (no comb in this run)"}
+    ramps = [n for n, e in cal_exps.items() if e["signal"] == "ramp"]
+    if ramps:
+        ests = []
+        for n in ramps:
+            df = data(n)
+            th = np.unwrap(Kp * df["theta_v"].to_numpy(), period=360.0)
+            ests.append(dead_zone_estimate(df["t"].to_numpy(), df["u"].to_numpy(), th, lag_s=lag))
+        est = dead_zone_merge(*ests)
+        dz = est.v_th
+        source["dead_zone_v"] = {
+            "method": "onset of motion on slow ramps, corrected by the step lag of the pot ramp",
+            "experiments": ramps,
+            "v_up": est.v_up,
+            "v_down": est.v_down,
+            "lag_s": lag,
+        }
+    cal = Calibration(Kp=Kp, Ke=Ke, gauge_offset_v=offset, dead_zone_v=dz, source=source)
+    cal.to_json(run / "calibration.json")
+    return cal
+
+
+def load_calibration(run: Path) -> Calibration:
+    """``calibration.json`` of a run, calibrating first when it is missing."""
+    p = Path(run) / "calibration.json"
+    return Calibration.from_json(p) if p.exists() else calibrate_run(run)

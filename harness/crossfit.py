@@ -19,10 +19,10 @@ import numpy as np
 import pandas as pd
 
 from . import armax
+from .calibration import load_calibration
 from .data import atomic_write_text, load_run
 from .export import ModelFMU, export_model, model_records
 from .identify import Prepared, prepare
-from .pipeline import load_calibration
 
 __all__ = ["TOLERANCE", "CrossfitMismatch", "CrossfitResult", "crossfit_run", "format_csv", "score_models"]
 

@@ -75,10 +75,9 @@ from scipy.optimize import minimize_scalar
 
 from . import recalibrate as recal
 from . import spec as specmod
-from .calibration import Calibration, alpha_deg, ke_from_comb, theta_deg
+from .calibration import Calibration, alpha_deg, ke_from_comb, load_calibration, theta_deg
 from .data import DataError, load_manifest, read_dataset, sample_time, write_json
 from .executor import Executor, fmu_bytes, worker_rig
-from .pipeline import load_calibration
 
 Progress = Callable[[str], None]
 
