@@ -232,10 +232,10 @@ def rig_spec(base: specmod.Spec, params: Mapping[str, float], seed: int) -> spec
 
 
 def _calibrate(spec: specmod.Spec, data: Mapping[str, Mapping[str, np.ndarray]]) -> Any:
-    """The rig's calibration from its calibration experiments, by :func:`harness.pipeline.calibrate_run` on a
+    """The rig's calibration from its calibration experiments, by :func:`harness.calibration.calibrate_run` on a
     scratch run directory private to this task (removed at once; nothing is shared or kept)."""
+    from .calibration import calibrate_run
     from .data import write_dataset, write_json
-    from .pipeline import calibrate_run
 
     with tempfile.TemporaryDirectory(prefix="flexjoint-sweep-") as tmp:
         run = Path(tmp)
