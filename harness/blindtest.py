@@ -51,6 +51,7 @@ import numpy as np
 from . import spec as specmod
 from .data import load_manifest, read_dataset, write_dataset, write_json
 from .diagnose import EFFECTS
+from .executor import Executor, FmuBytes, fmu_bytes, fmu_file
 
 Progress = Callable[[str], None]
 
@@ -392,16 +393,21 @@ def totals(cases: list[dict[str, Any]]) -> dict[str, Any]:
     return res
 
 
-def run_case(case: dict[str, Any], root: Path, quick: bool, fmus: dict[str, Path] | None = None) -> dict[str, Any]:
-    """One blind case: its hidden rig's campaign into ``root/case_NNN``, the diagnosis (serial), the score."""
+def run_case(
+    case: dict[str, Any], root: Path | None, quick: bool, fmus: dict[str, FmuBytes] | None = None
+) -> dict[str, Any]:
+    """One blind case, a task: its hidden rig's campaign into ``root/case_NNN`` (a scratch directory of the
+    worker when ``root`` is None), the diagnosis (serial, the FMUs from ``fmus`` bytes), the score."""
     from .diagnose import diagnose_run
 
-    d = Path(root) / f"case_{case['case']:03d}"
-    if d.exists():
-        shutil.rmtree(d)
     tc = time.perf_counter()
-    make_rig_run(case, d, fmus, quick)
-    diag = diagnose_run(d, campaign_spec(quick), d, workers=1)
+    files = {k: fmu_file(v) for k, v in fmus.items()} if fmus else None
+    with tempfile.TemporaryDirectory(prefix="flexjoint-blind-") as tmp:
+        d = Path(root if root is not None else tmp) / f"case_{case['case']:03d}"
+        if d.exists():
+            shutil.rmtree(d)
+        make_rig_run(case, d, files, quick)
+        diag = diagnose_run(d, campaign_spec(quick), d, workers=1, fmus=files)
     return {**case, "score": score_case(case, diag), "timing_s": time.perf_counter() - tc}
 
 
@@ -418,11 +424,11 @@ def blindtest(
 ) -> dict[str, Any]:
     """Run ``n`` blind cases drawn with ``seed`` over ``families``; writes ``out/blindtest.json`` (every case and
     the totals) and returns it. Cases run in parallel (``workers`` processes, or the Dask cluster at
-    ``scheduler``), each diagnosis serially inside its task; ``keep`` keeps the case run directories under
-    ``out/blind_cases/``; ``quick`` runs the shortened campaign of :func:`campaign_spec`. The independent family
-    is skipped, and said so, when there is no independent simulator (no source checkout)."""
+    ``scheduler``), each diagnosis serially inside its task, the FMUs sent as bytes; ``keep`` keeps the case run
+    directories under ``out/blind_cases/`` (on a remote cluster: on the workers' disks); ``quick`` runs the
+    shortened campaign of :func:`campaign_spec`. The independent family is skipped, and said so, when there is
+    no independent simulator (no source checkout)."""
     from .build import build_all
-    from .executor import Executor
 
     say = progress or (lambda _m: None)
     t0 = time.perf_counter()
@@ -432,16 +438,11 @@ def blindtest(
         skipped.append("independent: no tests/indeprig.py (a source checkout) to simulate it")
         say(f"skipped family {skipped[-1]}")
     cases = plan(n, seed, families)
-    build_all()
+    fmus = {k: fmu_bytes(v) for k, v in build_all().items() if k in ("flexjoint", "daq")}
     out = Path(out)
-    root = out / "blind_cases" if keep else Path(tempfile.mkdtemp(prefix="flexjoint-blind-"))
-    results = []
-    try:
-        with Executor(workers=workers, scheduler=scheduler, progress=progress) as ex:
-            results = ex.map(run_case, cases, root, quick, desc="blind case")
-    finally:
-        if not keep:
-            shutil.rmtree(root, ignore_errors=True)
+    root = out.resolve() / "blind_cases" if keep else None
+    with Executor(workers=workers, scheduler=scheduler, progress=progress) as ex:
+        results = ex.map(run_case, cases, root, quick, fmus, desc="blind case")
     for r in results:
         sc = r["score"]
         say(f"case {r['case']} ({r['family']}): {r['kind']} {r['truth_effects']} -> {sc['verdict']} {sc['fitted']}")

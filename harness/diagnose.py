@@ -710,10 +710,12 @@ def diagnose_run(
     progress: Progress | None = None,
     workers: int | None = None,
     scheduler: str | None = None,
+    fmus: dict[str, Path] | None = None,
 ) -> dict[str, Any]:
     """Diagnose the gap between run directory ``real`` and the simulation spec ``sim`` (a path, a name in
     specs/ or a loaded Spec); the candidates are fitted as tasks of a :class:`harness.executor.Executor`
-    (``workers`` processes of the default local cluster, 1 = serial, or the Dask cluster at ``scheduler``). Writes
+    (``workers`` processes of the default local cluster, 1 = serial, or the Dask cluster at ``scheduler``); ``fmus``:
+    the built plant and DAQ FMUs (default: built or taken from the cache). Writes
     ``out/diagnosis.json`` (default out = real) and returns its content plus ``timing_s`` (wall-clock seconds,
     written to ``diagnosis.timing.json`` so that diagnosis.json is byte-stable)."""
     from .build import build_all
@@ -727,7 +729,7 @@ def diagnose_run(
     cal = load_calibration(real)
     trials = load_trials(real, cal, sim_spec)
     plant, daq = sim_rig(sim_spec)
-    fmus = build_all()
+    fmus = fmus or build_all()
     setup = Setup(plant, daq, _comb_angles(cal), trials, {k: fmu_bytes(fmus[k]) for k in ("flexjoint", "daq")})
     names = list(trials)
     folds = split(trials)
