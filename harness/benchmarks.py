@@ -324,8 +324,71 @@ def bench_diagnose(workers: int = 2) -> dict[str, Any]:
     }
 
 
-def run_all(quick: bool = False, progress: Any = None) -> dict[str, Any]:
-    """Every benchmark, each side by side with its peer, as one JSON-able dict."""
+# issue 8's table: the nominal campaign on a rig whose linear part is off the datasheet, plus one effect
+MISMATCH = [
+    "plant.Ks=1.5",
+    "plant.Beq=0.0052",
+    "plant.zeta_link=0.02",
+    "daq.noise_theta=0.002",
+    "daq.noise_alpha=0.002",
+]
+TABLE_ROWS = {
+    "nothing": [],
+    "backlash 0.006 rad": ["plant.backlash=0.006"],
+    "Coulomb 0.030 N m": ["plant.coulomb_torque=0.030"],
+    "delay 2 samples": ["daq.delay_samples=2"],
+}
+
+
+def bench_diagnosis_table(workers: int | None = None) -> dict[str, Any]:
+    """Issue 8's table re-run: ``specs/nominal.toml`` with Ks 1.5, Beq 0.0052, zeta_link 0.02 and sensor noise
+    (a real rig's mismatch) plus one effect per row, diagnosed against nominal: verdict, effects with their
+    fitted values, recalibrated Ks and Beq, held-out fit before / after recalibration / after effects, wall s."""
+    import tempfile
+    from pathlib import Path
+
+    from . import spec as specmod
+    from .build import build_all
+    from .campaign import run_campaign
+    from .diagnose import diagnose_run
+
+    rows = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for name, sets in TABLE_ROWS.items():
+            run = Path(tmp) / name.split()[0]
+            run_campaign(specmod.load("nominal", [*MISMATCH, *sets]), run, fmus=build_all())
+            t0 = time.perf_counter()
+            d = diagnose_run(run, "nominal", workers=workers)
+            dec = d["gap"]["decomposition"]
+            rows[name] = {
+                "verdict": d["verdict"],
+                "effects": {k: v for e in d["effects"] for k, v in e["params"].items()},
+                "Ks": d["parameters"]["plant.Ks"]["fitted"],
+                "Beq": d["parameters"]["plant.Beq"]["fitted"],
+                "fit_pct": {
+                    k: 100.0 * (1.0 - dec[k]) for k in ("before", "after_recalibration", "after_effects", "noise_floor")
+                },  # fmt: skip
+                "wall_s": time.perf_counter() - t0,
+            }
+    return {"rows": rows, "mismatch": MISMATCH}
+
+
+def bench_blindtest(n: int, workers: int | None = None, seed: int = 0) -> dict[str, Any]:
+    """The full blind test (``flexjoint blindtest``, all three families, the full blind campaign): wall time and
+    the pooled and per-family scores with their intervals."""
+    import tempfile
+    from pathlib import Path
+
+    from .blindtest import blindtest
+
+    with tempfile.TemporaryDirectory() as tmp:
+        doc = blindtest(n, seed, Path(tmp), workers=workers)
+    return {"n": n, "seed": seed, "wall_s": doc["timing_s"], "totals": doc["totals"], "skipped": doc["skipped"]}
+
+
+def run_all(quick: bool = False, progress: Any = None, table: bool = False, blind: int = 0) -> dict[str, Any]:
+    """Every benchmark, each side by side with its peer, as one JSON-able dict; ``table`` adds issue 8's
+    diagnosis table (~3 min), ``blind`` the full blind test of that many rigs (~20 min for 45)."""
     import os
     import platform
 
@@ -339,6 +402,10 @@ def run_all(quick: bool = False, progress: Any = None) -> dict[str, Any]:
         ("executor", lambda: bench_executor(20 if quick else 40)),
         ("diagnose", bench_diagnose),
     ]
+    if table:
+        steps.append(("diagnosis_table", bench_diagnosis_table))
+    if blind:
+        steps.append(("blindtest", lambda: bench_blindtest(blind)))
     for name, fn in steps:
         result[name] = fn()
         if progress:

@@ -517,11 +517,15 @@ def run(
 def bench(
     out_file: Annotated[Path, typer.Option("--out", help="JSON file to write")] = Path("bench.json"),
     quick: Annotated[bool, typer.Option(help="fewer repetitions")] = False,
+    table: Annotated[bool, typer.Option("--table", help="add issue 8's diagnosis table (~3 min)")] = False,
+    blind: Annotated[
+        int, typer.Option("--blind", min=0, help="add the full blind test of N rigs (~20 min for 45)")
+    ] = 0,
 ) -> None:
     """Measure speed against the named peers (fmpy simulate_fmu, sippy-unipi) and write JSON."""
     from .benchmarks import run_all
 
-    result = run_all(quick=quick, progress=_progress("bench"))
+    result = run_all(quick=quick, progress=_progress("bench"), table=table, blind=blind)
     from .data import write_json
 
     write_json(out_file, result)
