@@ -843,7 +843,6 @@ def _select(
     e_start = min(e0, e_recal)
     say(f"recalibrated linear parameters: held-out fit {_fit(e_recal):.2f} %")
     no_gap = e_start <= NONE_RATIO**2 * floor
-    steps = [{"stage": "recalibration", "energy": e_recal, "applied": recal_paid}]
     chosen: list[str] = []
     rounds: list[list[dict[str, Any]]] = []
     by_name = {c.name: c for c in cands}
@@ -853,9 +852,9 @@ def _select(
         beyond = not no_gap and e_base > NONE_RATIO**2 * floor
         if rounds and not beyond:
             break  # the candidates are fitted once (for the record) even when there is no gap beyond noise
-        # screening: each candidate's parameter alone on the current rig; in the first round also on the spec's
-        # own linear rig, since the recalibrated one has already absorbed part of the effect (friction raises
-        # Beq, a delay lowers the motor gain) and would hide it
+        # screening: each candidate's parameter alone on the current rig and on the spec's own linear rig (with
+        # the effects chosen so far), since the recalibrated one has already absorbed part of the effect
+        # (friction raises Beq, a delay lowers the motor gain) and would hide it
         screen, e_ref = [bases], [e_base]
         if recal_paid:
             spec_lin = [{q: v for q, v in b.items() if q not in recal.LINEAR} for b in bases]
@@ -939,7 +938,6 @@ def _select(
         bases = [dict(b) for b in best["fold_params"]]
         chosen.append(best["effect"])
         e_base = best["gap_after"] ** 2
-        steps.append({"stage": best["effect"], "energy": e_base, "applied": True})
         remaining = [c for c in remaining if c.name != best["effect"]]
         say(f"  gap left {math.sqrt(e_base):.4f} (noise {math.sqrt(e_noise):.4f})")
     # backward elimination: an effect whose removal reopens less than DROP_MIN of the excess gap goes
@@ -956,7 +954,7 @@ def _select(
         keep = {_param(e) for e in order[: j + 1]}
         calls += [("sse", {**lin[k], **{q: v for q, v in bases[k].items() if q in keep}}, helds[k]) for k in (0, 1)]
     sses = pool.map(calls)
-    steps = steps[:1] + [
+    steps = [{"stage": "recalibration", "energy": e_recal, "applied": recal_paid}] + [
         {"stage": e, "energy": energy({**sses[2 * j], **sses[2 * j + 1]}, trials, names), "applied": True}
         for j, e in enumerate(order)
     ]
