@@ -289,13 +289,15 @@ def _orders(rec: dict[str, Any]) -> str:
 
 
 # ----------------------------------------------------------------------------------------------- figures
-def _new_figure(w: float, h: float) -> Figure:
+def new_figure(w: float, h: float) -> Figure:
+    """A matplotlib figure of w x h inches at the report's DPI, drawn without pyplot (no GUI, thread-safe)."""
     fig = Figure(figsize=(w, h), dpi=DPI)
     FigureCanvasAgg(fig)
     return fig
 
 
-def _save(fig: Figure, path: Path) -> None:
+def save_figure(fig: Figure, path: Path) -> None:
+    """Write ``fig`` as PNG atomically, without a timestamp or software tag (the same bytes on a re-run)."""
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=DPI, metadata={"Software": None})
     atomic_write_bytes(path, buf.getvalue())
@@ -304,7 +306,7 @@ def _save(fig: Figure, path: Path) -> None:
 def _fig_filter(res: RunResults, path: Path) -> None:
     Ts = res.sample_time
     f = _bode_grid(Ts)
-    fig = _new_figure(7, 5)
+    fig = new_figure(7, 5)
     ax_m, ax_p = fig.subplots(2, 1, sharex=True)
     for af in FILTER_AFS:
         mag, ph = filter_response(af, f, Ts)
@@ -318,13 +320,13 @@ def _fig_filter(res: RunResults, path: Path) -> None:
     for ax in (ax_m, ax_p):
         ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def _fig_bode(res: RunResults, path: Path) -> None:
     Ts = res.sample_time
     f = _bode_grid(Ts)
-    fig = _new_figure(7, 5.5)
+    fig = new_figure(7, 5.5)
     ax_m, ax_p = fig.subplots(2, 1, sharex=True)
     for name, (m, _) in res.models.items():
         if name == "selected":
@@ -353,12 +355,12 @@ def _fig_bode(res: RunResults, path: Path) -> None:
     for ax in (ax_m, ax_p):
         ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def _fig_pz(res: RunResults, path: Path) -> None:
     poles, zeros = pole_zero(res.models["selected"][0], res.af)
-    fig = _new_figure(5.5, 5.5)
+    fig = new_figure(5.5, 5.5)
     ax = fig.subplots()
     th = np.linspace(0, 2 * math.pi, 361)
     ax.plot(np.cos(th), np.sin(th), color="0.5", lw=0.8)
@@ -384,7 +386,7 @@ def _fig_pz(res: RunResults, path: Path) -> None:
     ax.set_title("pole-zero map of the selected model (with integrator)")
     ax.legend(loc="upper left")
     fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def _zoom(t: np.ndarray, r: np.ndarray, width: float) -> tuple[float, float]:
@@ -401,7 +403,7 @@ def _fig_time(res: RunResults, path: Path) -> None:
     names = list(res.prepared)
     ncol = 3 if len(names) > 4 else min(2, len(names))
     nrow = math.ceil(len(names) / ncol)
-    fig = _new_figure(4.2 * ncol, 4.2 * nrow)
+    fig = new_figure(4.2 * ncol, 4.2 * nrow)
     grid = fig.subplots(2 * nrow, ncol, squeeze=False)
     for i, name in enumerate(names):
         top, zoom = grid[2 * (i // ncol), i % ncol], grid[2 * (i // ncol) + 1, i % ncol]
@@ -429,13 +431,13 @@ def _fig_time(res: RunResults, path: Path) -> None:
         grid[2 * (i // ncol) + 1, i % ncol].set_visible(False)
     grid[0, 0].legend(fontsize=7)
     fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def _fig_square(res: RunResults, path: Path) -> tuple[float, float]:
     g = lti.with_integrator(res.models["selected"][0], res.af)
     t, u, y = lti.square_response(g, SQUARE_HZ, SQUARE_V, SQUARE_PERIODS / SQUARE_HZ)
-    fig = _new_figure(7, 4)
+    fig = new_figure(7, 4)
     ax1, ax2 = fig.subplots(2, 1, sharex=True)
     ax1.plot(t, u, color="k", lw=1)
     ax1.set_ylabel("u [V]")
@@ -446,12 +448,12 @@ def _fig_square(res: RunResults, path: Path) -> tuple[float, float]:
     for ax in (ax1, ax2):
         ax.grid(True, alpha=0.3)
     fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path)
     return float(np.min(y)), float(np.max(y))
 
 
 def _fig_resid(rt: armax.ResidTest, title: str, path: Path) -> None:
-    fig = _new_figure(7, 5)
+    fig = new_figure(7, 5)
     ax1, ax2 = fig.subplots(2, 1)
     lags = np.arange(rt.acf.size)
     ax1.vlines(lags, 0, rt.acf, color="C0")
@@ -468,12 +470,12 @@ def _fig_resid(rt: armax.ResidTest, title: str, path: Path) -> None:
     ax2.set_xlabel("lag k")
     ax1.legend(fontsize=8)
     fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def _fig_crossfit(cf: pd.DataFrame, path: Path) -> None:
     vals = cf.to_numpy(dtype=float)
-    fig = _new_figure(1.2 + 0.75 * vals.shape[1], 1.0 + 0.45 * vals.shape[0])
+    fig = new_figure(1.2 + 0.75 * vals.shape[1], 1.0 + 0.45 * vals.shape[0])
     ax = fig.subplots()
     im = ax.imshow(np.where(np.isfinite(vals), vals, np.nan), cmap="viridis", aspect="auto")
     ax.set_xticks(range(vals.shape[1]), [str(i + 1) for i in range(vals.shape[1])])
@@ -485,7 +487,7 @@ def _fig_crossfit(cf: pd.DataFrame, path: Path) -> None:
     fig.colorbar(im, ax=ax, label="fit [%]")
     ax.set_title("cross-fit: model (row) on dataset (column)")
     fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 # ----------------------------------------------------------------------------------------------- diagnosis
@@ -837,7 +839,7 @@ def _num(x: Any) -> float:
 
 
 def _fig_diagnosis(rows: list[tuple[str, float, float]], path: Path) -> None:
-    fig = _new_figure(max(5.0, 0.9 * len(rows) + 2), 4)
+    fig = new_figure(max(5.0, 0.9 * len(rows) + 2), 4)
     ax = fig.subplots()
     x = np.arange(len(rows))
     ax.bar(x - 0.2, [r[1] for r in rows], 0.4, label="gap before")
@@ -847,13 +849,13 @@ def _fig_diagnosis(rows: list[tuple[str, float, float]], path: Path) -> None:
     ax.set_title("sim-to-real gap per experiment before / after modelling the effects")
     ax.legend()
     fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def _fig_waterfall(rows: list[tuple[str, float, float]], noise: float, path: Path) -> None:
     """The held-out gap stage by stage: the first bar is the gap before, each next one floats from the previous
     gap to the gap after its stage (green when it closes, red when it reopens), the noise floor dashed."""
-    fig = _new_figure(max(5.0, 1.1 * len(rows) + 2), 4)
+    fig = new_figure(max(5.0, 1.1 * len(rows) + 2), 4)
     ax = fig.subplots()
     prev = rows[0][1]
     ax.bar(0, prev, 0.6, color="C0")
@@ -871,7 +873,7 @@ def _fig_waterfall(rows: list[tuple[str, float, float]], noise: float, path: Pat
     ax.set_ylabel("held-out gap (fit % = 100 (1 - gap))")
     ax.set_title("gap waterfall: recalibration, then each effect")
     fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 # ----------------------------------------------------------------------------------------------- sections

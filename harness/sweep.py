@@ -48,7 +48,6 @@ from __future__ import annotations
 
 import copy
 import hashlib
-import io
 import json
 import math
 import re
@@ -416,33 +415,15 @@ def _write_parquet(path: Path, table: pd.DataFrame) -> None:
     atomic_write_bytes(path, sink.getvalue().to_pybytes())
 
 
-def _figure(w: float, h: float) -> Any:
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    from .report import DPI
-
-    fig = Figure(figsize=(w, h), dpi=DPI)
-    FigureCanvasAgg(fig)
-    return fig
-
-
-def _save(fig: Any, path: Path) -> None:
-    from .data import atomic_write_bytes
-    from .report import DPI
-
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=DPI, metadata={"Software": None})
-    atomic_write_bytes(path, buf.getvalue())
-
-
 def write_figures(out: Path, table: pd.DataFrame, summary: dict[str, Any], th: Mapping[str, float]) -> list[str]:
     """``figures/sweep_fit.png`` (mean-fit histogram), ``sweep_scatter.png`` (mean fit against each varied
     parameter, pass/fail coloured), ``sweep_sensitivity.png`` (S1 bars); returns their relative paths."""
+    from .report import new_figure, save_figure
+
     figs = out / "figures"
     ok = table["passed"].to_numpy(bool)
     fm = table["fit_mean"].to_numpy(float)
-    fig = _figure(6, 3.5)
+    fig = new_figure(6, 3.5)
     ax = fig.subplots()
     f = fm[np.isfinite(fm)]
     ax.hist(f, bins=max(5, min(40, int(np.sqrt(max(f.size, 1))) * 2)), color="#4a7ab5")
@@ -451,10 +432,10 @@ def write_figures(out: Path, table: pd.DataFrame, summary: dict[str, Any], th: M
     ax.set_ylabel("rigs")
     ax.legend(fontsize=8)
     fig.tight_layout()
-    _save(fig, figs / "sweep_fit.png")
+    save_figure(fig, figs / "sweep_fit.png")
 
     keys = list(summary["parameters"])
-    fig = _figure(4 * len(keys), 3.5)
+    fig = new_figure(4 * len(keys), 3.5)
     axes = np.atleast_1d(fig.subplots(1, len(keys)))
     for ax, key in zip(axes, keys, strict=True):
         x = table[key].to_numpy(float)
@@ -465,17 +446,17 @@ def write_figures(out: Path, table: pd.DataFrame, summary: dict[str, Any], th: M
         ax.set_ylabel("mean fit [%]")
     axes[0].legend(fontsize=8)
     fig.tight_layout()
-    _save(fig, figs / "sweep_scatter.png")
+    save_figure(fig, figs / "sweep_scatter.png")
 
     rank = summary["sensitivity"]["ranking"]
-    fig = _figure(6, 0.6 * len(rank) + 1.2)
+    fig = new_figure(6, 0.6 * len(rank) + 1.2)
     ax = fig.subplots()
     vals = [r["s1"] if math.isfinite(r["s1"]) else 0.0 for r in rank]
     ax.barh([r["param"] for r in rank][::-1], vals[::-1], color="#4a7ab5")
     ax.set_xlabel("first-order index S1 of the mean fit")
     ax.set_xlim(0, max(1.0, max(vals, default=0.0)))
     fig.tight_layout()
-    _save(fig, figs / "sweep_sensitivity.png")
+    save_figure(fig, figs / "sweep_sensitivity.png")
     return ["figures/sweep_fit.png", "figures/sweep_scatter.png", "figures/sweep_sensitivity.png"]
 
 

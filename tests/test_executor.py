@@ -4,6 +4,7 @@ the same bytes either way, and worker errors surfacing as the original exception
 from __future__ import annotations
 
 import contextlib
+import json
 import math
 import operator
 import os
@@ -199,3 +200,18 @@ def test_unreachable_scheduler_is_one_clear_error(monkeypatch):
     monkeypatch.setattr("harness.executor.CONNECT_TIMEOUT_S", 1.0)
     with pytest.raises(RuntimeError, match="cannot connect to the Dask scheduler"):
         Executor(scheduler=f"tcp://127.0.0.1:{_free_port()}")
+
+
+def test_blind_test_on_a_remote_cluster_gives_the_serial_bytes(tmp_path, fmus):
+    from harness.blindtest import blindtest
+
+    with DaskCluster(2) as cluster:
+        blindtest(3, seed=4, out=tmp_path / "serial", workers=1, quick=True, families=("twin", "nuisance"))
+        remote = flexjoint("blindtest", "--n", 3, "--seed", 4, "--quick", "--family", "twin", "--family",
+                           "nuisance", "--out", tmp_path / "remote", "--scheduler", cluster.wait())  # fmt: skip
+    assert remote.returncode == 0, remote.stderr
+    assert "pooled" in remote.stdout and "[3/3]" in remote.stderr
+    serial = (tmp_path / "serial" / "blindtest.json").read_bytes()
+    assert serial == (tmp_path / "remote" / "blindtest.json").read_bytes()
+    timing = json.loads((tmp_path / "remote" / "blindtest.timing.json").read_text())
+    assert sorted(timing["cases_s"]) == ["0", "1", "2"] and timing["scheduler"].startswith("tcp://127.0.0.1:")
