@@ -507,15 +507,27 @@ class _Pool:
     """The diagnosis's simulations as tasks of a :class:`harness.executor.Executor` (the setup is sent to every
     worker once; each worker loads the rig once): ``map`` takes ``(kind, *args)`` calls, see :func:`_task`."""
 
-    def __init__(self, setup: Setup, workers: int | None, scheduler: str | None = None) -> None:
+    def __init__(
+        self, setup: Setup, workers: int | None, scheduler: str | None = None, progress: Progress | None = None
+    ) -> None:
         self.setup = setup
-        self.ex = Executor(workers, scheduler)
+        self.ex = Executor(workers, scheduler, progress)
 
     def map(self, calls: list[tuple[Any, ...]]) -> list[Any]:
-        return self.ex.map(_run_call, calls, self.setup)
+        return self.ex.map(_run_call, calls, self.setup, desc="diagnosis", labels=[_label(c) for c in calls])
 
     def close(self) -> None:
         self.ex.close()
+
+
+def _label(call: tuple[Any, ...]) -> str:
+    """What a task does, for the progress line: "screen backlash", "refit linear + coulomb_torque", "score"."""
+    kind = call[0]
+    if kind == "fit":
+        return f"screen {call[1].name}"
+    if kind == "refit":
+        return "refit linear" + "".join(f" + {p.split('.', 1)[1]}" for p in call[2])
+    return "score"
 
 
 # ----------------------------------------------------------------------------------------------- signatures
@@ -743,7 +755,7 @@ def diagnose_run(
         sigma["method"] += " + ADC quantisation variance LSB^2 / 12"
     e_noise = noise_energy(trials, sigma, names)
     cands = _candidates(trials, plant, daq, bits)
-    pool = _Pool(setup, workers, scheduler)
+    pool = _Pool(setup, workers, scheduler, progress)
     try:
         result = _select(pool, trials, names, folds, cands, e_noise, say)
     finally:
