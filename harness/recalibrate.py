@@ -59,7 +59,7 @@ class Fit:
     n: int
 
 
-def _to_x(name: str, value: float, nominal: float, b: Bound) -> float:
+def _to_x(value: float, nominal: float, b: Bound) -> float:
     return math.log(value / nominal) if b.log else value
 
 
@@ -67,7 +67,7 @@ def _from_x(x: float, nominal: float, b: Bound) -> float:
     return nominal * math.exp(x) if b.log else x
 
 
-def _x_bounds(nominal: float, b: Bound) -> tuple[float, float]:
+def _x_bounds(b: Bound) -> tuple[float, float]:
     return (math.log(b.lo), math.log(b.hi)) if b.log else (b.lo, b.hi)
 
 
@@ -85,10 +85,10 @@ def fit(
     names = list(bounds)
     fixed = dict(fixed or {})
     start = {**nominal, **(start or {})}
-    lo_hi = [_x_bounds(nominal[n], bounds[n]) for n in names]
+    lo_hi = [_x_bounds(bounds[n]) for n in names]
     x0 = np.array(
         [
-            min(max(_to_x(n, start[n], nominal[n], bounds[n]), lo + 1e-9), hi - 1e-9)
+            min(max(_to_x(start[n], nominal[n], bounds[n]), lo + 1e-9), hi - 1e-9)
             for n, (lo, hi) in zip(names, lo_hi, strict=True)
         ]
     )
