@@ -58,15 +58,9 @@ Progress = Callable[[str], None]
 BLIND_SPEC = specmod.SPEC_DIR / "blind.toml"
 FAMILIES = ("twin", "nuisance", "independent")
 
-# in-library effect -> (parameter, low, high, kind): magnitudes that matter on the blind campaign
+# in-library effect -> (parameter, low, high, kind): the magnitudes the blind test draws, from the effect table
 RANGES: dict[str, tuple[str, float, float, str]] = {
-    "coulomb_friction": ("plant.coulomb_torque", 0.02, 0.08, "log"),
-    "backlash": ("plant.backlash", 0.002, 0.01, "log"),
-    "saturation": ("plant.amp_limit", 1.2, 2.2, "log"),  # below the 2.5 V square and 3 V PRBS
-    "second_mode": ("plant.n_modes", 2, 2, "int"),
-    "delay": ("daq.delay_samples", 1, 3, "int"),
-    "quantization": ("daq.adc_bits", 8, 12, "int"),
-    "gauge_nonlinearity": ("daq.gauge_cubic", 0.02, 0.1, "log"),
+    name: (e.param, *e.blind, "int" if e.kind == "int" else "log") for name, e in EFFECTS.items()
 }
 # linear parameter -> (low factor, high factor, log-uniform) of the textbook value: a real rig's spread
 NUISANCE: dict[str, tuple[float, float, bool]] = {

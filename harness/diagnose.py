@@ -66,7 +66,7 @@ import math
 import os
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -99,8 +99,9 @@ DEADBAND_GUARD = 1.5  # deg: samples this close to a pot track end (its dead ban
 class Effect:
     """A candidate effect: one FMU parameter ``param`` ("plant.coulomb_torque") in ``unit``.
 
-    ``kind`` "log" / "linear" (continuous, bounds ``lo``..``hi``, coarse ``grid`` points) or "int" (``values``
-    enumerated; for quantisation the values come from the ADC lattice found in the data).
+    ``kind`` "log" / "linear" (continuous, search bounds ``lo``..``hi``, coarse ``grid`` points) or "int"
+    (``values`` enumerated; for quantisation the values come from the ADC lattice found in the data); ``blind``
+    the magnitudes :mod:`harness.blindtest` hides in its rigs (the one effect table both use).
     """
 
     name: str
@@ -113,16 +114,24 @@ class Effect:
     values: tuple[int, ...] = ()
     joint: bool = False  # it moves the rig's resonances: judged only after a joint refit of the linear parameters
     extra: tuple[str, ...] = ()  # secondary plant parameters freed with it in the joint refit
+    blind: tuple[float, float] = (0.0, 0.0)  # magnitudes the blind test draws (log-uniform, or integers)
 
 
 EFFECTS: dict[str, Effect] = {
-    "coulomb_friction": Effect("coulomb_friction", "plant.coulomb_torque", "N m", "log", 1e-3, 0.5, 8),
-    "backlash": Effect("backlash", "plant.backlash", "rad", "log", 2e-4, 0.05, 7, extra=("plant.Jm_share",)),
-    "saturation": Effect("saturation", "plant.amp_limit", "V", "log", 0.1, 10.0, 7),
-    "second_mode": Effect("second_mode", "plant.n_modes", "1", "int", values=(2,), joint=True),
-    "delay": Effect("delay", "daq.delay_samples", "samples", "int", values=(0, 1, 2, 3, 4, 5)),
-    "quantization": Effect("quantization", "daq.adc_bits", "bits", "int"),
-    "gauge_nonlinearity": Effect("gauge_nonlinearity", "daq.gauge_cubic", "1", "linear", -0.3, 0.3, 9),
+    "coulomb_friction": Effect(
+        "coulomb_friction", "plant.coulomb_torque", "N m", "log", 1e-3, 0.5, 8, blind=(0.02, 0.08)
+    ),
+    "backlash": Effect(
+        "backlash", "plant.backlash", "rad", "log", 2e-4, 0.05, 7, extra=("plant.Jm_share",), blind=(0.002, 0.01)
+    ),
+    # the blind campaign's 2.5 V square and 3 V PRBS reach beyond these limits
+    "saturation": Effect("saturation", "plant.amp_limit", "V", "log", 0.1, 10.0, 7, blind=(1.2, 2.2)),
+    "second_mode": Effect("second_mode", "plant.n_modes", "1", "int", values=(2,), joint=True, blind=(2, 2)),
+    "delay": Effect("delay", "daq.delay_samples", "samples", "int", values=(0, 1, 2, 3, 4, 5), blind=(1, 3)),
+    "quantization": Effect("quantization", "daq.adc_bits", "bits", "int", blind=(8, 12)),
+    "gauge_nonlinearity": Effect(
+        "gauge_nonlinearity", "daq.gauge_cubic", "1", "linear", -0.3, 0.3, 9, blind=(0.02, 0.1)
+    ),
 }
 VERDICTS = (*EFFECTS, "none", "unexplained")
 # secondary parameters an effect brings into the joint refit (absolute bounds)
@@ -816,13 +825,13 @@ def _candidates(trials: dict[str, Trial], plant: dict, daq: dict, bits: int) -> 
         if eff.name == "quantization":
             if not bits or int(daq.get("adc_bits", 0)) == bits:
                 continue
-            eff = Effect(eff.name, eff.param, eff.unit, "int", values=(bits,))
+            eff = replace(eff, values=(bits,))
         if eff.name == "saturation":
             top = max(float(np.max(np.abs(t.u))) for t in trials.values())
-            eff = Effect(eff.name, eff.param, eff.unit, "log", eff.lo, max(top, 2.0 * eff.lo), eff.grid)
+            eff = replace(eff, hi=max(top, 2.0 * eff.lo))
         if eff.name == "delay":
             cur = int(daq.get("delay_samples", 0))
-            eff = Effect(eff.name, eff.param, eff.unit, "int", values=tuple(v for v in eff.values if v != cur))
+            eff = replace(eff, values=tuple(v for v in eff.values if v != cur))
         out.append(eff)
     return out
 
