@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import importlib.util
 import math
+import os
 import shutil
 import sys
 import tempfile
@@ -168,8 +169,6 @@ def campaign_spec(quick: bool = False, overrides: list[str] | None = None) -> sp
 def independent_simulator() -> ModuleType | None:
     """The independent rig simulator of a source checkout (``tests/indeprig.py`` beside the package, or the file
     named by ``FLEXJOINT_INDEPENDENT_RIG``), imported as module ``indeprig``; None when there is none."""
-    import os
-
     path = Path(
         os.environ.get("FLEXJOINT_INDEPENDENT_RIG", Path(__file__).resolve().parents[1] / "tests" / "indeprig.py")
     )
