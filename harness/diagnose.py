@@ -46,7 +46,8 @@ joint closure reaches MIN_CLOSURE (0.3; effects that only pay together, like the
 second mode once the linear parameters compensate each alone, enter on their screening against the spec's rig)
 and it lowers the held-out gap; rounds go on while the gap is above NONE_RATIO x the floor. Backward
 elimination then drops, one at a time, an effect whose removal reopens less than DROP_MIN (5 %) of the excess
-gap left after recalibration (drop-one importance). Quantisation barely moves the gap: it is detected by its
+gap left after recalibration (drop-one; the importance reported is the share of the gap without the effect
+that the effect accounts for). Quantisation barely moves the gap: it is detected by its
 signature (every sample on the lattice of LSB = 2 adc_range / 2^bits, also when the volts were written rounded
 to a few decimals; the coarsest lattice gives the bits) and added last with its honest (even negative) shrink.
 
@@ -962,7 +963,8 @@ def _select(
         remaining = [c for c in remaining if c.name != best["effect"]]
         say(f"  gap left {math.sqrt(e_base):.4f} (noise {math.sqrt(e_noise):.4f})")
     # backward elimination: an effect whose removal reopens less than DROP_MIN of the excess gap goes
-    importance, e_expl = _eliminate(pool, bases, chosen, helds, trials, names, e_base, e_start, floor)
+    without, e_expl = _eliminate(pool, bases, chosen, helds, trials, names, e_base, e_start, floor)
+    importance = {e: _importance(w, e_expl, floor) for e, w in without.items()}
     signature = [c for c in cands if c.name == "quantization"]
     for c in signature:
         for k in (0, 1):
@@ -1094,10 +1096,10 @@ def _eliminate(
     e_start: float,
     floor: float,
 ) -> tuple[dict[str, float], float]:
-    """Drop-one importance of each chosen effect on held-out data (the share of the excess gap left after
-    recalibration that reopens when it is removed, the others kept); the least important effect is removed
-    (from ``chosen`` and ``bases``, in place) while it accounts for less than DROP_MIN. Returns (importance,
-    held-out E of the effects kept)."""
+    """Drop-one on held-out data: each chosen effect removed from the final model (the others and the jointly
+    refitted linear parameters kept); the effect whose removal reopens least is dropped (from ``chosen`` and
+    ``bases``, in place) while that is less than DROP_MIN of the excess gap left after recalibration. Returns
+    ({effect: held-out E without it}, held-out E of the effects kept)."""
     excess = e_start - floor
     while chosen:
         calls = []
@@ -1105,17 +1107,22 @@ def _eliminate(
             p = _param(e)
             calls += [("sse", {q: v for q, v in bases[k].items() if q != p}, helds[k]) for k in (0, 1)]
         sses = pool.map(calls)
-        without = [energy({**sses[2 * j], **sses[2 * j + 1]}, trials, names) for j in range(len(chosen))]
-        importance = {e: (w - e_expl) / excess if excess > 0 else 0.0 for e, w in zip(chosen, without, strict=True)}
-        weakest = min(chosen, key=lambda e: (importance[e], -chosen.index(e)))
-        if importance[weakest] >= DROP_MIN:
-            return importance, e_expl
-        e_expl = without[chosen.index(weakest)]
+        without = {e: energy({**sses[2 * j], **sses[2 * j + 1]}, trials, names) for j, e in enumerate(chosen)}
+        weakest = min(chosen, key=lambda e: (without[e], -chosen.index(e)))
+        if excess <= 0 or (without[weakest] - e_expl) / excess >= DROP_MIN:
+            return without, e_expl
+        e_expl = without[weakest]
         p = _param(weakest)
         for b in bases:
             b.pop(p, None)
         chosen.remove(weakest)
     return {}, e_expl
+
+
+def _importance(e_without: float, e_expl: float, floor: float) -> float:
+    """Drop-one importance [0, 1]: the share of the gap beyond the floor, with the effect removed from the final
+    model, that the effect accounts for, (E_without - E_final) / (E_without - E_floor)."""
+    return (e_without - e_expl) / (e_without - floor) if e_without > floor else 0.0
 
 
 def _fit(e: float) -> float:

@@ -618,8 +618,9 @@ def _effects_lines(diag: dict[str, Any]) -> list[str]:
     header = ["effect", "fitted parameters", "importance [%]", "gap before", "gap after", "shrink [%]", "found by"]
     lines = ["Effects, in the order they were added (gaps on held-out experiments):", "", *_table(header, rows), ""]
     lines += [
-        "Importance: the share of the excess gap (above the noise floor) that reopens when the effect alone is "
-        "removed from the final model; shrink: how much the gap fell when the effect was added.",
+        "Importance: remove the effect alone from the final model and the gap above the noise floor grows; the "
+        "share of that gap the effect accounts for (the verdict is the effect whose removal reopens most); shrink: "
+        "how much the gap fell when the effect was added.",
         "",
     ]
     if any("lattice" in str(e.get("selected_by", "")) for e in effects):
