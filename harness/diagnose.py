@@ -46,8 +46,8 @@ joint closure reaches MIN_CLOSURE (0.3; effects that only pay together, like the
 second mode once the linear parameters compensate each alone, enter on their screening against the spec's rig)
 and it lowers the held-out gap; rounds go on while the gap is above NONE_RATIO x the floor. Backward
 elimination then drops, one at a time, an effect whose removal reopens less than DROP_MIN (5 %) of the excess
-gap left after recalibration (drop-one; the importance reported is the share of the gap without the effect
-that the effect accounts for). Quantisation barely moves the gap: it is detected by its
+gap left after recalibration (drop-one; the importance reported is each effect's share of what the removals
+reopen). Quantisation barely moves the gap: it is detected by its
 signature (every sample on the lattice of LSB = 2 adc_range / 2^bits, also when the volts were written rounded
 to a few decimals; the coarsest lattice gives the bits) and added last with its honest (even negative) shrink.
 
@@ -866,6 +866,7 @@ def _select(
     say(f"recalibrated linear parameters: held-out fit {_fit(e_recal):.2f} %")
     no_gap = e_start <= NONE_RATIO**2 * floor
     chosen: list[str] = []
+    forward: list[tuple[str, float]] = []  # (effect, held-out E once it was added, with that round's refit)
     rounds: list[list[dict[str, Any]]] = []
     by_name = {c.name: c for c in cands}
     remaining = [c for c in cands if c.name != "quantization"]
@@ -960,26 +961,32 @@ def _select(
         bases = [dict(b) for b in best["fold_params"]]
         chosen.append(best["effect"])
         e_base = best["gap_after"] ** 2
+        forward.append((best["effect"], e_base))
         remaining = [c for c in remaining if c.name != best["effect"]]
         say(f"  gap left {math.sqrt(e_base):.4f} (noise {math.sqrt(e_noise):.4f})")
     # backward elimination: an effect whose removal reopens less than DROP_MIN of the excess gap goes
     without, e_expl = _eliminate(pool, bases, chosen, helds, trials, names, e_base, e_start, floor)
-    importance = {e: _importance(w, e_expl, floor) for e, w in without.items()}
+    importance = _importance(without, e_expl)
     signature = [c for c in cands if c.name == "quantization"]
     for c in signature:
         for k in (0, 1):
             bases[k][c.param] = c.values[0]
     order = chosen + [c.name for c in signature]
-    # the waterfall: held-out gap after recalibration, then with the effects added one by one (final parameters)
+    # the waterfall: held-out gap after recalibration, then with the effects added one by one: as the forward
+    # selection measured it (each stage with its own joint refit), or, when an effect was dropped again, with the
+    # final parameters; quantisation last, on the final model
+    kept_forward = [e for e, _ in forward] == chosen
     lin = [{q: v for q, v in b.items() if q in recal.LINEAR} for b in bases]
+    redo = range(len(chosen), len(order)) if kept_forward else range(len(order))
     calls = []
-    for j in range(len(order)):
+    for j in redo:
         keep = {_param(e) for e in order[: j + 1]}
         calls += [("sse", {**lin[k], **{q: v for q, v in bases[k].items() if q in keep}}, helds[k]) for k in (0, 1)]
     sses = pool.map(calls)
+    energies = [e for _, e in forward] if kept_forward else []
+    energies += [energy({**sses[2 * i], **sses[2 * i + 1]}, trials, names) for i in range(len(redo))]
     steps = [{"stage": "recalibration", "energy": e_recal, "applied": recal_paid}] + [
-        {"stage": e, "energy": energy({**sses[2 * j], **sses[2 * j + 1]}, trials, names), "applied": True}
-        for j, e in enumerate(order)
+        {"stage": e, "energy": en, "applied": True} for e, en in zip(order, energies, strict=True)
     ]
     explained = min(_closure(e_start, e_expl, floor), 1.0) if not no_gap else math.nan
     final, table = _final_params(pool, bases, order, trials, names)
@@ -1119,10 +1126,12 @@ def _eliminate(
     return {}, e_expl
 
 
-def _importance(e_without: float, e_expl: float, floor: float) -> float:
-    """Drop-one importance [0, 1]: the share of the gap beyond the floor, with the effect removed from the final
-    model, that the effect accounts for, (E_without - E_final) / (E_without - E_floor)."""
-    return (e_without - e_expl) / (e_without - floor) if e_without > floor else 0.0
+def _importance(without: dict[str, float], e_expl: float) -> dict[str, float]:
+    """Drop-one importance [0, 1]: what removing each effect alone from the final model reopens (E_without -
+    E_final), as its share of what all of them reopen; the order is that of the gap each removal reopens."""
+    reopen = {e: max(w - e_expl, 0.0) for e, w in without.items()}
+    total = sum(reopen.values())
+    return {e: r / total if total > 0 else 1.0 / len(reopen) for e, r in reopen.items()}
 
 
 def _fit(e: float) -> float:

@@ -618,9 +618,9 @@ def _effects_lines(diag: dict[str, Any]) -> list[str]:
     header = ["effect", "fitted parameters", "importance [%]", "gap before", "gap after", "shrink [%]", "found by"]
     lines = ["Effects, in the order they were added (gaps on held-out experiments):", "", *_table(header, rows), ""]
     lines += [
-        "Importance: remove the effect alone from the final model and the gap above the noise floor grows; the "
-        "share of that gap the effect accounts for (the verdict is the effect whose removal reopens most); shrink: "
-        "how much the gap fell when the effect was added.",
+        "Importance: remove each effect alone from the final model and part of the gap reopens; an effect's "
+        "importance is its share of what the removals reopen (the verdict is the effect whose removal reopens "
+        "most); shrink: how much the gap fell when the effect was added.",
         "",
     ]
     if any("lattice" in str(e.get("selected_by", "")) for e in effects):
