@@ -534,8 +534,9 @@ def bench(
 
 def _quiet_workers_on_interrupt() -> None:
     """Ctrl-C reaches every process of the terminal's group: the command itself raises KeyboardInterrupt (typer
-    turns it into exit code 130) while a forked worker (process pools of campaign and diagnose) ends at once,
-    by the signal, instead of printing its own traceback."""
+    turns it into exit code 130) while a forked child (the bench's machine-baseline processes) ends at once, by
+    the signal, instead of printing its own traceback. Dask's workers are spawned, not forked: they get the
+    signal too, and print a traceback only when it lands while they are still importing (cluster start-up)."""
     main_pid = os.getpid()
 
     def on_sigint(signum: int, frame: object) -> None:
