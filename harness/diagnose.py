@@ -135,6 +135,7 @@ EFFECTS: dict[str, Effect] = {
     ),
 }
 VERDICTS = (*EFFECTS, "none", "unexplained")
+BY_PARAM: dict[str, Effect] = {e.param: e for e in EFFECTS.values()}
 # secondary parameters an effect brings into the joint refit (absolute bounds)
 EXTRA: dict[str, recal.Bound] = {
     "plant.Jm_share": recal.Bound(0.05, 0.95, "1", "share of the hub inertia on the motor side of the play", log=False)
@@ -393,54 +394,37 @@ def _objective(over: dict[str, Any], names: list[str]) -> float:
     return energy(_sse(over, names, "screen"), _CTX["setup"].trials, names, "screen")
 
 
-def _fit_continuous(
-    eff: Effect, base: dict[str, Any], names: list[str], lo: float, hi: float, grid: int, start: float | None
-):
-    """Coarse grid then bounded Brent on the best bracket, or (``start`` given: a refit) Brent on [lo, hi]
-    only; returns (value, E on ``names``, evaluations)."""
+def _fit_continuous(eff: Effect, base: dict[str, Any], names: list[str]) -> tuple[float, float, int]:
+    """Coarse grid over [lo, hi] (log or linear) then bounded Brent on the best bracket; returns (value, E on
+    ``names``' screening windows, evaluations)."""
     log = eff.kind == "log"
     fwd = (lambda x: math.log(x)) if log else (lambda x: x)
     inv = (lambda s: math.exp(s)) if log else (lambda s: s)
-    s_lo, s_hi = fwd(lo), fwd(hi)
-    if start is None:
-        pts = np.linspace(s_lo, s_hi, grid)
-        vals = [_objective({**base, eff.param: inv(s)}, names) for s in pts]
-        i = int(np.argmin(vals))
-        a, b = pts[max(i - 1, 0)], pts[min(i + 1, grid - 1)]
-        best_s, best_v = float(pts[i]), float(vals[i])
-    else:
-        a, b = s_lo, s_hi
-        best_s = fwd(start)
-        best_v = _objective({**base, eff.param: start}, names)
-        grid = 1
+    s_lo, s_hi = fwd(eff.lo), fwd(eff.hi)
+    pts = np.linspace(s_lo, s_hi, eff.grid)
+    vals = [_objective({**base, eff.param: inv(s)}, names) for s in pts]
+    i = int(np.argmin(vals))
+    best_s, best_v = float(pts[i]), float(vals[i])
     res = minimize_scalar(
         lambda s: _objective({**base, eff.param: inv(s)}, names),
-        bounds=(a, b),
+        bounds=(pts[max(i - 1, 0)], pts[min(i + 1, eff.grid - 1)]),
         method="bounded",
         options={"xatol": 0.01 if log else 0.002 * (s_hi - s_lo), "maxiter": 10},
     )
     if res.fun < best_v:
         best_s, best_v = float(res.x), float(res.fun)
-    return inv(best_s), best_v, grid + int(res.nfev)
+    return inv(best_s), best_v, eff.grid + int(res.nfev)
 
 
-def fit_effect(
-    eff: Effect,
-    base: dict[str, Any],
-    fit: list[str],
-    every: list[str],
-    refit: tuple[float, float, float] | None = None,
-) -> dict[str, Any]:
-    """Fit one effect on top of ``base`` on experiments ``fit`` (their first FIT_SECONDS); squared errors on
-    ``every`` experiment. ``refit`` = (lo, hi, current): a local refit of a continuous parameter."""
+def fit_effect(eff: Effect, base: dict[str, Any], fit: list[str], every: list[str]) -> dict[str, Any]:
+    """Screen one effect on top of ``base`` on experiments ``fit`` (their first SCREEN_SECONDS): integers
+    enumerated, continuous parameters by :func:`_fit_continuous`; squared errors on ``every`` experiment."""
     if eff.kind == "int":
         scores = [(_objective({**base, eff.param: v}, fit), v) for v in eff.values]
         e_fit, value = min(scores, key=lambda s: (s[0], s[1]))
         value, n = int(value), len(scores)
-    elif refit is None:
-        value, e_fit, n = _fit_continuous(eff, base, fit, eff.lo, eff.hi, eff.grid, None)
     else:
-        value, e_fit, n = _fit_continuous(eff, base, fit, refit[0], refit[1], 0, refit[2])
+        value, e_fit, n = _fit_continuous(eff, base, fit)
     return {
         "effect": eff.name,
         "params": {eff.param: value},
@@ -476,14 +460,13 @@ def refit(
     nominal: dict[str, float] = {}
     for prm, b in recal.LINEAR.items():
         bounds[prm], nominal[prm] = b, nominal_value(setup, prm)
-    by_param = {e.param: e for e in EFFECTS.values()}
     for prm in free:
-        bounds[prm], nominal[prm] = _effect_bound(by_param[prm], float(base[prm])), float(base[prm])
-        for x in by_param[prm].extra:
+        bounds[prm], nominal[prm] = _effect_bound(BY_PARAM[prm], float(base[prm])), float(base[prm])
+        for x in BY_PARAM[prm].extra:
             bounds[x], nominal[x] = EXTRA[x], nominal_value(setup, x)
     fixed = {k: v for k, v in base.items() if k not in bounds}
     f = recal.fit(
-        lambda prm: _residual_vector({**fixed, **prm}, fit),
+        lambda prm: _residual_vector(prm, fit),
         bounds,
         nominal,
         start={k: float(v) for k, v in base.items() if k in bounds},
@@ -1152,8 +1135,7 @@ def _final_params(
     start: dict[str, Any] = {}
     for prm in set(bases[0]) | set(bases[1]):
         vals = [b[prm] for b in bases if prm in b]
-        eff = next((e for e in EFFECTS.values() if e.param == prm), None)
-        start[prm] = _combine(eff, vals) if eff else float(math.exp(np.mean(np.log(vals))))
+        start[prm] = _combine(BY_PARAM[prm], vals) if prm in BY_PARAM else float(math.exp(np.mean(np.log(vals))))
     for name in order:
         eff = EFFECTS[name]
         if eff.kind == "int" and bases[0][eff.param] != bases[1][eff.param]:
@@ -1164,7 +1146,7 @@ def _final_params(
     (res,) = pool.map([("refit", start, free, names, [], 20)])
     final = res["params"]
     table = {}
-    extras = [x for p in free for e in EFFECTS.values() if e.param == p for x in e.extra]
+    extras = [x for p in free for x in BY_PARAM[p].extra]
     for prm in [*recal.LINEAR, *free, *extras]:
         nom, val, ci = nominal_value(pool.setup, prm), float(final[prm]), res["ci95"][prm]
         row = {"nominal": nom, "fitted": val, "ci95": [float(ci[0]), float(ci[1])], "change_pct": math.nan}
@@ -1174,7 +1156,7 @@ def _final_params(
         elif prm in EXTRA:
             row.update(unit=EXTRA[prm].unit, finding=f"{EXTRA[prm].label}: {val:.3g} (spec {nom:.3g})")
         else:
-            row["unit"] = next(e.unit for e in EFFECTS.values() if e.param == prm)
+            row["unit"] = BY_PARAM[prm].unit
         table[prm] = row
     return final, table
 
