@@ -963,7 +963,7 @@ def _select(
     redo = range(len(chosen), len(order)) if kept_forward else range(len(order))
     calls = []
     for j in redo:
-        keep = {_param(e) for e in order[: j + 1]}
+        keep = set().union(*(_params(e) for e in order[: j + 1]))
         calls += [("sse", {**lin[k], **{q: v for q, v in bases[k].items() if q in keep}}, helds[k]) for k in (0, 1)]
     sses = pool.map(calls)
     energies = [e for _, e in forward] if kept_forward else []
@@ -1094,17 +1094,17 @@ def _eliminate(
     while chosen:
         calls = []
         for e in chosen:
-            p = _param(e)
-            calls += [("sse", {q: v for q, v in bases[k].items() if q != p}, helds[k]) for k in (0, 1)]
+            ps = _params(e)
+            calls += [("sse", {q: v for q, v in bases[k].items() if q not in ps}, helds[k]) for k in (0, 1)]
         sses = pool.map(calls)
         without = {e: energy({**sses[2 * j], **sses[2 * j + 1]}, trials, names) for j, e in enumerate(chosen)}
         weakest = min(chosen, key=lambda e: (without[e], -chosen.index(e)))
         if excess <= 0 or (without[weakest] - e_expl) / excess >= DROP_MIN:
             return without, e_expl
         e_expl = without[weakest]
-        p = _param(weakest)
         for b in bases:
-            b.pop(p, None)
+            for q in _params(weakest):
+                b.pop(q, None)
         chosen.remove(weakest)
     return {}, e_expl
 
@@ -1124,6 +1124,11 @@ def _fit(e: float) -> float:
 
 def _param(effect: str) -> str:
     return EFFECTS[effect].param
+
+
+def _params(effect: str) -> set[str]:
+    """Every FMU parameter an effect sets: its own and the secondary ones freed with it (backlash's Jm_share)."""
+    return {EFFECTS[effect].param, *EFFECTS[effect].extra}
 
 
 def _final_params(
