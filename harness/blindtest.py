@@ -193,9 +193,9 @@ def _independent_rig(ind: ModuleType, case: dict[str, Any]) -> Any:
     return ind.IndepRig.from_Ks(float(params.get("plant.Ks", _textbook("plant.Ks"))), **kw)
 
 
-def _post(dest: Path, spec: specmod.Spec, post: dict[str, float]) -> None:
-    """Apply the out-of-library sensor effects to a written run: gauge gain drift (identification experiments)
-    and the pot's linearity error (every experiment)."""
+def _post(dest: Path, spec: specmod.Spec, post: dict[str, float], gauge_offset: float) -> None:
+    """Apply the out-of-library sensor effects to a written run: gauge gain drift about the rig's gauge offset
+    [V] (identification experiments) and the pot's linearity error (every experiment)."""
     manifest = load_manifest(dest)
     daq = specmod.fmu_parameters("daq")
     for e in manifest["experiments"]:
@@ -203,10 +203,9 @@ def _post(dest: Path, spec: specmod.Spec, post: dict[str, float]) -> None:
         df = read_dataset(p)
         cols = {c: df[c].to_numpy(float) for c in df.columns}
         if post.get("gauge_drift") and e["role"] != "calibration":
-            off = float(spec.daq.get("gauge_offset", daq["gauge_offset"][1]))
             t = cols["t"]
             gain = 1.0 + post["gauge_drift"] * (t - t[0]) / max(t[-1] - t[0], 1e-12)
-            cols["alpha_v"] = off + (cols["alpha_v"] - off) * gain
+            cols["alpha_v"] = gauge_offset + (cols["alpha_v"] - gauge_offset) * gain
         if post.get("pot_nonlinearity"):
             half = 180.0 / float(spec.daq.get("pot_gain", daq["pot_gain"][1]))  # V at the track end
             cols["theta_v"] = cols["theta_v"] + post["pot_nonlinearity"] * half * np.sin(np.pi * cols["theta_v"] / half)
@@ -225,13 +224,16 @@ def make_rig_run(case: dict[str, Any], dest: Path, fmus: dict[str, Path] | None 
         if ind is None:
             raise ValueError("the independent family needs tests/indeprig.py of a source checkout")
         spec = campaign_spec(quick, seed)
-        ind.make_run(dest, spec, _independent_rig(ind, case), seed=case["campaign_seed"])
+        rig = _independent_rig(ind, case)
+        ind.make_run(dest, spec, rig, seed=case["campaign_seed"])
+        offset = float(rig.gauge_offset)
     else:
         sets = [f"{k}={v}" for k, v in {**case.get("nuisance", {}), **case["truth_params"]}.items()] + seed
         spec = campaign_spec(quick, sets)
         run_campaign(spec, dest, fmus=fmus, workers=1)
+        offset = float(spec.daq.get("gauge_offset", specmod.fmu_parameters("daq")["gauge_offset"][1]))
     if case.get("post"):
-        _post(dest, spec, case["post"])
+        _post(dest, spec, case["post"], offset)
     manifest = load_manifest(dest)
     manifest["spec"] = specmod.apply_overrides(base.raw, seed)
     manifest["spec_sha256"] = "hidden"
