@@ -12,6 +12,26 @@ from typing import Annotated
 
 import typer
 from rich.console import Console
+from rich.table import Table
+
+from . import __version__, clone
+from . import spec as specmod
+from .diagnosis.blindtest import FAMILIES
+from .diagnosis.blindtest import blindtest as run_blind
+from .diagnosis.diagnose import diagnose_run
+from .executor import session
+from .fmu.build import MODELS, build_fmu
+from .fmu.cosim import FMUError
+from .ident.accept import accept as gate
+from .ident.crossfit import crossfit_run
+from .pipeline import doubled_rate_check, identify_run, run_pipeline
+from .render.report import write_report
+from .render.viewer import log_run
+from .rig.campaign import run_campaign
+from .rig.records import ImportOptions, calibration_option, import_records, parse_map
+from .rundir import DataError, write_json
+from .spec import SPEC_DIR, SpecError, bundled_specs
+from .sweep import run_sweep
 
 app = typer.Typer(
     add_completion=False,
@@ -38,9 +58,6 @@ WorkersOpt = Annotated[
 
 
 def _user_errors() -> tuple[type[BaseException], ...]:
-    from .cosim import FMUError
-    from .data import DataError
-    from .spec import SpecError
 
     return (
         SpecError,
@@ -129,8 +146,6 @@ def _stop_status() -> None:
 
 def _version(value: bool) -> None:
     if value:
-        from . import __version__
-
         out.print(f"flexjoint-harness {__version__}")
         raise typer.Exit()
 
@@ -147,7 +162,6 @@ def _main(
 @app.command()
 def build(force: Annotated[bool, typer.Option(help="rebuild even if cached")] = False) -> None:
     """Compile the FMUs in fmus/ (plant, DAQ, generic ARMAX model) into the cache, only when sources changed."""
-    from .build import MODELS, build_fmu
 
     for name in (*MODELS, "armax"):
         path = build_fmu(name, force=force)
@@ -157,7 +171,6 @@ def build(force: Annotated[bool, typer.Option(help="rebuild even if cached")] = 
 @app.command()
 def specs() -> None:
     """List the bundled campaign specs (name and description); use a name wherever a SPEC is expected."""
-    from .spec import SPEC_DIR, bundled_specs
 
     found = bundled_specs()
     if not found:
@@ -175,7 +188,6 @@ def init(
     force: Annotated[bool, typer.Option(help="overwrite an existing file")] = False,
 ) -> None:
     """Copy a bundled spec into DIRECTORY to edit, then run it with `flexjoint campaign DIRECTORY/NAME.toml`."""
-    from .spec import SPEC_DIR, SpecError, bundled_specs
 
     found = bundled_specs()
     name = spec.removesuffix(".toml")
@@ -198,8 +210,6 @@ def campaign(
     workers: WorkersOpt = None,
 ) -> None:
     """Run a spec's experiments on the rig twin: writes manifest.json and data/<experiment>.parquet."""
-    from . import spec as specmod
-    from .campaign import run_campaign
 
     _out_dir(out_dir)
     s = specmod.load(spec, set_ or [])
@@ -221,7 +231,6 @@ def import_(
     calibration: Annotated[Path | None, typer.Option(help="calibration.json to carry (Kp, Ke, offsets)")] = None,
 ) -> None:
     """Bring real records into a run directory: data/<name>.parquet, calibration.json, manifest.json."""
-    from .records import ImportOptions, calibration_option, import_records, parse_map
 
     opts = ImportOptions(
         columns=parse_map(columns, "--columns"),
@@ -243,9 +252,6 @@ def identify(
     workers: WorkersOpt = None,
 ) -> None:
     """Calibrate, then the ARMAX grid per dataset, cross-validation and selection: grid.csv, models/."""
-    from . import spec as specmod
-    from .executor import session
-    from .pipeline import doubled_rate_check, identify_run
 
     over = specmod.apply_overrides({}, set_ or []).get("identify", {})
     with session(workers, scheduler):  # the grid's tasks run on this session's cluster
@@ -269,7 +275,6 @@ def identify(
 
 def crossval_table(res):
     """The seed's table 2: each dataset's best model (rows) cross-validated on every dataset (columns)."""
-    from rich.table import Table
 
     t = Table(title="cross-validation fit % (rows: model of dataset i; columns: dataset j)")
     t.add_column("model")
@@ -292,7 +297,6 @@ def accept(
     min_average_fit: Annotated[float | None, typer.Option(help="override [accept].min_average_fit [%]")] = None,
 ) -> None:
     """Exit 0 when the selected model meets the spec's fit thresholds, 1 (naming the failing cells) when not."""
-    from .accept import accept as gate
 
     over = {k: v for k, v in (("min_fit", min_fit), ("min_average_fit", min_average_fit)) if v is not None}
     v = gate(run_dir, over)
@@ -309,7 +313,6 @@ def accept(
 @app.command()
 def crossfit(run_dir: Annotated[Path, typer.Argument(help="run directory with identified models")]) -> None:
     """Export every model as an FMU and score each on every dataset through fmpy: crossfit.csv."""
-    from .crossfit import crossfit_run
 
     df = crossfit_run(run_dir, progress=_progress("crossfit"))
     out.print(df.round(2).to_string())
@@ -324,7 +327,6 @@ def diagnose(
     workers: WorkersOpt = None,
 ) -> None:
     """Where the sim-to-real gap lies, which unmodelled effect causes it, how far it shrinks: diagnosis.json."""
-    from .diagnose import diagnose_run
 
     if out_dir is not None:
         _out_dir(out_dir)
@@ -358,8 +360,6 @@ def sweep(
     workers: WorkersOpt = None,
 ) -> None:
     """Monte Carlo over rig tolerances: N rigs, each one's campaign, identification and acceptance, as tasks."""
-    from . import spec as specmod
-    from .sweep import run_sweep
 
     _out_dir(out_dir)
     s = specmod.load(spec, set_ or [])
@@ -393,8 +393,6 @@ def report(
     connect: Annotated[str | None, typer.Option("--connect", help="stream to a running viewer at URL")] = None,
 ) -> None:
     """Write report.md, figures/ and run.rrd for any run directory, each section from what the directory holds."""
-    from .report import write_report
-    from .viewer import log_run
 
     path = write_report(run_dir)
     recording = log_run(run_dir, rrd=rrd, spawn=spawn, connect=connect)
@@ -440,8 +438,6 @@ def blindtest(
 ) -> None:
     """Score the diagnoser on rigs with hidden effects (none, one, two, outside the library), on our twin, on the
     twin with its linear parameters off the datasheet and on an independent simulator: blindtest.json."""
-    from .blindtest import FAMILIES
-    from .blindtest import blindtest as run_blind
 
     fams = tuple(family) if family else FAMILIES
     res = run_blind(
@@ -456,7 +452,6 @@ def blindtest(
 
 def blindtest_table(tot: dict):
     """The blind test's scores per family and pooled, each share with its 95 % interval and count."""
-    from rich.table import Table
 
     def cell(share: dict) -> str:
         if not share["n"]:
@@ -497,14 +492,11 @@ def run(
     workers: WorkersOpt = None,
 ) -> None:
     """The whole pipeline: build, campaign, calibrate, identify, export, cross-fit, diagnose, report, Rerun."""
-    from . import spec as specmod
-    from .pipeline import run_pipeline
 
     if out_dir is None:
         out_dir = Path("runs") / time.strftime("%Y%m%d-%H%M%S")
     _out_dir(out_dir)
     specmod.load(spec, set_ or [])  # a bad spec, or one too large for this machine, fails before any work
-    from .executor import session
 
     with session(workers, scheduler):  # one cluster for every parallel step of the pipeline
         summary = run_pipeline(
@@ -523,10 +515,13 @@ def bench(
     ] = 0,
 ) -> None:
     """Measure speed against the named peers (fmpy simulate_fmu, sippy-unipi) and write JSON."""
-    from .benchmarks import run_all
 
-    result = run_all(quick=quick, progress=_progress("bench"), table=table, blind=blind)
-    from .data import write_json
+    bench = clone.load_package("benchmarks.bench")
+    if bench is None:
+        raise typer.BadParameter(
+            f"the benchmarks live in a clone of the repository ({clone.ROOT / 'benchmarks'} not found)"
+        )
+    result = bench.run_all(quick=quick, progress=_progress("bench"), table=table, blind=blind)
 
     write_json(out_file, result)
     out.print_json(data=result)

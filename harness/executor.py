@@ -22,7 +22,7 @@ task that kills its worker three times (a crash in an FMU) becomes a ``RuntimeEr
 (machine gone) is not an error: Dask reruns its tasks elsewhere and each result is still taken exactly once.
 
 No shared filesystem: built FMUs travel as :class:`FmuBytes` and :func:`fmu_file` writes each once per worker
-process; :func:`worker_cache` keeps per-process objects (a loaded :class:`harness.cosim.Rig`) between tasks.
+process; :func:`worker_cache` keeps per-process objects (a loaded :class:`harness.fmu.cosim.Rig`) between tasks.
 """
 
 from __future__ import annotations
@@ -43,6 +43,12 @@ from dataclasses import dataclass
 from multiprocessing.util import Finalize
 from pathlib import Path
 from typing import Any, TypeVar
+
+from distributed import Client, LocalCluster, as_completed, get_worker
+from distributed.scheduler import KilledWorker
+from threadpoolctl import ThreadpoolController
+
+from .fmu.cosim import Rig
 
 __all__ = [
     "Executor",
@@ -142,9 +148,8 @@ def worker_cache(key: str, factory: Callable[[], T]) -> T:
 
 
 def worker_rig(fmus: Mapping[str, FmuBytes | Path | str]) -> Any:
-    """The rig twin (:class:`harness.cosim.Rig`) of ``{"flexjoint": ..., "daq": ...}``, loaded once per process
+    """The rig twin (:class:`harness.fmu.cosim.Rig`) of ``{"flexjoint": ..., "daq": ...}``, loaded once per process
     (and thread) and reused by every later task; FMUs given as bytes are written with :func:`fmu_file`."""
-    from .cosim import Rig
 
     files = {k: fmu_file(v) if isinstance(v, FmuBytes) else Path(v) for k, v in fmus.items()}
     digest = {k: v.sha256 if isinstance(v, FmuBytes) else str(Path(v).resolve()) for k, v in fmus.items()}
@@ -159,10 +164,6 @@ _BLAS: list[Any] = []
 def _one_blas_thread() -> contextlib.AbstractContextManager:
     """Limit BLAS to one thread for the duration (the controller is built once per process: ~0.01 ms a call)."""
     if not _BLAS:
-        import numpy  # noqa: F401 - load both BLAS libraries (numpy's and scipy's) before the controller looks
-        import scipy.linalg  # noqa: F401
-        from threadpoolctl import ThreadpoolController
-
         _BLAS.append(ThreadpoolController())
     return _BLAS[0].limit(limits=1, user_api="blas")
 
@@ -176,7 +177,6 @@ def in_worker() -> bool:
     """True inside a Dask worker process (a task's code)."""
     if "distributed" not in sys.modules:
         return False
-    from distributed import get_worker
 
     try:
         get_worker()
@@ -190,7 +190,6 @@ def local_cluster(n_workers: int, dashboard: str | None = None) -> Any:
     """The embedded ``distributed.LocalCluster``: ``n_workers`` processes of one thread on 127.0.0.1, worker
     logs below CRITICAL silenced (a task's error reaches the client, not the terminal twice), the dashboard
     only at ``dashboard`` (e.g. ``":8787"``) when given."""
-    from distributed import LocalCluster
 
     return LocalCluster(
         n_workers=n_workers,
@@ -244,7 +243,6 @@ class Executor:
                 self._start(workers, scheduler, dashboard)
 
     def _start(self, workers: int | None, scheduler: str | None, dashboard: str | None) -> None:
-        from distributed import Client
 
         if scheduler is not None:
             try:
@@ -321,8 +319,6 @@ class Executor:
         return self._map_dask(fn, items, shared, desc, names)
 
     def _map_dask(self, fn: Callable[..., T], items: list[Any], shared: tuple, desc: str, names: list[str]) -> list:
-        from distributed import as_completed
-        from distributed.scheduler import KilledWorker
 
         if not items:
             return []

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -9,10 +10,18 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from . import armax
 from . import spec as specmod
-from .calibration import Calibration, calibrate_run, load_calibration
-from .data import load_manifest, write_json
+from .diagnosis.diagnose import diagnose_run
+from .fmu.build import build_all
+from .ident import armax
+from .ident.accept import accept
+from .ident.calibration import Calibration, calibrate_run, load_calibration
+from .ident.crossfit import crossfit_run
+from .ident.identify import prepare, run_grid, write_grid
+from .render.report import write_report
+from .render.viewer import log_run
+from .rig.campaign import run_campaign, simulate_spec
+from .rundir import load_manifest, load_run, write_json
 
 Progress = Callable[[str], None]
 
@@ -25,8 +34,6 @@ def run_spec(run: Path) -> specmod.Spec | None:
 
 def identify_run(run: Path, identify: dict[str, Any] | None = None, progress: Progress | None = None):
     """Grid, cross-validation and selection on a run's identification datasets; writes grid.csv and models/."""
-    from .data import load_run
-    from .identify import prepare, run_grid, write_grid
 
     run = Path(run)
     spec = run_spec(run)
@@ -49,15 +56,12 @@ def doubled_rate_check(
     twice too large: it "thinks the effect of the input is much bigger"), and the same orders re-identified at
     100 Hz.
     """
-    from .campaign import simulate_spec
-    from .identify import prepare
 
     spec = run_spec(run)
     if spec is None:
         return {"skipped": "imported data: no rig to re-run at a doubled rate"}
     exp = spec.experiment(experiment or spec.experiments[len(spec.experiments) // 2].name)
     fast = specmod.from_dict(specmod.apply_overrides(spec.raw, [f"campaign.sample_rate={2 * spec.sample_rate}"]))
-    from .build import build_all
 
     cols = simulate_spec(fast, build_all(), experiments=[fast.experiment(exp.name)], workers=1)[exp.name]
     p = prepare({exp.name: pd.DataFrame(cols)}, cal, float(ident["af"]), str(ident["output"]))[exp.name]
@@ -87,15 +91,6 @@ def run_pipeline(
     progress: Progress | None = None,
 ) -> str:
     """``flexjoint run``: every step on one spec into run directory ``out``; returns a short summary."""
-    import time
-
-    from .accept import accept
-    from .build import build_all
-    from .campaign import run_campaign
-    from .crossfit import crossfit_run
-    from .diagnose import diagnose_run
-    from .report import write_report
-    from .viewer import log_run
 
     say = progress or (lambda _msg: None)
     t0 = time.perf_counter()

@@ -29,8 +29,8 @@ from typing import Any
 
 import tomllib
 
-from .build import bundled_dir, fmu_source_dir
-from .signals import SIGNAL_KINDS, check_params
+from .fmu.build import bundled_dir, fmu_source_dir
+from .rig.signals import SIGNAL_KINDS, check_params
 
 SPEC_DIR = bundled_dir("specs")  # the bundled specs: harness/_specs in a wheel, specs/ in a clone
 FMU_SRC = bundled_dir("fmus")  # the bundled FMU sources; $FLEXJOINT_FMU_SRC overrides them (fmu_source_dir)
@@ -310,7 +310,7 @@ RK4_WORK_ARRAYS = 24  # float64 arrays of n samples alive per running experiment
 def memory_estimate(spec: Spec, workers: int | None = None) -> dict[str, Any]:
     """Bytes a campaign of ``spec`` needs: every dataset held until it is written (samples x columns x 8 bytes
     over all experiments) plus the co-simulation work of the experiments running at once (``workers``, default
-    as :func:`harness.campaign.simulate_spec`: at most 4 processes)."""
+    as :func:`harness.rig.campaign.simulate_spec`: at most 4 processes)."""
     exps = spec.all_experiments()
     ns = [int(round(e.duration * spec.sample_rate)) for e in exps]
     cols = [8 if e.signal == "comb" else 6 for e in exps]

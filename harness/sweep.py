@@ -20,10 +20,10 @@ same PRBS realisations, as a lab reuses its excitation files) and gets its own m
 (``daq.seed``, derived from ``seed`` and the rig's index): rigs differ in their build and in their noise, not in
 the test they are put through.
 
-Fits [%] are MATLAB ``compare`` fits in the identification domain (see :mod:`harness.identify`): with the grid,
+Fits [%] are MATLAB ``compare`` fits in the identification domain (see :mod:`harness.ident.identify`): with the grid,
 the selected model's cross-validation fit on each dataset; with a given model, that model's fit on each dataset
 of the rig (its own preprocessing, the rig's calibration). A rig passes when every dataset's fit >= ``min_fit``
-and their mean >= ``min_average_fit`` (``harness.accept``'s rule; an unstable model or a rig with no stable
+and their mean >= ``min_average_fit`` (``harness.ident.accept``'s rule; an unstable model or a rig with no stable
 causal model fails).
 
 Summary statistics:
@@ -46,13 +46,17 @@ recording ``sweep.rrd``.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import hashlib
 import json
 import math
+import os
 import re
 import tempfile
 import time
+import uuid
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -60,10 +64,23 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
+import rerun as rr
+import rerun.blueprint as rrb
+from scipy import stats
+from scipy.stats import binomtest, qmc, rankdata, spearmanr
 
-from . import armax
 from . import spec as specmod
 from .executor import Executor, FmuBytes, fmu_bytes
+from .fmu.build import build_all
+from .ident import armax
+from .ident.calibration import calibrate_run
+from .ident.identify import load_model, prepare, run_grid
+from .render.report import new_figure, save_figure
+from .render.viewer import APPLICATION_ID
+from .rig.campaign import simulate_spec, versions
+from .rundir import atomic_write_bytes, atomic_write_text, write_dataset, write_json
 
 __all__ = ["DISTRIBUTIONS", "Vary", "draw", "first_order", "parse_vary", "pass_interval", "run_sweep", "sensitivity"]
 
@@ -107,7 +124,6 @@ class Vary:
 
     def ppf(self, u: np.ndarray) -> np.ndarray:
         """Inverse CDF at probabilities ``u`` in (0, 1)."""
-        from scipy import stats
 
         a = self.args
         if self.dist == "normal":
@@ -175,7 +191,6 @@ def parse_vary(text: str) -> Vary:
 def draw(varies: Sequence[Vary], n: int, seed: int, sampler: str = "lhs") -> pd.DataFrame:
     """``n`` rigs: one column per varied parameter (``table.name``), one row per rig, from a Latin hypercube
     (``lhs``) or scrambled Sobol (``sobol``) design seeded with ``seed``, mapped through each inverse CDF."""
-    from scipy.stats import qmc
 
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise ValueError(f"n must be a positive number of rigs, got {n!r}")
@@ -191,8 +206,6 @@ def draw(varies: Sequence[Vary], n: int, seed: int, sampler: str = "lhs") -> pd.
     if sampler == "lhs":
         u = qmc.LatinHypercube(d, seed=rng).random(n)
     else:
-        import warnings
-
         with warnings.catch_warnings():  # n not a power of 2: documented, the balance is then approximate
             warnings.simplefilter("ignore", UserWarning)
             u = qmc.Sobol(d, scramble=True, seed=rng).random(n)
@@ -231,10 +244,8 @@ def rig_spec(base: specmod.Spec, params: Mapping[str, float], seed: int) -> spec
 
 
 def _calibrate(spec: specmod.Spec, data: Mapping[str, Mapping[str, np.ndarray]]) -> Any:
-    """The rig's calibration from its calibration experiments, by :func:`harness.calibration.calibrate_run` on a
+    """The rig's calibration from its calibration experiments, by :func:`harness.ident.calibration.calibrate_run` on a
     scratch run directory private to this task (removed at once; nothing is shared or kept)."""
-    from .calibration import calibrate_run
-    from .data import write_dataset, write_json
 
     with tempfile.TemporaryDirectory(prefix="flexjoint-sweep-") as tmp:
         run = Path(tmp)
@@ -248,8 +259,6 @@ def _calibrate(spec: specmod.Spec, data: Mapping[str, Mapping[str, np.ndarray]])
 def run_rig(item: tuple[int, dict[str, float], int], plan: Plan) -> dict[str, Any]:
     """One rig, start to finish, as one task: campaign (serially, on this worker's rig), calibration,
     identification or scoring of the given model; returns numbers only (the client writes every file)."""
-    from .campaign import simulate_spec
-    from .identify import prepare, run_grid
 
     i, params, seed = item
     spec = rig_spec(plan.spec, params, seed)
@@ -284,14 +293,13 @@ def run_rig(item: tuple[int, dict[str, float], int], plan: Plan) -> dict[str, An
 
 # ----------------------------------------------------------------------------------------------- statistics
 def passes(fits: Sequence[float], min_fit: float, min_average_fit: float) -> bool:
-    """``harness.accept``'s rule: every fit >= min_fit and their mean >= min_average_fit (NaN fails)."""
+    """``harness.ident.accept``'s rule: every fit >= min_fit and their mean >= min_average_fit (NaN fails)."""
     f = np.asarray(fits, dtype=float)
     return bool(f.size and np.all(f >= min_fit) and f.mean() >= min_average_fit)
 
 
 def pass_interval(k: int, n: int, confidence: float = 0.95) -> tuple[float, float]:
     """Wilson score interval of a pass rate k/n."""
-    from scipy.stats import binomtest
 
     ci = binomtest(int(k), int(n)).proportion_ci(confidence_level=confidence, method="wilson")
     return float(ci.low), float(ci.high)
@@ -312,7 +320,6 @@ def first_order(x: np.ndarray, y: np.ndarray, bins: int) -> float:
 def sensitivity(x: pd.DataFrame, y: np.ndarray) -> dict[str, Any]:
     """First-order index S1 (ranking), SRRC and Spearman correlation of ``y`` (NaN = worst) on each column of
     ``x``; see the module docstring."""
-    from scipy.stats import rankdata, spearmanr
 
     y = np.asarray(y, dtype=float)
     finite = np.isfinite(y)
@@ -403,10 +410,6 @@ def summarise(table: pd.DataFrame, varies: Sequence[Vary], thresholds: Mapping[s
 
 # ----------------------------------------------------------------------------------------------- outputs
 def _write_parquet(path: Path, table: pd.DataFrame) -> None:
-    import pyarrow as pa
-    import pyarrow.parquet as pq
-
-    from .data import atomic_write_bytes
 
     sink = pa.BufferOutputStream()
     t = pa.Table.from_pandas(table, preserve_index=False)
@@ -418,7 +421,6 @@ def _write_parquet(path: Path, table: pd.DataFrame) -> None:
 def write_figures(out: Path, table: pd.DataFrame, summary: dict[str, Any], th: Mapping[str, float]) -> list[str]:
     """``figures/sweep_fit.png`` (mean-fit histogram), ``sweep_scatter.png`` (mean fit against each varied
     parameter, pass/fail coloured), ``sweep_sensitivity.png`` (S1 bars); returns their relative paths."""
-    from .report import new_figure, save_figure
 
     figs = out / "figures"
     ok = table["passed"].to_numpy(bool)
@@ -516,14 +518,6 @@ def report_markdown(doc: dict[str, Any], figures: Sequence[str]) -> str:
 def write_rrd(out: Path, table: pd.DataFrame, doc: dict[str, Any], markdown: str) -> Path:
     """``sweep.rrd``: per-rig series on the ``rig`` timeline, mean fit against each parameter on that
     parameter's own timeline, the sensitivity bars and the report; written atomically with its blueprint."""
-    import contextlib
-    import os
-    import uuid
-
-    import rerun as rr
-    import rerun.blueprint as rrb
-
-    from .viewer import APPLICATION_ID
 
     path = out / "sweep.rrd"
     key = hashlib.sha256(json.dumps({k: doc[k] for k in ("spec", "vary", "n", "seed")}, sort_keys=True).encode())
@@ -623,10 +617,6 @@ def run_sweep(
 ) -> dict[str, Any]:
     """Draw ``n`` rigs, run and judge each one as a task of the executor, write the outputs into ``out``;
     returns the ``sweep.json`` document plus ``wall_s``."""
-    from .build import build_all
-    from .campaign import versions
-    from .data import atomic_write_text, write_json
-    from .identify import load_model
 
     t0 = time.perf_counter()
     base = spec if isinstance(spec, specmod.Spec) else specmod.load(spec)

@@ -11,13 +11,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from harness.build import build_all
+from harness.fmu.build import build_all
 
 
 @pytest.fixture
 def seed_model():
     """Seed 000's final model as printed (eq. 12, coefficients rounded to two digits): ARMAX(5,3,0,1), Ts 20 ms."""
-    from harness.armax import ArmaxModel
+    from harness.ident.armax import ArmaxModel
 
     return ArmaxModel(
         A=np.array([1.0, -4.33, 7.64, -6.87, 3.16, -0.59]),

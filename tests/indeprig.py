@@ -1,9 +1,9 @@
 """An independent simulator of the flexible-joint rig, for checking the diagnoser on data our FMUs did not make.
 
-Nothing here uses the project's FMUs, ``harness.plant`` or ``harness.cosim``: the beam, the drive train, the
+Nothing here uses the project's FMUs, ``harness.fmu.plant`` or ``harness.fmu.cosim``: the beam, the drive train, the
 friction and backlash laws, the integrator (scipy's ``solve_ivp``) and the DAQ are written anew, with other
-model structures than the twin's. Only the command signals (``harness.signals``), the experiment seeds and the
-run-directory format (``harness.campaign``, ``harness.data``) are shared, since they are not the plant.
+model structures than the twin's. Only the command signals (``harness.rig.signals``), the experiment seeds and the
+run-directory format (``harness.rig.campaign``, ``harness.rundir``) are shared, since they are not the plant.
 
 Physics (SI, angles in rad, all torques at the load shaft):
 
@@ -601,7 +601,7 @@ _OVERRIDABLE = {f.name for f in fields(IndepRig)}
 def make_run(dest: Path, spec: Any, rig: IndepRig, seed: int) -> Path:
     """Write run directory ``dest`` for ``spec`` (a :class:`harness.spec.Spec`) simulated on ``rig``.
 
-    Same layout as ``harness.campaign.run_campaign``: ``data/<experiment>.parquet`` and ``manifest.json``. The
+    Same layout as ``harness.rig.campaign.run_campaign``: ``data/<experiment>.parquet`` and ``manifest.json``. The
     spec's [plant]/[daq] tables describe the twin and are not applied (the rig replaces them); an experiment's
     own overrides are applied where their names are IndepRig fields. ``seed`` draws the measurement noise.
     """
@@ -610,9 +610,9 @@ def make_run(dest: Path, spec: Any, rig: IndepRig, seed: int) -> Path:
     import scipy
 
     from harness import __version__
-    from harness.campaign import experiment_seed
-    from harness.data import write_dataset, write_json
-    from harness.signals import generate
+    from harness.rig.campaign import experiment_seed
+    from harness.rig.signals import generate
+    from harness.rundir import write_dataset, write_json
 
     dest = Path(dest)
     Ts = spec.Ts

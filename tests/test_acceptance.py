@@ -12,12 +12,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from harness import armax, lti
 from harness import spec as specmod
-from harness.accept import accept
-from harness.campaign import run_campaign
-from harness.crossfit import crossfit_run
+from harness.ident import armax, lti
+from harness.ident.accept import accept
+from harness.ident.crossfit import crossfit_run
 from harness.pipeline import identify_run
+from harness.rig.campaign import run_campaign
 
 
 @pytest.fixture(scope="module")
@@ -85,7 +85,7 @@ def _first(identified):
 
 def test_datasets_without_survivors_keep_their_best_fit_flagged(identified):
     _, _, prepared, ident = identified
-    from harness.identify import run_grid
+    from harness.ident.identify import run_grid
 
     strict = {**ident, "na": [4, 5], "nb": [2, 3], "nc": [1, 2], "fit_threshold": 99.9}
     res = run_grid(prepared, strict, workers=1)

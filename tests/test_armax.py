@@ -1,4 +1,4 @@
-"""harness.armax against independent solutions, a public data set with reference figures, and the seed report."""
+"""harness.ident.armax against independent solutions, a public data set with reference figures, and the seed report."""
 
 from __future__ import annotations
 
@@ -11,7 +11,8 @@ import pytest
 from scipy.optimize import least_squares
 from scipy.signal import lfilter
 
-from harness import armax as ax
+from benchmarks.problems import demo_problem
+from harness.ident import armax as ax
 
 DAISY = Path(__file__).resolve().parent / "fixtures" / "daisy_robot_arm.dat"  # provenance: fixtures/README.md
 
@@ -36,7 +37,7 @@ def _loss(theta: np.ndarray, u: np.ndarray, y: np.ndarray, na: int, nb: int, nc:
 def recovery():
     out = []
     for seed in range(20):
-        true, u, y = ax.demo_problem(seed)
+        true, u, y = demo_problem(seed)
         out.append((true, u, y, ax.estimate(u, y, 4, 3, 4, 1, Ts=true.Ts)))
     return out
 
@@ -64,7 +65,7 @@ def test_estimate_is_the_prediction_error_minimum(recovery):
 
 
 def test_analytic_gradient_matches_finite_differences():
-    true, u, y = ax.demo_problem(7, n=300)
+    true, u, y = demo_problem(7, n=300)
     th = true.theta + 0.01
     A, B, C = ax._polys(th, 4, 3, 4, 1)
     e = ax._pred_error(A, B, C, y, u)
@@ -78,7 +79,7 @@ def test_analytic_gradient_matches_finite_differences():
 
 
 def test_arx_is_plain_least_squares_without_padding():
-    true, u, y = ax.demo_problem(1, n=400)
+    true, u, y = demo_problem(1, n=400)
     m = ax.estimate(u, y, 3, 2, 0, 2)
     rows = [[-y[t - 1], -y[t - 2], -y[t - 3], u[t - 2], u[t - 3]] for t in range(3, y.size)]
     ref = np.linalg.lstsq(np.array(rows), y[3:], rcond=None)[0]
@@ -125,7 +126,7 @@ def test_seed_rounded_coefficients_are_unstable_and_full_precision_round_trips(s
     u = np.sin(0.1 * np.arange(200))
     assert math.isnan(ax.compare(seed, u, np.cos(0.05 * np.arange(200))))
 
-    true, u, y = ax.demo_problem(2)
+    true, u, y = demo_problem(2)
     m = ax.estimate(u, y, 4, 3, 4, 1, Ts=0.02)
     back = ax.ArmaxModel.from_dict(json.loads(json.dumps(m.to_dict())))
     for name in ("A", "B", "C", "cov"):
@@ -137,7 +138,7 @@ def test_seed_rounded_coefficients_are_unstable_and_full_precision_round_trips(s
 
 
 def test_compare_with_estimated_initial_state_is_exact_on_noise_free_data():
-    true, u, _ = ax.demo_problem(4)
+    true, u, _ = demo_problem(4)
     y_long = lfilter(true.B, true.A, u)
     u2, y2 = u[700:], y_long[700:]  # the model is in a non-zero state at the cut
     assert ax.compare(true, u2, y2, ic="e") == pytest.approx(100.0, abs=1e-8)
@@ -146,7 +147,7 @@ def test_compare_with_estimated_initial_state_is_exact_on_noise_free_data():
 
 
 def test_k_step_predictor_error_is_ma_of_innovations():
-    true, u, _ = ax.demo_problem(5, n=600)
+    true, u, _ = demo_problem(5, n=600)
     e = 0.02 * np.random.default_rng(9).standard_normal(600)
     y = ax.generate(true, u, e)
     # F_k: first k terms of C/A by long division, written out independently
@@ -160,7 +161,7 @@ def test_k_step_predictor_error_is_ma_of_innovations():
 
 
 def test_resid_white_on_true_innovations_not_on_wrong_order():
-    true, u, y = ax.demo_problem(11)
+    true, u, y = demo_problem(11)
     r = ax.resid(true, u, y, lags=25)
     assert r.white and r.independent
     assert r.bound == pytest.approx(2.58 / math.sqrt(1500))
@@ -190,6 +191,6 @@ def test_bad_input_gives_one_clear_line(args, msg):
 
 
 def test_compare_rejects_bad_ic():
-    true, u, y = ax.demo_problem(0, n=100)
+    true, u, y = demo_problem(0, n=100)
     with pytest.raises(ValueError, match="ic must be"):
         ax.compare(true, u, y, ic="x")

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from harness import blindtest as bt
+from harness.diagnosis import blindtest as bt
 
 
 def test_plan_is_deterministic_and_covers_every_kind():

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 from fmpy.validation import validate_fmu
 
-from harness import build
-from harness.build import BuildError, build_fmu, fmu_sha256, source_hash, value_references
+from harness.fmu import build
+from harness.fmu.build import BuildError, build_fmu, fmu_sha256, source_hash, value_references
 
 
 def test_fmus_validate_with_zero_problems(fmus):
@@ -80,7 +80,7 @@ def test_cache_reuses_and_rebuilds_on_change(src_copy):
 
 
 def test_concurrent_builds_do_not_corrupt_the_cache(src_copy):
-    code = "from harness.build import build_fmu; print(build_fmu('flexjoint'))"
+    code = "from harness.fmu.build import build_fmu; print(build_fmu('flexjoint'))"
     procs = [
         subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         for _ in range(2)

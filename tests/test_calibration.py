@@ -8,7 +8,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from harness import calibration as cal
+from harness.ident import calibration as cal
 
 REF = Path(__file__).resolve().parent / "fixtures"  # provenance: fixtures/README.md
 LSB_12BIT = 20.0 / 4096  # V, 12-bit ADC over +-10 V

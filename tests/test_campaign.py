@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 
 from harness import spec as specmod
-from harness.build import build_all
-from harness.campaign import run_campaign, simulate_spec
-from harness.data import load_run, read_dataset
+from harness.fmu.build import build_all
+from harness.fmu.plant import PlantParams, dead_zone_voltage
 from harness.pipeline import calibrate_run
-from harness.plant import PlantParams, dead_zone_voltage
+from harness.rig.campaign import run_campaign, simulate_spec
+from harness.rundir import load_run, read_dataset
 
 
 @pytest.fixture(scope="module")

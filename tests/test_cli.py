@@ -135,7 +135,7 @@ def test_specs_lists_the_bundled_specs_and_init_copies_one(tmp_path):
 
 
 def test_build_failure_exits_non_zero(tmp_path):
-    from harness.build import bundled_dir
+    from harness.fmu.build import bundled_dir
 
     src = tmp_path / "fmus"
     shutil.copytree(bundled_dir("fmus"), src)
@@ -161,7 +161,7 @@ def test_truncated_fmu_in_the_cache_is_rebuilt_not_a_crash(fmus, tmp_path):
     spec.write_text(TINY)
     r = flexjoint("campaign", spec, "--out", tmp_path / "run", env={"FLEXJOINT_CACHE": str(cache)})
     assert r.returncode == 0, r.stderr
-    from harness.build import cached_fmu_ok
+    from harness.fmu.build import cached_fmu_ok
 
     assert "Traceback" not in r.stderr and cached_fmu_ok(bad) and bad.stat().st_size > 1000
     assert (tmp_path / "run" / "manifest.json").exists()

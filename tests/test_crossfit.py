@@ -1,4 +1,4 @@
-"""harness.crossfit on a small synthetic run directory made from a known ARMAX system."""
+"""harness.ident.crossfit on a small synthetic run directory made from a known ARMAX system."""
 
 from __future__ import annotations
 
@@ -11,12 +11,13 @@ import pandas as pd
 import pytest
 from scipy.signal import lfilter
 
-from harness import armax as ax
-from harness import crossfit as cf
-from harness.calibration import Calibration
-from harness.data import load_run, write_dataset, write_json
-from harness.export import export_run
-from harness.identify import prepare
+from benchmarks.problems import demo_system
+from harness.ident import armax as ax
+from harness.ident import crossfit as cf
+from harness.ident.calibration import Calibration
+from harness.ident.export import export_run
+from harness.ident.identify import prepare
+from harness.rundir import load_run, write_dataset, write_json
 
 TS, N, AF = 0.02, 700, 0.8
 KP, KE, GAUGE_OFFSET = 35.5145, -3.3636, 0.05
@@ -35,7 +36,7 @@ def _command(p_switch: float | None, seed: int) -> np.ndarray:
 
 def _write_run(run: Path) -> None:
     """DAQ-volt datasets whose filtered tip angle is the demo ARMAX system driven by the detrended command."""
-    true = ax.demo_system(TS)
+    true = demo_system(TS)
     experiments = []
     for name, (p_switch, seed) in DATASETS.items():
         u = _command(p_switch, seed)

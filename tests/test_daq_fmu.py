@@ -148,7 +148,7 @@ def test_invalid_parameter_is_an_fmi_error(fmu_runner, params, name):
 
 def test_comb_static_tip_torque_through_the_twin(fmu_runner):
     """Plant (hub clamped) + DAQ coupled as the master does: gauge reads the static deflection."""
-    from harness.plant import PlantParams, mass_stiffness
+    from harness.fmu.plant import PlantParams, mass_stiffness
 
     tau, h, n = 0.01, 0.02, 200
     plant_par = {"n_modes": 2, "hub_locked": 1, "zeta_link": 0.7}

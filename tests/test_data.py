@@ -4,7 +4,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from harness import data, records
+from harness import rundir as data
+from harness.rig import records
 
 
 def _csv(path, n=100, Ts=0.02, **overrides):
@@ -30,7 +31,7 @@ def test_write_dataset_is_byte_stable_and_round_trips(tmp_path):
 
 
 def test_imported_run_has_the_dataset_layout(tmp_path):
-    """An import (harness.records; its hostile cases are in test_import.py) reads back through load_run."""
+    """An import (harness.rig.records; its hostile cases are in test_import.py) reads back through load_run."""
     src = _csv(tmp_path / "rig1.csv")
     out = tmp_path / "run"
     written = records.import_records([src], out)

@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 from indeprig import IndepRig, make_run
 
-from harness import diagnose as dg
-from harness.blindtest import campaign_spec
+from harness.diagnosis import diagnose as dg
+from harness.diagnosis.blindtest import campaign_spec
 
 
 def _run(tmp: Path, name: str, sets: list[str]) -> Path:
-    from harness.campaign import run_campaign
+    from harness.rig.campaign import run_campaign
 
     dest = tmp / name
     run_campaign(campaign_spec(quick=True, overrides=sets), dest, workers=1)
@@ -279,7 +279,7 @@ def test_pot_dead_band_samples_are_masked():
     [({"pot_nonlinearity": 0.015}, {"plant.Ks": 1.15, "plant.Beq": 0.006}), ({"gauge_drift": 0.2}, {})],
 )
 def test_out_of_library_sensor_errors_are_unexplained(tmp_path, fmus, post, nuisance):
-    from harness import blindtest as bt
+    from harness.diagnosis import blindtest as bt
 
     case = {"case": 0, "family": "nuisance" if nuisance else "twin", "kind": "out", "truth_effects": list(post),
             "truth_params": {}, "nuisance": nuisance, "post": post, "campaign_seed": 17}  # fmt: skip

@@ -164,7 +164,7 @@ def test_fmu_bytes_are_written_once_per_process_and_worker_cache_memoises(fmus):
 def test_remote_cluster_gives_the_serial_bytes_and_the_workers_errors(tmp_path, fmus, capsys, monkeypatch):
     from harness import cli
     from harness import spec as specmod
-    from harness.campaign import run_campaign
+    from harness.rig.campaign import run_campaign
 
     spec = tiny_spec(tmp_path)
     with DaskCluster(2) as cluster:
@@ -203,7 +203,7 @@ def test_unreachable_scheduler_is_one_clear_error(monkeypatch):
 
 
 def test_blind_test_on_a_remote_cluster_gives_the_serial_bytes(tmp_path, fmus):
-    from harness.blindtest import blindtest
+    from harness.diagnosis.blindtest import blindtest
 
     with DaskCluster(2) as cluster:
         blindtest(3, seed=4, out=tmp_path / "serial", workers=1, quick=True, families=("twin", "nuisance"))

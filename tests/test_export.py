@@ -1,4 +1,4 @@
-"""The armax FMU and harness.export against the Python simulation, python-control and fmpy's own master."""
+"""The armax FMU and harness.ident.export against the Python simulation, python-control and fmpy's own master."""
 
 from __future__ import annotations
 
@@ -12,10 +12,11 @@ import pytest
 from fmpy import read_model_description, simulate_fmu
 from fmpy.validation import validate_fmu
 
-from harness import armax as ax
-from harness import export, lti
-from harness.build import build_fmu, fmu_source_dir
-from harness.cosim import FMUError
+from benchmarks.problems import demo_problem
+from harness.fmu.build import build_fmu, fmu_source_dir
+from harness.fmu.cosim import FMUError
+from harness.ident import armax as ax
+from harness.ident import export, lti
 
 TS = 0.02
 # the first lab's printed model (two digits): |pole| = 1.17, unstable (seeds/README.md)
@@ -30,7 +31,7 @@ def generic() -> Path:
 
 @pytest.fixture(scope="module")
 def identified() -> ax.ArmaxModel:
-    _, u, y = ax.demo_problem(5, n=800)
+    _, u, y = demo_problem(5, n=800)
     return ax.estimate(u, y, 4, 3, 4, 1, Ts=TS)
 
 

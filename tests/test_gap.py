@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 from scipy.signal import freqz, lfilter
 
-from harness import gap, signals
+from harness.diagnosis import gap
+from harness.rig import signals
 
 TS = 0.02  # s, the first lab's 50 Hz
 

@@ -19,11 +19,11 @@ import pytest
 import scipy.io
 
 from harness import spec as specmod
-from harness.calibration import Calibration
-from harness.campaign import run_campaign
-from harness.data import DataError, load_manifest, read_dataset
-from harness.diagnose import diagnose_run
-from harness.records import ImportOptions, import_records
+from harness.diagnosis.diagnose import diagnose_run
+from harness.ident.calibration import Calibration
+from harness.rig.campaign import run_campaign
+from harness.rig.records import ImportOptions, import_records
+from harness.rundir import DataError, load_manifest, read_dataset
 
 KP, KE, GAUGE_OFFSET = 35.5145, -3.3636, 0.0125  # the lab's DAQ calibration carried by every import here
 CAL = Calibration(Kp=KP, Ke=KE, gauge_offset_v=GAUGE_OFFSET)

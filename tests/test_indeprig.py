@@ -64,8 +64,8 @@ def test_gauge_sees_root_curvature_mode_two_reversed_and_6_27_times_stronger():
 
 
 def test_free_hub_mode_agrees_with_the_project_twin():
-    from harness.plant import PlantParams
-    from harness.plant import mode_frequencies as twin_modes
+    from harness.fmu.plant import PlantParams
+    from harness.fmu.plant import mode_frequencies as twin_modes
 
     ours = mode_frequencies(IndepRig())[0]
     twin = twin_modes(PlantParams())[0][0]

@@ -1,4 +1,4 @@
-"""harness.lti: integrator back, companion form (the seed's eq. 10), responses."""
+"""harness.ident.lti: integrator back, companion form (the seed's eq. 10), responses."""
 
 from __future__ import annotations
 
@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 from scipy.signal import lfilter
 
-from harness import armax as ax
-from harness import lti
+from benchmarks.problems import demo_system
+from harness.ident import armax as ax
+from harness.ident import lti
 
 
 def _plant(n: int = 600, seed: int = 3):
@@ -46,7 +47,7 @@ def test_with_integrator_undoes_the_preprocessing(af):
 
 
 def test_to_tf_evaluates_b_over_a_in_z_inverse():
-    true = ax.demo_system()
+    true = demo_system()
     g = lti.to_tf(true)
     z = np.exp(1j * np.array([0.05, 0.7, 2.0]))
     direct = np.polyval(true.B[::-1], 1 / z) / np.polyval(true.A[::-1], 1 / z)
@@ -86,7 +87,7 @@ def test_companion_form_has_the_same_transfer_function():
 
 
 def test_step_square_and_bode_numbers():
-    true = ax.demo_system()
+    true = demo_system()
     dc = true.B.sum() / true.A.sum()
     t, y = lti.step_response(true, 20.0)
     assert t[1] - t[0] == pytest.approx(0.02) and t[-1] == pytest.approx(20.0)

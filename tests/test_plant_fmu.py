@@ -1,4 +1,4 @@
-"""The flexjoint plant FMU against the independent analytic model (harness.plant) and closed forms."""
+"""The flexjoint plant FMU against the independent analytic model (harness.fmu.plant) and closed forms."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 from fmpy.fmi1 import FMICallException
 from scipy.integrate import solve_ivp
 
-from harness.plant import (
+from harness.fmu.plant import (
     OUTPUTS,
     PlantParams,
     beam_integrals,

@@ -4,7 +4,7 @@ import control
 import numpy as np
 import pytest
 
-from harness import preprocess as pp
+from harness.ident import preprocess as pp
 
 
 def _lowpass_loop(x, af):

@@ -1,11 +1,11 @@
-"""Output-error least squares of harness.recalibrate on a model with a known solution and known noise."""
+"""Output-error least squares of harness.diagnosis.recalibrate on a model with a known solution and known noise."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from harness import recalibrate as recal
+from harness.diagnosis import recalibrate as recal
 
 
 def _second_order(k: float, wn: float, zeta: float, t: np.ndarray) -> np.ndarray:

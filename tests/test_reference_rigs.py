@@ -9,7 +9,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from harness.plant import PlantParams, mode_frequencies
+from harness.fmu.plant import PlantParams, mode_frequencies
 
 REF = Path(__file__).resolve().parent / "fixtures"  # provenance: fixtures/README.md
 FILES = ["quanser_rfl_frf_2025-04-16.csv", "quanser_rfl_frf_2025-05-07.csv"]

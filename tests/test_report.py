@@ -19,13 +19,14 @@ import pandas as pd
 import pytest
 from scipy.signal import lfilter
 
-from harness import armax
+from benchmarks.problems import demo_system
 from harness import spec as specmod
-from harness.blindtest import campaign_spec
-from harness.campaign import run_campaign
-from harness.data import write_dataset
-from harness.diagnose import diagnose_run
-from harness.report import diagnosis_markdown, load_results, pole_zero, write_report
+from harness.diagnosis.blindtest import campaign_spec
+from harness.diagnosis.diagnose import diagnose_run
+from harness.ident import armax
+from harness.render.report import diagnosis_markdown, load_results, pole_zero, write_report
+from harness.rig.campaign import run_campaign
+from harness.rundir import write_dataset
 
 AF = 0.8
 TS = 0.02
@@ -62,7 +63,7 @@ def exp_gap(entry: dict) -> float:
 
 
 def _truth_model() -> armax.ArmaxModel:
-    return armax.demo_system(TS)  # stable ARMAX(4,3,4,1) at 50 Hz with a non-minimum-phase zero
+    return demo_system(TS)  # stable ARMAX(4,3,4,1) at 50 Hz with a non-minimum-phase zero
 
 
 def _input(name: str, rng: np.random.Generator) -> np.ndarray:
@@ -253,7 +254,7 @@ def test_pole_zero_with_integrator():
 
 def test_parameter_deviations_and_information_criteria(run):
     """The selected model's free parameters with sqrt(diag(cov)), and MATLAB's FPE and AIC on its dataset."""
-    from harness.report import _estimates_lines
+    from harness.render.report import _estimates_lines
 
     root, truth = run
     res = load_results(root)
@@ -272,7 +273,7 @@ def test_parameter_deviations_and_information_criteria(run):
 
 def test_measured_frf_follows_the_true_system(run):
     """The nonparametric H1 response on the Bode plot: times H(z) it is B/A of the system that made the data."""
-    from harness.report import measured_frf
+    from harness.render.report import measured_frf
 
     root, truth = run
     f, g = measured_frf(load_results(root), "prbs_a")

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from harness import signals
+from harness.rig import signals
 
 
 def test_prbs_switching_rate_within_3_sigma_and_deterministic():

@@ -87,10 +87,10 @@ def test_pass_interval_and_sensitivity_numbers():
 
 def _selected_model(run, spec_path, fmus):
     """Identify the tiny campaign once (serially) and return models/selected.json."""
-    from harness.calibration import calibrate_run
-    from harness.campaign import run_campaign
-    from harness.data import load_run
-    from harness.identify import prepare, run_grid, write_grid
+    from harness.ident.calibration import calibrate_run
+    from harness.ident.identify import prepare, run_grid, write_grid
+    from harness.rig.campaign import run_campaign
+    from harness.rundir import load_run
 
     spec = specmod.load(spec_path)
     run_campaign(spec, run, fmus=fmus, workers=1)

@@ -15,8 +15,8 @@ import pytest
 import rerun as rr
 from rerun.chunk import RrdReader
 
-from harness import armax
-from harness.viewer import APPLICATION_ID, CORR_HEIGHT, DB_PER_UNIT, log_run, recording_id
+from harness.ident import armax
+from harness.render.viewer import APPLICATION_ID, CORR_HEIGHT, DB_PER_UNIT, log_run, recording_id
 
 try:
     from test_report import AF, NAMES, TS, build_run, diagnosed_twin, exp_gap

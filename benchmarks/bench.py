@@ -11,16 +11,45 @@ from typing import Any
 
 import numpy as np
 
+from harness.ident.armax import estimate
+
+try:  # the optional peer (extra `bench`)
+    import sippy_unipi
+    from sippy_unipi import system_identification
+except ImportError:
+    sippy_unipi = None
+
+import operator
+import os
+import platform
+import tempfile
+from concurrent.futures import ProcessPoolExecutor
+from importlib.metadata import version
+from pathlib import Path
+
+import fmpy
+
+from benchmarks.problems import demo_problem, demo_system
+from harness import spec as specmod
+from harness.diagnosis.blindtest import blindtest
+from harness.diagnosis.diagnose import diagnose_run
+from harness.executor import Executor, fmu_bytes, local_cluster, session
+from harness.fmu.build import build_all
+from harness.ident.identify import prepare, run_grid
+from harness.pipeline import calibrate_run
+from harness.rig.campaign import run_campaign, simulate_spec
+from harness.rig.signals import generate
+from harness.rundir import load_run
+
 
 def bench_armax(n_fits: int = 20) -> dict[str, Any]:
-    """ARMAX(4,3,4,1) on 1500 samples of ``armax.demo_problem(seed)``, seeds 0..n_fits-1: ours vs sippy-unipi.
+    """ARMAX(4,3,4,1) on 1500 samples of ``demo_problem(seed)``, seeds 0..n_fits-1: ours vs sippy-unipi.
 
     The peer is sippy-unipi's ARMAX ``ILLS`` (iterative linear least squares; optional extra ``bench``,
     imported lazily; ``"peer": None`` when it is not installed). Times are wall-clock ms per fit, data generation
     excluded, one untimed warm-up fit each. Parameter error: ||theta_hat - theta|| / ||theta|| over
     [a.., b.., c..], median and mean over the fits.
     """
-    from .armax import demo_problem, demo_system, estimate
 
     if isinstance(n_fits, bool) or not isinstance(n_fits, int) or n_fits < 1:
         raise ValueError(f"n_fits must be an integer >= 1, got {n_fits!r}")
@@ -48,11 +77,6 @@ def bench_armax(n_fits: int = 20) -> dict[str, Any]:
     ours = summary(ms, errs)
 
     peer: dict[str, Any] | None = None
-    try:
-        import sippy_unipi
-        from sippy_unipi import system_identification
-    except ImportError:
-        sippy_unipi = None
     if sippy_unipi is not None:
 
         def sippy_fit(u: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -73,8 +97,6 @@ def bench_armax(n_fits: int = 20) -> dict[str, Any]:
             ms_p.append(1e3 * (time.perf_counter() - t0))
             errs_p.append(float(np.linalg.norm(th - theta)) / tnorm)
         try:
-            from importlib.metadata import version
-
             ver = version("sippy-unipi")
         except Exception:  # noqa: BLE001 - metadata is informative only
             ver = "?"
@@ -88,7 +110,7 @@ def bench_armax(n_fits: int = 20) -> dict[str, Any]:
             "n_fits": n_fits,
             "theta_true": theta.tolist(),
         },
-        "ours": {"name": "harness.armax.estimate (PEM, analytic Gauss-Newton)", **ours},
+        "ours": {"name": "harness.ident.armax.estimate (PEM, analytic Gauss-Newton)", **ours},
         "peer": peer,
         "speed_ratio": (peer["median_ms"] / ours["median_ms"]) if peer else None,
     }
@@ -103,12 +125,6 @@ def bench_campaign(repeats: int = 3) -> dict[str, Any]:
     plant FMU alone over one 60 s experiment with the same command (``output_interval`` = Ts, the command
     given once per sample), per communication step. The ratio is our coupled step over the peer's single step.
     """
-    import fmpy
-
-    from . import spec as specmod
-    from .build import build_all
-    from .campaign import simulate_spec
-    from .executor import session
 
     fmus = build_all()
     spec = specmod.load("lab")
@@ -130,8 +146,6 @@ def bench_campaign(repeats: int = 3) -> dict[str, Any]:
         out[f"workers_{workers}"] = {"wall_s": best, "realtime_factor": sim_s / best, "us_per_step": 1e6 * best / steps}
         if workers > 1:
             out[f"workers_{workers}"]["cluster_start_s"] = start
-
-    from .signals import generate
 
     e = exps[0]
     n = int(round(e.duration * spec.sample_rate))
@@ -163,22 +177,12 @@ def bench_identify(workers: int = 2) -> dict[str, Any]:
     """The lab spec's identification: ARMAX grid na <= 8, nb <= 3, nc <= 8 (nk = 1) on all 9 datasets, causality
     and threshold filter, cross-validation of every survivor on every dataset, selection. Wall time [s] on a
     running ``workers``-process Dask cluster (its start-up, reported as ``cluster_start_s``, excluded)."""
-    import tempfile
-    from pathlib import Path
-
-    from . import spec as specmod
-    from .build import build_all
-    from .campaign import run_campaign
-    from .data import load_run
-    from .identify import prepare, run_grid
-    from .pipeline import calibrate_run
 
     spec = specmod.load("lab")
     with tempfile.TemporaryDirectory() as tmp:
         run_campaign(spec, Path(tmp), fmus=build_all())
         cal = calibrate_run(Path(tmp))
         prepared = prepare(load_run(Path(tmp)), cal, spec.identify["af"], spec.identify["output"])
-    from .executor import session
 
     t0 = time.perf_counter()
     with session(workers) as ex:
@@ -202,13 +206,11 @@ def bench_identify(workers: int = 2) -> dict[str, Any]:
 
 
 def _import_identify(_: int) -> None:
-    import harness.identify  # noqa: F401
+    """A no-op task: unpickling it makes a worker import this module and so the identification stack."""
 
 
 def _blind_rig(i: int, spec: Any, fmus: Any) -> dict[str, Any]:
     """One task of the executor bench: rig ``i``'s blind-test campaign (its own noise seed), arrays back."""
-    from . import spec as specmod
-    from .campaign import simulate_spec
 
     s = specmod.from_dict(specmod.apply_overrides(spec.raw, [f"campaign.seed={i}"]), spec.path)
     return simulate_spec(s, fmus, workers=1)
@@ -226,7 +228,6 @@ def _burn(n: int) -> float:
 def machine_parallel_efficiency(n: int = 5_000_000) -> float:
     """What two plain processes get from this machine right now [%]: T(one burn) / T(two burns side by side)
     (100 % on two idle cores; other jobs on the machine lower it, and the Dask figure with it)."""
-    from concurrent.futures import ProcessPoolExecutor
 
     with ProcessPoolExecutor(2) as pool:
         list(pool.map(_burn, [1000, 1000]))  # start both processes first
@@ -248,12 +249,6 @@ def bench_executor(n_tasks: int = 40, n_trivial: int = 200) -> dict[str, Any]:
       clusters warm (started, rigs loaded, before the clock). Wall times: other load on the machine lowers it
       (the 1-minute load average is reported).
     """
-    import operator
-    import os
-
-    from . import spec as specmod
-    from .build import build_all
-    from .executor import Executor, fmu_bytes, local_cluster
 
     spec = specmod.load("blind")
     fmus = {k: fmu_bytes(v) for k, v in build_all().items()}
@@ -299,14 +294,6 @@ def bench_executor(n_tasks: int = 40, n_trivial: int = 200) -> dict[str, Any]:
 def bench_diagnose(workers: int = 2) -> dict[str, Any]:
     """Diagnosis of the lab rig (specs/lab.toml: 9 identification experiments + the multisine) against the
     nominal simulation: wall time [s], the effects found and the held-out shrink."""
-    import tempfile
-    from pathlib import Path
-
-    from . import spec as specmod
-    from .build import build_all
-    from .campaign import run_campaign
-    from .diagnose import diagnose_run
-    from .pipeline import calibrate_run
 
     with tempfile.TemporaryDirectory() as tmp:
         run_campaign(specmod.load("lab"), Path(tmp), fmus=build_all())
@@ -344,13 +331,6 @@ def bench_diagnosis_table(workers: int | None = None) -> dict[str, Any]:
     """Issue 8's table re-run: ``specs/nominal.toml`` with Ks 1.5, Beq 0.0052, zeta_link 0.02 and sensor noise
     (a real rig's mismatch) plus one effect per row, diagnosed against nominal: verdict, effects with their
     fitted values, recalibrated Ks and Beq, held-out fit before / after recalibration / after effects, wall s."""
-    import tempfile
-    from pathlib import Path
-
-    from . import spec as specmod
-    from .build import build_all
-    from .campaign import run_campaign
-    from .diagnose import diagnose_run
 
     rows = {}
     with tempfile.TemporaryDirectory() as tmp:
@@ -376,10 +356,6 @@ def bench_diagnosis_table(workers: int | None = None) -> dict[str, Any]:
 def bench_blindtest(n: int, workers: int | None = None, seed: int = 0) -> dict[str, Any]:
     """The full blind test (``flexjoint blindtest``, all three families, the full blind campaign): wall time and
     the pooled and per-family scores with their intervals."""
-    import tempfile
-    from pathlib import Path
-
-    from .blindtest import blindtest
 
     with tempfile.TemporaryDirectory() as tmp:
         doc = blindtest(n, seed, Path(tmp), workers=workers)
@@ -389,8 +365,6 @@ def bench_blindtest(n: int, workers: int | None = None, seed: int = 0) -> dict[s
 def run_all(quick: bool = False, progress: Any = None, table: bool = False, blind: int = 0) -> dict[str, Any]:
     """Every benchmark, each side by side with its peer, as one JSON-able dict; ``table`` adds issue 8's
     diagnosis table (~3 min), ``blind`` the full blind test of that many rigs (~20 min for 45)."""
-    import os
-    import platform
 
     result: dict[str, Any] = {
         "machine": {"python": platform.python_version(), "cpus": os.cpu_count(), "platform": platform.platform()},

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from .data import load_manifest, read_dataset, write_json
+from ..rundir import load_manifest, read_dataset, write_json
 from .preprocess import as_signal, time_axis
 
 __all__ = [

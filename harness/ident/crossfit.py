@@ -2,9 +2,9 @@
 
 Row i, column j: MATLAB ``compare`` fit [%] (zero initial state, ic="z") of model i simulated on dataset j,
 in the identification domain: input the detrended command u_d [V] of dataset j, output scored against its
-y_f = H(z) y (``harness.identify.prepare`` with the model's preprocessing af and output). The exported FMUs
+y_f = H(z) y (``harness.ident.identify.prepare`` with the model's preprocessing af and output). The exported FMUs
 carry u_offset = 0, so the detrended command goes in and one FMU serves every dataset. The same matrix is
-computed by the Python simulation (``harness.armax.compare``); the two must agree to ``TOLERANCE`` fit points.
+computed by the Python simulation (``harness.ident.armax.compare``); the two must agree to ``TOLERANCE`` fit points.
 """
 
 from __future__ import annotations
@@ -18,9 +18,9 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from ..rundir import atomic_write_text, load_run
 from . import armax
 from .calibration import load_calibration
-from .data import atomic_write_text, load_run
 from .export import ModelFMU, export_model, model_records
 from .identify import Prepared, prepare
 

@@ -1,13 +1,13 @@
 """Identified ARMAX models back as FMI 2.0 co-simulation FMUs (``fmus/armax``), and running them through fmpy.
 
-One generic binary serves every model: ``harness.build.build_fmu("armax")`` compiles ``fmus/armax`` once
+One generic binary serves every model: ``harness.fmu.build.build_fmu("armax")`` compiles ``fmus/armax`` once
 (cached by source hash); an exported FMU is that FMU with a generated ``modelDescription.xml`` whose
 parameter start values are the model's coefficients at full precision (``repr`` of each double), and the
 same values in ``resources/coefficients.txt``, which the binary reads at instantiation. So the FMU runs the
 identified model with no parameter set by the importer. The zip has a fixed entry order and timestamps:
 same model and same binary give the same bytes. All FMUs share the generic GUID (the binary checks it).
 
-FMU parameters (names as in ``harness.armax``): ``Ts`` [s]; ``na``, ``nb``, ``nc``, ``nk`` (Integer, orders up
+FMU parameters (names as in ``harness.ident.armax``): ``Ts`` [s]; ``na``, ``nb``, ``nc``, ``nk`` (Integer, orders up
 to ``NMAX``, nk >= 1); ``a[1..NMAX]``, ``b[0..NMAX]`` (B with its nk leading zeros), ``c[1..NMAX]`` (stored,
 unused); ``af`` (pole of H(z) = (1 - af)(z - 1)/(z - af)); ``u_offset`` [V] subtracted from the input;
 ``y0`` [deg]. Input ``u`` [V]. Outputs ``y_f`` = B/A (u - u_offset) (units of y per sample) and ``y`` [deg] =
@@ -33,9 +33,10 @@ from xml.sax.saxutils import escape
 
 import numpy as np
 
+from ..fmu.build import build_fmu
+from ..fmu.cosim import FMUError, Instance, free, initialize, load
+from ..rundir import atomic_write_bytes
 from .armax import ArmaxModel
-from .cosim import FMUError, Instance, free, initialize, load
-from .data import atomic_write_bytes
 
 __all__ = [
     "NMAX",
@@ -150,7 +151,6 @@ def _zip_bytes(files: dict[str, bytes]) -> bytes:
 
 
 def _generic_fmu() -> Path:
-    from .build import build_fmu
 
     return build_fmu("armax")
 
@@ -310,7 +310,7 @@ def simulate_fmu_model(fmu: Path, u: np.ndarray, Ts: float | None = None) -> dic
     """Run an exported armax FMU on the command ``u`` [V] sampled at ``Ts`` [s]: ``{"y_f", "y"}`` per sample.
 
     Loads the FMU, runs it once and frees it; use :class:`ModelFMU` to run one FMU on many inputs.
-    Raises :class:`harness.cosim.FMUError` with the FMU's own message (e.g. "model is unstable").
+    Raises :class:`harness.fmu.cosim.FMUError` with the FMU's own message (e.g. "model is unstable").
     """
     with ModelFMU(fmu) as m:
         return m.run(u, Ts)

@@ -1,6 +1,6 @@
 """``report.md`` and ``figures/*.png`` of a run directory, written from the run directory alone.
 
-Also the loader of a run's results (:func:`load_results`) shared with :mod:`harness.viewer`: datasets in the
+Also the loader of a run's results (:func:`load_results`) shared with :mod:`harness.render.viewer`: datasets in the
 identification domain (detrended command u_d [V], filtered difference y_f = H(z) y [deg/sample] of the tip
 angle y [deg]), the identified models, grid, cross-fit matrix, diagnosis and doubled-rate check.
 
@@ -23,12 +23,12 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from scipy.signal import coherence, csd, lfilter, welch
 
-from . import armax, lti
-from .calibration import SEED_CALIBRATION, Calibration
-from .data import DataError, atomic_write_bytes, load_manifest, load_run
-from .identify import Prepared, prepare
-from .preprocess import filter_response
-from .spec import IDENTIFY_DEFAULTS
+from ..ident import armax, lti
+from ..ident.calibration import SEED_CALIBRATION, Calibration
+from ..ident.identify import Prepared, prepare
+from ..ident.preprocess import filter_response
+from ..rundir import DataError, atomic_write_bytes, load_manifest, load_run
+from ..spec import IDENTIFY_DEFAULTS
 
 __all__ = [
     "DPI",
@@ -135,7 +135,7 @@ def _calibration(run: Path, record: dict[str, Any] | None) -> CalPair:
 
 
 def load_results(run: Path) -> RunResults:
-    """Load everything :func:`write_report` and :func:`harness.viewer.log_run` need from a run directory."""
+    """Load everything :func:`write_report` and :func:`harness.render.viewer.log_run` need from a run directory."""
     run = Path(run)
     if not run.is_dir():
         raise DataError(f"{run}: no such run directory")
@@ -1109,7 +1109,7 @@ def _section_model(res: RunResults, figdir: Path) -> list[str]:
         "## Selected model with the integrator",
         "",
         f"G(z) = B/A / H(z) with H(z) = (1 - af)(z - 1)/(z - af), af = {res.af:g}: the command u [V] to the",
-        "tip angle y [deg] (`harness.lti.with_integrator`). Coefficients in descending powers of z:",
+        "tip angle y [deg] (`harness.ident.lti.with_integrator`). Coefficients in descending powers of z:",
         "",
         "```",
         f"num = {_vec(num)}",

@@ -14,13 +14,20 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
+import control
+import fmpy
 import numpy as np
+import pandas
+import pyarrow
+import scipy
 
-from . import __version__
-from .data import write_dataset, write_json
-from .executor import Executor, FmuBytes, fmu_bytes, worker_rig
+from .. import __version__
+from ..executor import Executor, FmuBytes, fmu_bytes, worker_rig
+from ..fmu.build import build_all, fmu_sha256
+from ..fmu.plant import PlantParams, mass_stiffness
+from ..rundir import write_dataset, write_json
+from ..spec import Experiment, Spec
 from .signals import generate
-from .spec import Experiment, Spec
 
 Progress = Callable[[str], None]
 
@@ -37,7 +44,6 @@ def comb_schedule(exp: Experiment, Ts: float, plant: dict[str, Any]) -> tuple[np
     is the static torque giving that deflection on the twin (clamped hub). Returns (tau_tip [N m], comb_angle
     [deg], NaN outside the settled part of each hold).
     """
-    from .plant import PlantParams, mass_stiffness
 
     p = exp.params
     ls = np.asarray(p.get("deflections_cm", [-3.7, -3.05, -2.4, -1.8, -1.1, -0.5, 0, 0.6, 1.4, 2, 2.65, 3.3, 3.9]))
@@ -83,7 +89,7 @@ def _experiment_inputs(spec: Spec, exp: Experiment) -> tuple[np.ndarray, dict, d
 
 
 def simulate_experiment(rig: Any, spec: Spec, exp: Experiment) -> dict[str, np.ndarray]:
-    """Run one experiment of a spec on a loaded :class:`harness.cosim.Rig`; returns the dataset columns."""
+    """Run one experiment of a spec on a loaded :class:`harness.fmu.cosim.Rig`; returns the dataset columns."""
     u, plant, daq, tau, comb = _experiment_inputs(spec, exp)
     res = rig.run(u, spec.Ts, plant=plant, daq=daq, tau_tip=tau)
     cols = {k: res[k] for k in ("t", "u", "theta_v", "alpha_v", "theta", "alpha")}
@@ -122,11 +128,6 @@ def simulate_spec(
 
 
 def versions() -> dict[str, str]:
-    import control
-    import fmpy
-    import pandas
-    import pyarrow
-    import scipy
 
     return {
         "harness": __version__,
@@ -150,7 +151,6 @@ def run_campaign(
 ) -> dict[str, Any]:
     """Run a spec's campaign into run directory ``out`` (simulated by :func:`simulate_spec`, written here, by
     the client only); returns the manifest."""
-    from .build import build_all, fmu_sha256
 
     fmus = fmus or build_all()
     out = Path(out)

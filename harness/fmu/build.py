@@ -26,6 +26,18 @@ from contextlib import contextmanager
 from importlib import resources
 from pathlib import Path
 
+import cmake
+import fmpy
+from fmpy import read_model_description
+from fmpy.build import build_platform_binary
+
+from .. import clone
+
+try:
+    import fcntl
+except ImportError:  # Windows
+    fcntl = None
+
 BUILD_TAG = "flexjoint-harness-build-1"  # bump when the staging or compile recipe changes
 MODELS = ("flexjoint", "daq")
 FMI_HEADERS = ("fmi2Functions.h", "fmi2FunctionTypes.h", "fmi2TypesPlatform.h")
@@ -63,8 +75,8 @@ def bundled_dir(kind: str) -> Path:
     packaged = Path(str(resources.files("harness").joinpath(f"_{kind}")))
     if packaged.is_dir():
         return packaged
-    clone = Path(__file__).resolve().parents[1] / kind
-    return clone if clone.is_dir() else packaged
+    in_clone = clone.ROOT / kind
+    return in_clone if in_clone.is_dir() else packaged
 
 
 def fmu_source_dir() -> Path:
@@ -88,7 +100,6 @@ def available_models() -> list[str]:
 
 
 def _fmpy_headers() -> dict[str, bytes]:
-    import fmpy
 
     cdir = Path(fmpy.__file__).parent / "c-code"
     return {h: (cdir / h).read_bytes() for h in FMI_HEADERS}
@@ -165,9 +176,7 @@ def fmu_sha256(path: str | os.PathLike) -> str:
 
 @contextmanager
 def _file_lock(path: Path):
-    try:
-        import fcntl
-    except ImportError:  # Windows: os.replace alone keeps the cache consistent
+    if fcntl is None:  # Windows: os.replace alone keeps the cache consistent
         yield
         return
     with open(path, "a") as f:
@@ -181,10 +190,6 @@ def _file_lock(path: Path):
 def _ensure_cmake_on_path() -> None:
     if shutil.which("cmake"):
         return
-    try:
-        import cmake
-    except ImportError as e:
-        raise BuildError("cmake not found: pip install cmake") from e
     os.environ["PATH"] = cmake.CMAKE_BIN_DIR + os.pathsep + os.environ.get("PATH", "")
 
 
@@ -199,7 +204,6 @@ def _first_error_line(log: str) -> str:
 
 def _compile(stage: Path, build_dir: Path, name: str) -> str:
     """Run fmpy's CMake build with stdout/stderr captured; return the log, raise BuildError on failure."""
-    from fmpy.build import build_platform_binary
 
     _ensure_cmake_on_path()
     options = {} if sys.platform == "win32" else {"CMAKE_C_STANDARD_LIBRARIES:STRING": "-lm"}
@@ -295,7 +299,6 @@ def build_all(out_dir: Path | None = None, force: bool = False) -> dict[str, Pat
 
 def value_references(fmu: str | os.PathLike) -> dict[str, int]:
     """{variable name: value reference} read from an FMU's modelDescription.xml."""
-    from fmpy import read_model_description
 
     md = read_model_description(str(fmu), validate=False)
     return {v.name: v.valueReference for v in md.modelVariables}

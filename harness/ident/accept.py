@@ -16,8 +16,8 @@ from typing import Any
 
 import pandas as pd
 
-from .data import DataError, load_manifest
-from .spec import ACCEPT_DEFAULTS
+from ..rundir import DataError, load_manifest
+from ..spec import ACCEPT_DEFAULTS
 
 
 @dataclass

@@ -35,12 +35,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import h5py
 import numpy as np
 import pandas as pd
 import pyarrow.parquet as pq
+import scipy.io
 
-from .calibration import SEED_CALIBRATION, Calibration, alpha_deg, theta_deg
-from .data import DataError, validate, write_dataset, write_json
+from ..ident.calibration import SEED_CALIBRATION, Calibration, alpha_deg, theta_deg
+from ..rundir import DataError, validate, write_dataset, write_json
 
 __all__ = [
     "CHANNELS",
@@ -300,8 +302,6 @@ def _leaf_names(items: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 
 
 def _read_mat(path: Path) -> RawTable:
-    import h5py
-    import scipy.io
 
     items: dict[str, np.ndarray] = {}
     seen: list[str] = []

@@ -33,9 +33,9 @@ from typing import Any
 import numpy as np
 from scipy.signal import lfilter, savgol_coeffs, savgol_filter, welch
 
-from harness.signals import MultisineLines
+from harness.rig.signals import MultisineLines
 
-from .preprocess import as_signal, time_axis
+from ..ident.preprocess import as_signal, time_axis
 
 __all__ = [
     "AMP_LAGS",
@@ -635,7 +635,7 @@ def bla(u: np.ndarray, y: np.ndarray, period_samples: int, lines: MultisineLines
     P = int(ps)
     if not isinstance(lines, MultisineLines):
         raise ValueError(
-            f"lines must be a MultisineLines (harness.signals.multisine_lines), got {type(lines).__name__}"
+            f"lines must be a MultisineLines (harness.rig.signals.multisine_lines), got {type(lines).__name__}"
         )
     if lines.period_samples != P:
         raise ValueError(f"lines were designed for a period of {lines.period_samples} samples, not {P}")

@@ -5,7 +5,7 @@ timeline (the time panel's), everything else is static. Plots that are not over 
 correlations, the cross-fit heat map) are drawn in 2D views with their own axes, grid and tick labels, and the
 axis units in the view names. Rerun's 2D views point y down, so values are drawn at -y.
 
-Entity tree (all logged from the run directory alone, via :func:`harness.report.load_results`):
+Entity tree (all logged from the run directory alone, via :func:`harness.render.report.load_results`):
 
 - ``datasets/<name>/measured``, ``.../simulated`` (identification domain y_f [deg/sample], selected model),
   ``.../command`` (u [V]), ``.../tip/measured``, ``.../tip/simulated`` (tip angle [deg]); timeline ``time`` [s]
@@ -41,7 +41,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 from matplotlib import colormaps
 
-from . import armax
+from ..ident import armax
 from .report import (
     RunResults,
     bode,

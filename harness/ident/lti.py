@@ -1,6 +1,6 @@
 """Identified ARMAX models as python-control LTI objects: transfer functions, integrator, companion form, responses.
 
-Conventions. ``harness.armax`` polynomials are in q^-1 (A = [1, a1..], B with nk leading zeros). Here they
+Conventions. ``harness.ident.armax`` polynomials are in q^-1 (A = [1, a1..], B with nk leading zeros). Here they
 become discrete transfer functions in z with ``dt = Ts`` [s]: B(z^-1)/A(z^-1) with numerator and denominator
 multiplied by the same power of z.
 

@@ -1,6 +1,18 @@
-"""Datasets on disk: Parquet files with columns ``t, u, theta_v, alpha_v`` (+ ``theta, alpha`` in degrees: the
-true angles of simulated data, the recorded ones of imports), atomic writes and run-directory helpers. Real
-records are read and normalised by :mod:`harness.records`.
+"""The run directory: its layout (:class:`RunDir`, every path named once), its datasets (Parquet files with
+columns ``t, u, theta_v, alpha_v``, + ``theta, alpha`` in degrees: the true angles of simulated data, the
+recorded ones of imports) and atomic, byte-stable writes. Real records are read and normalised by
+:mod:`harness.rig.records`.
+
+Layout::
+
+    manifest.json           what the run holds: its kind, spec and experiments (name, role, signal)
+    data/<name>.parquet     one dataset per experiment
+    calibration.json        Kp, Ke, dead zone (harness.ident.calibration.Calibration)
+    models/<name>.json      identified ARMAX models (+ selected.json); models/<name>.fmu their FMUs
+    grid.csv                the order grid's fits;   crossfit.csv  the cross-fit matrix
+    doubled_rate.json       the selected orders re-identified at twice the sample rate
+    diagnosis.json          the diagnosis (harness.diagnosis.result.Diagnosis); diagnosis.timing.json its wall times
+    report.md, figures/     the report;   run.rrd  the Rerun recording
 """
 
 from __future__ import annotations
@@ -8,6 +20,7 @@ from __future__ import annotations
 import json
 import os
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +30,72 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 REQUIRED = ("t", "u", "theta_v", "alpha_v")
+
+
+@dataclass(frozen=True)
+class RunDir:
+    """Paths of a run directory ``root`` (nothing is created or read)."""
+
+    root: Path
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "root", Path(self.root))
+
+    @property
+    def manifest(self) -> Path:
+        return self.root / "manifest.json"
+
+    @property
+    def data(self) -> Path:
+        return self.root / "data"
+
+    def dataset(self, name: str) -> Path:
+        """The dataset of experiment ``name``."""
+        return self.data / f"{name}.parquet"
+
+    @property
+    def calibration(self) -> Path:
+        return self.root / "calibration.json"
+
+    @property
+    def models(self) -> Path:
+        return self.root / "models"
+
+    def model(self, name: str, suffix: str = ".json") -> Path:
+        """Model ``name``'s record (``.json``) or FMU (``.fmu``)."""
+        return self.models / f"{name}{suffix}"
+
+    @property
+    def grid(self) -> Path:
+        return self.root / "grid.csv"
+
+    @property
+    def crossfit(self) -> Path:
+        return self.root / "crossfit.csv"
+
+    @property
+    def doubled_rate(self) -> Path:
+        return self.root / "doubled_rate.json"
+
+    @property
+    def diagnosis(self) -> Path:
+        return self.root / "diagnosis.json"
+
+    @property
+    def diagnosis_timing(self) -> Path:
+        return self.root / "diagnosis.timing.json"
+
+    @property
+    def report(self) -> Path:
+        return self.root / "report.md"
+
+    @property
+    def figures(self) -> Path:
+        return self.root / "figures"
+
+    @property
+    def recording(self) -> Path:
+        return self.root / "run.rrd"
 
 
 class DataError(ValueError):
@@ -113,7 +192,7 @@ def sample_time(df: pd.DataFrame) -> float:
 
 
 def load_manifest(run: Path) -> dict[str, Any]:
-    p = Path(run) / "manifest.json"
+    p = RunDir(run).manifest
     if not p.exists():
         raise DataError(f"{run}: not a run directory (no manifest.json)")
     return json.loads(p.read_text())
@@ -125,7 +204,7 @@ def load_run(run: Path, role: str | None = "identification") -> dict[str, pd.Dat
     out = {}
     for e in manifest["experiments"]:
         if role is None or e.get("role", "identification") == role:
-            out[e["name"]] = read_dataset(Path(run) / "data" / f"{e['name']}.parquet")
+            out[e["name"]] = read_dataset(RunDir(run).dataset(e["name"]))
     if not out:
         raise DataError(f"{run}: no {role or ''} datasets in manifest.json")
     return out

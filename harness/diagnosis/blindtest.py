@@ -6,7 +6,7 @@ compact campaign) in one of three families:
 - ``twin``: our own FMUs with the textbook linear parameters (the linear part of rig and simulation agree);
 - ``nuisance``: our own FMUs with the linear parameters drawn off the datasheet as on a real rig (:data:`NUISANCE`:
   Ks +-25 %, Beq x0.5..x2, zeta_link x0.5..x3, Jeq +-15 %, motor gain +-10 %, the motor gain carried by kt);
-- ``independent``: rigs from an independent simulator that uses neither our FMUs nor ``harness.plant``
+- ``independent``: rigs from an independent simulator that uses neither our FMUs nor ``harness.fmu.plant``
   (``tests/indeprig.py`` of a source checkout: scipy ``solve_ivp``, Stribeck friction, backlash as a dead-band
   contact spring between motor and hub inertias, link modes from the beam's E I, its own pot, gauge and DAQ), with
   the same nuisance draws. Without a source checkout this family is skipped (said in the result).
@@ -26,7 +26,7 @@ and of one kind:
   (measured: second_mode closes 93 % of its gap), so it is not drawn as out of library here.
 
 The campaign runs with a per-case seed (new noise), the truth is removed from the run's manifest (its spec
-tables are those of blind.toml), and :func:`harness.diagnose.diagnose_run` judges it against blind.toml.
+tables are those of blind.toml), and :func:`harness.diagnosis.diagnose.diagnose_run` judges it against blind.toml.
 Scores (issue 8's): top-1 effect and fitted magnitude within 25 % (integers: exact; within 20 % also reported)
 on single cases; ``none`` answered on rigs with no effect (never an effect); recalibrated Ks and Beq within 10 %
 and 25 % of the rig's on the nuisance and independent families; out-of-library cases answered
@@ -35,11 +35,8 @@ and 25 % of the rig's on the nuisance and independent families; out-of-library c
 
 from __future__ import annotations
 
-import importlib.util
 import math
-import os
 import shutil
-import sys
 import tempfile
 import time
 from collections.abc import Callable
@@ -49,10 +46,13 @@ from typing import Any
 
 import numpy as np
 
-from . import spec as specmod
-from .data import load_manifest, read_dataset, write_dataset, write_json
-from .diagnose import EFFECTS
-from .executor import Executor, FmuBytes, fmu_bytes, fmu_file
+from .. import clone
+from .. import spec as specmod
+from ..executor import Executor, FmuBytes, fmu_bytes, fmu_file
+from ..fmu.build import build_all
+from ..rig.campaign import run_campaign
+from ..rundir import load_manifest, read_dataset, write_dataset, write_json
+from .diagnose import EFFECTS, diagnose_run
 
 Progress = Callable[[str], None]
 
@@ -167,20 +167,9 @@ def campaign_spec(quick: bool = False, overrides: list[str] | None = None) -> sp
 
 
 def independent_simulator() -> ModuleType | None:
-    """The independent rig simulator of a source checkout (``tests/indeprig.py`` beside the package, or the file
-    named by ``FLEXJOINT_INDEPENDENT_RIG``), imported as module ``indeprig``; None when there is none."""
-    path = Path(
-        os.environ.get("FLEXJOINT_INDEPENDENT_RIG", Path(__file__).resolve().parents[1] / "tests" / "indeprig.py")
-    )
-    if not path.is_file():
-        return None
-    if "indeprig" in sys.modules:
-        return sys.modules["indeprig"]
-    spec = importlib.util.spec_from_file_location("indeprig", path)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["indeprig"] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    """The independent rig simulator of a clone (``tests/indeprig.py``, or the file named by
+    ``FLEXJOINT_INDEPENDENT_RIG``), imported as module ``indeprig``; None when there is none."""
+    return clone.load_file("indeprig", "tests/indeprig.py", "FLEXJOINT_INDEPENDENT_RIG")
 
 
 def _independent_rig(ind: ModuleType, case: dict[str, Any]) -> Any:
@@ -215,7 +204,6 @@ def _post(dest: Path, spec: specmod.Spec, post: dict[str, float], gauge_offset: 
 def make_rig_run(case: dict[str, Any], dest: Path, fmus: dict[str, Path] | None = None, quick: bool = False) -> Path:
     """Run the case's hidden rig on the blind campaign into ``dest`` (our FMUs, or the independent simulator for
     that family) and hide the truth from its manifest."""
-    from .campaign import run_campaign
 
     base = campaign_spec(quick)
     seed = [f"campaign.seed={case['campaign_seed']}"]
@@ -393,7 +381,6 @@ def run_case(
 ) -> dict[str, Any]:
     """One blind case, a task: its hidden rig's campaign into ``root/case_NNN`` (a scratch directory of the
     worker when ``root`` is None), the diagnosis (serial, the FMUs from ``fmus`` bytes), the score."""
-    from .diagnose import diagnose_run
 
     tc = time.perf_counter()
     files = {k: fmu_file(v) for k, v in fmus.items()} if fmus else None
@@ -423,7 +410,6 @@ def blindtest(
     task, the FMUs sent as bytes; ``keep`` keeps the case run directories under ``out/blind_cases/`` (on a remote
     cluster: on the workers' disks); ``quick`` runs the shortened campaign of :func:`campaign_spec`. The
     independent family is skipped, and said so, when there is no independent simulator (no source checkout)."""
-    from .build import build_all
 
     say = progress or (lambda _m: None)
     t0 = time.perf_counter()

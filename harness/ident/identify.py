@@ -2,7 +2,7 @@
 every dataset, and the selection of the simplest model near the best average (seed 000, section 3.2).
 
 Domain: the model maps the detrended command u_d [V] to y_f = H(z) y, the differentiated and low-pass filtered
-tip angle y [deg] (``harness.preprocess``), with its mean removed too; fits are MATLAB ``compare`` fits in percent
+tip angle y [deg] (``harness.ident.preprocess``), with its mean removed too; fits are MATLAB ``compare`` fits in percent
 on that pair. The seed detrended only the input, reasoning that differentiation detrends the output; it does
 not when the command has a nonzero mean (PRBS B = 0.05 at 60 s averages ~0.3 V here), and the constant velocity
 that mean produces is then an error no model of u_d can fit, so both sides are detrended.
@@ -10,6 +10,7 @@ that mean produces is then an error no model of u_d can fit, so both sides are d
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -19,9 +20,10 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from ..executor import Executor
+from ..rundir import atomic_write_text, write_json
 from . import armax
 from .calibration import Calibration, alpha_deg, theta_deg, tip_deg
-from .executor import Executor
 from .preprocess import preprocess
 
 
@@ -199,7 +201,6 @@ def model_record(res: GridResult, i: int, name: str, spec_identify: dict[str, An
 
 def write_grid(res: GridResult, run: Path, spec_identify: dict[str, Any], cal: Calibration) -> dict[str, Path]:
     """Write ``grid.csv`` and ``models/<dataset>.json`` + ``models/selected.json``; returns model paths by name."""
-    from .data import atomic_write_text, write_json
 
     run = Path(run)
     atomic_write_text(run / "grid.csv", res.grid.to_csv(index=False, float_format="%.6f"))
@@ -212,7 +213,6 @@ def write_grid(res: GridResult, run: Path, spec_identify: dict[str, Any], cal: C
 
 def load_model(path: Path) -> tuple[armax.ArmaxModel, dict[str, Any]]:
     """Read ``models/<name>.json`` back: the model and its full record."""
-    import json
 
     rec = json.loads(Path(path).read_text())
     return armax.ArmaxModel.from_dict(rec), rec

@@ -27,8 +27,8 @@ track end) or the ADC clips, a sample says nothing about the shaft: such samples
 residual (DEADBAND_GUARD deg of margin) and are bridged by interpolation in the where analysis.
 
 Recalibration first. A real rig's linear parameters are never the datasheet's: Beq, Ks, zeta_link, Jeq and the
-motor gain (kt, see :mod:`harness.recalibrate`) are fitted by output-error least squares through the plant FMU,
-within physical bounds, with 95 % intervals from the Jacobian. 2-fold cross-fitting: the experiments are split
+motor gain (kt, see :mod:`harness.diagnosis.recalibrate`) are fitted by output-error least squares through the plant
+FMU, within physical bounds, with 95 % intervals from the Jacobian. 2-fold cross-fitting: the experiments are split
 into folds A and B (stratified by signal kind and command level); parameters are fitted on one fold (the first
 FIT_SECONDS of each experiment) and scored on the other, so every experiment is held out once. The gap left is
 the gap a linear mismatch does not explain; the mismatch itself is a finding (``parameters``), not an effect.
@@ -74,11 +74,14 @@ from typing import Any
 import numpy as np
 from scipy.optimize import minimize_scalar
 
+from .. import spec as specmod
+from ..executor import Executor, fmu_bytes, worker_rig
+from ..fmu.build import build_all
+from ..ident.calibration import Calibration, alpha_deg, ke_from_comb, load_calibration, theta_deg
+from ..rig.signals import multisine_lines
+from ..rundir import DataError, load_manifest, read_dataset, sample_time, write_json
+from . import gap as gapmod
 from . import recalibrate as recal
-from . import spec as specmod
-from .calibration import Calibration, alpha_deg, ke_from_comb, load_calibration, theta_deg
-from .data import DataError, load_manifest, read_dataset, sample_time, write_json
-from .executor import Executor, fmu_bytes, worker_rig
 
 Progress = Callable[[str], None]
 
@@ -102,7 +105,7 @@ class Effect:
 
     ``kind`` "log" / "linear" (continuous, search bounds ``lo``..``hi``, coarse ``grid`` points) or "int"
     (``values`` enumerated; for quantisation the values come from the ADC lattice found in the data); ``blind``
-    the magnitudes :mod:`harness.blindtest` hides in its rigs (the one effect table both use).
+    the magnitudes :mod:`harness.diagnosis.blindtest` hides in its rigs (the one effect table both use).
     """
 
     name: str
@@ -443,7 +446,7 @@ def nominal_value(setup: Setup, param: str) -> float:
 
 
 def _effect_bound(eff: Effect, value: float) -> recal.Bound:
-    """An effect's search range as a :class:`harness.recalibrate.Bound` about its current ``value``."""
+    """An effect's search range as a :class:`harness.diagnosis.recalibrate.Bound` about its current ``value``."""
     if eff.kind == "log":
         return recal.Bound(eff.lo / value, eff.hi / value, eff.unit, eff.name)
     return recal.Bound(eff.lo, eff.hi, eff.unit, eff.name, log=False)
@@ -452,7 +455,7 @@ def _effect_bound(eff: Effect, value: float) -> recal.Bound:
 def refit(
     base: dict[str, Any], free: list[str], fit: list[str], every: list[str], max_nfev: int = 30
 ) -> dict[str, Any]:
-    """Output-error least squares of the linear parameters (:data:`harness.recalibrate.LINEAR`) and the
+    """Output-error least squares of the linear parameters (:data:`harness.diagnosis.recalibrate.LINEAR`) and the
     continuous effect parameters named in ``free``, from their values in ``base`` (linear ones default to the
     sim's), on the fit windows of ``fit``; squared errors on ``every``. Returns params, ci95, fit energy."""
     setup: Setup = _CTX["setup"]
@@ -723,7 +726,6 @@ def diagnose_run(
     the built plant and DAQ FMUs (default: built or taken from the cache). Writes
     ``out/diagnosis.json`` (default out = real) and returns its content plus ``timing_s`` (wall-clock seconds,
     written to ``diagnosis.timing.json`` so that diagnosis.json is byte-stable)."""
-    from .build import build_all
 
     t0 = time.perf_counter()
     say = progress or (lambda _m: None)
@@ -1168,7 +1170,6 @@ def _final_params(
 
 def _lines(real: Path, trial: Trial) -> Any:
     """The multisine line design of a periodic campaign experiment (None when it cannot be rebuilt)."""
-    from .signals import multisine_lines
 
     m = load_manifest(real)
     if m.get("kind") != "campaign" or trial.period == 0:
@@ -1207,14 +1208,10 @@ def _bridge(y_real: np.ndarray, y_sim: np.ndarray, ok: np.ndarray) -> np.ndarray
 
 
 def where_gap(setup: Setup, real: Path, over: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Where the gap lies, from :mod:`harness.gap`: per experiment and channel (theta in the rate domain, alpha
-    in the angle domain) the residual by time window, frequency band (and, for a multisine, the simulated FRF
+    """Where the gap lies, from :mod:`harness.diagnosis.gap`: per experiment and channel (theta in the rate domain,
+    alpha in the angle domain) the residual by time window, frequency band (and, for a multisine, the simulated FRF
     against the measured BLA with its noise and nonlinear-distortion levels), command amplitude, and near
-    motion reversals and pot wraps; pooled per channel by :func:`harness.gap.summarise_where`."""
-    try:
-        from . import gap as gapmod
-    except ImportError:  # the where module is optional
-        return {"skipped": "harness.gap is not available"}
+    motion reversals and pot wraps; pooled per channel by :func:`harness.diagnosis.gap.summarise_where`."""
     per: dict[str, dict[str, Any]] = {"theta": {}, "alpha": {}}
     rig = worker_rig(setup.fmus)
     for name, tr in setup.trials.items():

@@ -18,6 +18,7 @@ from functools import cache
 
 import numpy as np
 from scipy.integrate import quad
+from scipy.linalg import eigh
 from scipy.optimize import brentq
 
 OUTPUTS = ("theta", "alpha", "y", "theta_dot", "alpha_dot", "alpha_gauge")
@@ -230,7 +231,6 @@ def mode_frequencies(p: PlantParams) -> np.ndarray:
     Free hub: generalised eigenvalues of (K, M) without the rigid-body zero; clamped: w_i / (2 pi).
     """
     M, K, _ = mass_stiffness(p)
-    from scipy.linalg import eigh
 
     lam = np.sort(eigh(K, M, eigvals_only=True))[1:]  # drop the rigid-body mode
     free = np.sqrt(np.maximum(lam, 0.0)) / (2 * math.pi)

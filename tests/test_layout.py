@@ -1,0 +1,114 @@
+"""The package's shape: no import cycle among its modules, imports at the top of files, the README's module map
+equal to the tree."""
+
+from __future__ import annotations
+
+import ast
+import re
+from pathlib import Path
+
+import harness
+
+PKG = Path(harness.__file__).parent
+README = PKG.parent / "README.md"
+
+
+def _modules() -> dict[str, Path]:
+    """Dotted name -> file of every module of the package (packages by their ``__init__``)."""
+    out = {}
+    for path in sorted(PKG.rglob("*.py")):
+        rel = path.relative_to(PKG.parent).with_suffix("")
+        parts = rel.parts[:-1] if rel.name == "__init__" else rel.parts
+        if any(p.startswith("_") and p != "__init__" for p in parts[1:]):
+            continue  # harness/_fmus, harness/_specs: package data
+        out[".".join(parts)] = path
+    return out
+
+
+def _target(mods: dict[str, Path], name: str, alias: str | None) -> str:
+    """The module an import binds: ``from pkg import sub`` is module pkg.sub when that is a module."""
+    if alias is not None and f"{name}.{alias}" in mods:
+        return f"{name}.{alias}"
+    return name
+
+
+def import_graph() -> dict[str, set[str]]:
+    """Module -> the package's modules it imports (relative imports resolved)."""
+    mods = _modules()
+    graph: dict[str, set[str]] = {m: set() for m in mods}
+    for mod, path in mods.items():
+        package = mod if path.name == "__init__.py" else mod.rpartition(".")[0]
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                names = [(a.name, None) for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                if node.level:
+                    base = package.split(".")[: len(package.split(".")) - node.level + 1]
+                    name = ".".join(base + ([node.module] if node.module else []))
+                else:
+                    name = node.module or ""
+                names = [(name, a.name) for a in node.names]
+            else:
+                continue
+            for name, alias in names:
+                if name == "harness" or name.startswith("harness."):
+                    target = _target(mods, name, alias)
+                    if target in mods and target != mod:
+                        graph[mod].add(target)
+    return graph
+
+
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Every strongly connected component of more than one module (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on: set[str] = set()
+    out: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_cycle_finder_finds_a_cycle() -> None:
+    assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert cycles({"a": {"b"}, "b": set()}) == []
+
+
+def test_no_import_cycle() -> None:
+    graph = import_graph()
+    assert len(graph) > 30
+    assert "harness.diagnosis.diagnose" in graph["harness.cli"]
+    assert cycles(graph) == []
+
+
+def test_imports_at_the_top_of_files() -> None:
+    late = []
+    for mod, path in _modules().items():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+                late += [f"{mod}:{n.lineno}" for n in ast.walk(node) if isinstance(n, (ast.Import, ast.ImportFrom))]
+    assert late == []
