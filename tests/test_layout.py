@@ -4,7 +4,6 @@ equal to the tree."""
 from __future__ import annotations
 
 import ast
-import re
 from pathlib import Path
 
 import harness
