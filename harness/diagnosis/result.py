@@ -1,0 +1,440 @@
+"""``diagnosis.json``, defined once: the dataclasses the diagnoser fills and every reader (blind test, report,
+viewer, CLI) loads.
+
+:class:`Diagnosis` has one field per top-level key of the file; the parts a reader uses are typed
+(:class:`FoundEffect`, :class:`Candidate`, :class:`FittedParameter`, :class:`Gap` with its
+:class:`Decomposition` and :class:`Step`, :class:`NoiseFloor`, :class:`Folds`, :class:`Thresholds`); the bulky
+``where`` (the localisation of the gap, :mod:`harness.diagnosis.where`) and ``rounds`` (every candidate of every
+round of the forward selection) stay plain JSON.
+
+Units: gaps are sqrt of a mean normalised squared error (0 = identical, 1 = no better than the mean), fit % =
+100 (1 - gap), shares and shrinks in %, angles in deg, gains in deg/V, offsets in V. A JSON ``null`` (a NaN the
+diagnoser wrote) reads back as NaN in a float field. An optional key that a file does not hold reads as None and
+is not written back, so ``Diagnosis.load(p).write(q)`` gives ``q`` the bytes of ``p``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TypeVar
+
+import numpy as np
+
+from ..rundir import DataError, RunDir, write_json
+
+__all__ = [
+    "Candidate",
+    "Decomposition",
+    "Diagnosis",
+    "ExperimentGap",
+    "FittedParameter",
+    "Folds",
+    "FoundEffect",
+    "Gap",
+    "GapSummary",
+    "HeldOutGap",
+    "NoiseFloor",
+    "SensorCalibration",
+    "Step",
+    "Thresholds",
+    "rounded",
+]
+
+T = TypeVar("T")
+FIRST_STAGE = "simulation as given"  # the waterfall's first bar: the held-out gap before anything is fitted
+
+
+def _key(f: dataclasses.Field) -> str:
+    """The JSON key of a dataclass field (``metadata["key"]`` when the key is not a Python name)."""
+    return f.metadata.get("key", f.name)
+
+
+# ----------------------------------------------------------------------------------------------- the parts
+
+
+@dataclass
+class SensorCalibration:
+    """The real run's sensor calibration the data were converted with: Kp, Ke [deg/V], gauge offset [V]."""
+
+    Kp: float
+    Ke: float
+    gauge_offset_v: float
+
+
+@dataclass
+class Folds:
+    """The 2-fold cross-fit: experiment names of folds A and B (one experiment: in both) and the scheme."""
+
+    A: list[str]
+    B: list[str]
+    scheme: str
+
+    def role(self, experiment: str) -> str:
+        """The experiment's fold: "fold A" (scored with parameters fitted on B), "fold B", "A and B" (a lone
+        experiment, in both), "—" (not diagnosed)."""
+        a, b = experiment in self.A, experiment in self.B
+        return "A and B" if a and b else "fold A" if a else "fold B" if b else "—"
+
+    def held_out(self) -> list[list[str]]:
+        """The held-out experiments of the two fits: [B (fitted on A), A (fitted on B)]."""
+        return [list(self.B), list(self.A)]
+
+
+@dataclass
+class FittedParameter:
+    """One row of the parameter table: a linear parameter recalibrated, or the parameter of an effect found, or a
+    secondary parameter freed with one (backlash's ``plant.Jm_share``). ``nominal``: the simulation's value,
+    ``fitted`` on every experiment's fit window, ``ci95`` its 95 % interval, ``change_pct`` = 100 (fitted /
+    nominal - 1) for the linear parameters (NaN otherwise), ``unit``, ``finding``: one sentence (linear and
+    secondary parameters; None for an effect's own parameter)."""
+
+    nominal: float
+    fitted: float
+    ci95: list[float]
+    change_pct: float
+    unit: str
+    finding: str | None = None
+
+    @property
+    def off_spec(self) -> bool:
+        """A linear finding that the rig differs from the spec (not "matches the spec")."""
+        return self.finding is not None and "matches" not in self.finding
+
+
+@dataclass
+class FoundEffect:
+    """An effect found, in the order it was added. ``params``: its fitted parameter on all experiments
+    ({"plant.coulomb_torque": 0.044}); ``params_folds``: fitted on fold A, on fold B; ``gap_before`` /
+    ``gap_after``: held-out gap before and after it was added (with ``shrink_pct``, ``fit_pct_*``);
+    ``importance_pct``: its share [%] of what removing each effect alone reopens (NaN for an effect found by its
+    signature); ``fitted_on`` / ``held_out``: the experiments of the two fits; ``selected_by``: how it entered."""
+
+    effect: str
+    params: dict[str, float]
+    params_folds: list[dict[str, float]]
+    gap_before: float
+    gap_after: float
+    shrink_pct: float
+    fit_pct_before: float
+    fit_pct_after: float
+    importance_pct: float
+    fitted_on: list[list[str]]
+    held_out: list[list[str]]
+    selected_by: str
+
+
+@dataclass
+class Candidate:
+    """A candidate effect on the first round of the forward selection, alone on top of the recalibrated rig:
+    ``params`` fitted (empty when not tried), ``held_out_share_pct``: share [%] of the excess squared gap it closes
+    on held-out data (NaN when not tried: it is then ``note``'s reason), ``shrink_pct`` and ``gap_after`` (held
+    out), ``refit``: set when a joint refit with the linear parameters did better than the screening."""
+
+    effect: str
+    params: dict[str, float]
+    held_out_share_pct: float
+    shrink_pct: float | None = None
+    gap_after: float | None = None
+    refit: str | None = None
+    note: str | None = None
+
+    @property
+    def tried(self) -> bool:
+        """False for an effect not fitted (already in the simulation, or no ADC lattice in the data)."""
+        return math.isfinite(self.held_out_share_pct)
+
+
+@dataclass
+class ExperimentGap:
+    """One experiment's fit [%] and residual RMS [deg] per channel (theta, alpha)."""
+
+    fit_pct: dict[str, float]
+    rms_deg: dict[str, float]
+
+    @property
+    def gap(self) -> float:
+        """The experiment's gap: sqrt(mean over channels of (1 - fit / 100)^2) (NaN without a moving channel)."""
+        q = [(1.0 - v / 100.0) ** 2 for v in self.fit_pct.values() if math.isfinite(v)]
+        return math.sqrt(sum(q) / len(q)) if q else math.nan
+
+
+@dataclass
+class GapSummary:
+    """The gap over all experiments with one set of parameters: ``gap``, ``fit_pct``, residual RMS [deg] per
+    channel, and per experiment."""
+
+    gap: float
+    fit_pct: float
+    rms_deg: dict[str, float]
+    experiments: dict[str, ExperimentGap]
+
+
+@dataclass
+class HeldOutGap:
+    """The gap on held-out data (every experiment scored with parameters fitted on the other fold): before
+    anything was fitted and after recalibration and the effects found."""
+
+    gap_before: float
+    gap_after: float
+    fit_pct_before: float
+    fit_pct_after: float
+
+
+@dataclass
+class Step:
+    """One stage of the waterfall: "recalibration" or an effect's name, the held-out gap after it, the share [%]
+    of the excess squared gap above the floor it closes, and whether it was applied (a recalibration that closes
+    nothing is not)."""
+
+    stage: str
+    gap_after: float
+    closed_pct: float
+    applied: bool
+
+
+@dataclass
+class Decomposition:
+    """The held-out gap stage by stage: ``before`` (the simulation as given), ``after_recalibration``,
+    ``after_effects``, the ``noise_floor`` gap and the ``resolution``, the ``steps`` and their definition."""
+
+    before: float
+    after_recalibration: float
+    after_effects: float
+    noise_floor: float
+    resolution: float
+    steps: list[Step]
+    definition: str
+
+    def waterfall(self) -> list[tuple[str, float, float]]:
+        """(stage, held-out gap after it, closed [%]) from ("simulation as given", before, NaN) on."""
+        return [(FIRST_STAGE, self.before, math.nan)] + [(s.stage, s.gap_after, s.closed_pct) for s in self.steps]
+
+
+@dataclass
+class Gap:
+    """The sim-to-real gap: ``before`` / ``after`` (simulation as given / final parameters, all experiments),
+    ``held_out``, the held-out ``shrink_pct`` and the in-sample one, ``explained_pct`` (share of the excess gap
+    left after recalibration that the effects close; NaN when there is no gap beyond noise), the
+    ``decomposition`` and the ``definition``."""
+
+    before: GapSummary
+    after: GapSummary
+    held_out: HeldOutGap
+    shrink_pct: float
+    shrink_pct_in_sample: float
+    explained_pct: float
+    decomposition: Decomposition
+    definition: str
+
+    def per_experiment(self) -> list[tuple[str, float, float]]:
+        """(experiment, gap before, gap after) with the final parameters, in the diagnoser's order."""
+        after = self.after.experiments
+        return [(n, e.gap, after[n].gap if n in after else math.nan) for n, e in self.before.experiments.items()]
+
+
+@dataclass
+class NoiseFloor:
+    """The measurement noise estimated from the real data: RMS [deg] per channel (with the ADC's LSB^2 / 12 added
+    when the data sit on a lattice; ``estimated_deg`` then holds the estimate without it), the ``method``, the
+    experiments it came from, the gap and fit % white noise of that RMS gives, and the ADC bits (0: none)."""
+
+    theta_deg: float
+    alpha_deg: float
+    method: str
+    sources: list[str] = field(metadata={"key": "from"})
+    gap: float
+    fit_pct: float
+    adc_lattice_bits: int
+    estimated_deg: dict[str, float] | None = None
+
+
+@dataclass
+class Thresholds:
+    """The decision thresholds of the verdict (see :mod:`harness.diagnosis.diagnose`) and what they mean."""
+
+    none_ratio: float
+    min_closure: float
+    explained: float
+    resolution: float
+    meaning: str
+
+
+# ----------------------------------------------------------------------------------------------- the file
+
+
+@dataclass
+class Diagnosis:
+    """``diagnosis.json``: the verdict ("none", "unexplained", "quantization" or an effect's name), the effects
+    found, the candidates, the parameter table, the gap and its decomposition, the noise floor, the folds, the
+    thresholds, where the gap lies (``where``, plain JSON) and every round of the selection (``rounds``); ``real``:
+    the run directory of the data relative to the file's directory; ``sim_spec`` and its file name."""
+
+    calibration: SensorCalibration
+    candidates: list[Candidate]
+    effects: list[FoundEffect]
+    folds: Folds
+    gap: Gap
+    noise_floor: NoiseFloor
+    parameters: dict[str, FittedParameter]
+    real: str
+    recalibration_applied: bool
+    rounds: list[list[dict[str, Any]]]
+    sim_spec: str
+    sim_spec_file: str
+    thresholds: Thresholds
+    verdict: str
+    where: dict[str, Any]
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str]) -> Diagnosis:
+        """Read ``diagnosis.json`` (``path`` is the file or a run directory holding it); a missing or malformed
+        file raises :class:`harness.rundir.DataError` with one line."""
+        p = Path(path)
+        if p.is_dir():
+            p = RunDir(p).diagnosis
+        if not p.is_file():
+            raise DataError(f"{p}: no such diagnosis (run `flexjoint diagnose` first)")
+        try:
+            doc = json.loads(p.read_text(encoding="utf-8"))
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise DataError(f"{p}: not valid JSON ({exc})".replace("\n", " ")) from None
+        try:
+            return cls.from_dict(doc)
+        except DataError as exc:
+            raise DataError(f"{p}: {exc}") from None
+
+    @classmethod
+    def from_dict(cls, doc: Any) -> Diagnosis:
+        """The diagnosis from the JSON's content; a missing key, an unknown one or a value of the wrong type
+        raises :class:`harness.rundir.DataError` naming where."""
+        return _build(cls, doc, "diagnosis")
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON's content (NaN where the file has null; optional keys that are None left out)."""
+        return _plain(self)
+
+    def write(self, path: str | os.PathLike[str]) -> None:
+        """Write atomically with sorted keys (:func:`harness.rundir.write_json`): byte-stable."""
+        write_json(Path(path), self.to_dict())
+
+    # ------------------------------------------------------------------------------------------- for readers
+
+    @property
+    def effect_names(self) -> list[str]:
+        """The effects found, in the order they were added."""
+        return [e.effect for e in self.effects]
+
+    def fitted_effect_params(self) -> dict[str, float]:
+        """Every effect parameter found, fitted on all experiments ({"plant.backlash": 0.006, ...})."""
+        return {k: v for e in self.effects for k, v in e.params.items()}
+
+    def importance_pct(self) -> dict[str, float]:
+        """Drop-one importance of each effect found: its share [%] of what removing each effect alone reopens
+        (they add up to 100; NaN for an effect found by its signature)."""
+        return {e.effect: e.importance_pct for e in self.effects}
+
+    def waterfall(self) -> list[tuple[str, float, float]]:
+        """(stage, held-out gap after it, closed [%]): see :meth:`Decomposition.waterfall`."""
+        return self.gap.decomposition.waterfall()
+
+    def off_spec_findings(self) -> list[str]:
+        """The parameter findings that say the rig differs from the spec (those that match are left out)."""
+        return [p.finding for p in self.parameters.values() if p.off_spec and p.finding is not None]
+
+    def tried_candidates(self) -> list[Candidate]:
+        """The candidates fitted on the first round, best held-out share first."""
+        return [c for c in self.candidates if c.tried]
+
+
+def rounded(x: Any, digits: int = 10) -> Any:
+    """``x`` (JSON content) with every float to ``digits`` significant digits, so that the file carries no
+    last-bit noise of the optimisers (non-finite floats stay)."""
+    if isinstance(x, dict):
+        return {k: rounded(v, digits) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [rounded(v, digits) for v in x]
+    if isinstance(x, (float, np.floating)):
+        v = float(x)
+        return float(f"{v:.{digits}g}") if math.isfinite(v) else v
+    return x
+
+
+# ----------------------------------------------------------------------------------------------- conversion
+
+
+def _plain(obj: Any) -> Any:
+    """JSON content of a dataclass tree: fields under their keys, optional None fields left out."""
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        out = {}
+        for f in dataclasses.fields(obj):
+            v = getattr(obj, f.name)
+            if v is None and f.default is None:
+                continue
+            out[_key(f)] = _plain(v)
+        return out
+    if isinstance(obj, dict):
+        return {k: _plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_plain(v) for v in obj]
+    return obj
+
+
+def _build(cls: type[T], doc: Any, where: str) -> T:
+    """Dataclass ``cls`` from JSON object ``doc`` (``where``: its place in the file, for the error)."""
+    if not isinstance(doc, dict):
+        raise DataError(f"{where}: expected an object, got {type(doc).__name__}")
+    hints = typing.get_type_hints(cls)
+    fs = dataclasses.fields(cls)  # type: ignore[arg-type]
+    keys = {_key(f) for f in fs}
+    unknown = sorted(set(doc) - keys)
+    if unknown:
+        raise DataError(f"{where}: unknown key(s) {', '.join(unknown)}")
+    kw = {}
+    for f in fs:
+        k = _key(f)
+        if k in doc:
+            kw[f.name] = _value(hints[f.name], doc[k], f"{where}.{k}")
+        elif f.default is not dataclasses.MISSING:
+            kw[f.name] = f.default
+        else:
+            raise DataError(f"{where}: missing key {k!r}")
+    return cls(**kw)
+
+
+def _value(tp: Any, v: Any, where: str) -> Any:
+    """JSON value ``v`` checked against type ``tp`` (dataclass, list[...], dict[str, ...], float, int, str, bool,
+    Any, X | None); numbers are kept as written (an int stays an int), null in a float becomes NaN."""
+    origin, args = typing.get_origin(tp), typing.get_args(tp)
+    if origin in (typing.Union, types.UnionType):
+        inner = [a for a in args if a is not type(None)]
+        return _value(inner[0], v, where)
+    if tp is Any:
+        return v
+    if dataclasses.is_dataclass(tp):
+        return _build(tp, v, where)
+    if origin is list:
+        if not isinstance(v, list):
+            raise DataError(f"{where}: expected a list, got {type(v).__name__}")
+        return [_value(args[0], x, f"{where}[{i}]") for i, x in enumerate(v)]
+    if origin is dict:
+        if not isinstance(v, dict):
+            raise DataError(f"{where}: expected an object, got {type(v).__name__}")
+        return {k: _value(args[1], x, f"{where}.{k}") for k, x in v.items()}
+    if tp is float:
+        if v is None:
+            return math.nan
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise DataError(f"{where}: expected a number, got {v!r}")
+        return v
+    if tp is int and (isinstance(v, bool) or not isinstance(v, int)):
+        raise DataError(f"{where}: expected an integer, got {v!r}")
+    if tp in (str, bool) and not isinstance(v, tp):
+        raise DataError(f"{where}: expected {tp.__name__}, got {v!r}")
+    return v
