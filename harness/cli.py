@@ -14,8 +14,9 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from . import __version__, clone
+from . import clone
 from . import spec as specmod
+from ._version import __version__
 from .diagnosis.blindtest import FAMILIES
 from .diagnosis.blindtest import blindtest as run_blind
 from .diagnosis.diagnose import diagnose_run
@@ -24,7 +25,8 @@ from .fmu.build import MODELS, build_fmu
 from .fmu.cosim import FMUError
 from .ident.accept import accept as gate
 from .ident.crossfit import crossfit_run
-from .pipeline import doubled_rate_check, identify_run, run_pipeline
+from .ident.doubled_rate import doubled_rate_check
+from .pipeline import identify_run, run_pipeline
 from .render.report import write_report
 from .render.viewer import log_run
 from .rig.campaign import run_campaign
@@ -274,7 +276,7 @@ def identify(
 
 
 def crossval_table(res):
-    """The seed's table 2: each dataset's best model (rows) cross-validated on every dataset (columns)."""
+    """Lab 1's table 2: each dataset's best model (rows) cross-validated on every dataset (columns)."""
 
     t = Table(title="cross-validation fit % (rows: model of dataset i; columns: dataset j)")
     t.add_column("model")

@@ -1,4 +1,5 @@
-"""Run-directory steps (calibrate, identify, doubled-rate check) and the whole ``flexjoint run`` pipeline."""
+"""The whole ``flexjoint run`` (spec -> campaign -> calibration -> identification -> cross-fit -> diagnosis ->
+report and recording), and the identification step over a run directory."""
 
 from __future__ import annotations
 
@@ -7,36 +8,27 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-import pandas as pd
-
 from . import spec as specmod
 from .diagnosis.diagnose import diagnose_run
 from .fmu.build import build_all
-from .ident import armax
 from .ident.accept import accept
-from .ident.calibration import Calibration, calibrate_run, load_calibration
+from .ident.calibration import calibrate_run, load_calibration
 from .ident.crossfit import crossfit_run
+from .ident.doubled_rate import doubled_rate_check
 from .ident.identify import prepare, run_grid, write_grid
 from .render.report import write_report
 from .render.viewer import log_run
-from .rig.campaign import run_campaign, simulate_spec
-from .rundir import load_manifest, load_run, write_json
+from .rig.campaign import run_campaign
+from .rundir import load_run, load_spec
 
 Progress = Callable[[str], None]
-
-
-def run_spec(run: Path) -> specmod.Spec | None:
-    """The spec recorded in a campaign's manifest (None for imported data)."""
-    m = load_manifest(run)
-    return specmod.from_dict(m["spec"], m.get("spec_file", "")) if m.get("kind") == "campaign" else None
 
 
 def identify_run(run: Path, identify: dict[str, Any] | None = None, progress: Progress | None = None):
     """Grid, cross-validation and selection on a run's identification datasets; writes grid.csv and models/."""
 
     run = Path(run)
-    spec = run_spec(run)
+    spec = load_spec(run)
     ident = dict(specmod.IDENTIFY_DEFAULTS)
     ident.update(spec.identify if spec else {})
     ident.update(identify or {})
@@ -45,38 +37,6 @@ def identify_run(run: Path, identify: dict[str, Any] | None = None, progress: Pr
     res = run_grid(prepared, ident, progress=progress)
     write_grid(res, run, ident, cal)
     return res, prepared, cal, ident
-
-
-def doubled_rate_check(
-    run: Path, selected: armax.ArmaxModel, ident: dict[str, Any], cal: Calibration, experiment: str | None = None
-) -> dict[str, Any]:
-    """The seed's section 3.4: run an experiment at twice the sampling rate and score the 50 Hz model on it.
-
-    Reports the 50 Hz model applied sample by sample to 100 Hz data, as the seed did (its per-sample gain is
-    twice too large: it "thinks the effect of the input is much bigger"), and the same orders re-identified at
-    100 Hz.
-    """
-
-    spec = run_spec(run)
-    if spec is None:
-        return {"skipped": "imported data: no rig to re-run at a doubled rate"}
-    exp = spec.experiment(experiment or spec.experiments[len(spec.experiments) // 2].name)
-    fast = specmod.from_dict(specmod.apply_overrides(spec.raw, [f"campaign.sample_rate={2 * spec.sample_rate}"]))
-
-    cols = simulate_spec(fast, build_all(), experiments=[fast.experiment(exp.name)], workers=1)[exp.name]
-    p = prepare({exp.name: pd.DataFrame(cols)}, cal, float(ident["af"]), str(ident["output"]))[exp.name]
-    ic = str(ident["ic"])
-    out: dict[str, Any] = {
-        "experiment": exp.name,
-        "sample_rate_hz": fast.sample_rate,
-        "orders": [selected.na, selected.nb, selected.nc, selected.nk],
-    }
-    out["fit_model_50hz_as_is"] = armax.compare(selected, p.u_d, p.y_f, ic=ic)
-    refit = armax.estimate(p.u_d, p.y_f, selected.na, selected.nb, selected.nc, selected.nk, Ts=fast.Ts)
-    out["fit_reidentified_100hz"] = armax.compare(refit, p.u_d, p.y_f, ic=ic)
-    out["gain_ratio_as_is"] = float(np.sum(selected.B) / np.sum(selected.A)) / float(np.sum(refit.B) / np.sum(refit.A))
-    write_json(Path(run) / "doubled_rate.json", out)
-    return out
 
 
 def run_pipeline(

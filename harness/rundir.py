@@ -29,6 +29,8 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from .spec import Spec, from_dict
+
 REQUIRED = ("t", "u", "theta_v", "alpha_v")
 
 
@@ -196,6 +198,12 @@ def load_manifest(run: Path) -> dict[str, Any]:
     if not p.exists():
         raise DataError(f"{run}: not a run directory (no manifest.json)")
     return json.loads(p.read_text())
+
+
+def load_spec(run: Path) -> Spec | None:
+    """The spec recorded in a campaign's manifest (None for imported data)."""
+    m = load_manifest(run)
+    return from_dict(m["spec"], m.get("spec_file", "")) if m.get("kind") == "campaign" else None
 
 
 def load_run(run: Path, role: str | None = "identification") -> dict[str, pd.DataFrame]:

@@ -21,11 +21,11 @@ import pandas
 import pyarrow
 import scipy
 
-from .. import __version__
+from .._version import __version__
 from ..executor import Executor, FmuBytes, fmu_bytes, worker_rig
 from ..fmu.build import build_all, fmu_sha256
 from ..fmu.plant import PlantParams, mass_stiffness
-from ..rundir import write_dataset, write_json
+from ..rundir import RunDir, write_dataset, write_json
 from ..spec import Experiment, Spec
 from .signals import generate
 
@@ -40,7 +40,7 @@ def experiment_seed(spec: Spec, exp: Experiment) -> int:
 def comb_schedule(exp: Experiment, Ts: float, plant: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
     """Tip-torque schedule of a comb calibration: smooth ramps between static holds at each comb deflection.
 
-    The comb holds the tip at l [cm] from rest at D [cm]: angle = -atan(l / D) (the seed's table 1). The torque
+    The comb holds the tip at l [cm] from rest at D [cm]: angle = -atan(l / D) (lab 1's table 1). The torque
     is the static torque giving that deflection on the twin (clamped hub). Returns (tau_tip [N m], comb_angle
     [deg], NaN outside the settled part of each hold).
     """
@@ -156,7 +156,7 @@ def run_campaign(
     out = Path(out)
     data = simulate_spec(spec, fmus, workers=workers, progress=progress, scheduler=scheduler)
     for name, cols in data.items():
-        write_dataset(out / "data" / f"{name}.parquet", cols)
+        write_dataset(RunDir(out).dataset(name), cols)
     manifest = {
         "kind": "campaign",
         "spec": spec.raw,
@@ -177,5 +177,5 @@ def run_campaign(
             for e in spec.all_experiments()
         ],
     }
-    write_json(out / "manifest.json", manifest)
+    write_json(RunDir(out).manifest, manifest)
     return manifest

@@ -17,7 +17,7 @@ Rules, no silent guesses:
 - host-clock jitter: time stamps within ``JITTER_LIMIT`` (10 %) of a sample interval of the least-squares
   uniform grid are resampled onto it by linear interpolation (the pot's wrap jumps are not interpolated
   across: the nearer sample is taken) and the largest correction is reported; beyond that: refused;
-- no calibration given: the seed's (lab 1) Kp and Ke are assumed and a note says so.
+- no calibration given: lab 1's Kp and Ke are assumed and a note says so.
 
 The dataset written (``data/<name>.parquet``) is the same whatever the format: ``t`` [s], ``u`` [V],
 ``theta_v``, ``alpha_v`` [V] as the lab's DAQ reads them (angles converted with the calibration: theta_v =
@@ -42,7 +42,7 @@ import pyarrow.parquet as pq
 import scipy.io
 
 from ..ident.calibration import SEED_CALIBRATION, Calibration, alpha_deg, theta_deg
-from ..rundir import DataError, validate, write_dataset, write_json
+from ..rundir import DataError, RunDir, validate, write_dataset, write_json
 
 __all__ = [
     "CHANNELS",
@@ -678,10 +678,10 @@ def import_records(paths: list[Path], out: Path, opts: ImportOptions | None = No
             f"(give --kp/--ke or --calibration FILE)")  # fmt: skip
     written = []
     for name, (_, cols, _) in done.items():
-        dest = out / "data" / f"{name}.parquet"
+        dest = RunDir(out).dataset(name)
         write_dataset(dest, cols)
         written.append(dest)
-    cal.to_json(out / "calibration.json")
+    cal.to_json(RunDir(out).calibration)
     rates = sorted({info["entry"]["sample_rate"] for _, _, info in done.values()})
     if len(rates) > 1:
         say(f"records at different sample rates ({', '.join(f'{r:g}' for r in rates)} Hz): identify them apart")
@@ -695,7 +695,7 @@ def import_records(paths: list[Path], out: Path, opts: ImportOptions | None = No
         "calibration": "assumed" if opts.calibration is None else "given",
         "experiments": [{"name": name, **info["entry"]} for name, (_, _, info) in done.items()],
     }
-    write_json(out / "manifest.json", manifest)
+    write_json(RunDir(out).manifest, manifest)
     return written
 
 
