@@ -21,19 +21,17 @@ import hashlib
 import json
 import math
 import os
-import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
-from functools import cache
 from pathlib import Path
 from typing import Any
 
 import tomllib
 
-from .fmu.build import bundled_dir, fmu_source_dir
+from .fmu.build import bundled_dir
+from .fmu.modeldesc import source_model
 from .rig.signals import SIGNAL_KINDS, check_params
 
 SPEC_DIR = bundled_dir("specs")  # the bundled specs: harness/_specs in a wheel, specs/ in a clone
-FMU_SRC = bundled_dir("fmus")  # the bundled FMU sources; $FLEXJOINT_FMU_SRC overrides them (fmu_source_dir)
 
 CAMPAIGN_KEYS = {"name", "sample_rate", "seed", "internal_step", "description"}
 EXPERIMENT_KEYS = {"name", "signal", "duration", "plant", "daq", "role"}
@@ -58,33 +56,13 @@ class SpecError(ValueError):
 
 
 def fmu_parameters(model: str) -> dict[str, tuple[str, Any]]:
-    """Parameters of an FMU source model as ``{name: (type, start)}``, read from its modelDescription.xml in
-    the FMU source tree (``$FLEXJOINT_FMU_SRC`` or the bundled sources)."""
-    return _fmu_parameters(str(fmu_source_dir() / model / "modelDescription.xml"))
-
-
-@cache
-def _fmu_parameters(xml: str) -> dict[str, tuple[str, Any]]:
-    path = Path(xml)
-    if not path.exists():
-        raise SpecError(f"FMU source {path} is missing")
-    root = ET.parse(path).getroot()
-    out: dict[str, tuple[str, Any]] = {}
-    for sv in root.iter("ScalarVariable"):
-        if sv.get("causality") != "parameter":
-            continue
-        for kind in ("Real", "Integer", "Boolean"):
-            el = sv.find(kind)
-            if el is not None:
-                start = el.get("start")
-                if kind == "Real":
-                    value: Any = float(start) if start is not None else math.nan
-                elif kind == "Integer":
-                    value = int(start) if start is not None else 0
-                else:
-                    value = start == "true"
-                out[sv.get("name", "")] = (kind, value)
-    return out
+    """Parameters of an FMU source model as ``{name: (type, start)}`` (:func:`harness.fmu.modeldesc.source_model`:
+    the modelDescription.xml of ``$FLEXJOINT_FMU_SRC`` or the bundled sources)."""
+    try:
+        params = source_model(model).parameters()
+    except FileNotFoundError as e:
+        raise SpecError(str(e)) from None
+    return {name: (v.type, v.start) for name, v in params.items()}
 
 
 @dataclass(frozen=True)

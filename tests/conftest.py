@@ -11,12 +11,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from harness.fmu import modeldesc
 from harness.fmu.build import build_all
 
 
 @pytest.fixture
-def seed_model():
-    """Seed 000's final model as printed (eq. 12, coefficients rounded to two digits): ARMAX(5,3,0,1), Ts 20 ms."""
+def lab1_model():
+    """Lab 1's final model as printed in its report (eq. 12, coefficients rounded to two digits): ARMAX(5,3,0,1),
+    Ts 20 ms."""
     from harness.ident.armax import ArmaxModel
 
     return ArmaxModel(
@@ -46,15 +48,15 @@ class FmuRun:
     """
 
     def __init__(self, fmu: Path, workdir: Path) -> None:
-        from fmpy import extract, read_model_description
+        from fmpy import extract
 
-        self.md = read_model_description(str(fmu))
+        self.md = modeldesc.read(fmu)
         self.unzipdir = extract(str(fmu), unzipdir=str(workdir / fmu.stem))
-        self.vars = {v.name: v for v in self.md.modelVariables}
+        self.vars = self.md.variables
         self.messages: list[str] = []
 
     def vr(self, name: str) -> int:
-        return self.vars[name].valueReference
+        return self.vars[name].value_reference
 
     def _logger(self):
         from ctypes import byref
@@ -81,7 +83,7 @@ class FmuRun:
         fmu = FMU2Slave(
             guid=self.md.guid,
             unzipDirectory=self.unzipdir,
-            modelIdentifier=self.md.coSimulation.modelIdentifier,
+            modelIdentifier=self.md.model_identifier,
             instanceName="test",
         )
         fmu.instantiate(callbacks=self._logger())

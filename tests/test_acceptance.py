@@ -2,7 +2,7 @@
 
 This is the project's own use of ``flexjoint accept``: the selected model must meet the spec's thresholds on
 every dataset through its exported FMU, the FMU-computed cross-fit must equal the Python one, and the
-selection must reproduce the seed's qualitative findings (table 2's range of fits, a non-minimum-phase zero, a
+selection must reproduce lab 1's qualitative findings (its table 2's range of fits, a non-minimum-phase zero, a
 pole at z = 1 once the integrator is back).
 """
 
@@ -50,7 +50,7 @@ def test_selected_model_passes_the_spec_gate(identified):
     assert not strict.passed and len(strict.failures) >= 9
 
 
-def test_crossfit_matrix_is_shaped_like_the_seeds_table_2(identified):
+def test_crossfit_matrix_is_shaped_like_lab1_table_2(identified):
     run, res, prepared, ident = identified
     cf = pd.read_csv(run / "crossfit.csv", index_col="model")
     assert list(cf.index) == [*prepared, "selected"]
@@ -60,7 +60,7 @@ def test_crossfit_matrix_is_shaped_like_the_seeds_table_2(identified):
     sel = res.grid.loc[res.selected]
     for n in prepared:
         assert cf.loc["selected", n] == pytest.approx(sel[f"cv_{n}"], abs=1e-6)
-    # like the seed's table 2: fits from the mid 80s to the high 90s
+    # like lab 1's table 2: fits from the mid 80s to the high 90s
     assert 80.0 < cf.drop(columns="average").to_numpy().min() and cf.drop(columns="average").to_numpy().max() > 95.0
 
 

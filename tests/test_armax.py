@@ -1,4 +1,4 @@
-"""harness.ident.armax against independent solutions, a public data set with reference figures, and the seed report."""
+"""harness.ident.armax against independent solutions, a public data set with reference figures, and the lab 1 report."""
 
 from __future__ import annotations
 
@@ -119,12 +119,12 @@ def test_daisy_order_5_is_reported_unstable(daisy, nc):
     assert rep.status == "unstable" and str(rep) == "unstable"
 
 
-def test_seed_rounded_coefficients_are_unstable_and_full_precision_round_trips(seed_model):
-    seed = seed_model
-    assert np.max(np.abs(seed.poles)) == pytest.approx(1.1678, abs=1e-3)
-    assert not seed.stable
+def test_lab1_rounded_coefficients_are_unstable_and_full_precision_round_trips(lab1_model):
+    lab1 = lab1_model
+    assert np.max(np.abs(lab1.poles)) == pytest.approx(1.1678, abs=1e-3)
+    assert not lab1.stable
     u = np.sin(0.1 * np.arange(200))
-    assert math.isnan(ax.compare(seed, u, np.cos(0.05 * np.arange(200))))
+    assert math.isnan(ax.compare(lab1, u, np.cos(0.05 * np.arange(200))))
 
     true, u, y = demo_problem(2)
     m = ax.estimate(u, y, 4, 3, 4, 1, Ts=0.02)

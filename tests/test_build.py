@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 from fmpy.validation import validate_fmu
 
-from harness.fmu import build
-from harness.fmu.build import BuildError, build_fmu, fmu_sha256, source_hash, value_references
+from harness.fmu import build, modeldesc
+from harness.fmu.build import BuildError, build_fmu, fmu_sha256, source_hash
 
 
 def test_fmus_validate_with_zero_problems(fmus):
@@ -24,9 +24,12 @@ def test_fmus_validate_with_zero_problems(fmus):
         assert validate_fmu(str(path)) == []
 
 
-def test_value_references_and_hash_in_name(fmus):
+def test_built_fmu_carries_the_source_xml_and_hash_in_name(fmus):
     for name, path in fmus.items():
-        assert value_references(path) == build.VALUE_REFERENCES[name]
+        built, source = modeldesc.read(path), modeldesc.source_model(name)
+        assert built.variables == source.variables and built.guid == source.guid
+        assert built.variables["u"].value_reference == 30
+        assert len(built.parameters()) == {"flexjoint": 21, "daq": 16}[name]
         assert path.name == f"{name}-{source_hash(name)[:12]}.fmu"
         assert fmu_sha256(path) == hashlib.sha256(path.read_bytes()).hexdigest()
 
@@ -128,7 +131,7 @@ def test_libcosim_runs_the_same_fmu_as_fmpy(fmus, fmu_runner):
     except (ImportError, OSError) as e:  # pragma: no cover - platform without libcosim
         pytest.skip(f"libcosimpy cannot load on this platform: {e}")
     log_output_level(CosimLogLevel.ERROR)
-    vr = build.FLEXJOINT_VR
+    vr = {n: v.value_reference for n, v in modeldesc.read(fmus["flexjoint"]).variables.items()}
     n, step_ns = 100, 20_000_000
     ex = CosimExecution.from_step_size(step_ns)
     idx = ex.add_local_slave(CosimLocalSlave(fmu_path=str(fmus["flexjoint"]), instance_name="plant"))
@@ -177,7 +180,7 @@ def test_source_tree_is_the_bundled_one_unless_overridden(monkeypatch, tmp_path)
         build_fmu("daq")
 
 
-def _seed_cache(fmus, cache: Path, names=("flexjoint", "daq")) -> dict[str, Path]:
+def _fill_cache(fmus, cache: Path, names=("flexjoint", "daq")) -> dict[str, Path]:
     """Copy the session's built FMUs and their recorded hashes into an empty cache."""
     cache.mkdir(parents=True, exist_ok=True)
     out = {}
@@ -193,7 +196,7 @@ def _seed_cache(fmus, cache: Path, names=("flexjoint", "daq")) -> dict[str, Path
 def test_damaged_cached_fmu_is_rebuilt(fmus, tmp_path, monkeypatch, damage):
     """An interrupted build or a full disk leaves a bad zip: it is detected by its recorded hash and rebuilt."""
     monkeypatch.setenv("FLEXJOINT_CACHE", str(tmp_path / "cache"))
-    path = _seed_cache(fmus, tmp_path / "cache", ["daq"])["daq"]
+    path = _fill_cache(fmus, tmp_path / "cache", ["daq"])["daq"]
     good = fmu_sha256(path)
     assert build.cached_fmu_ok(path) and build_fmu("daq") == path and fmu_sha256(path) == good  # reused as is
     if damage == "truncate":

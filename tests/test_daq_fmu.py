@@ -1,4 +1,4 @@
-"""The daq FMU (sensors, converters, noise, sample-and-hold) against the brief's formulas and numbers."""
+"""The daq FMU (sensors, converters, noise, sample-and-hold) against the formulas of fmus/daq/readme.md."""
 
 from __future__ import annotations
 
@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 from fmpy.fmi1 import FMICallException
 
-KP, KE = 35.5145, -3.3636  # deg/V, the seed's calibration
+KP, KE = 35.5145, -3.3636  # deg/V, lab 1's calibration
 OUT = ["u_plant", "theta_v", "alpha_v"]
 
 
 def pot_volts(deg: np.ndarray, kp: float = KP, deadband: float = 8.0, offset: float = 0.0) -> np.ndarray:
-    """The brief's potentiometer: wrap to [-180, 180), dead band holds the track end."""
+    """The potentiometer: wrap to [-180, 180), dead band holds the track end."""
     w = np.mod(np.asarray(deg) + 180.0, 360.0) - 180.0
     edge = 180.0 - deadband / 2
     return np.where(np.abs(w) > edge, np.sign(w) * edge, w) / kp + offset

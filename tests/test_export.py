@@ -19,9 +19,9 @@ from harness.ident import armax as ax
 from harness.ident import export, lti
 
 TS = 0.02
-# the first lab's printed model (two digits): |pole| = 1.17, unstable (seeds/README.md)
-SEED_A = [1.0, -4.33, 7.64, -6.87, 3.16, -0.59]
-SEED_B = [0.0, -0.05, 0.14, -0.09]
+# lab 1's printed model (two digits): |pole| = 1.17, unstable
+LAB1_A = [1.0, -4.33, 7.64, -6.87, 3.16, -0.59]
+LAB1_B = [0.0, -0.05, 0.14, -0.09]
 
 
 @pytest.fixture(scope="module")
@@ -90,7 +90,8 @@ def test_identified_model_fmu_matches_python_and_python_control(identified, tmp_
     assert [starts[f"b[{j}]"] for j in range(4)] == m.B.tolist()
 
     u_d = _square_prbs(900, 7)
-    out = export.simulate_fmu_model(fmu, u_d + u_offset, TS)  # raw command = detrended + offset
+    with export.ModelFMU(fmu) as runner:
+        out = runner.run(u_d + u_offset, TS)  # raw command = detrended + offset
     y_f = ax.simulate(m, u_d)
     assert np.max(np.abs(out["y_f"] - y_f)) < 1e-9
     t = np.arange(u_d.size) * TS
@@ -113,7 +114,8 @@ def test_orders_up_to_eight(na, nb, nk, af, tmp_path):
     m = _random_model(na * 10 + nk, na, nb, nk)
     fmu = export.export_model(m, tmp_path / "m.fmu", af=af)
     u = _square_prbs(600, na)
-    out = export.simulate_fmu_model(fmu, u, TS)
+    with export.ModelFMU(fmu) as runner:
+        out = runner.run(u, TS)
     assert np.max(np.abs(out["y_f"] - ax.simulate(m, u))) < 1e-9
     y = control.forced_response(lti.with_integrator(m, af), np.arange(u.size) * TS, u).outputs
     assert np.max(np.abs(out["y"] - y)) < 1e-9 * max(1.0, np.max(np.abs(y)))
@@ -152,7 +154,7 @@ def test_multi_sample_communication_steps(identified, generic):
     ("params", "message"),
     [
         (
-            {"na": 5, "nb": 3, **{f"a[{i}]": v for i, v in enumerate(SEED_A) if i}, "b[1]": -0.05},
+            {"na": 5, "nb": 3, **{f"a[{i}]": v for i, v in enumerate(LAB1_A) if i}, "b[1]": -0.05},
             "model is unstable",
         ),
         ({"nk": 0}, "nk = 0: must be >= 1"),
@@ -184,9 +186,9 @@ def test_schur_cohn_boundary_matches_numpy_roots(generic):
 
 
 def test_export_refuses_models_the_fmu_cannot_run(identified, tmp_path):
-    seed = ax.ArmaxModel(A=np.array(SEED_A), B=np.array(SEED_B), C=np.ones(1), na=5, nb=3, nc=0, nk=1, Ts=TS)
+    lab1 = ax.ArmaxModel(A=np.array(LAB1_A), B=np.array(LAB1_B), C=np.ones(1), na=5, nb=3, nc=0, nk=1, Ts=TS)
     with pytest.raises(ValueError, match=r"unstable \(largest \|pole\| = 1\.168"):
-        export.export_model(seed, tmp_path / "s.fmu", af=0.8)
+        export.export_model(lab1, tmp_path / "s.fmu", af=0.8)
     A, B, C = np.array([1.0, -0.5]), np.array([0.3]), np.ones(1)
     m0 = ax.ArmaxModel(A=A, B=B, C=C, na=1, nb=1, nc=0, nk=0, Ts=TS)
     with pytest.raises(ValueError, match="nk >= 1"):

@@ -71,7 +71,7 @@ def test_default_rig_numbers():
     M, K, D = mass_stiffness(p)
     Jl = 0.065 * 0.419**2 / 3
     assert M[0, 0] == pytest.approx(2.08e-3 + Jl, rel=1e-12)
-    assert Jl == pytest.approx(3.8e-3, rel=0.01)  # the brief's table
+    assert Jl == pytest.approx(3.8e-3, rel=0.01)  # the textbook rig's link inertia
     f = mode_frequencies(p)
     assert f[1, 0] == pytest.approx(math.sqrt(1.3 / Jl) / (2 * math.pi), rel=1e-12)
     assert f[1, 0] == pytest.approx(2.94, abs=0.005)  # Quanser torsion-spring model: ~2.94 Hz

@@ -1,4 +1,4 @@
-"""Differentiating low-pass H(z) = (1 - af)(z - 1)/(z - af) and the seed's preprocessing pipeline."""
+"""Differentiating low-pass H(z) = (1 - af)(z - 1)/(z - af) and lab 1's preprocessing pipeline."""
 
 import control
 import numpy as np
@@ -22,7 +22,7 @@ def test_gains_pole_and_zero(af):
     mag, ph = pp.filter_response(af, np.array([0.0, 25.0]), Ts)
     assert mag[0] == 0.0
     assert mag[1] == pytest.approx(2 * (1 - af) / (1 + af), rel=1e-12)
-    H = pp.filter_tf(af, Ts)
+    H = control.tf(*pp.filter_coefficients(af), Ts)  # first order: the same coefficients in z^-1 and in z
     assert H.dt == Ts
     np.testing.assert_allclose(control.poles(H), [af], atol=1e-12)
     np.testing.assert_allclose(control.zeros(H), [1.0], atol=1e-12)

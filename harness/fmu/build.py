@@ -28,7 +28,6 @@ from pathlib import Path
 
 import cmake
 import fmpy
-from fmpy import read_model_description
 from fmpy.build import build_platform_binary
 
 from .. import clone
@@ -41,22 +40,6 @@ except ImportError:  # Windows
 BUILD_TAG = "flexjoint-harness-build-1"  # bump when the staging or compile recipe changes
 MODELS = ("flexjoint", "daq")
 FMI_HEADERS = ("fmi2Functions.h", "fmi2FunctionTypes.h", "fmi2TypesPlatform.h")
-
-# Value references (the master reads them from modelDescription.xml by name; these are the same numbers).
-FLEXJOINT_VR: dict[str, int] = {
-    "Rm": 0, "kt": 1, "km": 2, "Kg": 3, "eta_g": 4, "eta_m": 5, "Jeq": 6, "Beq": 7, "m_link": 8,
-    "L_link": 9, "Ks": 10, "zeta_link": 11, "n_modes": 12, "coulomb_torque": 13, "stiction_ratio": 14,
-    "backlash": 15, "Jm_share": 16, "amp_limit": 17, "internal_step": 18, "theta_start": 19,
-    "hub_locked": 20, "u": 30, "tau_tip": 31, "theta": 40, "alpha": 41, "y": 42, "theta_dot": 43,
-    "alpha_dot": 44, "alpha_gauge": 45, "theta_motor": 46,
-}  # fmt: skip
-DAQ_VR: dict[str, int] = {
-    "sample_rate": 0, "dac_bits": 1, "dac_range": 2, "out_limit": 3, "delay_samples": 4, "pot_gain": 5,
-    "pot_offset": 6, "pot_deadband": 7, "gauge_gain": 8, "gauge_offset": 9, "gauge_cubic": 10,
-    "adc_bits": 11, "adc_range": 12, "noise_theta": 13, "noise_alpha": 14, "seed": 15, "u": 30,
-    "theta": 31, "alpha_gauge": 32, "u_plant": 40, "theta_v": 41, "alpha_v": 42,
-}  # fmt: skip
-VALUE_REFERENCES: dict[str, dict[str, int]] = {"flexjoint": FLEXJOINT_VR, "daq": DAQ_VR}
 
 
 class BuildError(RuntimeError):
@@ -295,10 +278,3 @@ def build_fmu(name: str, out_dir: Path | None = None, force: bool = False) -> Pa
 def build_all(out_dir: Path | None = None, force: bool = False) -> dict[str, Path]:
     """Build the rig twin: ``{"flexjoint": Path, "daq": Path}``."""
     return {name: build_fmu(name, out_dir=out_dir, force=force) for name in MODELS}
-
-
-def value_references(fmu: str | os.PathLike) -> dict[str, int]:
-    """{variable name: value reference} read from an FMU's modelDescription.xml."""
-
-    md = read_model_description(str(fmu), validate=False)
-    return {v.name: v.valueReference for v in md.modelVariables}

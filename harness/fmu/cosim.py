@@ -8,125 +8,23 @@ Every communication step k (one sample, Ts = 1/sample_rate, or a divisor of it):
 
 The hot loop calls the FMI functions of the loaded binaries directly with preallocated ctypes arrays, so one
 step costs a few microseconds; status codes are checked on every call and an FMU error stops the run with the
-FMU's own log message.
+FMU's own log message. Loading and the FMI calls are :mod:`harness.fmu.binding`'s.
 """
 
 from __future__ import annotations
 
 import ctypes
-import shutil
-import tempfile
-from dataclasses import dataclass, field
-from multiprocessing.util import Finalize
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from fmpy import extract, read_model_description
-from fmpy.fmi2 import (
-    FMU2Slave,
-    defaultCallbacks,
-    fmi2Boolean,
-    fmi2CallbackFunctions,
-    fmi2CallbackLoggerTYPE,
-    fmi2Real,
-    fmi2ValueReference,
-)
+from fmpy.fmi2 import fmi2Boolean, fmi2Real, fmi2ValueReference
+
+from .binding import FMUError, load
+
+__all__ = ["DEG", "FMUError", "Rig"]
 
 DEG = 180.0 / np.pi
-
-
-class FMUError(RuntimeError):
-    """An FMU refused a call; the message carries the FMU's last log line."""
-
-
-@dataclass
-class Instance:
-    """One loaded, instantiated FMU with its variables by name."""
-
-    path: Path
-    slave: FMU2Slave
-    variables: dict[str, Any]
-    unzipdir: str
-    log: list[str] = field(default_factory=list)
-    callbacks: Any = None
-    cleanup: Any = None
-
-    def vr(self, name: str) -> int:
-        return self.variables[name].valueReference
-
-    def check(self, status: int, what: str) -> None:
-        if status > 1:  # fmi2Discard, fmi2Error, fmi2Fatal
-            msg = self.log[-1] if self.log else f"status {status}"
-            raise FMUError(f"{self.path.stem}: {what} failed: {msg}")
-
-
-def load(path: Path, instance_name: str | None = None) -> Instance:
-    """Extract and instantiate a co-simulation FMU, collecting its log messages."""
-    md = read_model_description(str(path))
-    unzipdir = extract(str(path), unzipdir=tempfile.mkdtemp(prefix="flexjoint-fmu-"))
-    slave = FMU2Slave(
-        guid=md.guid,
-        unzipDirectory=unzipdir,
-        modelIdentifier=md.coSimulation.modelIdentifier,
-        instanceName=instance_name or md.coSimulation.modelIdentifier,
-    )
-    inst = Instance(Path(path), slave, {v.name: v for v in md.modelVariables}, unzipdir)
-    # remove the extracted files even when the owner never calls free(): at garbage collection, at interpreter
-    # exit, and in pool workers, which leave through multiprocessing's exit handlers rather than atexit
-    inst.cleanup = Finalize(inst, shutil.rmtree, args=(unzipdir,), kwargs={"ignore_errors": True}, exitpriority=0)
-
-    def logger(env, instance, status, category, message):  # FMI 2.0 logger callback signature
-        inst.log.append(message.decode(errors="replace") if message else "")
-
-    callbacks = fmi2CallbackFunctions()
-    callbacks.logger = fmi2CallbackLoggerTYPE(logger)
-    callbacks.allocateMemory = defaultCallbacks.allocateMemory
-    callbacks.freeMemory = defaultCallbacks.freeMemory
-    inst.callbacks = callbacks  # keep the ctypes callbacks alive as long as the instance
-    slave.instantiate(loggingOn=True, callbacks=callbacks)
-    return inst
-
-
-def free(inst: Instance) -> None:
-    """Free the instance and remove its extracted files."""
-    try:
-        inst.slave.terminate()
-    except Exception:  # noqa: BLE001 (already failed FMUs may refuse terminate)
-        pass
-    inst.slave.freeInstance()
-    inst.cleanup()
-
-
-def set_parameters(inst: Instance, values: dict[str, Any]) -> None:
-    """Set parameters by name (Real, Integer or Boolean as their declared type)."""
-    for name, value in values.items():
-        if name not in inst.variables:
-            valid = sorted(v.name for v in inst.variables.values() if v.causality == "parameter")
-            raise FMUError(f"{inst.path.stem}: unknown parameter {name!r}; valid: {', '.join(valid)}")
-        v = inst.variables[name]
-        if v.type == "Real":
-            inst.slave.setReal([v.valueReference], [float(value)])
-        elif v.type == "Integer":
-            inst.slave.setInteger([v.valueReference], [int(value)])
-        elif v.type == "Boolean":
-            inst.slave.setBoolean([v.valueReference], [bool(value)])
-        else:
-            raise FMUError(f"{inst.path.stem}: parameter {name!r} has unsupported type {v.type}")
-
-
-def initialize(inst: Instance, params: dict[str, Any], stop: float) -> None:
-    """Reset, set parameters by name, set up an experiment from 0 to ``stop`` [s], enter initialisation mode."""
-    f = inst.slave.dll
-    c = inst.slave.component
-    inst.log.clear()
-    inst.check(f.fmi2Reset(c), "reset")
-    set_parameters(inst, params)
-    inst.check(
-        f.fmi2SetupExperiment(c, fmi2Boolean(0), fmi2Real(0.0), fmi2Real(0.0), fmi2Boolean(1), fmi2Real(stop)),
-        "setup experiment",
-    )
-    inst.check(f.fmi2EnterInitializationMode(c), "initialisation")
 
 
 class Rig:
@@ -152,8 +50,8 @@ class Rig:
         self.close()
 
     def close(self) -> None:
-        free(self.plant)
-        free(self.daq)
+        self.plant.free()
+        self.daq.free()
 
     def run(
         self,
@@ -176,11 +74,11 @@ class Rig:
         daq_params = {"sample_rate": 1.0 / Ts, **(daq or {})}
         stop = n * Ts
         pl, dq = self.plant, self.daq
-        initialize(pl, plant or {}, stop)
-        initialize(dq, daq_params, stop)
+        pl.initialize(plant or {}, stop)
+        dq.initialize(daq_params, stop)
 
-        fp, fd = pl.slave.dll, dq.slave.dll
-        cp, cd = pl.slave.component, dq.slave.component
+        fp, fd = pl.dll, dq.dll
+        cp, cd = pl.component, dq.component
         p_set, p_get, p_step = fp.fmi2SetReal, fp.fmi2GetReal, fp.fmi2DoStep
         d_set, d_get, d_step = fd.fmi2SetReal, fd.fmi2GetReal, fd.fmi2DoStep
         p_in, p_out, d_in, d_out = self._p_in, self._p_out, self._d_in, self._d_out
@@ -194,10 +92,10 @@ class Rig:
         pl.check(p_get(cp, p_out, 4, pout), "get outputs")
         din[0], din[1], din[2] = u[0], pout[0], pout[2]
         dq.check(d_set(cd, d_in, 3, din), "set inputs")
-        dq.check(fd.fmi2ExitInitializationMode(cd), "initialisation")
+        dq.exit_initialization()
         pin[0], pin[1] = 0.0, tau[0]
         pl.check(p_set(cp, p_in, 2, pin), "set inputs")
-        pl.check(fp.fmi2ExitInitializationMode(cp), "initialisation")
+        pl.exit_initialization()
 
         out = np.empty((n, 6))
         h = ctypes.c_double(Ts)

@@ -1,4 +1,5 @@
-"""Analytic linear model of the flexible-joint rig: the test oracle and the diagnoser's linear model.
+"""Analytic linear model of the flexible-joint rig: the test oracle of the flexjoint FMU, and the campaign's
+nominal link stiffness (the comb calibration's tip torques, ``harness.rig.campaign``).
 
 Independent of the C code of ``fmus/flexjoint`` (same physics, other route: the beam integrals are
 computed here by root finding and numerical quadrature of the clamped-free mode shapes).
@@ -13,73 +14,61 @@ and ``int_0^L phi_i^2 dx = L``.  State order of :func:`state_space`:
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, field, make_dataclass
 from functools import cache
+from typing import Any
 
 import numpy as np
 from scipy.integrate import quad
 from scipy.linalg import eigh
 from scipy.optimize import brentq
 
+from .modeldesc import bundled_model
+
 OUTPUTS = ("theta", "alpha", "y", "theta_dot", "alpha_dot", "alpha_gauge")
 INPUTS = ("u", "tau_tip")
-MAX_MODES = 3
 
 
-@dataclass
-class PlantParams:
-    """Parameters of the flexjoint FMU (same names, units and defaults: the textbook rig, effects off)."""
+FLEXJOINT = bundled_model("flexjoint")  # the parameter table: names, types, defaults and ranges
+MIN_EXCLUSIVE = ("Rm", "kt", "Kg", "eta_g", "eta_m", "Jeq", "m_link", "L_link", "Ks", "internal_step")
+# FMI bounds are inclusive; these parameters divide or scale the dynamics, so their min (0) is invalid as well
 
-    Rm: float = 2.6  # armature resistance [ohm]
-    kt: float = 7.68e-3  # motor torque constant [N.m/A]
-    km: float = 7.68e-3  # back-EMF constant [V.s/rad]
-    Kg: float = 70.0  # gear ratio [-]
-    eta_g: float = 0.9  # gearbox efficiency [-]
-    eta_m: float = 0.69  # motor efficiency [-]
-    Jeq: float = 2.08e-3  # equivalent hub inertia at the load shaft [kg.m2]
-    Beq: float = 0.004  # viscous damping at the load shaft [N.m.s/rad]
-    m_link: float = 0.065  # link mass [kg]
-    L_link: float = 0.419  # link length [m]
-    Ks: float = 1.3  # link stiffness, first clamped mode sqrt(Ks / Jl) [N.m/rad]
-    zeta_link: float = 0.01  # modal damping ratio, all modes [-]
-    n_modes: int = 1  # flexible modes (1..3)
-    coulomb_torque: float = 0.0  # Coulomb friction at the hub [N.m]
-    stiction_ratio: float = 1.0  # static / Coulomb friction [-]
-    backlash: float = 0.0  # total gear play at the load shaft [rad]
-    Jm_share: float = 0.5  # fraction of Jeq on the motor side of the play [-]
-    amp_limit: float = 0.0  # amplifier saturation [V], 0 = none
-    internal_step: float = 1e-3  # largest RK4 step of the FMU [s]
-    theta_start: float = 0.0  # initial shaft angle [rad]
-    hub_locked: int = 0  # 1 clamps the hub
 
-    def validate(self) -> None:
-        """Raise ValueError (one line naming the parameter) for values the FMU would reject."""
-        for f in fields(self):
-            v = getattr(self, f.name)
-            if not math.isfinite(v):
-                raise ValueError(f"invalid parameter {f.name} = {v}: must be finite")
-        positive = ("Rm", "kt", "Kg", "Jeq", "m_link", "L_link", "Ks", "internal_step")
-        for name in positive:
-            if not getattr(self, name) > 0:
-                raise ValueError(f"invalid parameter {name} = {getattr(self, name)}: must be > 0")
-        for name in ("km", "Beq", "zeta_link", "coulomb_torque", "backlash", "amp_limit"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"invalid parameter {name} = {getattr(self, name)}: must be >= 0")
-        for name in ("eta_g", "eta_m"):
-            if not 0 < getattr(self, name) <= 1:
-                raise ValueError(f"invalid parameter {name} = {getattr(self, name)}: must be in (0, 1]")
-        if int(self.n_modes) != self.n_modes or not 1 <= self.n_modes <= MAX_MODES:
-            raise ValueError(f"invalid parameter n_modes = {self.n_modes}: must be an integer in 1..{MAX_MODES}")
-        if self.stiction_ratio < 1:
-            raise ValueError(f"invalid parameter stiction_ratio = {self.stiction_ratio}: must be >= 1")
-        if not 0.05 <= self.Jm_share <= 0.95:
-            raise ValueError(f"invalid parameter Jm_share = {self.Jm_share}: must be in [0.05, 0.95]")
-        if self.hub_locked not in (0, 1):
-            raise ValueError(f"invalid parameter hub_locked = {self.hub_locked}: must be 0 or 1")
+def _bounds(name: str, lo: float | None, hi: float | None) -> str:
+    """The valid range as text: ``> 0``, ``>= 1``, ``(0, 1]``, ``[0.05, 0.95]``."""
+    if hi is None:
+        return f"{'>' if name in MIN_EXCLUSIVE else '>='} {lo:g}"
+    return f"in {'(' if name in MIN_EXCLUSIVE else '['}{lo:g}, {hi:g}]"
 
-    def to_dict(self) -> dict[str, float | int]:
-        """The parameters as {FMU name: value}."""
-        return asdict(self)
+
+def _validate(self: Any) -> None:
+    """Raise ValueError (one line naming the parameter) for values the FMU would reject: not finite, an Integer
+    that is not one, outside the range of modelDescription.xml (min excluded for :data:`MIN_EXCLUSIVE`)."""
+    for name, v in FLEXJOINT.parameters().items():
+        value = getattr(self, name)
+        if not math.isfinite(value):
+            raise ValueError(f"invalid parameter {name} = {value}: must be finite")
+        if v.type == "Integer" and int(value) != value:
+            raise ValueError(f"invalid parameter {name} = {value}: must be an integer")
+        lo = -math.inf if v.min is None else v.min
+        hi = math.inf if v.max is None else v.max
+        if not lo <= value <= hi or (name in MIN_EXCLUSIVE and value == lo):
+            raise ValueError(f"invalid parameter {name} = {value}: must be {_bounds(name, v.min, v.max)}")
+
+
+def _to_dict(self: Any) -> dict[str, float | int]:
+    """The parameters as {FMU name: value}."""
+    return asdict(self)
+
+
+# names, types and defaults of the flexjoint FMU's parameters (the textbook rig, effects off), SI units as declared
+# in its modelDescription.xml
+PlantParams = make_dataclass(
+    "PlantParams",
+    [(n, int if v.type == "Integer" else float, field(default=v.start)) for n, v in FLEXJOINT.parameters().items()],
+    namespace={"validate": _validate, "to_dict": _to_dict, "__module__": __name__},
+)
+PlantParams.__doc__ = "Parameters of the flexjoint FMU by name, defaults from its modelDescription.xml."
 
 
 # ------------------------------------------------------------------ beam (dimensionless)

@@ -22,7 +22,7 @@ from ..rundir import atomic_write_text, load_run
 from . import armax
 from .calibration import load_calibration
 from .export import ModelFMU, export_model, model_records
-from .identify import Prepared, prepare
+from .identify import PreparedExperiment, prepare
 
 __all__ = ["TOLERANCE", "CrossfitMismatch", "CrossfitResult", "crossfit_run", "format_csv", "score_models"]
 
@@ -60,13 +60,13 @@ def _preprocessing(rec: dict[str, Any], name: str) -> tuple[float, str]:
 
 def score_models(
     models: dict[str, tuple[armax.ArmaxModel, Path | None]],
-    prepared: dict[str, dict[str, Prepared]],
+    prepared: dict[str, dict[str, PreparedExperiment]],
     progress: Callable[[str], None] | None = None,
 ) -> CrossfitResult:
     """Score every model on every dataset through its FMU and through Python.
 
     ``models``: name -> (model, FMU path or None for a model that has no FMU, i.e. an unstable one);
-    ``prepared``: name -> that model's {dataset: Prepared} (its own preprocessing). Raises CrossfitMismatch
+    ``prepared``: name -> that model's {dataset: PreparedExperiment} (its own preprocessing). Raises CrossfitMismatch
     when the two matrices differ by more than TOLERANCE, ValueError when a dataset's sample time is not the
     model's.
     """
@@ -124,9 +124,9 @@ def crossfit_run(run: Path, progress: Callable[[str], None] | None = None) -> pd
     datasets = load_run(run, role="identification")
     records = model_records(run)
     cal = load_calibration(run)
-    cache: dict[tuple[float, str], dict[str, Prepared]] = {}
+    cache: dict[tuple[float, str], dict[str, PreparedExperiment]] = {}
     models: dict[str, tuple[armax.ArmaxModel, Path | None]] = {}
-    prepared: dict[str, dict[str, Prepared]] = {}
+    prepared: dict[str, dict[str, PreparedExperiment]] = {}
     for name in _order(records, list(datasets)):
         rec = records[name]
         key = _preprocessing(rec, name)

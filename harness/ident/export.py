@@ -14,9 +14,10 @@ unused); ``af`` (pole of H(z) = (1 - af)(z - 1)/(z - af)); ``u_offset`` [V] subt
 y0 + H^-1(z) y_f. Timing: outputs after initialisation are those at t_0; ``doStep(t_k, h)`` with u(t_k) set
 gives the outputs at t_k + h; h must be a whole multiple of Ts.
 
-Run directories: :func:`export_run` writes ``models/<name>.fmu`` for every ``models/<name>.json`` with
-``u_offset = 0`` and ``y0 = 0``: the cross-fit feeds each dataset's *detrended* command u_d, so one FMU serves
-every dataset (to drive it with a raw command, set ``u_offset`` to that record's command mean).
+Run directories: ``harness.ident.crossfit.crossfit_run`` writes ``models/<name>.fmu`` for every stable
+``models/<name>.json`` with ``u_offset = 0`` and ``y0 = 0``: the cross-fit feeds each dataset's *detrended*
+command u_d, so one FMU serves every dataset (to drive it with a raw command, set ``u_offset`` to that record's
+command mean).
 """
 
 from __future__ import annotations
@@ -33,8 +34,8 @@ from xml.sax.saxutils import escape
 
 import numpy as np
 
+from ..fmu.binding import FMUError, Instance, load
 from ..fmu.build import build_fmu
-from ..fmu.cosim import FMUError, Instance, free, initialize, load
 from ..rundir import atomic_write_bytes
 from .armax import ArmaxModel
 
@@ -44,11 +45,9 @@ __all__ = [
     "ModelFMU",
     "coefficient_file",
     "export_model",
-    "export_run",
     "fmu_parameters",
     "model_fmu_bytes",
     "model_records",
-    "simulate_fmu_model",
 ]
 
 NMAX = 16  # must equal NMAX in fmus/armax/config.h (tests check it)
@@ -213,21 +212,6 @@ def model_records(run: Path) -> dict[str, dict[str, Any]]:
     return out
 
 
-def export_run(run: Path) -> dict[str, Path]:
-    """``models/<name>.fmu`` for every ``models/<name>.json`` of a run (u_offset = 0, y0 = 0; see module doc).
-
-    Returns {name: path} in sorted name order. An unstable model gets no FMU (a stale one is removed).
-    """
-    out = {}
-    for name, rec in model_records(run).items():
-        path = Path(run) / "models" / f"{name}.fmu"
-        if ArmaxModel.from_dict(rec).stable:
-            out[name] = export_model(rec, path)
-        else:
-            path.unlink(missing_ok=True)
-    return out
-
-
 # ----------------------------------------------------------------------------------------------- running
 class ModelFMU:
     """An armax FMU loaded once through fmpy's ``FMU2Slave`` and re-run with :meth:`run` (reset in between).
@@ -239,8 +223,7 @@ class ModelFMU:
         self.inst: Instance = load(Path(fmu), "armax")
         self._vr_in = (ctypes.c_uint * 1)(self.inst.vr("u"))
         self._vr_out = (ctypes.c_uint * 2)(self.inst.vr("y_f"), self.inst.vr("y"))
-        md = self.inst.variables
-        self.Ts = float(md["Ts"].start)
+        self.Ts = float(self.inst.variables["Ts"].start)
 
     def __enter__(self) -> ModelFMU:
         return self
@@ -249,26 +232,12 @@ class ModelFMU:
         self.close()
 
     def close(self) -> None:
-        free(self.inst)
+        self.inst.free()
 
-    def parameters(self) -> dict[str, float]:
+    def parameters(self) -> dict[str, float | int]:
         """Current parameter values as the binary holds them (name -> value), after a reset."""
-        inst = self.inst
-        f, c = inst.slave.dll, inst.slave.component
-        inst.check(f.fmi2Reset(c), "reset")
-        out: dict[str, float] = {}
-        for name, v in inst.variables.items():
-            if v.causality != "parameter":
-                continue
-            vr = (ctypes.c_uint * 1)(v.valueReference)
-            if v.type == "Integer":
-                val = (ctypes.c_int * 1)()
-                inst.check(f.fmi2GetInteger(c, vr, 1, val), f"get {name}")
-            else:
-                val = (ctypes.c_double * 1)()
-                inst.check(f.fmi2GetReal(c, vr, 1, val), f"get {name}")
-            out[name] = val[0]
-        return out
+        self.inst.reset()
+        return self.inst.get(list(self.inst.description.parameters()))
 
     def run(self, u: np.ndarray, Ts: float | None = None, parameters: dict[str, Any] | None = None):
         """Outputs ``{"y_f", "y"}`` at t_k = k Ts, k = 0..len(u)-1, for the input ``u`` [V] sampled at ``Ts``
@@ -283,10 +252,10 @@ class ModelFMU:
         if not (math.isfinite(h) and h > 0):
             raise ValueError(f"Ts must be > 0 s, got {Ts!r}")
         inst = self.inst
-        f, c = inst.slave.dll, inst.slave.component
+        f, c = inst.dll, inst.component
         n = u.size
-        initialize(inst, parameters or {}, n * h)
-        inst.check(f.fmi2ExitInitializationMode(c), "initialisation")
+        inst.initialize(parameters or {}, n * h)
+        inst.exit_initialization()
         out = np.empty((n, 2))
         buf_in = (ctypes.c_double * 1)()
         buf_out = (ctypes.c_double * 2)()
@@ -302,15 +271,5 @@ class ModelFMU:
                 inst.check(s, f"doStep at t={k * h:.6g} s")
             get_real(c, vr_out, 2, buf_out)
             out[k + 1] = buf_out[0], buf_out[1]
-        inst.check(f.fmi2Terminate(c), "terminate")
+        inst.terminate()
         return {"y_f": out[:, 0].copy(), "y": out[:, 1].copy()}
-
-
-def simulate_fmu_model(fmu: Path, u: np.ndarray, Ts: float | None = None) -> dict[str, np.ndarray]:
-    """Run an exported armax FMU on the command ``u`` [V] sampled at ``Ts`` [s]: ``{"y_f", "y"}`` per sample.
-
-    Loads the FMU, runs it once and frees it; use :class:`ModelFMU` to run one FMU on many inputs.
-    Raises :class:`harness.fmu.cosim.FMUError` with the FMU's own message (e.g. "model is unstable").
-    """
-    with ModelFMU(fmu) as m:
-        return m.run(u, Ts)

@@ -1,9 +1,9 @@
-"""The identification campaign of the first lab: ARMAX order grid per dataset, threshold, cross-validation on
-every dataset, and the selection of the simplest model near the best average (seed 000, section 3.2).
+"""The identification campaign of lab 1: ARMAX order grid per dataset, threshold, cross-validation on every
+dataset, and the selection of the simplest model near the best average.
 
 Domain: the model maps the detrended command u_d [V] to y_f = H(z) y, the differentiated and low-pass filtered
 tip angle y [deg] (``harness.ident.preprocess``), with its mean removed too; fits are MATLAB ``compare`` fits in percent
-on that pair. The seed detrended only the input, reasoning that differentiation detrends the output; it does
+on that pair. Lab 1 detrended only the input, reasoning that differentiation detrends the output; it does
 not when the command has a nonzero mean (PRBS B = 0.05 at 60 s averages ~0.3 V here), and the constant velocity
 that mean produces is then an error no model of u_d can fit, so both sides are detrended.
 """
@@ -28,8 +28,9 @@ from .preprocess import preprocess
 
 
 @dataclass
-class Prepared:
-    """One dataset ready for identification: detrended command u_d [V], filtered difference y_f [deg/sample]."""
+class PreparedExperiment:
+    """One experiment's dataset ready for identification: detrended command u_d [V], filtered difference y_f
+    [deg/sample]."""
 
     name: str
     u_d: np.ndarray
@@ -38,6 +39,9 @@ class Prepared:
     u: np.ndarray  # the raw command [V]
     Ts: float
     y_f_offset: float = 0.0  # mean removed from y_f [deg/sample]: the operating point's mean rate
+
+
+Prepared = PreparedExperiment  # the former name, still used by harness.render (report, load, analysis)
 
 
 def output_angle(df: pd.DataFrame, cal: Calibration, output: str = "y") -> np.ndarray:
@@ -53,8 +57,8 @@ def output_angle(df: pd.DataFrame, cal: Calibration, output: str = "y") -> np.nd
 
 def prepare(
     datasets: dict[str, pd.DataFrame], cal: Calibration, af: float = 0.8, output: str = "y"
-) -> dict[str, Prepared]:
-    """Convert volts to the output angle and apply the seed's preprocessing to every dataset."""
+) -> dict[str, PreparedExperiment]:
+    """Convert volts to the output angle and apply lab 1's preprocessing to every dataset."""
     out = {}
     for name, df in datasets.items():
         y = output_angle(df, cal, output)
@@ -62,12 +66,12 @@ def prepare(
         u_d, y_f = preprocess(u, y, af, "constant", initial="rest")
         offset = float(np.mean(y_f))
         Ts = float(np.median(np.diff(df["t"].to_numpy())))
-        out[name] = Prepared(name, u_d, y_f - offset, y, u, Ts, offset)
+        out[name] = PreparedExperiment(name, u_d, y_f - offset, y, u, Ts, offset)
     return out
 
 
 def causal(na: int, nb: int, nk: int) -> bool:
-    """The seed's causality rule in the forward-shift operator: deg B(z) + nk <= deg A(z), i.e. nb + nk <= na."""
+    """Lab 1's causality rule in the forward-shift operator: deg B(z) + nk <= deg A(z), i.e. nb + nk <= na."""
     return nb + nk <= na
 
 
@@ -82,12 +86,12 @@ def _orders(spec_identify: dict[str, Any]) -> list[tuple[int, int, int]]:
     return [(na, nb, nc) for na in rng("na") for nb in rng("nb") for nc in rng("nc")]
 
 
-def _fit_dataset(p: Prepared, orders: list[tuple[int, int, int]], nk: int, ic: str) -> list[dict[str, Any]]:
+def _fit_dataset(p: PreparedExperiment, orders: list[tuple[int, int, int]], nk: int, ic: str) -> list[dict[str, Any]]:
     """Every order of the grid on one dataset (one task): a row per order, the model as a dict (causal ones)."""
     return [_fit_order(p, na, nb, nc, nk, ic) for na, nb, nc in orders]
 
 
-def _fit_order(p: Prepared, na: int, nb: int, nc: int, nk: int, ic: str) -> dict[str, Any]:
+def _fit_order(p: PreparedExperiment, na: int, nb: int, nc: int, nk: int, ic: str) -> dict[str, Any]:
     row: dict[str, Any] = {"dataset": p.name, "na": na, "nb": nb, "nc": nc, "nk": nk, "n_params": na + nb + nc}
     row["causal"] = causal(na, nb, nk)
     if not row["causal"]:
@@ -125,7 +129,7 @@ def _select(grid: pd.DataFrame, rows: pd.Index, tolerance: float) -> tuple[int, 
 
 
 def run_grid(
-    prepared: dict[str, Prepared],
+    prepared: dict[str, PreparedExperiment],
     spec_identify: dict[str, Any],
     workers: int | None = None,
     progress: Callable[[str], None] | None = None,

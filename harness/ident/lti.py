@@ -4,11 +4,10 @@ Conventions. ``harness.ident.armax`` polynomials are in q^-1 (A = [1, a1..], B w
 become discrete transfer functions in z with ``dt = Ts`` [s]: B(z^-1)/A(z^-1) with numerator and denominator
 multiplied by the same power of z.
 
-Preprocessing (MISSION 4): the model was identified from u to the filtered difference yf = H(z) y with
-``H(z) = (1 - af)(z - 1)/(z - af)`` (``af`` given, 0 <= af < 1) or the plain difference ``H(z) = 1 - z^-1``
-(``af=None``). Neither divides by Ts, so the inverse multiplies by no Ts either:
-``with_integrator(model, af) = B/A / H`` maps u to y exactly (a pole at z = 1; for af given also a zero at
-z = af).
+Preprocessing: the model was identified from u to the filtered difference yf = H(z) y with
+``H(z) = (1 - af)(z - 1)/(z - af)``, 0 <= af < 1 (``harness.ident.preprocess.filter_coefficients``; af = 0 is
+the plain difference 1 - z^-1). H does not divide by Ts, so its inverse multiplies by no Ts either:
+``with_integrator(model, af) = B/A / H`` maps u to y exactly (a pole at z = 1 and a zero at z = af).
 """
 
 from __future__ import annotations
@@ -22,16 +21,14 @@ import control
 import numpy as np
 
 from .armax import ArmaxModel
+from .preprocess import filter_coefficients
 
 __all__ = [
     "BodeData",
-    "add_integrator",
     "bode_data",
     "companion_ss",
-    "difference_filter",
     "poles",
     "square_response",
-    "step_response",
     "to_tf",
     "with_integrator",
     "zeros",
@@ -51,29 +48,15 @@ def _tf_qinv(num: np.ndarray, den: np.ndarray, dt: float) -> control.TransferFun
     return control.tf(n_pad / lead, d_pad / lead, dt)
 
 
-def difference_filter(af: float | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(num, den) in z^-1 of the preprocessing filter H: (1 - af)(1 - z^-1)/(1 - af z^-1), or 1 - z^-1."""
-    if af is None:
-        return np.array([1.0, -1.0]), np.array([1.0])
-    if isinstance(af, bool) or not isinstance(af, numbers.Real) or not (0.0 <= af < 1.0):
-        raise ValueError(f"filter pole af must be a number in [0, 1), got {af!r}")
-    return (1.0 - af) * np.array([1.0, -1.0]), np.array([1.0, -float(af)])
-
-
 def to_tf(model: ArmaxModel) -> control.TransferFunction:
     """The identified deterministic part B/A as a discrete transfer function in z, dt = Ts."""
     return _tf_qinv(model.B, model.A, model.Ts)
 
 
-def with_integrator(model: ArmaxModel, af: float | None) -> control.TransferFunction:
-    """B/A / H(z): undoes the differentiation (+ low-pass when af is given), so it maps u to y."""
-    hn, hd = difference_filter(af)
+def with_integrator(model: ArmaxModel, af: float) -> control.TransferFunction:
+    """B/A / H(z): undoes the differentiation and the low-pass of the preprocessing, so it maps u to y."""
+    hn, hd = filter_coefficients(af)
     return _tf_qinv(np.convolve(model.B, hd), np.convolve(model.A, hn), model.Ts)
-
-
-def add_integrator(model: ArmaxModel, af: float | None = None) -> control.TransferFunction:
-    """Same as :func:`with_integrator`; ``af=None`` undoes the plain difference 1 - z^-1 (G = B/A z/(z-1))."""
-    return with_integrator(model, af)
 
 
 def _siso_tf(sys: Any) -> control.TransferFunction:
@@ -99,7 +82,7 @@ def _lti(sys: Any) -> control.LTI:
 
 
 def companion_ss(tf: Any) -> control.StateSpace:
-    """Controllable companion form (the seed's eq. 10) of a SISO transfer function.
+    """Controllable companion form (lab 1's eq. 10) of a SISO transfer function.
 
     den = z^n + a1 z^(n-1) + .. + an (normalised monic): A has first row [-a1 .. -an] and ones on the
     subdiagonal, B = e1, C = [c1 .. cn] with num - D den = c1 z^(n-1) + .. + cn, D the direct term.
@@ -183,14 +166,6 @@ def _time_grid(g: control.LTI, T: Any, n_cont: int = 2001) -> np.ndarray:
     if t.ndim != 1 or t.size < 2 or not np.all(np.diff(t) > 0):
         raise ValueError("T must be a final time or an increasing 1-D array of times [s]")
     return t
-
-
-def step_response(sys: Any, T: Any) -> tuple[np.ndarray, np.ndarray]:
-    """Unit-step response (t [s], y) up to final time T [s] (or on the time array T)."""
-    g = _lti(sys)
-    t = _time_grid(g, T)
-    r = control.step_response(g, T=t)
-    return np.asarray(r.time), np.asarray(r.outputs).reshape(-1)
 
 
 def square_response(sys: Any, f_hz: float, amplitude: float, T: float) -> tuple[np.ndarray, ...]:

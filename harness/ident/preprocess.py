@@ -1,4 +1,4 @@
-"""Preprocessing of identification data, as in the first lab (seed 000, section 3.1).
+"""Preprocessing of identification data, as in lab 1.
 
 The shaft/tip angle contains the plant's integrator. It is removed by differentiating the output and the
 noise this amplifies is cut by a first-order low-pass, both in one filter
@@ -7,6 +7,10 @@ noise this amplifies is cut by a first-order low-pass, both in one filter
 
 with DC gain 0, gain 2 (1 - af) / (1 + af) at Nyquist, a zero at z = 1 and a pole at z = af. ``af = 0`` is
 the plain first difference y[k] - y[k-1]; ``af = 0.8`` is the labs' default. The input is detrended.
+
+:func:`filter_coefficients` is the one definition of H in the package: the filter, its transfer function, its
+frequency response and its inverse (``harness.ident.lti.with_integrator``) are built from it. The armax FMU
+(``fmus/armax/model.c``) applies the inverse in C.
 """
 
 from __future__ import annotations
@@ -14,7 +18,6 @@ from __future__ import annotations
 import math
 from typing import Any
 
-import control
 import numpy as np
 from scipy.signal import detrend as _scipy_detrend
 from scipy.signal import lfilter, lfilter_zi
@@ -25,7 +28,6 @@ __all__ = [
     "diff_filter",
     "filter_coefficients",
     "filter_response",
-    "filter_tf",
     "preprocess",
     "time_axis",
 ]
@@ -89,24 +91,18 @@ def diff_filter(y: np.ndarray, af: float = 0.8, *, initial: str = "zero") -> np.
     raise ValueError(f"unknown initial condition {initial!r}; valid: zero, rest")
 
 
-def filter_tf(af: float, Ts: float) -> control.TransferFunction:
-    """H(z) = (1 - af)(z - 1)/(z - af) as a discrete python-control TransferFunction, sample time Ts [s]."""
-    af = _check_af(af)
+def _check_Ts(Ts: float) -> float:
     Ts = float(Ts)
     if not (math.isfinite(Ts) and Ts > 0):
         raise ValueError(f"sample time Ts must be > 0 s, got {Ts!r}")
-    return control.tf([1.0 - af, -(1.0 - af)], [1.0, -af], Ts)
+    return Ts
 
 
 def filter_response(af: float, f_hz: np.ndarray, Ts: float) -> tuple[np.ndarray, np.ndarray]:
     """Magnitude (per sample, dimensionless) and phase [rad] of H at frequencies ``f_hz`` [Hz], Ts [s]."""
-    af = _check_af(af)
-    Ts = float(Ts)
-    if not (math.isfinite(Ts) and Ts > 0):
-        raise ValueError(f"sample time Ts must be > 0 s, got {Ts!r}")
-    f = np.asarray(f_hz, dtype=np.float64)
-    z = np.exp(1j * 2.0 * math.pi * f * Ts)
-    h = (1.0 - af) * (z - 1.0) / (z - af)
+    b, a = filter_coefficients(af)
+    z = np.exp(1j * 2.0 * math.pi * np.asarray(f_hz, dtype=np.float64) * _check_Ts(Ts))
+    h = np.polyval(b, z) / np.polyval(a, z)
     return np.abs(h), np.angle(h)
 
 
@@ -128,7 +124,7 @@ def preprocess(
     *,
     initial: str = "zero",
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The seed's pipeline: ``(u_d, y_f) = (detrend(u), H(z) y)``.
+    """Lab 1's pipeline: ``(u_d, y_f) = (detrend(u), H(z) y)``.
 
     u: command [V]; y: angle (e.g. deg). y_f is in units of y per sample. af in [0, 1) (0: plain first
     difference). ``initial`` as in :func:`diff_filter`.
