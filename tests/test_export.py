@@ -58,17 +58,10 @@ def _square_prbs(n: int, seed: int) -> np.ndarray:
 
 
 def test_config_h_and_template_agree_with_the_exporter(generic):
+    """NMAX of config.h is the exporter's (value references: tests/test_fmu_config.py)."""
     cfg = (fmu_source_dir() / "armax" / "config.h").read_text()
-    defs = dict(re.findall(r"^#define\s+(\w+)\s+(\S+)", cfg, re.M))
-    vrs = {k: int(v) for k, v in re.findall(r"\b(vr_\w+|VR_[ABC])\s*=\s*(\d+)", cfg)}
-    assert int(defs["NMAX"]) == export.NMAX
-    md = read_model_description(str(generic), validate=True)
-    got = {v.name: v.valueReference for v in md.modelVariables}
-    want = {k.removeprefix("vr_"): v for k, v in vrs.items() if k.startswith("vr_")}
-    want |= {f"a[{i}]": vrs["VR_A"] + i for i in range(1, export.NMAX + 1)}
-    want |= {f"b[{j}]": vrs["VR_B"] + j for j in range(export.NMAX + 1)}
-    want |= {f"c[{i}]": vrs["VR_C"] + i for i in range(1, export.NMAX + 1)}
-    assert got == want
+    assert int(re.search(r"^#define\s+NMAX\s+(\d+)", cfg, re.M).group(1)) == export.NMAX
+    assert len(_starts(generic)) == 8 + 3 * export.NMAX + 1  # Ts, orders, af, u_offset, y0; a, b (from 0), c
     assert validate_fmu(str(generic)) == []
     # the generic binary's compiled defaults are the template's start values
     with export.ModelFMU(generic) as m:

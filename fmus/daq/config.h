@@ -5,52 +5,54 @@
 #include <stdint.h>
 
 #define MODEL_NAME "daq"
-/* must equal the guid attribute of modelDescription.xml (harness/build.py checks it) */
+/* must equal the guid attribute of modelDescription.xml (harness/fmu/build.py checks it) */
 #define MODEL_GUID "{a3d5e7f9-2b4c-4d6e-8f10-3c5a7b9d1e2f}"
 
 #define MAX_DELAY_SAMPLES 1000000
 
-/* value references: must equal modelDescription.xml */
+/* The variables, one line each, in modelDescription.xml order: X(name, value reference, start value) for the
+   parameters, X(name, value reference) for inputs and outputs.  These lists are the C side's only copy of the
+   variable table: they declare the ModelData fields and the value references, and drive the start values, the
+   finiteness check and get/set in model.c.  tests/test_fmu_config.py checks them against modelDescription.xml. */
+#define REAL_PARAMETERS(X)       \
+    X(sample_rate, 0, 50.0)      \
+    X(dac_range, 2, 10.0)        \
+    X(out_limit, 3, 10.0)        \
+    X(pot_gain, 5, 35.5145)      \
+    X(pot_offset, 6, 0.0)        \
+    X(pot_deadband, 7, 8.0)      \
+    X(gauge_gain, 8, -3.3636)    \
+    X(gauge_offset, 9, 0.0)      \
+    X(gauge_cubic, 10, 0.0)      \
+    X(adc_range, 12, 10.0)       \
+    X(noise_theta, 13, 0.0)      \
+    X(noise_alpha, 14, 0.0)
+#define INTEGER_PARAMETERS(X)    \
+    X(dac_bits, 1, 0)            \
+    X(delay_samples, 4, 0)       \
+    X(adc_bits, 11, 0)           \
+    X(seed, 15, 0)
+#define INPUTS(X)                \
+    X(u, 30)                     \
+    X(theta, 31)                 \
+    X(alpha_gauge, 32)
+#define OUTPUTS(X)               \
+    X(u_plant, 40)               \
+    X(theta_v, 41)               \
+    X(alpha_v, 42)
+
+#include "variables.h"
+
 typedef enum {
-    vr_sample_rate = 0,
-    vr_dac_bits = 1, /* Integer */
-    vr_dac_range = 2,
-    vr_out_limit = 3,
-    vr_delay_samples = 4, /* Integer */
-    vr_pot_gain = 5,
-    vr_pot_offset = 6,
-    vr_pot_deadband = 7,
-    vr_gauge_gain = 8,
-    vr_gauge_offset = 9,
-    vr_gauge_cubic = 10,
-    vr_adc_bits = 11, /* Integer */
-    vr_adc_range = 12,
-    vr_noise_theta = 13,
-    vr_noise_alpha = 14,
-    vr_seed = 15, /* Integer */
-    vr_u = 30,
-    vr_theta = 31,
-    vr_alpha_gauge = 32,
-    vr_u_plant = 40,
-    vr_theta_v = 41,
-    vr_alpha_v = 42
+    REAL_PARAMETERS(VALUE_REFERENCE) INTEGER_PARAMETERS(VALUE_REFERENCE) INPUTS(VALUE_REFERENCE_IO)
+    OUTPUTS(VALUE_REFERENCE_IO)
 } ValueReference;
 
 typedef struct {
-    /* parameters */
-    double sample_rate;
-    int dac_bits;
-    double dac_range, out_limit;
-    int delay_samples;
-    double pot_gain, pot_offset, pot_deadband;
-    double gauge_gain, gauge_offset, gauge_cubic;
-    int adc_bits;
-    double adc_range, noise_theta, noise_alpha;
-    int seed;
-    /* inputs */
-    double u, theta, alpha_gauge;
-    /* outputs (held between samples) */
-    double u_plant, theta_v, alpha_v;
+    REAL_PARAMETERS(DECLARE_REAL)
+    INTEGER_PARAMETERS(DECLARE_INTEGER)
+    INPUTS(DECLARE_VARIABLE)
+    OUTPUTS(DECLARE_VARIABLE) /* held between samples */
     /* state */
     double *delay_line; /* last delay_samples commands, oldest at delay_head */
     int delay_head;

@@ -32,22 +32,8 @@ void setStartValues(ModelInstance *comp) {
     double *line = d->delay_line; /* keep the pointer: releaseModel frees it */
     memset(d, 0, sizeof(*d));
     d->delay_line = line;
-    d->sample_rate = 50.0;
-    d->dac_bits = 0;
-    d->dac_range = 10.0;
-    d->out_limit = 10.0;
-    d->delay_samples = 0;
-    d->pot_gain = 35.5145;
-    d->pot_offset = 0.0;
-    d->pot_deadband = 8.0;
-    d->gauge_gain = -3.3636;
-    d->gauge_offset = 0.0;
-    d->gauge_cubic = 0.0;
-    d->adc_bits = 0;
-    d->adc_range = 10.0;
-    d->noise_theta = 0.0;
-    d->noise_alpha = 0.0;
-    d->seed = 0;
+    REAL_PARAMETERS(SET_START)
+    INTEGER_PARAMETERS(SET_START)
 }
 
 bool validate(ModelInstance *comp, char *msg, size_t len) {
@@ -55,10 +41,7 @@ bool validate(ModelInstance *comp, char *msg, size_t len) {
     const struct {
         const char *name;
         double value;
-    } reals[] = {{"sample_rate", d->sample_rate}, {"dac_range", d->dac_range},       {"out_limit", d->out_limit},
-                 {"pot_gain", d->pot_gain},       {"pot_offset", d->pot_offset},     {"pot_deadband", d->pot_deadband},
-                 {"gauge_gain", d->gauge_gain},   {"gauge_offset", d->gauge_offset}, {"gauge_cubic", d->gauge_cubic},
-                 {"adc_range", d->adc_range},     {"noise_theta", d->noise_theta},   {"noise_alpha", d->noise_alpha}};
+    } reals[] = {REAL_PARAMETERS(NAME_VALUE)};
     size_t i;
     for (i = 0; i < sizeof(reals) / sizeof(reals[0]); i++)
         CHECK(isfinite(reals[i].value), "invalid parameter %s = %g: must be finite", reals[i].name,
@@ -205,30 +188,16 @@ void calculateValues(ModelInstance *comp) { (void)comp; /* outputs change only a
 
 /* ------------------------------------------------------- get / set */
 
-static double *realParameter(ModelData *d, fmi2ValueReference vr, const char **name) {
+static double *realParameter(ModelData *d, fmi2ValueReference vr, const char **pname) {
     switch (vr) {
-    case vr_sample_rate: *name = "sample_rate"; return &d->sample_rate;
-    case vr_dac_range: *name = "dac_range"; return &d->dac_range;
-    case vr_out_limit: *name = "out_limit"; return &d->out_limit;
-    case vr_pot_gain: *name = "pot_gain"; return &d->pot_gain;
-    case vr_pot_offset: *name = "pot_offset"; return &d->pot_offset;
-    case vr_pot_deadband: *name = "pot_deadband"; return &d->pot_deadband;
-    case vr_gauge_gain: *name = "gauge_gain"; return &d->gauge_gain;
-    case vr_gauge_offset: *name = "gauge_offset"; return &d->gauge_offset;
-    case vr_gauge_cubic: *name = "gauge_cubic"; return &d->gauge_cubic;
-    case vr_adc_range: *name = "adc_range"; return &d->adc_range;
-    case vr_noise_theta: *name = "noise_theta"; return &d->noise_theta;
-    case vr_noise_alpha: *name = "noise_alpha"; return &d->noise_alpha;
+        REAL_PARAMETERS(PARAMETER_CASE)
     default: return NULL;
     }
 }
 
-static int *intParameter(ModelData *d, fmi2ValueReference vr, const char **name) {
+static int *intParameter(ModelData *d, fmi2ValueReference vr, const char **pname) {
     switch (vr) {
-    case vr_dac_bits: *name = "dac_bits"; return &d->dac_bits;
-    case vr_delay_samples: *name = "delay_samples"; return &d->delay_samples;
-    case vr_adc_bits: *name = "adc_bits"; return &d->adc_bits;
-    case vr_seed: *name = "seed"; return &d->seed;
+        INTEGER_PARAMETERS(PARAMETER_CASE)
     default: return NULL;
     }
 }
@@ -242,15 +211,10 @@ fmi2Status getFloat64(ModelInstance *comp, fmi2ValueReference vr, double *value)
         return fmi2OK;
     }
     switch (vr) {
-    case vr_u: *value = d->u; break;
-    case vr_theta: *value = d->theta; break;
-    case vr_alpha_gauge: *value = d->alpha_gauge; break;
-    case vr_u_plant: *value = d->u_plant; break;
-    case vr_theta_v: *value = d->theta_v; break;
-    case vr_alpha_v: *value = d->alpha_v; break;
+        INPUTS(GET_CASE)
+        OUTPUTS(GET_CASE)
     default: return unknownReference(comp, "Real", vr);
     }
-    return fmi2OK;
 }
 
 fmi2Status setFloat64(ModelInstance *comp, fmi2ValueReference vr, double value) {

@@ -3,57 +3,64 @@
 #define FLEXJOINT_CONFIG_H
 
 #define MODEL_NAME "flexjoint"
-/* must equal the guid attribute of modelDescription.xml (harness/build.py checks it) */
+/* must equal the guid attribute of modelDescription.xml (harness/fmu/build.py checks it) */
 #define MODEL_GUID "{6c1f4a52-3f0e-4b8e-9a57-1d2b7c9e0f11}"
 
 #define MAX_MODES 3
 #define MAX_DOF (MAX_MODES + 1)         /* hub angle + modal tip-angle coordinates a_i */
 #define MAX_X (2 * MAX_DOF + 2)         /* positions, velocities, motor-side angle and speed */
 
-/* value references: must equal modelDescription.xml */
+/* The variables, one line each, in modelDescription.xml order: X(name, value reference, start value) for the
+   parameters, X(name, value reference) for inputs and outputs.  These lists are the C side's only copy of the
+   variable table: they declare the ModelData fields and the value references, and drive the start values, the
+   finiteness check and get/set in model.c.  tests/test_fmu_config.py checks them against modelDescription.xml. */
+#define REAL_PARAMETERS(X)       \
+    X(Rm, 0, 2.6)                \
+    X(kt, 1, 7.68e-3)            \
+    X(km, 2, 7.68e-3)            \
+    X(Kg, 3, 70.0)               \
+    X(eta_g, 4, 0.9)             \
+    X(eta_m, 5, 0.69)            \
+    X(Jeq, 6, 2.08e-3)           \
+    X(Beq, 7, 0.004)             \
+    X(m_link, 8, 0.065)          \
+    X(L_link, 9, 0.419)          \
+    X(Ks, 10, 1.3)               \
+    X(zeta_link, 11, 0.01)       \
+    X(coulomb_torque, 13, 0.0)   \
+    X(stiction_ratio, 14, 1.0)   \
+    X(backlash, 15, 0.0)         \
+    X(Jm_share, 16, 0.5)         \
+    X(amp_limit, 17, 0.0)        \
+    X(internal_step, 18, 1e-3)   \
+    X(theta_start, 19, 0.0)
+#define INTEGER_PARAMETERS(X)    \
+    X(n_modes, 12, 1)            \
+    X(hub_locked, 20, 0)
+#define INPUTS(X)                \
+    X(u, 30)                     \
+    X(tau_tip, 31)
+#define OUTPUTS(X)               \
+    X(theta, 40)                 \
+    X(alpha, 41)                 \
+    X(y, 42)                     \
+    X(theta_dot, 43)             \
+    X(alpha_dot, 44)             \
+    X(alpha_gauge, 45)           \
+    X(theta_motor, 46)
+
+#include "variables.h"
+
 typedef enum {
-    vr_Rm = 0,
-    vr_kt = 1,
-    vr_km = 2,
-    vr_Kg = 3,
-    vr_eta_g = 4,
-    vr_eta_m = 5,
-    vr_Jeq = 6,
-    vr_Beq = 7,
-    vr_m_link = 8,
-    vr_L_link = 9,
-    vr_Ks = 10,
-    vr_zeta_link = 11,
-    vr_n_modes = 12, /* Integer */
-    vr_coulomb_torque = 13,
-    vr_stiction_ratio = 14,
-    vr_backlash = 15,
-    vr_Jm_share = 16,
-    vr_amp_limit = 17,
-    vr_internal_step = 18,
-    vr_theta_start = 19,
-    vr_hub_locked = 20, /* Integer */
-    vr_u = 30,
-    vr_tau_tip = 31,
-    vr_theta = 40,
-    vr_alpha = 41,
-    vr_y = 42,
-    vr_theta_dot = 43,
-    vr_alpha_dot = 44,
-    vr_alpha_gauge = 45,
-    vr_theta_motor = 46
+    REAL_PARAMETERS(VALUE_REFERENCE) INTEGER_PARAMETERS(VALUE_REFERENCE) INPUTS(VALUE_REFERENCE_IO)
+    OUTPUTS(VALUE_REFERENCE_IO)
 } ValueReference;
 
 typedef struct {
-    /* parameters */
-    double Rm, kt, km, Kg, eta_g, eta_m, Jeq, Beq, m_link, L_link, Ks, zeta_link;
-    int n_modes;
-    double coulomb_torque, stiction_ratio, backlash, Jm_share, amp_limit, internal_step, theta_start;
-    int hub_locked;
-    /* inputs */
-    double u, tau_tip;
-    /* outputs */
-    double theta, alpha, y, theta_dot, alpha_dot, alpha_gauge, theta_motor;
+    REAL_PARAMETERS(DECLARE_REAL)
+    INTEGER_PARAMETERS(DECLARE_INTEGER)
+    INPUTS(DECLARE_VARIABLE)
+    OUTPUTS(DECLARE_VARIABLE)
 
     /* derived constants (initialize) */
     int N;                          /* degrees of freedom on the hub side: 1 + n_modes */

@@ -52,30 +52,9 @@ static const double BETA_L[MAX_MODES] = {1.8751040687119611, 4.694091132974175, 
 
 void setStartValues(ModelInstance *comp) {
     ModelData *d = &comp->data;
-    memset(d, 0, sizeof(*d));
-    d->Rm = 2.6;
-    d->kt = 7.68e-3;
-    d->km = 7.68e-3;
-    d->Kg = 70.0;
-    d->eta_g = 0.9;
-    d->eta_m = 0.69;
-    d->Jeq = 2.08e-3;
-    d->Beq = 0.004;
-    d->m_link = 0.065;
-    d->L_link = 0.419;
-    d->Ks = 1.3;
-    d->zeta_link = 0.01;
-    d->n_modes = 1;
-    d->coulomb_torque = 0.0;
-    d->stiction_ratio = 1.0;
-    d->backlash = 0.0;
-    d->Jm_share = 0.5;
-    d->amp_limit = 0.0;
-    d->internal_step = 1e-3;
-    d->theta_start = 0.0;
-    d->hub_locked = 0;
-    d->u = 0.0;
-    d->tau_tip = 0.0;
+    memset(d, 0, sizeof(*d)); /* inputs start at 0 */
+    REAL_PARAMETERS(SET_START)
+    INTEGER_PARAMETERS(SET_START)
 }
 
 /* ------------------------------------------------------------ validation */
@@ -85,25 +64,7 @@ bool validate(ModelInstance *comp, char *msg, size_t len) {
     const struct {
         const char *name;
         double value;
-    } reals[] = {{"Rm", d->Rm},
-                 {"kt", d->kt},
-                 {"km", d->km},
-                 {"Kg", d->Kg},
-                 {"eta_g", d->eta_g},
-                 {"eta_m", d->eta_m},
-                 {"Jeq", d->Jeq},
-                 {"Beq", d->Beq},
-                 {"m_link", d->m_link},
-                 {"L_link", d->L_link},
-                 {"Ks", d->Ks},
-                 {"zeta_link", d->zeta_link},
-                 {"coulomb_torque", d->coulomb_torque},
-                 {"stiction_ratio", d->stiction_ratio},
-                 {"backlash", d->backlash},
-                 {"Jm_share", d->Jm_share},
-                 {"amp_limit", d->amp_limit},
-                 {"internal_step", d->internal_step},
-                 {"theta_start", d->theta_start}};
+    } reals[] = {REAL_PARAMETERS(NAME_VALUE)};
     size_t i;
     for (i = 0; i < sizeof(reals) / sizeof(reals[0]); i++)
         CHECK(isfinite(reals[i].value), "invalid parameter %s = %g: must be finite", reals[i].name,
@@ -599,68 +560,47 @@ void calculateValues(ModelInstance *comp) {
 
 /* ------------------------------------------------------- get / set */
 
-fmi2Status getFloat64(ModelInstance *comp, fmi2ValueReference vr, double *value) {
-    const ModelData *d = &comp->data;
+static double *realParameter(ModelData *d, fmi2ValueReference vr, const char **pname) {
     switch (vr) {
-    case vr_Rm: *value = d->Rm; break;
-    case vr_kt: *value = d->kt; break;
-    case vr_km: *value = d->km; break;
-    case vr_Kg: *value = d->Kg; break;
-    case vr_eta_g: *value = d->eta_g; break;
-    case vr_eta_m: *value = d->eta_m; break;
-    case vr_Jeq: *value = d->Jeq; break;
-    case vr_Beq: *value = d->Beq; break;
-    case vr_m_link: *value = d->m_link; break;
-    case vr_L_link: *value = d->L_link; break;
-    case vr_Ks: *value = d->Ks; break;
-    case vr_zeta_link: *value = d->zeta_link; break;
-    case vr_coulomb_torque: *value = d->coulomb_torque; break;
-    case vr_stiction_ratio: *value = d->stiction_ratio; break;
-    case vr_backlash: *value = d->backlash; break;
-    case vr_Jm_share: *value = d->Jm_share; break;
-    case vr_amp_limit: *value = d->amp_limit; break;
-    case vr_internal_step: *value = d->internal_step; break;
-    case vr_theta_start: *value = d->theta_start; break;
-    case vr_u: *value = d->u; break;
-    case vr_tau_tip: *value = d->tau_tip; break;
-    case vr_theta: *value = d->theta; break;
-    case vr_alpha: *value = d->alpha; break;
-    case vr_y: *value = d->y; break;
-    case vr_theta_dot: *value = d->theta_dot; break;
-    case vr_alpha_dot: *value = d->alpha_dot; break;
-    case vr_alpha_gauge: *value = d->alpha_gauge; break;
-    case vr_theta_motor: *value = d->theta_motor; break;
+        REAL_PARAMETERS(PARAMETER_CASE)
+    default: return NULL;
+    }
+}
+
+static int *intParameter(ModelData *d, fmi2ValueReference vr, const char **pname) {
+    switch (vr) {
+        INTEGER_PARAMETERS(PARAMETER_CASE)
+    default: return NULL;
+    }
+}
+
+fmi2Status getFloat64(ModelInstance *comp, fmi2ValueReference vr, double *value) {
+    ModelData *d = &comp->data;
+    const char *name;
+    const double *p = realParameter(d, vr, &name);
+    if (p) {
+        *value = *p;
+        return fmi2OK;
+    }
+    switch (vr) {
+        INPUTS(GET_CASE)
+        OUTPUTS(GET_CASE)
     default: return unknownReference(comp, "Real", vr);
     }
-    return fmi2OK;
 }
 
 fmi2Status setFloat64(ModelInstance *comp, fmi2ValueReference vr, double value) {
     ModelData *d = &comp->data;
-    double *p = NULL;
-    const char *name = NULL;
+    const char *name;
+    double *p = realParameter(d, vr, &name);
+    if (p) {
+        if (!parametersSettable(comp)) return fixedAfterInit(comp, name);
+        *p = value;
+        return fmi2OK;
+    }
     switch (vr) {
     case vr_u: d->u = value; return fmi2OK;
     case vr_tau_tip: d->tau_tip = value; return fmi2OK;
-    case vr_Rm: p = &d->Rm; name = "Rm"; break;
-    case vr_kt: p = &d->kt; name = "kt"; break;
-    case vr_km: p = &d->km; name = "km"; break;
-    case vr_Kg: p = &d->Kg; name = "Kg"; break;
-    case vr_eta_g: p = &d->eta_g; name = "eta_g"; break;
-    case vr_eta_m: p = &d->eta_m; name = "eta_m"; break;
-    case vr_Jeq: p = &d->Jeq; name = "Jeq"; break;
-    case vr_Beq: p = &d->Beq; name = "Beq"; break;
-    case vr_m_link: p = &d->m_link; name = "m_link"; break;
-    case vr_L_link: p = &d->L_link; name = "L_link"; break;
-    case vr_Ks: p = &d->Ks; name = "Ks"; break;
-    case vr_zeta_link: p = &d->zeta_link; name = "zeta_link"; break;
-    case vr_coulomb_torque: p = &d->coulomb_torque; name = "coulomb_torque"; break;
-    case vr_stiction_ratio: p = &d->stiction_ratio; name = "stiction_ratio"; break;
-    case vr_backlash: p = &d->backlash; name = "backlash"; break;
-    case vr_Jm_share: p = &d->Jm_share; name = "Jm_share"; break;
-    case vr_amp_limit: p = &d->amp_limit; name = "amp_limit"; break;
-    case vr_internal_step: p = &d->internal_step; name = "internal_step"; break;
-    case vr_theta_start: p = &d->theta_start; name = "theta_start"; break;
     default:
         if (vr >= vr_theta && vr <= vr_theta_motor) {
             logError(comp, "output value reference %u cannot be set", (unsigned)vr);
@@ -668,29 +608,21 @@ fmi2Status setFloat64(ModelInstance *comp, fmi2ValueReference vr, double value) 
         }
         return unknownReference(comp, "Real", vr);
     }
-    if (!parametersSettable(comp)) return fixedAfterInit(comp, name);
-    *p = value;
-    return fmi2OK;
 }
 
 fmi2Status getInt32(ModelInstance *comp, fmi2ValueReference vr, int *value) {
-    switch (vr) {
-    case vr_n_modes: *value = comp->data.n_modes; return fmi2OK;
-    case vr_hub_locked: *value = comp->data.hub_locked; return fmi2OK;
-    default: return unknownReference(comp, "Integer", vr);
-    }
+    const char *name;
+    const int *p = intParameter(&comp->data, vr, &name);
+    if (!p) return unknownReference(comp, "Integer", vr);
+    *value = *p;
+    return fmi2OK;
 }
 
 fmi2Status setInt32(ModelInstance *comp, fmi2ValueReference vr, int value) {
-    switch (vr) {
-    case vr_n_modes:
-        if (!parametersSettable(comp)) return fixedAfterInit(comp, "n_modes");
-        comp->data.n_modes = value;
-        return fmi2OK;
-    case vr_hub_locked:
-        if (!parametersSettable(comp)) return fixedAfterInit(comp, "hub_locked");
-        comp->data.hub_locked = value;
-        return fmi2OK;
-    default: return unknownReference(comp, "Integer", vr);
-    }
+    const char *name;
+    int *p = intParameter(&comp->data, vr, &name);
+    if (!p) return unknownReference(comp, "Integer", vr);
+    if (!parametersSettable(comp)) return fixedAfterInit(comp, name);
+    *p = value;
+    return fmi2OK;
 }
