@@ -3,13 +3,14 @@
 #define ARMAX_CONFIG_H
 
 #define MODEL_NAME "armax"
-/* must equal the guid attribute of modelDescription.xml (harness/build.py checks it) */
+/* must equal the guid attribute of modelDescription.xml (harness/fmu/build.py checks it) */
 #define MODEL_GUID "{5b0e7c42-9d1a-4f3e-b6a8-2c4d8e1f7a93}"
 
-/* largest order: a[1..NMAX], b[0..NMAX], c[1..NMAX]; harness/export.py reads this number */
+/* largest order: a[1..NMAX], b[0..NMAX], c[1..NMAX]; harness/ident/export.py has the same number
+   (tests/test_export.py checks it) */
 #define NMAX 16
 
-/* resources file written by harness.export (name value per line), read at instantiation */
+/* resources file written by harness.ident.export (name value per line), read at instantiation */
 #define COEFFICIENT_FILE "coefficients.txt"
 
 /* value references: must equal modelDescription.xml (a[i] = VR_A + i, b[j] = VR_B + j, c[i] = VR_C + i) */

@@ -1,13 +1,14 @@
 /*
- * armax: a generic discrete-time ARMAX model (identified by harness.armax) as an FMI 2.0 co-simulation FMU.
+ * armax: a generic discrete-time ARMAX model (identified by harness.ident.armax) as an FMI 2.0 co-simulation FMU.
  *
  * Model, q^-1 the backward shift by one sample of Ts [s]:
  *     A(q) y_f(k) = B(q) u_d(k),   u_d = u - u_offset [V]
  *     A = 1 + a[1] q^-1 + .. + a[na] q^-na,   B = b[nk] q^-nk + .. + b[nk+nb-1] q^-(nk+nb-1)   (nk >= 1)
  * y_f is the identified domain (the preprocessed angle, units of y per sample).  The output y [deg] adds the
- * integrator and the preprocessing inverse back, H(z) = (1 - af)(z - 1)/(z - af):
+ * integrator and the preprocessing inverse back, H(z) = (1 - af)(z - 1)/(z - af) (this is the C copy of H;
+ * the Python definition is harness.ident.preprocess.filter_coefficients):
  *     y(k) = y(k-1) + (y_f(k) - af y_f(k-1)) / (1 - af),   y(-1) = y0, y_f(-1) = 0,
- * so y(0) = y0 (as harness.preprocess.diff_filter(..., initial="rest")).  C (c[i]) is stored for completeness
+ * so y(0) = y0 (as harness.ident.preprocess.diff_filter(..., initial="rest")).  C (c[i]) is stored for completeness
  * and does not affect the simulation.  All signals are zero before the record (zero initial state).
  *
  * Timing: after fmi2ExitInitializationMode the outputs are the values at t_0 (y_f = 0, y = y0).  The master
@@ -17,7 +18,7 @@
  *
  * Coefficients: one binary serves every model.  At instantiation (and fmi2Reset) the start values are the
  * compiled defaults below (equal to fmus/armax/modelDescription.xml), then overridden by the lines
- * "name value" of resources/coefficients.txt when the FMU carries one: harness.export writes it with the
+ * "name value" of resources/coefficients.txt when the FMU carries one: harness.ident.export writes it with the
  * same full-precision (repr) values as the start attributes of the exported modelDescription.xml, so the
  * FMU runs the identified model with no parameter set by the importer.  The resources folder is the one the
  * importer passes as fmuResourceLocation to fmi2Instantiate.
