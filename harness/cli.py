@@ -217,7 +217,7 @@ def campaign(
     s = specmod.load(spec, set_ or [])
     t0 = time.perf_counter()
     manifest = run_campaign(s, out_dir, progress=_progress("simulated"), workers=workers, scheduler=scheduler)
-    out.print(f"{len(manifest['experiments'])} experiments -> {out_dir} ({time.perf_counter() - t0:.2f} s)")
+    out.print(f"{len(manifest.experiments)} experiments -> {out_dir} ({time.perf_counter() - t0:.2f} s)")
 
 
 @app.command("import")

@@ -17,12 +17,16 @@ Layout::
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import math
 import os
 import tempfile
+import types
+import typing
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import pandas as pd
@@ -32,6 +36,7 @@ import pyarrow.parquet as pq
 from .spec import Spec, from_dict
 
 REQUIRED = ("t", "u", "theta_v", "alpha_v")
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -102,6 +107,154 @@ class RunDir:
 
 class DataError(ValueError):
     """A dataset that cannot be used; the message is one line meant for the user."""
+
+
+# ----------------------------------------------------------------------------------------------- typed JSON files
+def _key(f: dataclasses.Field) -> str:
+    """The JSON key of a dataclass field (``metadata["key"]`` when the key is not a Python name)."""
+    return f.metadata.get("key", f.name)
+
+
+def to_plain(obj: Any) -> Any:
+    """JSON content of a dataclass tree: fields under their keys (``metadata["key"]`` where the key is not a
+    Python name), optional fields (default None) left out when None."""
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        out = {}
+        for f in dataclasses.fields(obj):
+            v = getattr(obj, f.name)
+            if v is None and f.default is None:
+                continue
+            out[_key(f)] = to_plain(v)
+        return out
+    if isinstance(obj, dict):
+        return {k: to_plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [to_plain(v) for v in obj]
+    return obj
+
+
+def from_plain(cls: type[T], doc: Any, where: str) -> T:
+    """Dataclass ``cls`` from JSON object ``doc``, every value checked against its field's type; ``where`` (its
+    place in the file) starts the one-line :class:`DataError` of a missing key, an unknown one or a wrong type."""
+    if not isinstance(doc, dict):
+        raise DataError(f"{where}: expected an object, got {type(doc).__name__}")
+    hints = typing.get_type_hints(cls)
+    fs = dataclasses.fields(cls)  # type: ignore[arg-type]
+    keys = {_key(f) for f in fs}
+    unknown = sorted(set(doc) - keys)
+    if unknown:
+        raise DataError(f"{where}: unknown key(s) {', '.join(unknown)}")
+    kw = {}
+    for f in fs:
+        k = _key(f)
+        if k in doc:
+            kw[f.name] = _plain_value(hints[f.name], doc[k], f"{where}.{k}")
+        elif f.default is not dataclasses.MISSING:
+            kw[f.name] = f.default
+        else:
+            raise DataError(f"{where}: missing key {k!r}")
+    return cls(**kw)
+
+
+def _plain_value(tp: Any, v: Any, where: str) -> Any:
+    """JSON value ``v`` checked against type ``tp`` (dataclass, list[...], dict[str, ...], float, int, str, bool,
+    Any, X | None); numbers are kept as written (an int stays an int), null in a float becomes NaN."""
+    origin, args = typing.get_origin(tp), typing.get_args(tp)
+    if origin in (typing.Union, types.UnionType):
+        inner = [a for a in args if a is not type(None)]
+        return _plain_value(inner[0], v, where)
+    if tp is Any:
+        return v
+    if dataclasses.is_dataclass(tp):
+        return from_plain(tp, v, where)
+    if origin is list:
+        if not isinstance(v, list):
+            raise DataError(f"{where}: expected a list, got {type(v).__name__}")
+        return [_plain_value(args[0], x, f"{where}[{i}]") for i, x in enumerate(v)]
+    if origin is dict:
+        if not isinstance(v, dict):
+            raise DataError(f"{where}: expected an object, got {type(v).__name__}")
+        return {k: _plain_value(args[1], x, f"{where}.{k}") for k, x in v.items()}
+    if tp is float:
+        if v is None:
+            return math.nan
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise DataError(f"{where}: expected a number, got {v!r}")
+        return v
+    if tp is int and (isinstance(v, bool) or not isinstance(v, int)):
+        raise DataError(f"{where}: expected an integer, got {v!r}")
+    if tp in (str, bool) and not isinstance(v, tp):
+        raise DataError(f"{where}: expected {tp.__name__}, got {v!r}")
+    return v
+
+
+# ----------------------------------------------------------------------------------------------- manifest.json
+@dataclass
+class ExperimentEntry:
+    """One experiment of a run (its dataset is ``data/<name>.parquet``): ``role`` "identification",
+    "validation" or "calibration"; ``n`` samples. A campaign adds the command ``signal`` and the experiment's
+    random ``seed``; an import its ``sample_rate`` [Hz], the record's ``columns`` and ``units`` per channel, the
+    largest clock-jitter correction [s] and, for encoder counts, the angle lattice [deg] per channel."""
+
+    name: str
+    role: str = "identification"
+    signal: str | None = None
+    n: int | None = None
+    seed: int | None = None
+    sample_rate: float | None = None
+    columns: dict[str, str] | None = None
+    units: dict[str, str] | None = None
+    jitter_corrected_s: float | None = None
+    lattice_deg: dict[str, float] | None = None
+
+
+@dataclass
+class Manifest:
+    """``manifest.json``: what a run directory holds. ``kind`` "campaign" (simulated from ``spec``, the spec's
+    table as run, with its file name, sha256 and random ``seed``, the FMUs' files and sha256, the versions) or
+    "import" (real records: their ``sources`` and whether the ``calibration`` was "given" or "assumed").
+    ``sample_rate`` [Hz] is None for records at different rates; ``generator`` names a simulator other than the
+    twin (e.g. tests/indeprig.py, with its ``noise_seed``)."""
+
+    kind: str
+    experiments: list[ExperimentEntry]
+    sample_rate: float | None
+    spec: dict[str, Any] | None = None
+    spec_file: str | None = None
+    spec_sha256: str | None = None
+    seed: int | None = None
+    fmus: dict[str, dict[str, str]] | None = None
+    versions: dict[str, str] | None = None
+    generator: str | None = None
+    noise_seed: int | None = None
+    sources: dict[str, dict[str, Any]] | None = None
+    calibration: str | None = None
+
+    @classmethod
+    def load(cls, run: Path) -> Manifest:
+        """The manifest of run directory ``run``; one :class:`DataError` line when there is none or it is not
+        a manifest."""
+        p = RunDir(run).manifest
+        if not p.exists():
+            raise DataError(f"{run}: not a run directory (no manifest.json)")
+        try:
+            return from_plain(cls, json.loads(p.read_text(encoding="utf-8")), "manifest")
+        except json.JSONDecodeError as exc:
+            raise DataError(f"{p}: not valid JSON ({exc})") from None
+        except DataError as exc:
+            raise DataError(f"{p}: {exc}") from None
+
+    def write(self, run: Path) -> None:
+        """Write ``manifest.json`` of run directory ``run`` (atomic, sorted keys: byte-stable)."""
+        write_json(RunDir(run).manifest, to_plain(self))
+
+    def entries(self, role: str | None = None) -> list[ExperimentEntry]:
+        """The experiments in manifest order, optionally only those of one role."""
+        return [e for e in self.experiments if role is None or e.role == role]
+
+    def entry(self, name: str) -> ExperimentEntry | None:
+        """Experiment ``name``'s entry (None when the run has no such experiment)."""
+        return next((e for e in self.experiments if e.name == name), None)
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:
@@ -194,25 +347,19 @@ def sample_time(df: pd.DataFrame) -> float:
 
 
 def load_manifest(run: Path) -> dict[str, Any]:
-    p = RunDir(run).manifest
-    if not p.exists():
-        raise DataError(f"{run}: not a run directory (no manifest.json)")
-    return json.loads(p.read_text())
+    """manifest.json as plain JSON (readers not yet on :class:`Manifest`)."""
+    return to_plain(Manifest.load(run))
 
 
 def load_spec(run: Path) -> Spec | None:
     """The spec recorded in a campaign's manifest (None for imported data)."""
-    m = load_manifest(run)
-    return from_dict(m["spec"], m.get("spec_file", "")) if m.get("kind") == "campaign" else None
+    m = Manifest.load(run)
+    return from_dict(m.spec, m.spec_file or "") if m.kind == "campaign" and m.spec is not None else None
 
 
 def load_run(run: Path, role: str | None = "identification") -> dict[str, pd.DataFrame]:
     """Datasets of a run directory in manifest order, optionally only those of one role."""
-    manifest = load_manifest(run)
-    out = {}
-    for e in manifest["experiments"]:
-        if role is None or e.get("role", "identification") == role:
-            out[e["name"]] = read_dataset(RunDir(run).dataset(e["name"]))
+    out = {e.name: read_dataset(RunDir(run).dataset(e.name)) for e in Manifest.load(run).entries(role)}
     if not out:
         raise DataError(f"{run}: no {role or ''} datasets in manifest.json")
     return out

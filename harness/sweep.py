@@ -80,7 +80,7 @@ from .ident.identify import load_model, prepare, run_grid
 from .render.figures import new_figure, save_figure
 from .render.viewer import APPLICATION_ID
 from .rig.campaign import simulate_spec, versions
-from .rundir import RunDir, atomic_write_bytes, atomic_write_text, write_dataset, write_json
+from .rundir import ExperimentEntry, Manifest, RunDir, atomic_write_bytes, atomic_write_text, write_dataset, write_json
 
 __all__ = ["DISTRIBUTIONS", "Vary", "draw", "first_order", "parse_vary", "pass_interval", "run_sweep", "sensitivity"]
 
@@ -251,8 +251,8 @@ def _calibrate(spec: specmod.Spec, data: Mapping[str, Mapping[str, np.ndarray]])
         run = Path(tmp)
         for e in spec.calibration:
             write_dataset(RunDir(run).dataset(e.name), data[e.name])
-        exps = [{"name": e.name, "role": e.role, "signal": e.signal} for e in spec.calibration]
-        write_json(RunDir(run).manifest, {"kind": "campaign", "experiments": exps})
+        exps = [ExperimentEntry(name=e.name, role=e.role, signal=e.signal) for e in spec.calibration]
+        Manifest(kind="campaign", experiments=exps, sample_rate=spec.sample_rate).write(run)
         return calibrate_run(run)
 
 

@@ -25,7 +25,7 @@ from .._version import __version__
 from ..executor import Executor, FmuBytes, fmu_bytes, worker_rig
 from ..fmu.build import build_all, fmu_sha256
 from ..fmu.plant import PlantParams, mass_stiffness
-from ..rundir import RunDir, write_dataset, write_json
+from ..rundir import ExperimentEntry, Manifest, RunDir, write_dataset
 from ..spec import Experiment, Spec
 from .signals import generate
 
@@ -148,7 +148,7 @@ def run_campaign(
     workers: int | None = None,
     progress: Progress | None = None,
     scheduler: str | None = None,
-) -> dict[str, Any]:
+) -> Manifest:
     """Run a spec's campaign into run directory ``out`` (simulated by :func:`simulate_spec`, written here, by
     the client only); returns the manifest."""
 
@@ -157,25 +157,25 @@ def run_campaign(
     data = simulate_spec(spec, fmus, workers=workers, progress=progress, scheduler=scheduler)
     for name, cols in data.items():
         write_dataset(RunDir(out).dataset(name), cols)
-    manifest = {
-        "kind": "campaign",
-        "spec": spec.raw,
-        "spec_file": Path(spec.path).name,
-        "spec_sha256": spec.sha256(),
-        "seed": spec.seed,
-        "sample_rate": spec.sample_rate,
-        "fmus": {k: {"file": Path(v).name, "sha256": fmu_sha256(v)} for k, v in fmus.items()},
-        "versions": versions(),
-        "experiments": [
-            {
-                "name": e.name,
-                "role": e.role,
-                "signal": e.signal,
-                "n": int(round(e.duration * spec.sample_rate)),
-                "seed": experiment_seed(spec, e),
-            }
+    manifest = Manifest(
+        kind="campaign",
+        spec=spec.raw,
+        spec_file=Path(spec.path).name,
+        spec_sha256=spec.sha256(),
+        seed=spec.seed,
+        sample_rate=spec.sample_rate,
+        fmus={k: {"file": Path(v).name, "sha256": fmu_sha256(v)} for k, v in fmus.items()},
+        versions=versions(),
+        experiments=[
+            ExperimentEntry(
+                name=e.name,
+                role=e.role,
+                signal=e.signal,
+                n=int(round(e.duration * spec.sample_rate)),
+                seed=experiment_seed(spec, e),
+            )
             for e in spec.all_experiments()
         ],
-    }
-    write_json(RunDir(out).manifest, manifest)
+    )
+    manifest.write(out)
     return manifest

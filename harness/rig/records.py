@@ -42,7 +42,7 @@ import pyarrow.parquet as pq
 import scipy.io
 
 from ..ident.calibration import SEED_CALIBRATION, Calibration, alpha_deg, theta_deg
-from ..rundir import DataError, RunDir, validate, write_dataset, write_json
+from ..rundir import DataError, ExperimentEntry, Manifest, RunDir, validate, write_dataset
 
 __all__ = [
     "CHANNELS",
@@ -685,17 +685,16 @@ def import_records(paths: list[Path], out: Path, opts: ImportOptions | None = No
     rates = sorted({info["entry"]["sample_rate"] for _, _, info in done.values()})
     if len(rates) > 1:
         say(f"records at different sample rates ({', '.join(f'{r:g}' for r in rates)} Hz): identify them apart")
-    manifest = {
-        "kind": "import",
-        "sample_rate": rates[0] if len(rates) == 1 else None,
-        "sources": {
+    Manifest(
+        kind="import",
+        sample_rate=rates[0] if len(rates) == 1 else None,
+        sources={
             name: {"file": p.name, "sha256": _sha256(p), "format": info["form"], "notes": info["notes"]}
             for name, (p, _, info) in done.items()
         },
-        "calibration": "assumed" if opts.calibration is None else "given",
-        "experiments": [{"name": name, **info["entry"]} for name, (_, _, info) in done.items()],
-    }
-    write_json(RunDir(out).manifest, manifest)
+        calibration="assumed" if opts.calibration is None else "given",
+        experiments=[ExperimentEntry(name=name, **info["entry"]) for name, (_, _, info) in done.items()],
+    ).write(out)
     return written
 
 
