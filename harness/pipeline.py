@@ -19,7 +19,7 @@ from .ident.identify import prepare, run_grid, write_grid
 from .render.report import write_report
 from .render.viewer import log_run
 from .rig.campaign import run_campaign
-from .rundir import load_run, load_spec
+from .rundir import load_run, recorded_spec
 
 Progress = Callable[[str], None]
 
@@ -28,7 +28,7 @@ def identify_run(run: Path, identify: dict[str, Any] | None = None, progress: Pr
     """Grid, cross-validation and selection on a run's identification datasets; writes grid.csv and models/."""
 
     run = Path(run)
-    spec = load_spec(run)
+    spec = recorded_spec(run)
     ident = dict(specmod.IDENTIFY_DEFAULTS)
     ident.update(spec.identify if spec else {})
     ident.update(identify or {})

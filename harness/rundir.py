@@ -351,7 +351,7 @@ def load_manifest(run: Path) -> dict[str, Any]:
     return to_plain(Manifest.load(run))
 
 
-def load_spec(run: Path) -> Spec | None:
+def recorded_spec(run: Path) -> Spec | None:
     """The spec recorded in a campaign's manifest (None for imported data)."""
     m = Manifest.load(run)
     return from_dict(m.spec, m.spec_file or "") if m.kind == "campaign" and m.spec is not None else None

@@ -12,7 +12,7 @@ import pandas as pd
 from .. import spec as specmod
 from ..fmu.build import build_all
 from ..rig.campaign import simulate_spec
-from ..rundir import RunDir, load_spec, write_json
+from ..rundir import RunDir, recorded_spec, write_json
 from . import armax
 from .calibration import Calibration
 from .identify import prepare
@@ -28,7 +28,7 @@ def doubled_rate_check(
     100 Hz.
     """
 
-    spec = load_spec(run)
+    spec = recorded_spec(run)
     if spec is None:
         return {"skipped": "imported data: no rig to re-run at a doubled rate"}
     exp = spec.experiment(experiment or spec.experiments[len(spec.experiments) // 2].name)
