@@ -311,7 +311,7 @@ def bench_diagnose(workers: int = 2) -> dict[str, Any]:
     }
 
 
-# issue 8's table: the nominal campaign on a rig whose linear part is off the datasheet, plus one effect
+# the off-datasheet table: the nominal campaign on a rig whose linear part is off the datasheet, plus one effect
 MISMATCH = [
     "plant.Ks=1.5",
     "plant.Beq=0.0052",
@@ -328,7 +328,7 @@ TABLE_ROWS = {
 
 
 def bench_diagnosis_table(workers: int | None = None) -> dict[str, Any]:
-    """Issue 8's table re-run: ``specs/nominal.toml`` with Ks 1.5, Beq 0.0052, zeta_link 0.02 and sensor noise
+    """The off-datasheet table: ``specs/nominal.toml`` with Ks 1.5, Beq 0.0052, zeta_link 0.02 and sensor noise
     (a real rig's mismatch) plus one effect per row, diagnosed against nominal: verdict, effects with their
     fitted values, recalibrated Ks and Beq, held-out fit before / after recalibration / after effects, wall s."""
 
@@ -363,8 +363,8 @@ def bench_blindtest(n: int, workers: int | None = None, seed: int = 0) -> dict[s
 
 
 def run_all(quick: bool = False, progress: Any = None, table: bool = False, blind: int = 0) -> dict[str, Any]:
-    """Every benchmark, each side by side with its peer, as one JSON-able dict; ``table`` adds issue 8's
-    diagnosis table (~3 min), ``blind`` the full blind test of that many rigs (~20 min for 45)."""
+    """Every benchmark, each side by side with its peer, as one JSON-able dict; ``table`` adds the
+    off-datasheet diagnosis table (~3 min), ``blind`` the full blind test of that many rigs (~20 min for 45)."""
 
     result: dict[str, Any] = {
         "machine": {"python": platform.python_version(), "cpus": os.cpu_count(), "platform": platform.platform()},

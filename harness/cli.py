@@ -511,7 +511,7 @@ def run(
 def bench(
     out_file: Annotated[Path, typer.Option("--out", help="JSON file to write")] = Path("bench.json"),
     quick: Annotated[bool, typer.Option(help="fewer repetitions")] = False,
-    table: Annotated[bool, typer.Option("--table", help="add issue 8's diagnosis table (~3 min)")] = False,
+    table: Annotated[bool, typer.Option("--table", help="add the off-datasheet diagnosis table (~3 min)")] = False,
     blind: Annotated[
         int, typer.Option("--blind", min=0, help="add the full blind test of N rigs (~20 min for 45)")
     ] = 0,
