@@ -1,5 +1,6 @@
-"""report.md + figures from a hand-built run directory whose numbers are known independently, with the real
-diagnosis of a short twin campaign (``diagnose_run``), and for run directories that hold only part of a run."""
+"""report.md + figures of a real run (a short campaign, calibrated, identified, cross-fitted and diagnosed), of a
+hand-built run directory whose numbers are known independently (with the real run's diagnosis), and of run
+directories that hold only part of a run."""
 
 from __future__ import annotations
 
@@ -23,10 +24,16 @@ from benchmarks.problems import demo_system
 from harness import spec as specmod
 from harness.diagnosis.blindtest import campaign_spec
 from harness.diagnosis.diagnose import diagnose_run
-from harness.ident import armax
-from harness.render.report import diagnosis_markdown, load_results, pole_zero, write_report
+from harness.ident import armax, lti
+from harness.ident.calibration import calibrate_run
+from harness.ident.crossfit import crossfit_run
+from harness.ident.identify import prepare, run_grid, write_grid
+from harness.render.analysis import estimates, measured_frf
+from harness.render.gap_text import diagnosis_markdown
+from harness.render.load import load_results
+from harness.render.report import write_report
 from harness.rig.campaign import run_campaign
-from harness.rundir import write_dataset
+from harness.rundir import RunDir, load_run, write_dataset
 
 AF = 0.8
 TS = 0.02
@@ -34,26 +41,39 @@ KP, KE, OFFSET = 35.0, -3.4, 0.1
 NAMES = ("prbs_a", "prbs_b", "square_c")
 N = 600
 N_SAMPLES = N
-TWIN_EXPERIMENTS = ("prbs_small", "square_large", "chirp_slow")  # 10 s each: ~10 s to diagnose on 2 cores
+REAL_EXPERIMENTS = ("prbs_small", "square_large", "chirp_slow")  # 10 s each: ~30 s to diagnose on 2 cores
+REAL_GRID = {"na": [2, 4], "nb": [1, 2], "nc": [1, 2]}
 
 
-def diagnosed_twin(tmp_path_factory) -> Path:
-    """A run directory of the blind rig with Coulomb friction (0.05 N m), three 10 s experiments, diagnosed by
+def real_run(tmp_path_factory) -> Path:
+    """A real run directory: the blind rig with Coulomb friction (0.05 N m) and a one-sample delay, three 10 s
+    experiments, calibrated, identified on a small grid, cross-fitted through the exported FMUs and diagnosed by
     ``diagnose_run`` against the blind campaign's linear rig. Made once per test process (cached on disk)."""
-    base = tmp_path_factory.getbasetemp() / "diagnosed_twin"
+    base = tmp_path_factory.getbasetemp() / "real_run"
     if (base / "diagnosis.json").exists():
         return base
     tmp = Path(tempfile.mkdtemp(dir=tmp_path_factory.getbasetemp()))
-    spec = campaign_spec(quick=True, overrides=["plant.coulomb_torque=0.05", "campaign.seed=11"])
+    spec = campaign_spec(quick=True, overrides=["plant.coulomb_torque=0.05", "daq.delay_samples=1", "campaign.seed=11"])
     raw = specmod.apply_overrides(spec.raw, [])
-    raw["experiment"] = [dict(e, duration=10.0) for e in raw["experiment"] if e["name"] in TWIN_EXPERIMENTS]
+    raw["experiment"] = [dict(e, duration=10.0) for e in raw["experiment"] if e["name"] in REAL_EXPERIMENTS]
     run_campaign(specmod.from_dict(raw, spec.path), tmp, workers=1)
+    cal = calibrate_run(tmp)
+    ident = dict(specmod.IDENTIFY_DEFAULTS, **REAL_GRID)
+    prepared = prepare(load_run(tmp), cal, float(ident["af"]), str(ident["output"]))
+    write_grid(run_grid(prepared, ident, workers=1), tmp, ident, cal)
+    crossfit_run(tmp)
     diagnose_run(tmp, campaign_spec(quick=True), workers=2)
     try:
         os.rename(tmp, base)
     except OSError:  # made meanwhile by another module of this process
         shutil.rmtree(tmp, ignore_errors=True)
     return base
+
+
+def campaign_only(real: Path, dest: Path) -> Path:
+    """A copy of the real run without identification (data, manifest, calibration and diagnosis only)."""
+    shutil.copytree(real, dest, ignore=shutil.ignore_patterns("models", "grid.csv", "crossfit.csv", "figures", "*.md"))
+    return dest
 
 
 def exp_gap(entry: dict) -> float:
@@ -141,7 +161,7 @@ def build_run(root: Path, diagnosis: dict) -> dict:
         rows[name] = cv
     cf = pd.DataFrame.from_dict(rows, orient="index")[list(NAMES)]
     avg = cf.mean(axis=1)
-    avg.iloc[1] += 3.0  # a wrong average in the file, like seed table 2 row 4: the report must not copy it
+    avg.iloc[1] += 3.0  # a wrong average in the file, like lab 1's table 2 row 4: the report must not copy it
     cf.insert(len(NAMES), "average", avg)
     cf.index.name = "model"
     cf.to_csv(root / "crossfit.csv", float_format="%.6f")
@@ -168,15 +188,15 @@ def build_run(root: Path, diagnosis: dict) -> dict:
 
 
 @pytest.fixture(scope="module")
-def twin(tmp_path_factory, fmus) -> tuple[Path, dict]:
-    path = diagnosed_twin(tmp_path_factory)
-    return path, json.loads((path / "diagnosis.json").read_text())
+def real(tmp_path_factory, fmus) -> tuple[Path, dict]:
+    path = real_run(tmp_path_factory)
+    return path, json.loads(RunDir(path).diagnosis.read_text())
 
 
 @pytest.fixture(scope="module")
-def run(tmp_path_factory, twin) -> tuple[Path, dict]:
+def run(tmp_path_factory, real) -> tuple[Path, dict]:
     root = tmp_path_factory.mktemp("run")
-    return root, build_run(root, twin[1])
+    return root, build_run(root, real[1])
 
 
 def _section(text: str, title: str) -> str:
@@ -223,12 +243,12 @@ def test_report_links_tables_and_reproducibility(run):
         assert 80.0 < ref < 100.0
         assert fits[name] == pytest.approx(round(ref, 2), abs=0.0051)
 
-    # calibration vs seed 000: (35 - 35.5145) / 35.5145 = -1.45 %
+    # calibration vs lab 1: (35 - 35.5145) / 35.5145 = -1.45 %
     cal = {r[0]: r for r in _rows(_section(text, "Calibration"))}
     assert cal["Kp"][2] == "35.0000" and cal["Kp"][3] == "35.5145" and cal["Kp"][4] == "-1.45"
     assert cal["Ke"][4] == "-1.08"  # (-3.4 + 3.3636) / 3.3636
 
-    # grid counts; the selected ARMAX(4,3,4,1) + integrator has 5 poles, 4 zeros (seed fig. 13)
+    # grid counts; the selected ARMAX(4,3,4,1) + integrator has 5 poles, 4 zeros (lab 1 fig. 13)
     grid = {r[0]: r[1] for r in _rows(_section(text, "ARMAX grid and selection"))}
     assert grid["causal (nb + nk <= na), fitted"] == "3"
     assert grid["fit >= 89 % on own dataset"] == "2"
@@ -241,48 +261,30 @@ def test_report_links_tables_and_reproducibility(run):
     assert not list(root.rglob("*.tmp"))
 
 
-def test_pole_zero_with_integrator():
-    """G = B/A / H(z): poles of A plus z = 1; zeros of B, the filter pole af and the origin."""
-    m = _truth_model()
-    poles, zeros = pole_zero(m, AF)
-    expected = np.concatenate([np.roots(m.A), [1.0]])
-    assert np.sort_complex(poles) == pytest.approx(np.sort_complex(expected), abs=1e-9)
-    # B = [0, .10, .05, -.12] -> 0.10 z^2 + 0.05 z - 0.12 (one root at -1.374: non-minimum phase)
-    ref = np.concatenate([np.roots([0.10, 0.05, -0.12]), [AF, 0.0]])
-    assert np.sort_complex(zeros) == pytest.approx(np.sort_complex(ref), abs=1e-9)
-
-
 def test_parameter_deviations_and_information_criteria(run):
     """The selected model's free parameters with sqrt(diag(cov)), and MATLAB's FPE and AIC on its dataset."""
-    from harness.render.report import _estimates_lines
-
-    root, truth = run
-    res = load_results(root)
+    _, truth = run
     m = truth["models"]["prbs_b"]  # estimated by PEM: it carries a covariance
-    rows = _rows("\n".join(_estimates_lines(res, m, {"dataset": "prbs_b"})))[1:]
-    assert [r[0] for r in rows] == ["a1", "a2", "a3", "b1", "b2", "c1", "c2"]
-    ref = np.concatenate([m.A[1:], m.B[1:], m.C[1:]])
-    assert [float(r[1]) for r in rows] == pytest.approx(ref, rel=1e-5)
-    assert [float(r[2]) for r in rows] == pytest.approx(np.sqrt(np.diag(m.cov)), rel=5.1e-3)  # 3 digits
-    text = "\n".join(_estimates_lines(res, m, {"dataset": "prbs_b"}))
+    est = estimates(m, N_SAMPLES)
+    assert est.names == ["a1", "a2", "a3", "b1", "b2", "c1", "c2"]
+    assert est.values == pytest.approx(np.concatenate([m.A[1:], m.B[1:], m.C[1:]]), rel=1e-12)
+    assert est.std == pytest.approx(np.sqrt(np.diag(m.cov)), rel=1e-12)
     N, d, V = N_SAMPLES, 7, m.loss
-    assert f"FPE = V (1 + d/N)/(1 - d/N) = {V * (1 + d / N) / (1 - d / N):.6g}" in text
-    assert f"AIC = N ln V + 2 d = {N * math.log(V) + 2 * d:.2f}" in text
-    assert _estimates_lines(res, truth["models"]["selected"], {"dataset": "prbs_a"}) == []  # no covariance
+    assert est.fpe == pytest.approx(V * (1 + d / N) / (1 - d / N), rel=1e-12)
+    assert est.aic == pytest.approx(N * math.log(V) + 2 * d, rel=1e-12)
+    assert estimates(truth["models"]["selected"], N_SAMPLES) is None  # no covariance
 
 
 def test_measured_frf_follows_the_true_system(run):
     """The nonparametric H1 response on the Bode plot: times H(z) it is B/A of the system that made the data."""
-    from harness.render.report import measured_frf
-
     root, truth = run
-    f, g = measured_frf(load_results(root), "prbs_a")
-    assert f.size >= 10
-    zi = np.exp(-2j * np.pi * f * TS)
+    frf = measured_frf(load_results(root).prepared["prbs_a"], AF)
+    assert frf.f_hz.size >= 10 and np.all(frf.coherence >= 0.8)
+    zi = np.exp(-2j * np.pi * frf.f_hz * TS)
     m = truth["models"]["selected"]
     ba = np.polyval(m.B[::-1], zi) / np.polyval(m.A[::-1], zi)
     h = (1 - AF) * (1 - zi) / (1 - AF * zi)
-    assert np.median(np.abs(20 * np.log10(np.abs(g * h / ba)))) < 1.0  # dB
+    assert np.median(np.abs(20 * np.log10(np.abs(frf.response * h / ba)))) < 1.0  # dB
 
 
 def test_loader_signals_match_generated_data(run):
@@ -300,7 +302,7 @@ def test_bad_run_directories(tmp_path):
         write_report(tmp_path / "missing")
     with pytest.raises(ValueError, match="manifest.json"):
         write_report(tmp_path)
-    (tmp_path / "manifest.json").write_text(json.dumps({"kind": "import", "experiments": []}))
+    (tmp_path / "manifest.json").write_text(json.dumps({"kind": "import", "sample_rate": 50.0, "experiments": []}))
     (tmp_path / "models").mkdir()
     (tmp_path / "models" / "selected.json").write_text("{not json")
     with pytest.raises(ValueError, match=r"selected\.json: not valid JSON"):
@@ -308,42 +310,121 @@ def test_bad_run_directories(tmp_path):
     assert not (tmp_path / "report.md").exists()
 
 
-def test_diagnosis_section_renders_the_real_diagnosis(run, twin):
-    """Roles from the diagnoser's folds, gaps per experiment, parameters, importance, the waterfall, a short
-    where table; no raw dictionary, no line over 1,000 characters."""
-    root, _ = run
-    d = twin[1]
-    text = write_report(root).read_text()
-    assert max(len(line) for line in text.splitlines()) < 1000
+@pytest.fixture(scope="module")
+def real_report(real) -> tuple[Path, dict, str]:
+    root, d = real
+    return root, d, write_report(root).read_text()
+
+
+def test_real_report_is_compact_and_reproducible(real_report):
+    """report.md of a real run: well under 25 kB, no line over 1,000 characters, no raw dictionary, every
+    figure it links exists; a second write gives the same bytes (text and figures)."""
+    root, _, text = real_report
+    assert len(text.encode()) < 16_000 and max(len(line) for line in text.splitlines()) < 1000
+    assert "{" not in text and "fit_model" not in text and "_pct" not in text and "seed 000" not in text
+    links = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", text)
+    assert {Path(x).name for x in links} == {p.name for p in RunDir(root).figures.glob("*.png")}
+    assert len(links) == 9
+    figs = {p.name: p.read_bytes() for p in RunDir(root).figures.glob("*.png")}
+    assert write_report(root).read_text() == text
+    assert {p.name: p.read_bytes() for p in RunDir(root).figures.glob("*.png")} == figs
+
+
+def test_real_report_diagnosis(real_report):
+    """Roles from the diagnoser's folds, the verdict sentence with the verdict's importance and the effect that
+    closed most, importance and shrink per effect, the waterfall's numbers equal to diagnosis.json's, gaps per
+    experiment, recalibrated parameters, a short where table."""
+    _, d, text = real_report
     sec = _section(text, "Sim-to-real gap diagnosis")
-    assert "{" not in sec and "Verdict: **coulomb_friction**" in sec
+    assert d["verdict"] == "coulomb_friction" and [e["effect"] for e in d["effects"]] == ["coulomb_friction", "delay"]
+    imp = {e["effect"]: e["importance_pct"] for e in d["effects"]}
+    shrink = {e["effect"]: e["shrink_pct"] for e in d["effects"]}
+    assert imp["coulomb_friction"] > imp["delay"] and shrink["delay"] > 90.0 > shrink["coulomb_friction"]
+    assert (
+        f"removing `coulomb_friction` alone from the final model reopens the most gap "
+        f"({imp['coulomb_friction']:.1f} % of what the drop-one removals reopen together)" in sec
+    )
+    assert f"`delay`, added second, closed {shrink['delay']:.1f} % of the gap left at that point" in sec
+    effects = {r[0]: r for r in _rows(sec) if r[0] in imp and len(r) == 7}
+    for name, r in effects.items():
+        assert (r[2], r[5], r[6]) == (f"{imp[name]:.1f}", f"{shrink[name]:.1f}", "closes the held-out gap")
+
+    dec = d["gap"]["decomposition"]
+    steps = {r[0]: r for r in _rows(sec) if len(r) == 4 and r[0] != "stage"}
+    assert steps["simulation as given"][1] == f"{dec['before']:.4f}"
+    assert steps["noise floor"][1] == f"{dec['noise_floor']:.4f}"
+    for st in dec["steps"]:
+        assert steps[st["stage"]][1:] == [f"{st['gap_after']:.4f}", f"{100 * (1 - st['gap_after']):.2f}",
+                                          f"{st['closed_pct']:.1f}"]  # fmt: skip
+    assert [r[0] for r in _rows(sec) if len(r) == 4 and r[0] in steps][:4] == [
+        "simulation as given",
+        "recalibration",
+        *imp,
+    ]
+
     folds = {n: f"fold {k}" for k in ("A", "B") for n in d["folds"][k]}
     per = {r[0]: r for r in _rows(sec) if r[0] in d["gap"]["before"]["experiments"]}
-    assert set(per) == set(d["gap"]["before"]["experiments"]) == set(folds)
+    assert set(per) == set(d["gap"]["before"]["experiments"]) == set(folds) == set(REAL_EXPERIMENTS)
     for name, r in per.items():
         assert r[1] == folds[name]  # the role, from folds (no "—")
         before = exp_gap(d["gap"]["before"]["experiments"][name])
         after = exp_gap(d["gap"]["after"]["experiments"][name])
         assert (float(r[4]), float(r[5])) == pytest.approx((before, after), abs=6e-5)
-    effects = {r[0]: r for r in _rows(sec) if r[0] in {e["effect"] for e in d["effects"]} and len(r) == 7}
-    for e in d["effects"]:
-        assert effects[e["effect"]][2] == f"{e['importance_pct']:.1f}"
-    assert "the only effect found" in sec.lower() or "removal from the final model reopens most" in sec
-    if "parameters" in d:
-        rows = {r[0]: r for r in _rows(sec) if r[0] in d["parameters"]}
-        assert set(rows) == set(d["parameters"])
-        ks = d["parameters"]["plant.Ks"]
-        assert rows["plant.Ks"][2] == f"{ks['nominal']:.4g}" and rows["plant.Ks"][6] == ks["finding"]
-    if "decomposition" in d["gap"]:
-        stages = [r[0] for r in _rows(sec) if r[0] in {"simulation as given", "recalibration", "noise floor"}]
-        assert stages[0] == "simulation as given" and "noise floor" in stages
-        assert (root / "figures" / "gap_waterfall.png").read_bytes()[:4] == b"\x89PNG"
+    rows = {r[0]: r for r in _rows(sec) if r[0] in d["parameters"]}
+    assert set(rows) == set(d["parameters"])
+    ks = d["parameters"]["plant.Ks"]
+    assert rows["plant.Ks"][2] == f"{ks['nominal']:.4g}" and rows["plant.Ks"][6] == ks["finding"]
+    assert rows["plant.coulomb_torque"][3] == f"{d['parameters']['plant.coulomb_torque']['fitted']:.4g}"
     where = [r for r in _rows(sec) if r[0] in ("simulation as given", "after recalibration") and len(r) == 6]
     assert 1 <= len(where) <= 4 and {r[1] for r in where} <= {"theta", "alpha"}
 
 
-def test_diagnosis_markdown_accepts_todays_flat_where_and_skips_what_is_absent(twin):
-    d = copy.deepcopy(twin[1])
+def test_real_report_identification(real_report):
+    """Best (grid.csv, by mean CV fit) and selected model per dataset, the residual tests per dataset equal to
+    armax.resid's, the statement that acceptance gates on the fit only, FPE and AIC of the selected model."""
+    root, _, text = real_report
+    grid = pd.read_csv(RunDir(root).grid)
+    sec = _section(text, "ARMAX grid and selection")
+    rows = {r[0]: r for r in _rows(sec) if r[0] in REAL_EXPERIMENTS and len(r) == 7}
+    assert set(rows) == set(REAL_EXPERIMENTS)
+    differs = 0
+    for name, r in rows.items():
+        g = grid[(grid["dataset"] == name) & grid["cv_mean"].notna()]
+        b = g.loc[g["cv_mean"].idxmax()]
+        assert r[1:4] == [f"({b.na},{b.nb},{b.nc},{b.nk})", f"{b.fit:.2f}", f"{b.cv_mean:.2f}"]
+        rec = json.loads(RunDir(root).model(name).read_text())
+        assert r[4:] == [f"({rec['na']},{rec['nb']},{rec['nc']},{rec['nk']})", f"{rec['fit_own']:.2f}",
+                         f"{rec['cv_mean']:.2f}"]  # fmt: skip
+        assert float(r[6]) >= float(r[3]) - 1.0  # within the tolerance of the best
+        differs += r[1] != r[4]
+    assert differs >= 1  # on this run the simplest within one point is not the best
+    sel = json.loads(RunDir(root).model("selected").read_text())
+    m = armax.ArmaxModel.from_dict(sel)
+    ic = [r for r in _rows(sec) if r[0] == sel["dataset"] and len(r) == 6][0]
+    est = estimates(m, int(ic[1]))
+    assert ic[1:] == ["500", str(m.n_params), f"{m.loss:.6g}", f"{est.fpe:.6g}", f"{est.aic:.2f}"]
+
+    res = load_results(root)
+    resid = {r[0]: r for r in _rows(_section(text, "Residual tests"))[1:]}
+    assert set(resid) == set(REAL_EXPERIMENTS)
+    for name, p in res.prepared.items():
+        rt = armax.resid(m, p.u_d, p.y_f, lags=25)
+        assert resid[name][1] == f"{rt.n_out_acf}/25 (allowed {rt.allowed_acf})"
+        assert resid[name][2] == ("yes" if rt.white else "no") and resid[name][4] == ("yes" if rt.independent else "no")
+    assert "Acceptance (`flexjoint accept`) gates on the fit only" in text
+
+    time_rows = {r[0]: r for r in _rows(_section(text, "Time responses per dataset"))[1:]}
+    for name, p in res.prepared.items():
+        y = armax.simulate(m, p.u_d, p.y_f, "z")
+        assert time_rows[name][1] == f"{armax.fit_percent(p.y_f, y):.2f}"
+        t0, t1 = (float(x) for x in time_rows[name][3].split("-"))
+        assert t1 - t0 == pytest.approx(4.0 - p.Ts, abs=0.11)  # shown to 0.1 s
+    poles = lti.poles(lti.with_integrator(m, AF))
+    assert f"{poles.size} poles" in text
+
+
+def test_diagnosis_markdown_accepts_todays_flat_where_and_skips_what_is_absent(real):
+    d = copy.deepcopy(real[1])
     where = d["where"]
     d["where"] = where.get("before", where)  # the structure before the before/after split
     for key in ("parameters", "recalibration_applied"):
@@ -357,17 +438,16 @@ def test_diagnosis_markdown_accepts_todays_flat_where_and_skips_what_is_absent(t
     assert "| simulation as given | theta |" in text and "after recalibration" not in text
 
 
-def test_report_of_a_run_directory_without_models(twin, tmp_path):
+def test_report_of_a_run_directory_without_models(real, tmp_path):
     """`flexjoint report DIR` on a directory with data, calibration and diagnosis only: report.md (the sections
     it has data for), figures/ and run.rrd."""
-    run = tmp_path / "twin"
-    shutil.copytree(twin[0], run)
+    run = campaign_only(real[0], tmp_path / "campaign")
     r = subprocess.run(
         [sys.executable, "-m", "harness.cli", "report", str(run)], capture_output=True, text=True, timeout=600
     )
     assert r.returncode == 0, r.stderr
-    text = (run / "report.md").read_text()
+    text = RunDir(run).report.read_text()
     assert "## Calibration" in text and "## Sim-to-real gap diagnosis" in text
     assert "## Selected model" not in text and "No `grid.csv` in this run." in text
-    assert (run / "run.rrd").stat().st_size > 0 and (run / "figures" / "diagnosis.png").exists()
+    assert RunDir(run).recording.stat().st_size > 0 and (RunDir(run).figures / "diagnosis.png").exists()
     assert len(text.encode()) < 25_000

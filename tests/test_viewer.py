@@ -17,11 +17,12 @@ from rerun.chunk import RrdReader
 
 from harness.ident import armax
 from harness.render.viewer import APPLICATION_ID, CORR_HEIGHT, DB_PER_UNIT, log_run, recording_id
+from harness.rundir import RunDir
 
 try:
-    from test_report import AF, NAMES, TS, build_run, diagnosed_twin, exp_gap
+    from test_report import AF, NAMES, REAL_EXPERIMENTS, TS, build_run, campaign_only, exp_gap, real_run
 except ImportError:  # tests/ imported as a package
-    from tests.test_report import AF, NAMES, TS, build_run, diagnosed_twin, exp_gap
+    from tests.test_report import AF, NAMES, REAL_EXPERIMENTS, TS, build_run, campaign_only, exp_gap, real_run
 
 # what each kind of view draws (the component that carries the data)
 VIEW_DATA = {
@@ -42,16 +43,16 @@ def read_chunks(rrd: Path) -> dict[str, list[dict]]:
 
 
 @pytest.fixture(scope="module")
-def twin(tmp_path_factory, fmus) -> tuple[Path, dict]:
-    path = diagnosed_twin(tmp_path_factory)
-    return path, json.loads((path / "diagnosis.json").read_text())
+def real(tmp_path_factory, fmus) -> tuple[Path, dict]:
+    path = real_run(tmp_path_factory)
+    return path, json.loads(RunDir(path).diagnosis.read_text())
 
 
 @pytest.fixture(scope="module")
-def logged(tmp_path_factory, twin) -> tuple[Path, dict, dict[str, list[dict]], Path]:
+def logged(tmp_path_factory, real) -> tuple[Path, dict, dict[str, list[dict]], Path]:
     rr.set_strict_mode(True)
     root = tmp_path_factory.mktemp("vrun")
-    truth = build_run(root, twin[1])
+    truth = build_run(root, real[1])
     rrd = log_run(root)
     return root, truth, read_chunks(rrd), rrd
 
@@ -149,10 +150,27 @@ def test_every_view_of_the_blueprint_shows_data(logged):
     assert bode and all(v["class"] == "2D" for v in bode)  # not a TimeSeries on a frequency timeline
 
 
-def test_every_view_shows_data_for_a_run_without_models(twin, tmp_path):
-    run = tmp_path / "twin"
-    shutil.copytree(twin[0], run)
-    views = check_every_view_shows_data(log_run(run))
+def test_every_view_shows_data_for_a_real_run(real, tmp_path):
+    """The real run (identified, cross-fitted, diagnosed): every view has data; its summary holds the verdict
+    sentence and the waterfall the diagnosis's gaps."""
+    run = tmp_path / "real"
+    shutil.copytree(real[0], run)
+    rrd = log_run(run)
+    views = check_every_view_shows_data(rrd)
+    assert {"TimeSeries", "Tensor", "TextDocument", "2D", "BarChart"} <= {v["class"] for v in views}
+    chunks = read_chunks(rrd)
+    d = real[1]
+    summary = _column(chunks, "/diagnosis/summary", "TextDocument:text")[0][0]
+    assert "removing `coulomb_friction` alone from the final model reopens the most gap" in summary
+    stages = _column(chunks, "/diagnosis/waterfall", "BarChart:values")[0][0]["buffer"]
+    dec = d["gap"]["decomposition"]
+    np.testing.assert_allclose(stages, [dec["before"], *(s["gap_after"] for s in dec["steps"])], rtol=1e-6)
+    for name in REAL_EXPERIMENTS:
+        assert f"/datasets/{name}/simulated" in chunks and f"/resid/acf/{name}" in chunks
+
+
+def test_every_view_shows_data_for_a_run_without_models(real, tmp_path):
+    views = check_every_view_shows_data(log_run(campaign_only(real[0], tmp_path / "campaign")))
     assert {v["class"] for v in views} == {"TimeSeries", "TextDocument", "BarChart"}
 
 
@@ -250,9 +268,9 @@ def test_residual_correlations_in_2d(logged):
     assert abs(np.array(bounds[0], dtype=float)[0, 1]) / CORR_HEIGHT == pytest.approx(bound, rel=1e-5)
 
 
-def test_diagnosis_bars_show_before_and_after(logged, twin):
+def test_diagnosis_bars_show_before_and_after(logged, real):
     _, _, chunks, _ = logged
-    d = twin[1]
+    d = real[1]
     exps = d["gap"]["before"]["experiments"]
     before = _column(chunks, "/diagnosis/gap/before", "BarChart:values")[0][0]
     after = _column(chunks, "/diagnosis/gap/after", "BarChart:values")[0][0]
@@ -270,7 +288,7 @@ def test_diagnosis_bars_show_before_and_after(logged, twin):
         assert stages[0] == pytest.approx(d["gap"]["decomposition"]["before"], rel=1e-6)
 
 
-def test_connect_and_errors_leave_no_half_file(logged, twin, tmp_path):
+def test_connect_and_errors_leave_no_half_file(logged, real, tmp_path):
     root, _, _, rrd = logged
     with pytest.raises(ValueError, match="invalid viewer URL"):
         log_run(root, rrd=tmp_path / "x.rrd", connect="http://localhost:9876")
@@ -288,7 +306,7 @@ def test_connect_and_errors_leave_no_half_file(logged, twin, tmp_path):
 
     before = rrd.read_bytes()
     bad = tmp_path / "bad"
-    build_run(bad, twin[1])
+    build_run(bad, real[1])
     (bad / "models" / "selected.json").write_text('{"na": 2}')
     with pytest.raises(ValueError, match=r"selected\.json: ARMAX model dict lacks the key"):
         log_run(bad)

@@ -5,7 +5,7 @@ timeline (the time panel's), everything else is static. Plots that are not over 
 correlations, the cross-fit heat map) are drawn in 2D views with their own axes, grid and tick labels, and the
 axis units in the view names. Rerun's 2D views point y down, so values are drawn at -y.
 
-Entity tree (all logged from the run directory alone, via :func:`harness.render.report.load_results`):
+Entity tree (all logged from the run directory alone, via :func:`harness.render.load.load_results`):
 
 - ``datasets/<name>/measured``, ``.../simulated`` (identification domain y_f [deg/sample], selected model),
   ``.../command`` (u [V]), ``.../tip/measured``, ``.../tip/simulated`` (tip angle [deg]); timeline ``time`` [s]
@@ -41,24 +41,15 @@ import rerun as rr
 import rerun.blueprint as rrb
 from matplotlib import colormaps
 
-from ..ident import armax
-from .report import (
-    RunResults,
-    bode,
-    crossfit_table,
-    diagnosis_markdown,
-    fold_roles,
-    gap_rows,
-    load_results,
-    pole_zero,
-    tip_from_filtered,
-    waterfall,
-)
+from ..ident import lti
+from .analysis import RESID_LAGS, bode_curves, bode_grid, residual_tests, tip_from_filtered
+from .gap_text import diagnosis_markdown, fold_roles, gap_rows, waterfall
+from .load import RunResults, load_results
+from .tables import crossfit_table
 
 __all__ = ["APPLICATION_ID", "log_run", "recording_id"]
 
 APPLICATION_ID = "flexjoint"
-RESID_LAGS = 25
 N_BODE = 400
 DB_PER_UNIT = 20.0  # Bode magnitude: one 2D unit per 20 dB (a decade of gain, as one unit is a decade of f)
 DEG_PER_UNIT = 90.0  # Bode phase: one 2D unit per 90 deg
@@ -218,7 +209,8 @@ def _log_crossfit(rec: rr.RecordingStream, res: RunResults) -> rrb.VisualBounds2
 def _log_pz(rec: rr.RecordingStream, res: RunResults) -> None:
     if res.selected is None:
         return
-    poles, zeros = pole_zero(res.selected[0], res.af)
+    g = lti.with_integrator(res.selected[0], res.af)
+    poles, zeros = lti.poles(g), lti.zeros(g)
     base = "models/selected/pz"
     rec.log(
         f"{base}/poles",
@@ -241,10 +233,9 @@ def _log_pz(rec: rr.RecordingStream, res: RunResults) -> None:
 def _log_bode(rec: rr.RecordingStream, res: RunResults) -> dict[str, rrb.VisualBounds2D]:
     if not res.models:
         return {}
-    nyq = 0.5 / res.sample_time
-    f = np.logspace(math.log10(min(0.01, 1e-3 * nyq)), math.log10(0.999 * nyq), N_BODE)
+    f = bode_grid(res.sample_time, N_BODE)
     x = np.log10(f)
-    curves = {name: bode(m, res.af, f) for name, (m, _) in res.models.items()}
+    curves = {name: (d.mag_db, d.phase_deg) for name, d in bode_curves(res, f).items()}
     bounds = {}
     xticks = [(float(k), f"{10.0**k:g} Hz") for k in range(math.ceil(x[0]), math.floor(x[-1]) + 1)]
     for kind, idx, unit, per in (("magnitude", 0, "dB", DB_PER_UNIT), ("phase", 1, "deg", DEG_PER_UNIT)):
@@ -262,18 +253,17 @@ def _log_bode(rec: rr.RecordingStream, res: RunResults) -> dict[str, rrb.VisualB
 
 
 def _log_resid(rec: rr.RecordingStream, res: RunResults) -> dict[str, rrb.VisualBounds2D]:
-    if res.selected is None or not res.prepared:
+    tests = residual_tests(res)
+    if not tests:
         return {}
-    m = res.selected[0]
     rows = [
         "| dataset | acf lags outside | white | ccf lags outside | independent |",
         "|---|---|---|---|---|",
     ]
     bound = 0.0
     lags = RESID_LAGS
-    for i, (name, p) in enumerate(res.prepared.items()):
-        lags = min(RESID_LAGS, p.y_f.size // 2 - 1)
-        rt = armax.resid(m, p.u_d, p.y_f, lags=lags)
+    for i, (name, rt) in enumerate(tests.items()):
+        lags = rt.lags
         bound = max(bound, rt.bound)
         color = _PALETTE[i % len(_PALETTE)]
         sx_acf, sx_ccf = LAG_WIDTH / lags, LAG_WIDTH / (2 * lags)

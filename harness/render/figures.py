@@ -1,0 +1,285 @@
+"""The report's matplotlib figures, each drawn from data computed elsewhere (:mod:`harness.render.analysis`,
+:mod:`harness.ident.lti`) and written as PNG.
+
+Figures are drawn with matplotlib's Agg canvas (no pyplot, no global backend change) at a fixed dpi and with
+no software/date metadata, so the same data give the same bytes on the same library versions.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from ..ident import armax, lti
+from ..ident.preprocess import filter_response
+from ..rundir import atomic_write_bytes
+from .analysis import MIN_COHERENCE, MeasuredFRF
+from .tables import fmt
+
+__all__ = [
+    "DPI",
+    "PZ_VIEW_MAX",
+    "TimePanel",
+    "bode",
+    "crossfit",
+    "diagnosis_bars",
+    "filter_responses",
+    "gap_waterfall",
+    "new_figure",
+    "pole_zero",
+    "residual_correlations",
+    "save_figure",
+    "square_response",
+    "time_responses",
+]
+
+DPI = 100
+PZ_VIEW_MAX = 2.5  # half-width of the pole-zero plot; farther roots are listed on it instead
+
+
+def new_figure(w: float, h: float) -> Figure:
+    """A matplotlib figure of w x h inches at the report's DPI, drawn without pyplot (no GUI, thread-safe)."""
+    fig = Figure(figsize=(w, h), dpi=DPI)
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def save_figure(fig: Figure, path: Path) -> None:
+    """Write ``fig`` as PNG atomically, without a timestamp or software tag (the same bytes on a re-run)."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=DPI, metadata={"Software": None})
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def filter_responses(afs: tuple[float, ...], af_used: float, f_hz: np.ndarray, Ts: float, path: Path) -> None:
+    """Magnitude [dB] and phase [deg] of H(z) for each af in ``afs`` over ``f_hz`` [Hz]."""
+    fig = new_figure(7, 5)
+    ax_m, ax_p = fig.subplots(2, 1, sharex=True)
+    for af in afs:
+        mag, ph = filter_response(af, f_hz, Ts)
+        lw = 2.0 if af == af_used else 1.0
+        ax_m.semilogx(f_hz, 20 * np.log10(mag), lw=lw, label=f"af = {af:g}" + (" (used)" if af == af_used else ""))
+        ax_p.semilogx(f_hz, np.degrees(ph), lw=lw)
+    ax_m.set_ylabel("magnitude [dB]")
+    ax_p.set_ylabel("phase [deg]")
+    ax_p.set_xlabel("frequency [Hz]")
+    ax_m.set_title(f"H(z) = (1-af)(z-1)/(z-af), Ts = {Ts:g} s")
+    ax_m.legend()
+    for ax in (ax_m, ax_p):
+        ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def bode(
+    curves: Mapping[str, lti.BodeData],
+    selected_label: str,
+    measured: MeasuredFRF | None,
+    path: Path,
+) -> None:
+    """Bode of G = B/A / H(z) (u [V] -> tip angle [deg]): the per-dataset models grey, ``curves["selected"]``
+    blue, and the measured (nonparametric) response as dots."""
+    fig = new_figure(7, 5.5)
+    ax_m, ax_p = fig.subplots(2, 1, sharex=True)
+    for name, d in curves.items():
+        if name != "selected":
+            ax_m.semilogx(d.f_hz, d.mag_db, color="0.7", lw=0.8)
+            ax_p.semilogx(d.f_hz, d.phase_deg, color="0.7", lw=0.8)
+    sel = curves["selected"]
+    ax_m.semilogx(sel.f_hz, sel.mag_db, color="C0", lw=2, label=f"selected {selected_label}")
+    ax_p.semilogx(sel.f_hz, sel.phase_deg, color="C0", lw=2)
+    ax_m.plot([], [], color="0.7", label="per-dataset models")
+    if measured is not None:
+        near = float(np.interp(measured.f_hz[0], sel.f_hz, sel.phase_deg))
+        label = f"measured on {measured.dataset} (H1, coherence >= {MIN_COHERENCE:g})"
+        ax_m.semilogx(measured.f_hz, measured.mag_db, ".", color="k", ms=3, label=label)
+        ax_p.semilogx(measured.f_hz, measured.phase_deg(near), ".", color="k", ms=3)
+    ax_m.set_ylabel("magnitude [dB]")
+    ax_p.set_ylabel("phase [deg]")
+    ax_p.set_xlabel("frequency [Hz]")
+    ax_m.set_title("Bode of G = B/A / H(z): command u [V] to tip angle y [deg]")
+    ax_m.legend(fontsize=8)
+    for ax in (ax_m, ax_p):
+        ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def pole_zero(poles: np.ndarray, zeros: np.ndarray, path: Path) -> None:
+    """z-plane map with the unit circle; roots beyond PZ_VIEW_MAX are listed on the plot."""
+    fig = new_figure(5.5, 5.5)
+    ax = fig.subplots()
+    th = np.linspace(0, 2 * math.pi, 361)
+    ax.plot(np.cos(th), np.sin(th), color="0.5", lw=0.8)
+    ax.axhline(0, color="0.8", lw=0.6)
+    ax.axvline(0, color="0.8", lw=0.6)
+    ax.plot(poles.real, poles.imag, "x", color="C3", ms=9, mew=2, label=f"poles ({poles.size})")
+    ax.plot(zeros.real, zeros.imag, "o", mfc="none", color="C0", ms=8, mew=1.5, label=f"zeros ({zeros.size})")
+    both = np.concatenate([poles, zeros])
+    lim = float(np.clip(1.1 * np.max(np.abs(both), initial=1.0), 1.3, PZ_VIEW_MAX))
+    far = [
+        f"{kind} at {fmt(x.real, 2)}{x.imag:+.2f}j"
+        for kind, xs in (("pole", poles), ("zero", zeros))
+        for x in xs
+        if abs(x.real) > lim or abs(x.imag) > lim
+    ]
+    if far:
+        ax.text(0.98, 0.02, "off view: " + ", ".join(far), transform=ax.transAxes, ha="right", fontsize=8)
+    ax.set_xlim(-lim, lim)
+    ax.set_ylim(-lim, lim)
+    ax.set_aspect("equal")
+    ax.set_xlabel("Re z")
+    ax.set_ylabel("Im z")
+    ax.set_title("pole-zero map of the selected model (with integrator)")
+    ax.legend(loc="upper left")
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+@dataclass(frozen=True)
+class TimePanel:
+    """One dataset's panel: time t [s], measured and simulated y_f [deg/sample] (simulated None without a
+    model), and the zoom window (t0, t1) [s]."""
+
+    name: str
+    t: np.ndarray
+    measured: np.ndarray
+    simulated: np.ndarray | None
+    zoom: tuple[float, float]
+
+
+def time_responses(panels: list[TimePanel], zoom_s: float, path: Path) -> None:
+    """Per dataset: the whole record (measured, simulated, residual) and, under it, the zoom window where the
+    residual is largest, so that measurement and simulation can be told apart."""
+    ncol = 3 if len(panels) > 4 else min(2, len(panels))
+    nrow = math.ceil(len(panels) / ncol)
+    fig = new_figure(4.2 * ncol, 4.2 * nrow)
+    grid = fig.subplots(2 * nrow, ncol, squeeze=False)
+    for i, pnl in enumerate(panels):
+        top, zoom = grid[2 * (i // ncol), i % ncol], grid[2 * (i // ncol) + 1, i % ncol]
+        for ax in (top, zoom):
+            ax.plot(pnl.t, pnl.measured, color="k", lw=0.8, label="measured")
+            if pnl.simulated is not None:
+                ax.plot(pnl.t, pnl.simulated, color="C1", lw=0.8, label="simulated")
+                ax.plot(pnl.t, pnl.measured - pnl.simulated, color="C3", lw=0.6, label="residual")
+            ax.tick_params(labelsize=7)
+            ax.set_ylabel("y_f [deg/sample]", fontsize=7)
+        fit = f": fit {fmt(armax.fit_percent(pnl.measured, pnl.simulated))} %" if pnl.simulated is not None else ""
+        top.set_title(pnl.name + fit, fontsize=9)
+        top.axvspan(*pnl.zoom, color="C0", alpha=0.12)
+        zoom.set_xlim(*pnl.zoom)
+        zoom.set_xlabel(f"t [s] (zoom: largest residual over {zoom_s:g} s)", fontsize=7)
+    for i in range(len(panels), nrow * ncol):
+        grid[2 * (i // ncol), i % ncol].set_visible(False)
+        grid[2 * (i // ncol) + 1, i % ncol].set_visible(False)
+    grid[0, 0].legend(fontsize=7)
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def square_response(t: np.ndarray, u: np.ndarray, y: np.ndarray, title: str, path: Path) -> None:
+    """Command u [V] and tip angle y [deg] over t [s]."""
+    fig = new_figure(7, 4)
+    ax1, ax2 = fig.subplots(2, 1, sharex=True)
+    ax1.plot(t, u, color="k", lw=1)
+    ax1.set_ylabel("u [V]")
+    ax2.plot(t, y, color="C0", lw=1.2)
+    ax2.set_ylabel("tip angle y [deg]")
+    ax2.set_xlabel("t [s]")
+    ax1.set_title(title)
+    for ax in (ax1, ax2):
+        ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def residual_correlations(rt: armax.ResidTest, title: str, path: Path) -> None:
+    """Autocorrelation of the residual and its cross-correlation with the input, with the 99 % bound."""
+    fig = new_figure(7, 5)
+    ax1, ax2 = fig.subplots(2, 1)
+    lags = np.arange(rt.acf.size)
+    ax1.vlines(lags, 0, rt.acf, color="C0")
+    ax1.plot(lags, rt.acf, "o", color="C0", ms=3)
+    ax2.vlines(rt.lags_ccf, 0, rt.ccf, color="C2")
+    ax2.plot(rt.lags_ccf, rt.ccf, "o", color="C2", ms=3)
+    for ax, x in ((ax1, lags), (ax2, rt.lags_ccf)):
+        ax.fill_between(x, -rt.bound, rt.bound, color="C3", alpha=0.15, label="99 % bound")
+        ax.axhline(0, color="0.5", lw=0.6)
+    ax1.set_title(title, fontsize=10)
+    ax1.set_ylabel("r_ee(k) / r_ee(0)")
+    ax1.set_xlabel("lag k")
+    ax2.set_ylabel("r_eu(k), normalised")
+    ax2.set_xlabel("lag k")
+    ax1.legend(fontsize=8)
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def crossfit(cf: pd.DataFrame, path: Path) -> None:
+    """Heat map of the cross-fit matrix [%], datasets numbered as in the table."""
+    vals = cf.to_numpy(dtype=float)
+    fig = new_figure(1.2 + 0.75 * vals.shape[1], 1.0 + 0.45 * vals.shape[0])
+    ax = fig.subplots()
+    im = ax.imshow(np.where(np.isfinite(vals), vals, np.nan), cmap="viridis", aspect="auto")
+    ax.set_xticks(range(vals.shape[1]), [str(i + 1) for i in range(vals.shape[1])])
+    ax.set_yticks(range(vals.shape[0]), list(cf.index))
+    ax.set_xlabel("dataset")
+    for i in range(vals.shape[0]):
+        for j in range(vals.shape[1]):
+            ax.text(j, i, fmt(vals[i, j], 1), ha="center", va="center", fontsize=7, color="w")
+    fig.colorbar(im, ax=ax, label="fit [%]")
+    ax.set_title("cross-fit: model (row) on dataset (column)")
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def diagnosis_bars(rows: list[tuple[str, float, float]], path: Path) -> None:
+    """Gap per experiment (label, before, after) as paired bars."""
+    fig = new_figure(max(5.0, 0.9 * len(rows) + 2), 4)
+    ax = fig.subplots()
+    x = np.arange(len(rows))
+    ax.bar(x - 0.2, [r[1] for r in rows], 0.4, label="simulation as given")
+    ax.bar(x + 0.2, [r[2] for r in rows], 0.4, label="recalibrated, with the effects")
+    ax.set_xticks(x, [r[0] for r in rows], rotation=30, ha="right", fontsize=8)
+    ax.set_ylabel("gap (fit % = 100 (1 - gap))")
+    ax.set_title("sim-to-real gap per experiment")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def gap_waterfall(rows: list[tuple[str, float, float]], noise: float, path: Path) -> None:
+    """The held-out gap stage by stage (stage, gap after it, closed [%]): the first bar is the gap before, each
+    next one floats from the previous gap to the gap after its stage (green when it closes, red when it reopens)
+    and is labelled with the change, the last bar is the final gap; the noise floor dashed."""
+    fig = new_figure(max(6.0, 1.1 * len(rows) + 2), 4.5)
+    ax = fig.subplots()
+    prev = rows[0][1]
+    ax.bar(0, prev, 0.6, color="C0")
+    ax.text(0, prev, f"{prev:.4f}", ha="center", va="bottom", fontsize=8)
+    for i, (_, g, _) in enumerate(rows[1:], 1):
+        lo, hi = min(prev, g), max(prev, g)
+        ax.bar(i, max(hi - lo, 1e-4 * rows[0][1]), 0.6, bottom=lo, color="C2" if g <= prev else "C3")
+        ax.plot([i - 1.3, i + 0.3], [prev, prev], color="0.5", lw=0.6)
+        ax.text(i, hi, f"{g - prev:+.4f}", ha="center", va="bottom", fontsize=8)
+        prev = g
+    ax.bar(len(rows), prev, 0.6, color="C0")
+    ax.text(len(rows), prev, f"{prev:.4f}", ha="center", va="bottom", fontsize=8)
+    if math.isfinite(noise):
+        ax.axhline(noise, color="k", ls="--", lw=0.8, label=f"noise floor {noise:.4f}")
+        ax.legend(fontsize=8)
+    labels = [r[0] for r in rows] + ["final"]
+    ax.set_xticks(np.arange(len(labels)), labels, rotation=30, ha="right", fontsize=8)
+    ax.set_ylabel("held-out gap (fit % = 100 (1 - gap))")
+    ax.set_title("gap waterfall: the simulation as given, recalibration, then each effect")
+    ax.set_ylim(0, 1.12 * rows[0][1])
+    fig.tight_layout()
+    save_figure(fig, path)

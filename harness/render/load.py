@@ -1,0 +1,173 @@
+"""The results of a run directory, loaded once for :mod:`harness.render.report` and :mod:`harness.render.viewer`.
+
+Datasets in the identification domain (detrended command u_d [V], filtered difference y_f = H(z) y [deg/sample] of
+the tip angle y [deg]), the identified models with the selected model's simulation of every dataset, grid,
+cross-fit matrix, diagnosis and doubled-rate check. Every path comes from :class:`harness.rundir.RunDir`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from ..ident import armax
+from ..ident.calibration import Calibration
+from ..ident.identify import Prepared, prepare
+from ..rundir import DataError, RunDir, load_manifest, load_run
+from ..spec import IDENTIFY_DEFAULTS
+
+__all__ = ["GRID_COLUMNS", "RunResults", "load_results"]
+
+GRID_COLUMNS = ("dataset", "na", "nb", "nc", "nk", "causal", "stable", "fit")
+
+
+@dataclass
+class RunResults:
+    """What a run directory holds, loaded once.
+
+    ``prepared``: identification datasets (u_d [V], y_f [deg/sample], y [deg], u [V], Ts [s]), manifest order;
+    ``models``: name -> (ArmaxModel, JSON record) for ``models/<dataset>.json`` and ``models/selected.json``;
+    ``simulated``: dataset -> y_f simulated by the selected model (ic of its preprocessing record);
+    ``crossfit``: models x datasets fit [%] (no average column), ``crossfit_source`` where it came from.
+    """
+
+    run: Path
+    manifest: dict[str, Any]
+    calibration: Calibration | None = None
+    calibration_file: dict[str, Any] | None = None
+    prepared: dict[str, Prepared] = field(default_factory=dict)
+    models: dict[str, tuple[armax.ArmaxModel, dict[str, Any]]] = field(default_factory=dict)
+    simulated: dict[str, np.ndarray] = field(default_factory=dict)
+    grid: pd.DataFrame | None = None
+    crossfit: pd.DataFrame | None = None
+    crossfit_csv_average: pd.Series | None = None
+    crossfit_source: str = ""
+    diagnosis: dict[str, Any] | None = None
+    doubled_rate: dict[str, Any] | None = None
+    af: float = float(IDENTIFY_DEFAULTS["af"])
+    ic: str = str(IDENTIFY_DEFAULTS["ic"])
+
+    @property
+    def paths(self) -> RunDir:
+        """The run-directory layout."""
+        return RunDir(self.run)
+
+    @property
+    def selected(self) -> tuple[armax.ArmaxModel, dict[str, Any]] | None:
+        """The selected model and its record, or None before identification."""
+        return self.models.get("selected")
+
+    @property
+    def sample_time(self) -> float:
+        """Sampling period Ts [s]: from the data, else the manifest's sample_rate, else 1 s."""
+        if self.prepared:
+            return next(iter(self.prepared.values())).Ts
+        rate = self.manifest.get("sample_rate")
+        return 1.0 / float(rate) if rate else 1.0
+
+    @property
+    def fit_threshold(self) -> float:
+        """The identification's fit threshold [%] on the own dataset (from the recorded spec, else the default)."""
+        spec = self.manifest.get("spec") or {}
+        ident = spec.get("identify", {}) if isinstance(spec, dict) else {}
+        return float(ident.get("fit_threshold", IDENTIFY_DEFAULTS["fit_threshold"]))
+
+
+def _read_json(path: Path) -> dict[str, Any] | None:
+    if not path.exists():
+        return None
+    try:
+        obj = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: not valid JSON ({exc.msg}, line {exc.lineno})") from None
+    if not isinstance(obj, dict):
+        raise ValueError(f"{path}: expected a JSON object")
+    return obj
+
+
+def _calibration(paths: RunDir, record: dict[str, Any] | None) -> tuple[Calibration | None, dict[str, Any] | None]:
+    """The calibration the models were fitted with (model record), else ``calibration.json``; and that file."""
+    raw = _read_json(paths.calibration)
+    file_cal = Calibration.from_json(paths.calibration) if raw is not None else None
+    if record and isinstance(record.get("calibration"), dict):
+        c = record["calibration"]
+        base = file_cal or Calibration(Kp=c["Kp"], Ke=c["Ke"])
+        cal = Calibration(
+            Kp=c.get("Kp", base.Kp),
+            Ke=c.get("Ke", base.Ke),
+            gauge_offset_v=c.get("gauge_offset_v", base.gauge_offset_v),
+            pot_offset_v=c.get("pot_offset_v", base.pot_offset_v),
+            dead_zone_v=base.dead_zone_v,
+        )
+        return cal, raw
+    return file_cal, raw
+
+
+def load_results(run: Path) -> RunResults:
+    """Load everything the report and the viewer need from a run directory (any stage: campaign, import,
+    identified, diagnosed)."""
+    run = Path(run)
+    if not run.is_dir():
+        raise DataError(f"{run}: no such run directory")
+    paths = RunDir(run)
+    res = RunResults(run=run, manifest=load_manifest(run))
+    exps = res.manifest.get("experiments", [])
+    names = [e["name"] for e in exps if e.get("role", "identification") == "identification"]
+    for name in [*names, "selected"]:
+        p = paths.model(name)
+        rec = _read_json(p)
+        if rec is not None:
+            try:
+                res.models[name] = (armax.ArmaxModel.from_dict(rec), rec)
+            except ValueError as exc:
+                raise ValueError(f"{p}: {exc}") from None
+    sel = res.models.get("selected")
+    sel_rec = sel[1] if sel else None
+    pre = (sel_rec or {}).get("preprocessing", {})
+    res.af = float(pre.get("af", res.af))
+    res.ic = str(pre.get("ic", res.ic))
+    res.calibration, res.calibration_file = _calibration(paths, sel_rec)
+    if names and res.calibration is not None:
+        output = str(pre.get("output", "y"))
+        res.prepared = prepare(load_run(run, role="identification"), res.calibration, res.af, output)
+    if sel is not None and sel[0].stable:
+        for name, p in res.prepared.items():
+            res.simulated[name] = armax.simulate(sel[0], p.u_d, p.y_f, res.ic)
+    if paths.grid.exists():
+        res.grid = pd.read_csv(paths.grid)
+        missing = [c for c in GRID_COLUMNS if c not in res.grid.columns]
+        if missing:
+            raise ValueError(f"{paths.grid}: missing column(s) {', '.join(missing)}")
+    _load_crossfit(res)
+    res.diagnosis = _read_json(paths.diagnosis)
+    res.doubled_rate = _read_json(paths.doubled_rate)
+    return res
+
+
+def _load_crossfit(res: RunResults) -> None:
+    path = res.paths.crossfit
+    if path.exists():
+        df = pd.read_csv(path)
+        if "model" not in df.columns:
+            raise ValueError(f"{path}: first column must be 'model', got {list(df.columns)[:1]}")
+        df = df.set_index("model")
+        df.index = df.index.astype(str)
+        if "average" in df.columns:
+            res.crossfit_csv_average = df.pop("average").astype(float)
+        res.crossfit = df.astype(float)
+        res.crossfit_source = "crossfit.csv (the exported FMUs)"
+        return
+    rows = {}
+    for name, (_, rec) in res.models.items():
+        if isinstance(rec.get("cv"), dict) and rec["cv"]:
+            rows[name] = {k: (math.nan if v is None else float(v)) for k, v in rec["cv"].items()}
+    if rows:
+        res.crossfit = pd.DataFrame.from_dict(rows, orient="index")
+        res.crossfit.index.name = "model"
+        res.crossfit_source = "the models' cross-validation in Python (crossfit.csv not written yet)"
