@@ -80,7 +80,7 @@ from .ident.identify import load_model, prepare, run_grid
 from .render.figures import new_figure, save_figure
 from .render.viewer import APPLICATION_ID
 from .rig.campaign import simulate_spec, versions
-from .rundir import atomic_write_bytes, atomic_write_text, write_dataset, write_json
+from .rundir import ExperimentEntry, Manifest, RunDir, atomic_write_bytes, atomic_write_text, write_dataset, write_json
 
 __all__ = ["DISTRIBUTIONS", "Vary", "draw", "first_order", "parse_vary", "pass_interval", "run_sweep", "sensitivity"]
 
@@ -250,9 +250,9 @@ def _calibrate(spec: specmod.Spec, data: Mapping[str, Mapping[str, np.ndarray]])
     with tempfile.TemporaryDirectory(prefix="flexjoint-sweep-") as tmp:
         run = Path(tmp)
         for e in spec.calibration:
-            write_dataset(run / "data" / f"{e.name}.parquet", data[e.name])
-        exps = [{"name": e.name, "role": e.role, "signal": e.signal} for e in spec.calibration]
-        write_json(run / "manifest.json", {"kind": "campaign", "experiments": exps})
+            write_dataset(RunDir(run).dataset(e.name), data[e.name])
+        exps = [ExperimentEntry(name=e.name, role=e.role, signal=e.signal) for e in spec.calibration]
+        Manifest(kind="campaign", experiments=exps, sample_rate=spec.sample_rate).write(run)
         return calibrate_run(run)
 
 
@@ -422,7 +422,7 @@ def write_figures(out: Path, table: pd.DataFrame, summary: dict[str, Any], th: M
     """``figures/sweep_fit.png`` (mean-fit histogram), ``sweep_scatter.png`` (mean fit against each varied
     parameter, pass/fail coloured), ``sweep_sensitivity.png`` (S1 bars); returns their relative paths."""
 
-    figs = out / "figures"
+    figs = RunDir(out).figures
     ok = table["passed"].to_numpy(bool)
     fm = table["fit_mean"].to_numpy(float)
     fig = new_figure(6, 3.5)
@@ -677,7 +677,7 @@ def run_sweep(
     write_json(out / "sweep.json", doc)
     figures = write_figures(out, table, summary, th)
     markdown = report_markdown(doc, figures)
-    atomic_write_text(out / "report.md", markdown)
+    atomic_write_text(RunDir(out).report, markdown)
     if rrd:
         write_rrd(out, table, doc, markdown)
     wall = time.perf_counter() - t0
