@@ -4,7 +4,6 @@ directories that hold only part of a run."""
 
 from __future__ import annotations
 
-import copy
 import json
 import math
 import os
@@ -24,6 +23,7 @@ from benchmarks.problems import demo_system
 from harness import spec as specmod
 from harness.diagnosis.blindtest import campaign_spec
 from harness.diagnosis.diagnose import diagnose_run
+from harness.diagnosis.result import Diagnosis
 from harness.ident import armax, lti
 from harness.ident.calibration import calibrate_run
 from harness.ident.crossfit import crossfit_run
@@ -423,19 +423,18 @@ def test_real_report_identification(real_report):
     assert f"{poles.size} poles" in text
 
 
-def test_diagnosis_markdown_accepts_todays_flat_where_and_skips_what_is_absent(real):
-    d = copy.deepcopy(real[1])
-    where = d["where"]
-    d["where"] = where.get("before", where)  # the structure before the before/after split
-    for key in ("parameters", "recalibration_applied"):
-        d.pop(key, None)
-    d["gap"].pop("decomposition", None)
-    for e in d["effects"]:
-        e.pop("importance_pct", None)
+def test_diagnosis_markdown_flat_where_and_a_single_effect(real):
+    """A where without the before/after split, and the verdict sentence of a lone effect."""
+    d = Diagnosis.load(real[0])
+    d.where = d.where["before"]
+    d.effects = d.effects[:1]
     text = "\n".join(diagnosis_markdown(d))
-    assert "Verdict: **coulomb_friction**" in text and "{" not in text
-    assert "gap waterfall" not in text and "recalibrated" not in text
-    assert "| simulation as given | theta |" in text and "after recalibration" not in text
+    assert "{" not in text and "after recalibration |" not in text and "| simulation as given | theta |" in text
+    share = f"{d.gap.explained_pct:.1f}"
+    assert (
+        f"`coulomb_friction` is the only effect found; modelled on top of the recalibrated simulation it closes "
+        f"{share} %" in text
+    )
 
 
 def test_report_of_a_run_directory_without_models(real, tmp_path):

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from ..diagnosis.result import Diagnosis
 from ..ident import armax
 from ..ident.calibration import Calibration
 from ..ident.identify import Prepared, prepare
@@ -48,7 +49,7 @@ class RunResults:
     crossfit: pd.DataFrame | None = None
     crossfit_csv_average: pd.Series | None = None
     crossfit_source: str = ""
-    diagnosis: dict[str, Any] | None = None
+    diagnosis: Diagnosis | None = None
     doubled_rate: dict[str, Any] | None = None
     af: float = float(IDENTIFY_DEFAULTS["af"])
     ic: str = str(IDENTIFY_DEFAULTS["ic"])
@@ -145,7 +146,7 @@ def load_results(run: Path) -> RunResults:
         if missing:
             raise ValueError(f"{paths.grid}: missing column(s) {', '.join(missing)}")
     _load_crossfit(res)
-    res.diagnosis = _read_json(paths.diagnosis)
+    res.diagnosis = Diagnosis.load(paths.diagnosis) if paths.diagnosis.exists() else None
     res.doubled_rate = _read_json(paths.doubled_rate)
     return res
 

@@ -28,9 +28,9 @@ from .analysis import (
     residual_tests,
     zoom_window,
 )
-from .gap_text import diagnosis_markdown, fold_roles, gap_rows, waterfall
+from .gap_text import diagnosis_markdown, gap_rows
 from .load import RunResults, load_results
-from .tables import crossfit_table, fmt, fmt_any, num, orders, table, vec
+from .tables import crossfit_table, fmt, fmt_any, orders, table, vec
 
 __all__ = ["write_report"]
 
@@ -412,21 +412,12 @@ def _section_diagnosis(res: RunResults, figdir: Path) -> list[str]:
     d = res.diagnosis
     if d is None:
         return []
-    steps = waterfall(d)
-    fig = None
-    if len(steps) > 1:
-        noise = num(d["gap"]["decomposition"].get("noise_floor"))
-        figures.gap_waterfall(steps, noise, figdir / "gap_waterfall.png")
-        fig = "figures/gap_waterfall.png"
-    sim = d.get("sim_spec")
+    figures.gap_waterfall(d.waterfall(), d.gap.decomposition.noise_floor, figdir / "gap_waterfall.png")
     lines = ["## Sim-to-real gap diagnosis", ""]
-    if sim:
-        lines += [f"The data of this run against the simulation `{sim}`; every number is in `diagnosis.json`.", ""]
-    lines += diagnosis_markdown(d, fig)
-    rows = [r for r in gap_rows(d) if math.isfinite(r[1]) or math.isfinite(r[2])]
+    lines += [f"The data of this run against the simulation `{d.sim_spec}`; every number is in `diagnosis.json`.", ""]
+    lines += diagnosis_markdown(d, "figures/gap_waterfall.png")
+    rows = gap_rows(d)
     if rows:
-        roles = fold_roles(d)
-        rows = [(f"{r[0]} ({roles[r[0]]})" if r[0] in roles else r[0], r[1], r[2]) for r in rows]
         figures.diagnosis_bars(rows, figdir / "diagnosis.png")
         lines += ["![gap per experiment](figures/diagnosis.png)", ""]
     return lines

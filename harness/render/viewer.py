@@ -43,7 +43,7 @@ from matplotlib import colormaps
 
 from ..ident import lti
 from .analysis import RESID_LAGS, bode_curves, bode_grid, residual_tests, tip_from_filtered
-from .gap_text import diagnosis_markdown, fold_roles, gap_rows, waterfall
+from .gap_text import diagnosis_markdown, gap_rows
 from .load import RunResults, load_results
 from .tables import crossfit_table
 
@@ -313,10 +313,9 @@ def _log_diagnosis(rec: rr.RecordingStream, res: RunResults) -> None:
         w = np.full(x.size, 0.4)
         rec.log("diagnosis/gap/before", rr.BarChart(before, abscissa=x - 0.2, widths=w, color=_RED), static=True)
         rec.log("diagnosis/gap/after", rr.BarChart(after, abscissa=x + 0.2, widths=w, color=_BLUE), static=True)
-        roles = fold_roles(d)
-        legend = ", ".join(f"{i} = {r[0]}" + (f" ({roles[r[0]]})" if r[0] in roles else "") for i, r in enumerate(rows))
+        legend = ", ".join(f"{i} = {r[0]}" for i, r in enumerate(rows))
         lines += [f"Gap per experiment, red (left) before and blue (right) after, by index: {legend}", ""]
-    steps = waterfall(d)
+    steps = d.waterfall()
     if len(steps) > 1:
         gaps = np.array([g for _, g, _ in steps])
         rec.log("diagnosis/waterfall", rr.BarChart(gaps, color=_ORANGE), static=True)
@@ -340,7 +339,7 @@ def _log_overview(rec: rr.RecordingStream, res: RunResults) -> None:
         orders = f"({r['na']},{r['nb']},{r['nc']},{r['nk']})"
         lines.append(f"- selected ARMAX (na,nb,nc,nk) = {orders}, trained on `{r.get('dataset')}`")
     if res.diagnosis is not None:
-        lines.append(f"- diagnosis verdict: **{res.diagnosis.get('verdict', '-')}**")
+        lines.append(f"- diagnosis verdict: **{res.diagnosis.verdict}**")
     lines += [
         "",
         "Tabs: datasets (measured vs simulated over time), cross-fit (heat map, table, tensor), model (pole-zero",
@@ -452,7 +451,7 @@ def _blueprint(res: RunResults, bounds: dict[str, rrb.VisualBounds2D]) -> rrb.Bl
             bars.append(
                 rrb.BarChartView(origin="diagnosis/gap", name="gap per experiment: before (red) / after (blue)")
             )
-        if len(waterfall(res.diagnosis)) > 1:
+        if len(res.diagnosis.waterfall()) > 1:
             bars.append(rrb.BarChartView(origin="diagnosis/waterfall", name="held-out gap by stage"))
         summary = rrb.TextDocumentView(origin="diagnosis/summary", name="diagnosis")
         tabs.append(rrb.Horizontal(rrb.Vertical(*bars), summary, name="diagnosis") if bars else summary)
