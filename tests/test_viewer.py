@@ -8,6 +8,7 @@ import json
 import math
 import shutil
 import socket
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +18,7 @@ from rerun.chunk import RrdReader
 
 from harness.ident import armax
 from harness.render.viewer import APPLICATION_ID, CORR_HEIGHT, DB_PER_UNIT, log_run, recording_id
-from harness.rundir import RunDir
+from harness.rundir import Manifest, RunDir
 
 try:
     from test_report import AF, NAMES, REAL_EXPERIMENTS, TS, build_run, campaign_only, exp_gap, real_run
@@ -179,9 +180,9 @@ def test_recording_ids(logged):
     assert rrd == root / "run.rrd"
     (recording,) = RrdReader(rrd).recordings()
     assert recording.application_id == APPLICATION_ID == "flexjoint"
-    manifest = json.loads((root / "manifest.json").read_text())
+    manifest = Manifest.load(root)
     assert recording.recording_id == recording_id(manifest)
-    assert recording_id(manifest) != recording_id({**manifest, "spec_sha256": "00" * 32})
+    assert recording_id(manifest) != recording_id(replace(manifest, spec_sha256="00" * 32))
     assert not list(root.glob(".run.rrd*"))
 
 

@@ -16,7 +16,7 @@ from typing import Any
 
 import pandas as pd
 
-from ..rundir import DataError, load_manifest
+from ..rundir import DataError, Manifest
 from ..spec import ACCEPT_DEFAULTS
 
 
@@ -35,8 +35,7 @@ class Verdict:
 def thresholds_of(run: Path, override: dict[str, Any] | None = None) -> dict[str, float]:
     """``[accept]`` thresholds of the run's spec (defaults where absent), with ``override`` on top."""
     th = dict(ACCEPT_DEFAULTS)
-    manifest = load_manifest(run)
-    th.update(manifest.get("spec", {}).get("accept", {}))
+    th.update((Manifest.load(run).spec or {}).get("accept", {}))
     th.update(override or {})
     return {k: float(v) for k, v in th.items()}
 

@@ -41,9 +41,6 @@ class PreparedExperiment:
     y_f_offset: float = 0.0  # mean removed from y_f [deg/sample]: the operating point's mean rate
 
 
-Prepared = PreparedExperiment  # the former name, still used by harness.render (report, load, analysis)
-
-
 def output_angle(df: pd.DataFrame, cal: Calibration, output: str = "y") -> np.ndarray:
     """The identified angle [deg] from DAQ volts: ``y`` tip = theta + alpha, ``theta`` shaft, ``alpha`` deflection."""
     if output == "y":

@@ -13,7 +13,7 @@ import pandas as pd
 from scipy.signal import coherence, csd, lfilter, welch
 
 from ..ident import armax, lti
-from ..ident.identify import Prepared
+from ..ident.identify import PreparedExperiment
 from ..ident.preprocess import filter_coefficients, filter_response
 from .load import RunResults
 
@@ -68,7 +68,7 @@ class MeasuredFRF:
         return ph + 360.0 * np.round((near - ph[0]) / 360.0)
 
 
-def measured_frf(p: Prepared, af: float) -> MeasuredFRF | None:
+def measured_frf(p: PreparedExperiment, af: float) -> MeasuredFRF | None:
     """The H1 estimate (Welch, Hann, 50 % overlap) of u_d -> y_f divided by H(z), at the frequencies where the
     coherence reaches MIN_COHERENCE; None when the record is too short or nowhere coherent."""
     if p.y_f.size < 64:

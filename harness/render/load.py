@@ -19,8 +19,8 @@ import pandas as pd
 from ..diagnosis.result import Diagnosis
 from ..ident import armax
 from ..ident.calibration import Calibration
-from ..ident.identify import Prepared, prepare
-from ..rundir import DataError, RunDir, load_manifest, load_run
+from ..ident.identify import PreparedExperiment, prepare
+from ..rundir import DataError, Manifest, RunDir, load_run
 from ..spec import IDENTIFY_DEFAULTS
 
 __all__ = ["GRID_COLUMNS", "RunResults", "load_results"]
@@ -39,10 +39,10 @@ class RunResults:
     """
 
     run: Path
-    manifest: dict[str, Any]
+    manifest: Manifest
     calibration: Calibration | None = None
     calibration_file: dict[str, Any] | None = None
-    prepared: dict[str, Prepared] = field(default_factory=dict)
+    prepared: dict[str, PreparedExperiment] = field(default_factory=dict)
     models: dict[str, tuple[armax.ArmaxModel, dict[str, Any]]] = field(default_factory=dict)
     simulated: dict[str, np.ndarray] = field(default_factory=dict)
     grid: pd.DataFrame | None = None
@@ -69,14 +69,13 @@ class RunResults:
         """Sampling period Ts [s]: from the data, else the manifest's sample_rate, else 1 s."""
         if self.prepared:
             return next(iter(self.prepared.values())).Ts
-        rate = self.manifest.get("sample_rate")
+        rate = self.manifest.sample_rate
         return 1.0 / float(rate) if rate else 1.0
 
     @property
     def fit_threshold(self) -> float:
         """The identification's fit threshold [%] on the own dataset (from the recorded spec, else the default)."""
-        spec = self.manifest.get("spec") or {}
-        ident = spec.get("identify", {}) if isinstance(spec, dict) else {}
+        ident = (self.manifest.spec or {}).get("identify", {})
         return float(ident.get("fit_threshold", IDENTIFY_DEFAULTS["fit_threshold"]))
 
 
@@ -117,9 +116,8 @@ def load_results(run: Path) -> RunResults:
     if not run.is_dir():
         raise DataError(f"{run}: no such run directory")
     paths = RunDir(run)
-    res = RunResults(run=run, manifest=load_manifest(run))
-    exps = res.manifest.get("experiments", [])
-    names = [e["name"] for e in exps if e.get("role", "identification") == "identification"]
+    res = RunResults(run=run, manifest=Manifest.load(run))
+    names = [e.name for e in res.manifest.entries("identification")]
     for name in [*names, "selected"]:
         p = paths.model(name)
         rec = _read_json(p)

@@ -16,6 +16,7 @@ import pandas as pd
 
 from ..ident import armax, lti
 from ..ident.calibration import SEED_CALIBRATION as LAB1_CALIBRATION
+from ..ident.preprocess import filter_response
 from ..rundir import atomic_write_bytes
 from . import figures
 from .analysis import (
@@ -55,24 +56,22 @@ def _same(a: float, b: float, tol: float = 0.005) -> bool:
 # ----------------------------------------------------------------------------------------------- sections
 def _section_header(res: RunResults) -> list[str]:
     m = res.manifest
-    spec = m.get("spec", {}) or {}
-    camp = (spec.get("campaign", {}) or {}) if isinstance(spec, dict) else {}
-    name = camp.get("name", m.get("spec_file", ""))
+    name = ((m.spec or {}).get("campaign") or {}).get("name", m.spec_file or "")
     lines = [f"# flexjoint run report: {name or res.run.name}", ""]
-    versions = ", ".join(f"{k} {v}" for k, v in sorted((m.get("versions") or {}).items()))
+    versions = ", ".join(f"{k} {v}" for k, v in sorted((m.versions or {}).items()))
     rows = [
-        ["kind", str(m.get("kind", "—"))],
-        ["spec sha256", f"`{m['spec_sha256']}`" if m.get("spec_sha256") else ""],
-        ["random seed", fmt_any(m.get("seed")) if m.get("seed") is not None else ""],
-        ["sample rate [Hz]", fmt_any(m.get("sample_rate"))],
-        ["experiments", str(len(m.get("experiments", [])))],
+        ["kind", m.kind],
+        ["spec sha256", f"`{m.spec_sha256}`" if m.spec_sha256 else ""],
+        ["random seed", fmt_any(m.seed) if m.seed is not None else ""],
+        ["sample rate [Hz]", fmt_any(m.sample_rate)],
+        ["experiments", str(len(m.experiments))],
         ["identification datasets", ", ".join(res.prepared) or "—"],
         ["versions", versions],
     ]
     lines += [*table(["item", "value"], [r for r in rows if r[1]]), ""]
-    sources = m.get("sources")
-    if m.get("kind") == "import" and isinstance(sources, dict) and sources:
-        units = {e.get("name"): e.get("units", {}) for e in m.get("experiments", []) if isinstance(e, dict)}
+    sources = m.sources
+    if m.kind == "import" and sources:
+        units = {e.name: e.units or {} for e in m.experiments}
         body = [
             [
                 ds,
@@ -115,7 +114,7 @@ def _section_filter(res: RunResults, figdir: Path) -> list[str]:
     rows = []
     for af in FILTER_AFS:
         fc = -math.log(af) / (2 * math.pi * Ts)
-        rows.append([f"{af:g}", fmt(fc, 3), fmt(2 * (1 - af) / (1 + af), 4)])
+        rows.append([f"{af:g}", fmt(fc, 3), fmt(float(filter_response(af, [0.5 / Ts], Ts)[0][0]), 4)])
     return [
         "## Preprocessing filter",
         "",

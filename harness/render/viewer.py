@@ -42,6 +42,7 @@ import rerun.blueprint as rrb
 from matplotlib import colormaps
 
 from ..ident import lti
+from ..rundir import Manifest, to_plain
 from .analysis import RESID_LAGS, bode_curves, bode_grid, residual_tests, tip_from_filtered
 from .gap_text import diagnosis_markdown, gap_rows
 from .load import RunResults, load_results
@@ -67,11 +68,11 @@ _PALETTE = [[31, 119, 180], [255, 127, 14], [44, 160, 44], [214, 39, 40], [148, 
             [227, 119, 194], [127, 127, 127], [188, 189, 34], [23, 190, 207]]  # fmt: skip
 
 
-def recording_id(manifest: dict[str, Any]) -> str:
+def recording_id(manifest: Manifest) -> str:
     """Stable recording id (UUID form) from the manifest's spec hash, or from its data sources for imports."""
-    key = manifest.get("spec_sha256")
+    key = manifest.spec_sha256
     if not key:
-        basis = manifest.get("sources") or manifest.get("experiments") or manifest
+        basis = to_plain(manifest.sources or manifest.experiments)
         key = hashlib.sha256(json.dumps(basis, sort_keys=True, default=str).encode()).hexdigest()
     return str(uuid.UUID(hex=hashlib.sha256(str(key).encode()).hexdigest()[:32]))
 
@@ -329,9 +330,9 @@ def _log_overview(rec: rr.RecordingStream, res: RunResults) -> None:
     lines = [
         "### flexjoint run",
         "",
-        f"- kind: {m.get('kind', '-')}",
-        f"- spec sha256: `{m.get('spec_sha256', '-')}`",
-        f"- sample rate: {m.get('sample_rate', '-')} Hz",
+        f"- kind: {m.kind}",
+        f"- spec sha256: `{m.spec_sha256 or '-'}`",
+        f"- sample rate: {'-' if m.sample_rate is None else m.sample_rate} Hz",
         f"- identification datasets: {', '.join(res.prepared) or '-'}",
     ]
     if res.selected is not None:
@@ -351,8 +352,7 @@ def _log_overview(rec: rr.RecordingStream, res: RunResults) -> None:
 
 def _log_all(rec: rr.RecordingStream, res: RunResults) -> dict[str, rrb.VisualBounds2D]:
     """Log everything; returns the 2D views' bounds by plot name."""
-    spec = res.manifest.get("spec") or {}
-    name = (spec.get("campaign") or {}).get("name") if isinstance(spec, dict) else None
+    name = ((res.manifest.spec or {}).get("campaign") or {}).get("name")
     rec.send_recording_name(f"flexjoint {name or res.run.name}")
     _log_overview(rec, res)
     _log_datasets(rec, res)
