@@ -1,0 +1,1 @@
+"""Data from the rig: excitation signals, campaigns on the FMU twin, and real records imported."""
