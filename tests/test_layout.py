@@ -111,3 +111,43 @@ def test_imports_at_the_top_of_files() -> None:
             if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
                 late += [f"{mod}:{n.lineno}" for n in ast.walk(node) if isinstance(n, (ast.Import, ast.ImportFrom))]
     assert late == []
+
+
+def readme_module_map() -> set[str]:
+    """The files the README's module map lists (paths relative to the package's parent), read from its indented
+    tree: a name ending in "/" opens a folder at that indentation."""
+    text = README.read_text(encoding="utf-8")
+    block = text.split("<!-- module map", 1)[1].split("```text\n", 1)[1].split("```", 1)[0]
+    out: set[str] = set()
+    stack: list[tuple[int, str]] = []
+    for line in block.splitlines():
+        if not line.strip():
+            continue
+        indent = len(line) - len(line.lstrip())
+        name = line.split()[0]
+        while stack and stack[-1][0] >= indent:
+            stack.pop()
+        path = "/".join([p for _, p in stack] + [name.rstrip("/")])
+        if name.endswith("/"):
+            stack.append((indent, name.rstrip("/")))
+        else:
+            out.add(path)
+    return out
+
+
+def test_readme_module_map_is_the_tree() -> None:
+    tree = {
+        str(p.relative_to(PKG.parent))
+        for p in PKG.rglob("*.py")
+        if p.name != "__init__.py" and not any(part.startswith("_") for part in p.relative_to(PKG).parts)
+    }
+    listed = readme_module_map()
+    assert "harness/diagnosis/diagnose.py" in listed and "harness/cli.py" in listed
+    assert listed == tree, f"only in README: {sorted(listed - tree)}; only in the tree: {sorted(tree - listed)}"
+
+
+def test_public_api_in_data_flow_order() -> None:
+    assert all(hasattr(harness, name) for name in harness.__all__)
+    order = [harness.__all__.index(n) for n in ("load_spec", "run_campaign", "calibrate_run", "estimate",
+                                                "crossfit_run", "diagnose_run", "write_report")]  # fmt: skip
+    assert order == sorted(order)
