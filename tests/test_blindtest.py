@@ -6,9 +6,13 @@ import json
 import math
 
 import numpy as np
+import pandas as pd
 import pytest
+from test_diagnosis_result import minimal_doc
 
 from harness.diagnosis import blindtest as bt
+from harness.diagnosis.effects import EFFECTS
+from harness.diagnosis.result import Diagnosis
 
 
 def test_plan_is_deterministic_and_covers_every_kind():
@@ -18,12 +22,12 @@ def test_plan_is_deterministic_and_covers_every_kind():
     kinds = [c["kind"] for c in a]
     assert {k: kinds.count(k) for k in set(kinds)} == {"none": 2, "two": 2, "out": 3, "single": 13}
     singles = {c["truth_effects"][0] for c in a if c["kind"] == "single"}
-    assert singles == set(bt.RANGES)  # 13 singles cycle through all 7 library effects
+    assert singles == set(EFFECTS)  # 13 singles cycle through all 7 library effects
     for c in a:
         for eff in c["truth_effects"]:
-            if eff in bt.RANGES:
-                param, lo, hi, _ = bt.RANGES[eff]
-                assert lo <= c["truth_params"][param] <= hi
+            if eff in EFFECTS:
+                lo, hi = EFFECTS[eff].blind
+                assert lo <= c["truth_params"][EFFECTS[eff].param] <= hi
         if c["kind"] == "two":
             assert len(set(c["truth_effects"])) == 2
         if c["kind"] == "none":
@@ -32,12 +36,27 @@ def test_plan_is_deterministic_and_covers_every_kind():
         bt.plan(0, 1)
 
 
-def _diag(verdict, effects, shrink):
-    return {
-        "verdict": verdict,
-        "effects": [{"effect": e, "params": p} for e, p in effects],
-        "gap": {"shrink_pct": shrink},
-    }
+def test_draws_are_those_of_the_effect_table_before_it_moved():
+    """The first cases of seed 5, as drawn before the effect table left the diagnoser: the same seed gives the same
+    rigs (and blindtest.json the same bytes)."""
+    a = bt.plan(20, 5)[:3]
+    assert [c["truth_params"] for c in a] == [
+        {"daq.adc_bits": 12},
+        {"plant.coulomb_torque": 0.03445729209826801},
+        {"plant.n_modes": 2, "daq.gauge_cubic": 0.022056127732092503},
+    ]
+    assert [c["campaign_seed"] for c in a] == [1713023723, 1812972347, 1453179317]
+
+
+def _diag(verdict, effects, shrink, parameters=None):
+    """A diagnosis with this verdict, these (effect, params) found and this held-out shrink [%]."""
+    doc = minimal_doc()
+    found = doc["effects"][0]
+    doc.update(verdict=verdict, effects=[{**found, "effect": e, "params": p} for e, p in effects])
+    doc["gap"]["shrink_pct"] = shrink
+    if parameters is not None:
+        doc["parameters"] = {k: {**doc["parameters"]["plant.Ks"], "fitted": v} for k, v in parameters.items()}
+    return Diagnosis.from_dict(doc)
 
 
 def test_scoring_rules():
@@ -59,10 +78,10 @@ def test_scoring_rules():
     assert not bt.score_case(out, _diag("none", [], 0.0))["correct"]
     # recalibration: Ks within 10 % and Beq within 25 % of the rig's (nuisance) values
     nuis = {**none, "nuisance": {"plant.Ks": 1.5, "plant.Beq": 0.008}}
-    diag = {**_diag("none", [], 0.0), "parameters": {"plant.Ks": {"fitted": 1.64}, "plant.Beq": {"fitted": 0.0099}}}
+    diag = _diag("none", [], 0.0, {"plant.Ks": 1.64, "plant.Beq": 0.0099})
     s = bt.score_case(nuis, diag)
     assert s["ks_error"] == pytest.approx(0.14 / 1.5) and s["recal_ok"]
-    diag["parameters"]["plant.Beq"]["fitted"] = 0.0101
+    diag.parameters["plant.Beq"].fitted = 0.0101
     assert not bt.score_case(nuis, diag)["recal_ok"]
 
 
@@ -92,8 +111,6 @@ def test_out_of_library_sensor_effects_change_the_data(tmp_path, fmus):
             "nuisance": {}, "post": {"pot_nonlinearity": 0.02}, "campaign_seed": 3}  # fmt: skip
     bent = bt.make_rig_run(case, tmp_path / "bent", quick=True)
     plain = bt.make_rig_run({**case, "post": {}}, tmp_path / "plain", quick=True)
-    import pandas as pd
-
     a = pd.read_parquet(bent / "data" / "prbs_large.parquet")["theta_v"].to_numpy()
     b = pd.read_parquet(plain / "data" / "prbs_large.parquet")["theta_v"].to_numpy()
     half = 180.0 / 35.5145

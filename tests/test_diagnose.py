@@ -1,7 +1,8 @@
 """The diagnoser on short runs of the blind campaign with known hidden effects: on our twin, on our twin with its
 linear parameters off the datasheet (the rows of issue 8's table), and on rigs of an independent simulator
 (tests/indeprig.py: no FMU, other friction, backlash and link models); and its building blocks checked against
-independent constructions (ADC lattice, noise estimate, gauge calibration, folds, dead-band mask)."""
+independent constructions (ADC lattice, noise estimate, gauge calibration, folds, dead-band mask, candidate
+rules)."""
 
 from __future__ import annotations
 
@@ -11,13 +12,18 @@ import numpy as np
 import pytest
 from indeprig import IndepRig, make_run
 
+from harness.diagnosis import blindtest as bt
 from harness.diagnosis import diagnose as dg
 from harness.diagnosis.blindtest import campaign_spec
+from harness.diagnosis.effects import EFFECTS, VERDICTS, CandidateContext, candidates
+from harness.diagnosis.experiments import RigExperiment, pot_track_ends, split_folds, valid_samples
+from harness.diagnosis.noise import adc_lattice, decimal_resolution, noise_sigma
+from harness.diagnosis.result import Diagnosis
+from harness.ident.calibration import daq_calibration, gauge_volts
+from harness.rig.campaign import run_campaign
 
 
 def _run(tmp: Path, name: str, sets: list[str]) -> Path:
-    from harness.rig.campaign import run_campaign
-
     dest = tmp / name
     run_campaign(campaign_spec(quick=True, overrides=sets), dest, workers=1)
     return dest
@@ -47,11 +53,11 @@ def test_coulomb_friction_named_and_fitted(coulomb_diag):
     # the gap shrinks on held-out experiments to near the noise floor
     assert d["gap"]["shrink_pct"] > 80.0
     assert d["gap"]["held_out"]["gap_after"] < 3.0 * d["noise_floor"]["gap"]
-    # candidates ranked by held-out share, friction first; every candidate has fitted parameters
-    shares = [c["held_out_share_pct"] for c in d["candidates"] if c["held_out_share_pct"] is not None]
-    assert shares == sorted(shares, reverse=True)
-    skipped = {c["effect"]: c["note"] for c in d["candidates"] if c["held_out_share_pct"] is None}
-    assert skipped == {"quantization": "no ADC lattice in the data"}
+    # candidates ranked by held-out share, friction first; every candidate tried has fitted parameters
+    cands = Diagnosis.load(out).candidates
+    shares = [c.held_out_share_pct for c in cands if c.tried]
+    assert shares == sorted(shares, reverse=True) and all(c.params for c in cands if c.tried)
+    assert {c.effect: c.note for c in cands if not c.tried} == {"quantization": "no ADC lattice in the data"}
     assert d["candidates"][0]["effect"] == "coulomb_friction"
     assert {c["effect"] for c in d["candidates"]} >= {"backlash", "saturation", "delay", "gauge_nonlinearity"}
     assert (out / "diagnosis.json").exists()
@@ -61,6 +67,17 @@ def test_diagnosis_json_is_byte_stable(coulomb_diag, runs, tmp_path):
     _, out = coulomb_diag
     dg.diagnose_run(runs["coulomb"], campaign_spec(quick=True), tmp_path, workers=1)
     assert (tmp_path / "diagnosis.json").read_bytes() == (out / "diagnosis.json").read_bytes()
+
+
+def test_diagnosis_json_round_trips_through_its_dataclasses(coulomb_diag, tmp_path):
+    d, out = coulomb_diag
+    diag = Diagnosis.load(out)
+    diag.write(tmp_path / "again.json")
+    assert (tmp_path / "again.json").read_bytes() == (out / "diagnosis.json").read_bytes()
+    assert diag.verdict == d["verdict"] == diag.effect_names[0] == "coulomb_friction"
+    assert diag.fitted_effect_params() == d["effects"][0]["params"]
+    assert diag.importance_pct() == {"coulomb_friction": pytest.approx(100.0)}
+    assert diag.waterfall()[-1][1] == d["gap"]["held_out"]["gap_after"] == diag.gap.held_out.gap_after
 
 
 def test_none_rig_gives_none(runs, tmp_path):
@@ -74,11 +91,11 @@ def test_none_rig_gives_none(runs, tmp_path):
     assert d["noise_floor"]["alpha_deg"] == pytest.approx(0.002 * 3.3636, rel=0.15)
 
 
-def _trial(name: str, theta_v: np.ndarray, alpha_v: np.ndarray, kind: str = "prbs", period: int = 0) -> dg.Trial:
+def _exp(name: str, theta_v: np.ndarray, alpha_v: np.ndarray, kind: str = "prbs", period: int = 0) -> RigExperiment:
     n = theta_v.size
     th, al = 35.5145 * theta_v, -3.3636 * alpha_v
     u = np.sin(np.arange(n) * 2 * np.pi / period) if period else np.random.default_rng(0).choice([-1.0, 1.0], n)
-    return dg.Trial(
+    return RigExperiment(
         name=name,
         kind=kind,
         Ts=0.02,
@@ -99,8 +116,8 @@ def test_adc_lattice_finds_the_bits():
     for bits in (8, 10, 12, 14):
         lsb = 20.0 / 2**bits
         q = np.round(v / lsb) * lsb
-        assert dg.adc_lattice({"a": _trial("a", q, q[::-1].copy())}, 10.0) == bits
-    assert dg.adc_lattice({"a": _trial("a", v, v)}, 10.0) == 0
+        assert adc_lattice({"a": _exp("a", q, q[::-1].copy())}, 10.0) == bits
+    assert adc_lattice({"a": _exp("a", v, v)}, 10.0) == 0
 
 
 def test_noise_sigma_period_to_period():
@@ -112,21 +129,24 @@ def test_noise_sigma_period_to_period():
     s_v = 0.003
     tv = clean + drift + s_v * rng.standard_normal(P * M)
     av = 0.5 * clean + s_v * rng.standard_normal(P * M)
-    sig = dg.noise_sigma({"m": _trial("m", tv, av, kind="multisine", period=P)})
+    sig = noise_sigma({"m": _exp("m", tv, av, kind="multisine", period=P)})
     assert sig["method"] == "period-to-period"
     assert sig["theta_deg"] == pytest.approx(s_v * 35.5145, rel=0.08)
     assert sig["alpha_deg"] == pytest.approx(s_v * 3.3636, rel=0.08)
 
 
 def test_sim_gauge_calibration_matches_a_least_squares_line():
-    daq = {"gauge_gain": -3.3636, "gauge_offset": 0.01, "gauge_cubic": 0.08}
     ang = np.array([-5.3, -3.4, -1.6, 0.0, 2.0, 3.8, 5.6, 7.4])
-    ke, off = dg.sim_gauge_calibration(daq, ang)
+    cal = daq_calibration(35.5, 0.02, -3.3636, 0.01, 0.08, ang)
     v = (ang / -3.3636 + 0.01) * (1 + 0.08 * (ang / 10) ** 2)
+    assert gauge_volts(ang, -3.3636, 0.01, 0.08) == pytest.approx(v, rel=1e-15)
     slope, icpt = np.polyfit(v, ang, 1)
-    assert ke == pytest.approx(slope, rel=1e-12)
-    assert off == pytest.approx(-icpt / slope, rel=1e-9)
-    assert dg.sim_gauge_calibration({**daq, "gauge_cubic": 0.0}, ang) == (-3.3636, 0.01)
+    assert cal.Ke == pytest.approx(slope, rel=1e-12)
+    assert cal.gauge_offset_v == pytest.approx(-icpt / slope, rel=1e-9)
+    assert (cal.Kp, cal.pot_offset_v) == (35.5, 0.02)
+    linear = daq_calibration(35.5, 0.02, -3.3636, 0.01, 0.0, ang)
+    assert (linear.Ke, linear.gauge_offset_v) == (-3.3636, 0.01)
+    assert daq_calibration(35.5, 0.0, -3.3636, 0.01, 0.08, None).Ke == -3.3636  # no comb: the gauge's own gain
 
 
 def test_split_spans_kinds_and_levels():
@@ -135,15 +155,15 @@ def test_split_spans_kinds_and_levels():
     for kind, amps in (("prbs", (1.0, 3.0)), ("square", (1.0, 2.5)), ("chirp", (1.5,)), ("multisine", (3.1,))):
         for a in amps:
             name = f"{kind}_{a}"
-            tr = _trial(name, rng.standard_normal(100), rng.standard_normal(100), kind=kind)
+            tr = _exp(name, rng.standard_normal(100), rng.standard_normal(100), kind=kind)
             tr.u = a * np.sign(rng.standard_normal(100))
             trials[name] = tr
-    a, b = dg.split(trials)
+    a, b = split_folds(trials)
     assert sorted(a + b) == sorted(trials) and not set(a) & set(b)
     for kind in ("prbs", "square"):  # both levels of a kind never land in the same fold
         assert sum(n.startswith(kind) for n in a) == 1
     one = {"x": trials["chirp_1.5"]}
-    assert dg.split(one) == (["x"], ["x"])
+    assert split_folds(one) == (["x"], ["x"])
 
 
 def test_bad_input_is_one_line(tmp_path, runs):
@@ -156,7 +176,7 @@ def test_bad_input_is_one_line(tmp_path, runs):
 
 
 def test_effect_names_are_the_interface():
-    assert set(dg.VERDICTS) == {
+    assert set(VERDICTS) == {
         "coulomb_friction",
         "backlash",
         "saturation",
@@ -167,7 +187,7 @@ def test_effect_names_are_the_interface():
         "none",
         "unexplained",
     }
-    assert {e.param for e in dg.EFFECTS.values()} == {
+    assert {e.param for e in EFFECTS.values()} == {
         "plant.coulomb_torque",
         "plant.backlash",
         "plant.amp_limit",
@@ -257,20 +277,20 @@ def test_adc_lattice_survives_volts_written_to_six_decimals():
     for bits in (10, 12, 14):
         lsb = 20.0 / 2**bits
         q = np.round(np.round(v / lsb) * lsb, 6)  # a DAQ's CSV export
-        assert dg.decimal_resolution(q) == pytest.approx(1e-6)
-        assert dg.adc_lattice({"a": _trial("a", q, q[::-1].copy())}, 10.0) == bits
+        assert decimal_resolution(q) == pytest.approx(1e-6)
+        assert adc_lattice({"a": _exp("a", q, q[::-1].copy())}, 10.0) == bits
     r = np.round(v, 6)  # not quantised, only written to 6 decimals
-    assert dg.adc_lattice({"a": _trial("a", r, r[::-1].copy())}, 10.0) == 0
+    assert adc_lattice({"a": _exp("a", r, r[::-1].copy())}, 10.0) == 0
 
 
 def test_pot_dead_band_samples_are_masked():
     reading = np.array([170.0, 174.6, 176.0, 176.0, -176.0, -175.0, -170.0, 0.0])
-    ends = dg.pot_track_ends([reading])
+    ends = pot_track_ends([reading])
     assert ends == (-176.0, 176.0)
-    ok = dg.valid_samples(reading, ends, reading / 35.5, 10.0)
+    ok = valid_samples(reading, ends, reading / 35.5, 10.0)
     assert ok.tolist() == [True, False, False, False, False, False, True, True]
-    assert dg.pot_track_ends([np.array([-90.0, 120.0])]) is None  # the shaft never went round
-    clipped = dg.valid_samples(np.zeros(3), None, np.array([0.0, 10.0, -10.0]), 10.0)
+    assert pot_track_ends([np.array([-90.0, 120.0])]) is None  # the shaft never went round
+    clipped = valid_samples(np.zeros(3), None, np.array([0.0, 10.0, -10.0]), 10.0)
     assert clipped.tolist() == [True, False, False]
 
 
@@ -279,8 +299,6 @@ def test_pot_dead_band_samples_are_masked():
     [({"pot_nonlinearity": 0.015}, {"plant.Ks": 1.15, "plant.Beq": 0.006}), ({"gauge_drift": 0.2}, {})],
 )
 def test_out_of_library_sensor_errors_are_unexplained(tmp_path, fmus, post, nuisance):
-    from harness.diagnosis import blindtest as bt
-
     case = {"case": 0, "family": "nuisance" if nuisance else "twin", "kind": "out", "truth_effects": list(post),
             "truth_params": {}, "nuisance": nuisance, "post": post, "campaign_seed": 17}  # fmt: skip
     run = bt.make_rig_run(case, tmp_path / "rig", quick=True)
@@ -289,3 +307,24 @@ def test_out_of_library_sensor_errors_are_unexplained(tmp_path, fmus, post, nuis
     assert d["gap"]["explained_pct"] < 100 * dg.EXPLAINED
     if nuisance:  # the linear mismatch is still found under a sensor error
         assert d["parameters"]["plant.Ks"]["fitted"] == pytest.approx(1.15, rel=0.10)
+
+
+def test_candidate_rules_of_the_effect_table():
+    """Which effects are worth fitting, and with which range, against a simulation and data."""
+
+    def names(cs: list) -> list[str]:
+        return [c.name for c in cs]
+
+    plain = candidates(CandidateContext({}, {}, 3.0, 0))
+    assert names(plain) == [n for n in EFFECTS if n != "quantization"]  # no lattice in the data
+    by = {c.name: c for c in plain}
+    assert by["saturation"].hi == 3.0 and by["delay"].values == (1, 2, 3, 4, 5)  # up to the command; not the sim's
+    assert by["backlash"] == EFFECTS["backlash"] and by["backlash"].params == {"plant.backlash", "plant.Jm_share"}
+    assert candidates(CandidateContext({}, {}, 0.1, 0))[2].hi == 0.2  # at least twice the lower bound
+    rich = candidates(CandidateContext({"n_modes": 2}, {"delay_samples": 2}, 3.0, 12))
+    by = {c.name: c for c in rich}
+    assert "second_mode" not in by and by["delay"].values == (0, 1, 3, 4, 5)
+    assert by["quantization"].values == (12,) and by["quantization"].signature
+    assert "quantization" not in names(candidates(CandidateContext({}, {"adc_bits": 12}, 3.0, 12)))  # modelled
+    assert EFFECTS["quantization"].skipped == "no ADC lattice in the data"
+    assert EFFECTS["second_mode"].skipped == "already in the simulation"

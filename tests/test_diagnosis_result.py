@@ -10,7 +10,7 @@ from typing import Any
 
 import pytest
 
-from harness.diagnosis.result import Diagnosis, rounded
+from harness.diagnosis.result import Diagnosis, round_floats
 from harness.rundir import DataError, write_json
 
 
@@ -141,7 +141,7 @@ def test_a_file_read_and_written_back_keeps_its_bytes(tmp_path):
     assert math.isnan(d.gap.explained_pct) and math.isnan(d.effects[1].importance_pct)
     assert d.parameters["plant.backlash"].finding is None and d.candidates[1].gap_after is None
     assert d.noise_floor.sources == ["a"] and d.noise_floor.estimated_deg == {"alpha": 0.008, "theta": 0.09}
-    assert rounded({"x": [1.23456789012345, 7, math.nan]}) == {
+    assert round_floats({"x": [1.23456789012345, 7, math.nan]}) == {
         "x": [1.23456789, 7, pytest.approx(math.nan, nan_ok=True)]
     }
 
@@ -155,13 +155,12 @@ def test_helpers_give_the_files_numbers():
     assert d.waterfall()[0][:2] == ("simulation as given", 0.2) and math.isnan(d.waterfall()[0][2])
     assert d.waterfall()[1:] == [("recalibration", 0.1, 75.0), ("backlash", 0.05, 76.0), ("quantization", 0.049, 1.0)]
     assert d.off_spec_findings() == ["link stiffness is 15 % higher than the spec (1.3 -> 1.5 N m/rad)"]
-    assert [c.effect for c in d.tried_candidates()] == ["backlash"]
+    assert [c.tried for c in d.candidates] == [True, False]
     # an experiment's gap: sqrt(mean over its moving channels of (1 - fit/100)^2); alpha without motion skipped
     rows = d.gap.per_experiment()
     assert rows[0][0] == "a" and rows[0][1] == pytest.approx(math.sqrt((0.1**2 + 0.2**2) / 2))
     assert rows[0][2] == pytest.approx(0.01)
     assert [d.folds.role(n) for n in ("a", "b", "c")] == ["fold A", "fold B", "—"]
-    assert d.folds.held_out() == [["b"], ["a"]]
 
 
 @pytest.mark.parametrize(

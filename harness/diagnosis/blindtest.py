@@ -14,8 +14,8 @@ compact campaign) in one of three families:
 and of one kind:
 
 - ``none``: the rig as it is (noise, and the family's nuisance);
-- ``single``: one in-library effect at a physically meaningful magnitude for this campaign (table
-  :data:`RANGES`; continuous magnitudes log-uniform);
+- ``single``: one in-library effect at a physically meaningful magnitude for this campaign (the effect table's
+  ``blind`` range, :data:`harness.diagnosis.effects.EFFECTS`; continuous magnitudes log-uniform);
 - ``two``: two different in-library effects at once;
 - ``out``: an effect outside the candidate library: ``gauge_drift`` (the strain-gauge gain drifting linearly in
   time by +10..+30 % over every non-calibration experiment, applied to alpha_v after the campaign, about the
@@ -51,18 +51,17 @@ from .. import spec as specmod
 from ..executor import Executor, FmuBytes, fmu_bytes, fmu_file
 from ..fmu.build import build_all
 from ..rig.campaign import run_campaign
-from ..rundir import load_manifest, read_dataset, write_dataset, write_json
-from .diagnose import EFFECTS, diagnose_run
+from ..rundir import RunDir, load_manifest, read_dataset, write_dataset, write_json
+from .diagnose import diagnose_run
+from .effects import EFFECTS
+from .result import Diagnosis
+from .simulation import fmu_value
 
 Progress = Callable[[str], None]
 
 BLIND_SPEC = specmod.SPEC_DIR / "blind.toml"
 FAMILIES = ("twin", "nuisance", "independent")
 
-# in-library effect -> (parameter, low, high, kind): the magnitudes the blind test draws, from the effect table
-RANGES: dict[str, tuple[str, float, float, str]] = {
-    name: (e.param, *e.blind, "int" if e.kind == "int" else "log") for name, e in EFFECTS.items()
-}
 # linear parameter -> (low factor, high factor, log-uniform) of the textbook value: a real rig's spread
 NUISANCE: dict[str, tuple[float, float, bool]] = {
     "plant.Ks": (0.75, 1.25, False),
@@ -76,15 +75,9 @@ MAG_TOL = 0.25  # fitted magnitude within 25 %
 KS_TOL, BEQ_TOL = 0.10, 0.25  # recalibrated Ks and Beq within 10 % and 25 % of the rig's
 
 
-def _draw_value(rng: np.random.Generator, effect: str) -> float | int:
-    _, lo, hi, kind = RANGES[effect]
-    if kind == "int":
-        return int(rng.integers(int(lo), int(hi) + 1))
-    return float(math.exp(rng.uniform(math.log(lo), math.log(hi))))
-
-
 def _textbook(param: str) -> float:
-    return float(specmod.fmu_parameters("flexjoint")[param.split(".", 1)[1]][1])
+    """The plant FMU's default (the textbook value) of ``param`` ("plant.Ks")."""
+    return fmu_value({}, "flexjoint", param.split(".", 1)[1])
 
 
 def _draw_nuisance(rng: np.random.Generator) -> dict[str, float]:
@@ -111,7 +104,7 @@ def plan(n: int, seed: int, families: tuple[str, ...] = ("twin",)) -> list[dict[
     n_two = max(1, round(0.12 * n)) if n >= 4 else 0
     n_out = max(1, round(0.16 * n)) if n >= 4 else 0
     n_single = n - n_none - n_two - n_out
-    lib = list(RANGES)
+    lib = list(EFFECTS)
     kinds = [("single", lib[i % len(lib)]) for i in range(n_single)]
     kinds += [("none", None)] * n_none + [("two", None)] * n_two
     first = int(rng.integers(len(OUT_OF_LIBRARY)))
@@ -129,7 +122,7 @@ def plan(n: int, seed: int, families: tuple[str, ...] = ("twin",)) -> list[dict[
             a, b = rng.choice(len(lib), size=2, replace=False)
             effects = [lib[int(a)], lib[int(b)]]
         for e in effects:
-            truth[RANGES[e][0]] = _draw_value(rng, e)
+            truth[EFFECTS[e].param] = EFFECTS[e].draw_blind(rng)
         extra: dict[str, Any] = {}
         if what == "gauge_drift":
             extra["gauge_drift"] = float(rng.uniform(0.10, 0.30))
@@ -186,9 +179,8 @@ def _post(dest: Path, spec: specmod.Spec, post: dict[str, float], gauge_offset: 
     """Apply the out-of-library sensor effects to a written run: gauge gain drift about the rig's gauge offset
     [V] (identification experiments) and the pot's linearity error (every experiment)."""
     manifest = load_manifest(dest)
-    daq = specmod.fmu_parameters("daq")
     for e in manifest["experiments"]:
-        p = dest / "data" / f"{e['name']}.parquet"
+        p = RunDir(dest).dataset(e["name"])
         df = read_dataset(p)
         cols = {c: df[c].to_numpy(float) for c in df.columns}
         if post.get("gauge_drift") and e["role"] != "calibration":
@@ -196,7 +188,7 @@ def _post(dest: Path, spec: specmod.Spec, post: dict[str, float], gauge_offset: 
             gain = 1.0 + post["gauge_drift"] * (t - t[0]) / max(t[-1] - t[0], 1e-12)
             cols["alpha_v"] = gauge_offset + (cols["alpha_v"] - gauge_offset) * gain
         if post.get("pot_nonlinearity"):
-            half = 180.0 / float(spec.daq.get("pot_gain", daq["pot_gain"][1]))  # V at the track end
+            half = 180.0 / fmu_value(spec.daq, "daq", "pot_gain")  # V at the track end
             cols["theta_v"] = cols["theta_v"] + post["pot_nonlinearity"] * half * np.sin(np.pi * cols["theta_v"] / half)
         write_dataset(p, cols)
 
@@ -219,7 +211,7 @@ def make_rig_run(case: dict[str, Any], dest: Path, fmus: dict[str, Path] | None 
         sets = [f"{k}={v}" for k, v in {**case.get("nuisance", {}), **case["truth_params"]}.items()] + seed
         spec = campaign_spec(quick, sets)
         run_campaign(spec, dest, fmus=fmus, workers=1)
-        offset = float(spec.daq.get("gauge_offset", specmod.fmu_parameters("daq")["gauge_offset"][1]))
+        offset = fmu_value(spec.daq, "daq", "gauge_offset")
     if case.get("post"):
         _post(dest, spec, case["post"], offset)
     manifest = load_manifest(dest)
@@ -236,12 +228,12 @@ def _rel_err(true: float, fitted: float | None) -> float:
     return abs(float(fitted) - float(true)) / abs(float(true))
 
 
-def score_case(case: dict[str, Any], diag: dict[str, Any]) -> dict[str, Any]:
+def score_case(case: dict[str, Any], diag: Diagnosis) -> dict[str, Any]:
     """Score one diagnosis against the hidden truth."""
-    verdict = diag["verdict"]
-    found = [e["effect"] for e in diag.get("effects", [])]
-    fitted = {k: v for e in diag.get("effects", []) for k, v in e["params"].items()}
-    shrink = float(diag["gap"]["shrink_pct"])
+    verdict = diag.verdict
+    found = diag.effect_names
+    fitted = diag.fitted_effect_params()
+    shrink = float(diag.gap.shrink_pct)
     out: dict[str, Any] = {"verdict": verdict, "found": found, "fitted": fitted, "shrink_pct": shrink}
     kind = case["kind"]
     if kind == "single":
@@ -262,10 +254,10 @@ def score_case(case: dict[str, Any], diag: dict[str, Any]) -> dict[str, Any]:
         out.update(both=all(e in found for e in effs), top1_in_truth=verdict in effs, param_errors=errs)
     else:
         out.update(correct=verdict == "unexplained")
-    params = diag.get("parameters", {})
+    params = diag.parameters
     if case.get("nuisance") and "plant.Ks" in params:
-        ks = _rel_err(case["nuisance"]["plant.Ks"], params["plant.Ks"]["fitted"])
-        beq = _rel_err(case["nuisance"]["plant.Beq"], params["plant.Beq"]["fitted"])
+        ks = _rel_err(case["nuisance"]["plant.Ks"], params["plant.Ks"].fitted)
+        beq = _rel_err(case["nuisance"]["plant.Beq"], params["plant.Beq"].fitted)
         out.update(ks_error=ks, beq_error=beq, recal_ok=bool(ks <= KS_TOL and beq <= BEQ_TOL))
     return out
 
@@ -298,7 +290,7 @@ def scores(cases: list[dict[str, Any]]) -> dict[str, Any]:
     out = [c for c in cases if c["kind"] == "out"]
     recal = [c for c in cases if "recal_ok" in c["score"]]
     per_effect = {}
-    for eff in RANGES:
+    for eff in EFFECTS:
         cs = [c for c in single if c["truth_effects"][0] == eff]
         if cs:
             per_effect[eff] = {
@@ -389,7 +381,8 @@ def run_case(
         if d.exists():
             shutil.rmtree(d)
         make_rig_run(case, d, files, quick)
-        diag = diagnose_run(d, campaign_spec(quick), d, workers=1, fmus=files)
+        diagnose_run(d, campaign_spec(quick), d, workers=1, fmus=files)
+        diag = Diagnosis.load(d)
     return {**case, "score": score_case(case, diag), "timing_s": time.perf_counter() - tc}
 
 

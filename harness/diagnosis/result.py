@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import numbers
 import os
 import types
 import typing
@@ -44,7 +45,7 @@ __all__ = [
     "SensorCalibration",
     "Step",
     "Thresholds",
-    "rounded",
+    "round_floats",
 ]
 
 T = TypeVar("T")
@@ -81,10 +82,6 @@ class Folds:
         experiment, in both), "—" (not diagnosed)."""
         a, b = experiment in self.A, experiment in self.B
         return "A and B" if a and b else "fold A" if a else "fold B" if b else "—"
-
-    def held_out(self) -> list[list[str]]:
-        """The held-out experiments of the two fits: [B (fitted on A), A (fitted on B)]."""
-        return [list(self.B), list(self.A)]
 
 
 @dataclass
@@ -320,6 +317,11 @@ class Diagnosis:
         """The JSON's content (NaN where the file has null; optional keys that are None left out)."""
         return _plain(self)
 
+    def rounded(self, digits: int = 10) -> Diagnosis:
+        """The same diagnosis with every float to ``digits`` significant digits (:func:`round_floats`): what the
+        diagnoser writes."""
+        return Diagnosis.from_dict(round_floats(self.to_dict(), digits))
+
     def write(self, path: str | os.PathLike[str]) -> None:
         """Write atomically with sorted keys (:func:`harness.rundir.write_json`): byte-stable."""
         write_json(Path(path), self.to_dict())
@@ -348,18 +350,14 @@ class Diagnosis:
         """The parameter findings that say the rig differs from the spec (those that match are left out)."""
         return [p.finding for p in self.parameters.values() if p.off_spec and p.finding is not None]
 
-    def tried_candidates(self) -> list[Candidate]:
-        """The candidates fitted on the first round, best held-out share first."""
-        return [c for c in self.candidates if c.tried]
 
-
-def rounded(x: Any, digits: int = 10) -> Any:
+def round_floats(x: Any, digits: int = 10) -> Any:
     """``x`` (JSON content) with every float to ``digits`` significant digits, so that the file carries no
     last-bit noise of the optimisers (non-finite floats stay)."""
     if isinstance(x, dict):
-        return {k: rounded(v, digits) for k, v in x.items()}
+        return {k: round_floats(v, digits) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
-        return [rounded(v, digits) for v in x]
+        return [round_floats(v, digits) for v in x]
     if isinstance(x, (float, np.floating)):
         v = float(x)
         return float(f"{v:.{digits}g}") if math.isfinite(v) else v
@@ -430,10 +428,10 @@ def _value(tp: Any, v: Any, where: str) -> Any:
     if tp is float:
         if v is None:
             return math.nan
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
+        if isinstance(v, bool) or not isinstance(v, numbers.Real):
             raise DataError(f"{where}: expected a number, got {v!r}")
         return v
-    if tp is int and (isinstance(v, bool) or not isinstance(v, int)):
+    if tp is int and (isinstance(v, bool) or not isinstance(v, numbers.Integral)):
         raise DataError(f"{where}: expected an integer, got {v!r}")
     if tp in (str, bool) and not isinstance(v, tp):
         raise DataError(f"{where}: expected {tp.__name__}, got {v!r}")

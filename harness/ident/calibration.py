@@ -28,9 +28,11 @@ __all__ = [
     "PotCalibration",
     "alpha_deg",
     "comb_table",
+    "daq_calibration",
     "dead_zone_estimate",
     "dead_zone_from_ramp",
     "dead_zone_merge",
+    "gauge_volts",
     "ke_from_comb",
     "kp_from_ramp",
     "kp_from_table",
@@ -175,8 +177,9 @@ class GaugeCalibration:
     residual_std: float
 
 
-def ke_from_comb(angle_deg: Any, volts: Any) -> GaugeCalibration:
-    """Ke [deg/V] by least squares of angle [deg] on voltage [V] with intercept (the seed's regression)."""
+def _sensor_line(angle_deg: Any, volts: Any) -> tuple[float, float, float, float]:
+    """Least-squares line angle = gain (volts - offset_v) of a sensor's calibration table, the seed's regression
+    of angle [deg] on voltage [V] with intercept: (gain [deg/V], offset_v [V], r2, residual_std [deg])."""
     x = as_signal("volts", volts)
     y = as_signal("angle_deg", angle_deg, x.size)
     if x.size < 3:
@@ -190,17 +193,45 @@ def ke_from_comb(angle_deg: Any, volts: Any) -> GaugeCalibration:
     sst = float(((y - y.mean()) ** 2).sum())
     if k == 0:
         raise ValueError("calibration angle does not depend on voltage (zero gain)")
-    return GaugeCalibration(
-        Ke=float(k),
-        offset_v=float(-c / k),
-        r2=1.0 - ssr / sst if sst > 0 else 1.0,
-        residual_std=math.sqrt(ssr / (x.size - 2)),
-    )
+    return float(k), float(-c / k), 1.0 - ssr / sst if sst > 0 else 1.0, math.sqrt(ssr / (x.size - 2))
+
+
+def ke_from_comb(angle_deg: Any, volts: Any) -> GaugeCalibration:
+    """Ke [deg/V] and the gauge offset [V] by least squares of comb angle [deg] on gauge voltage [V]."""
+    return GaugeCalibration(*_sensor_line(angle_deg, volts))
 
 
 def kp_from_table(angle_deg: Any, volts: Any) -> float:
     """Kp [deg/V] as the least-squares slope of angle [deg] on pot voltage [V] (second lab's table 1)."""
-    return ke_from_comb(angle_deg, volts).Ke
+    return _sensor_line(angle_deg, volts)[0]
+
+
+def gauge_volts(alpha_deg: Any, gain: float, offset_v: float, cubic: float = 0.0) -> np.ndarray:
+    """The strain gauge's static map, as the DAQ FMU models it: volts [V] = (alpha / gain + offset_v) (1 + cubic
+    (alpha / 10 deg)^2) for a deflection ``alpha_deg`` [deg], ``gain`` [deg/V] (Ke of a linear gauge), ``cubic``
+    the relative cubic term at 10 deg."""
+    a = np.asarray(alpha_deg, dtype=float)
+    return (a / gain + offset_v) * (1.0 + cubic * (a / 10.0) ** 2)
+
+
+def daq_calibration(
+    pot_gain: float,
+    pot_offset_v: float,
+    gauge_gain: float,
+    gauge_offset_v: float,
+    gauge_cubic: float = 0.0,
+    comb_angles: np.ndarray | None = None,
+) -> Calibration:
+    """The calibration of a simulated DAQ with these parameters, made the way the real rig's is: Kp and the pot
+    offset are the DAQ's; Ke and the gauge offset are the least-squares line (:func:`ke_from_comb`) through the
+    gauge's static map (:func:`gauge_volts`) over the comb angles [deg] the real gauge was calibrated on, so that
+    a gauge nonlinearity is calibrated alike on both sides; without a comb (fewer than 3 angles) or with a linear
+    gauge, the DAQ's gauge gain and offset."""
+    ke, offset = gauge_gain, gauge_offset_v
+    if comb_angles is not None and comb_angles.size >= 3 and gauge_cubic != 0.0:
+        g = ke_from_comb(comb_angles, gauge_volts(comb_angles, gauge_gain, gauge_offset_v, gauge_cubic))
+        ke, offset = g.Ke, g.offset_v
+    return Calibration(Kp=pot_gain, Ke=ke, gauge_offset_v=offset, pot_offset_v=pot_offset_v)
 
 
 def comb_table(
@@ -414,6 +445,13 @@ class Calibration:
             raise ValueError(f"calibration gains must be nonzero, got Kp={self.Kp}, Ke={self.Ke}")
         if not isinstance(self.source, dict):
             raise ValueError(f"calibration source must be a dict, got {type(self.source).__name__}")
+
+    @property
+    def comb_angles(self) -> np.ndarray | None:
+        """The comb angles [deg] the gauge was calibrated on (``source["Ke"]["angles_deg"]``), None without a comb."""
+        src = self.source.get("Ke", {})
+        ang = src.get("angles_deg") if isinstance(src, dict) else None
+        return np.asarray(ang, dtype=float) if ang else None
 
     def to_json(self, path: str | os.PathLike[str]) -> None:
         """Write atomically with sorted keys; floats in shortest round-trip form, NaN (also inside ``source``)

@@ -1,0 +1,225 @@
+"""The real rig's experiments, ready to be re-simulated: loaded, converted to degrees, masked, split in folds.
+
+Every non-calibration experiment of the real run becomes a :class:`RigExperiment`: its command, its calibrated
+angles (theta unwrapped), its raw volts, the sim spec's per-experiment overrides and the samples that can be
+compared. Where the pot's wiper is off its track (its dead band around the wrap: the reading sticks at a track
+end) or the ADC clips, a sample says nothing about the shaft: such samples carry no residual
+(:data:`DEADBAND_GUARD` deg of margin). The experiments are split into two folds for 2-fold cross-fitting.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .. import spec as specmod
+from ..ident.calibration import Calibration, alpha_deg, theta_deg
+from ..rig.signals import MultisineLines, multisine_lines
+from ..rundir import DataError, RunDir, load_manifest, read_dataset, sample_time
+
+__all__ = [
+    "CHANNELS",
+    "DEADBAND_GUARD",
+    "FIT_SECONDS",
+    "SCREEN_SECONDS",
+    "RigExperiment",
+    "command_period",
+    "load_experiments",
+    "masked_share",
+    "multisine_design",
+    "pot_track_ends",
+    "split_folds",
+    "valid_samples",
+]
+
+CHANNELS = ("theta", "alpha")
+FIT_SECONDS = 20.0  # s: parameters are fitted on the first 20 s of each experiment (scored on all of it)
+SCREEN_SECONDS = 12.0  # s: candidates are screened on the first 12 s of each experiment
+DEADBAND_GUARD = 1.5  # deg: samples this close to a pot track end (its dead band) are not compared
+
+
+@dataclass
+class RigExperiment:
+    """One experiment of the real rig ready to be re-simulated: command ``u`` [V] at ``Ts`` [s], real
+    ``theta``/``alpha`` [deg] (calibrated, theta unwrapped), raw volts, ``sst`` per channel [deg^2] (sum of
+    squares about the mean), the sim spec's per-experiment ``plant``/``daq`` overrides, ``kind`` (signal),
+    ``period`` (samples of a periodic command, 0 if none) and ``valid`` per channel (samples that measure the
+    shaft). The fit window (first FIT_SECONDS) and the screening window (first SCREEN_SECONDS) have their own
+    sample counts and sums of squares."""
+
+    name: str
+    kind: str
+    Ts: float
+    t: np.ndarray
+    u: np.ndarray
+    theta: np.ndarray
+    alpha: np.ndarray
+    theta_v: np.ndarray
+    alpha_v: np.ndarray
+    sst: dict[str, float]
+    plant: dict[str, Any] = field(default_factory=dict)
+    daq: dict[str, Any] = field(default_factory=dict)
+    period: int = 0
+    role: str = "identification"
+    n_fit: int = 0
+    sst_fit: dict[str, float] = field(default_factory=dict)
+    n_screen: int = 0
+    sst_screen: dict[str, float] = field(default_factory=dict)
+    valid: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.n_fit = min(self.u.size, max(16, int(round(FIT_SECONDS / self.Ts))))
+        for c in CHANNELS:
+            self.valid.setdefault(c, np.ones(self.u.size, dtype=bool))
+        self.n_screen = min(self.n_fit, max(16, int(round(SCREEN_SECONDS / self.Ts))))
+        self.sst_fit, self.sst_screen = self._sst(self.n_fit), self._sst(self.n_screen)
+
+    def _sst(self, n: int) -> dict[str, float]:
+        ys = (self.theta[:n], self.alpha[:n])
+        return {c: float(np.sum((y - y.mean()) ** 2)) for c, y in zip(CHANNELS, ys, strict=True)}
+
+    def window(self, which: str) -> tuple[int, dict[str, float]]:
+        """(samples, sst per channel) of a window: "all", "fit" (first FIT_SECONDS), "screen" (SCREEN_SECONDS)."""
+        if which == "fit":
+            return self.n_fit, self.sst_fit
+        if which == "screen":
+            return self.n_screen, self.sst_screen
+        return self.u.size, self.sst
+
+    @property
+    def peak_command_v(self) -> float:
+        """max |u| [V]."""
+        return float(np.max(np.abs(self.u)))
+
+
+def command_period(u: np.ndarray, hint: int = 0) -> int:
+    """Period [samples] of a command repeated at least 3 times (``hint`` tried first), 0 when none."""
+    n = u.size
+    tol = 1e-9 * max(float(np.max(np.abs(u))), 1e-12)
+    cands = [hint] if hint > 0 else []
+    cands += [p for p in range(16, n // 3 + 1) if n % p == 0]
+    for p in cands:
+        if 0 < p <= n // 3 and np.all(np.abs(u[p:] - u[:-p]) <= tol) and np.ptp(u[:p]) > 0:
+            return p
+    return 0
+
+
+def pot_track_ends(readings: list[np.ndarray]) -> tuple[float, float] | None:
+    """(lowest, highest) pot reading [deg] over the records when the shaft went round (the readings reach both
+    ends of the track, beyond +-150 deg), else None: in the pot's dead band the wiper is off the track and the
+    reading sticks at a track end, so samples there say nothing about the shaft angle."""
+    lo = min(float(np.min(r)) for r in readings)
+    hi = max(float(np.max(r)) for r in readings)
+    return (lo, hi) if lo < -150.0 and hi > 150.0 else None
+
+
+def valid_samples(
+    reading: np.ndarray, ends: tuple[float, float] | None, volts: np.ndarray, adc_range: float
+) -> np.ndarray:
+    """Samples that measure the shaft: not within DEADBAND_GUARD [deg] of a track end of the pot (``reading``,
+    the wrapped pot angle [deg]) and not clipped at the ADC's range [V] (``volts``)."""
+    ok = np.abs(volts) < (1.0 - 1e-6) * adc_range
+    if ends is not None:
+        ok &= (reading > ends[0] + DEADBAND_GUARD) & (reading < ends[1] - DEADBAND_GUARD)
+    return ok
+
+
+def load_experiments(real: Path, cal: Calibration, sim: specmod.Spec, adc_range: float) -> dict[str, RigExperiment]:
+    """Every non-calibration experiment of run ``real`` as a :class:`RigExperiment` (manifest order), converted
+    with ``cal``, with the sim spec's per-experiment overrides and the samples that can be compared marked valid
+    (pot dead band and clipping at the ADC's ``adc_range`` [V] masked)."""
+    manifest = load_manifest(real)
+    exps = [e for e in manifest["experiments"] if e.get("role", "identification") != "calibration"]
+    if not exps:
+        raise DataError(f"{real}: no identification or analysis experiments to diagnose")
+    raw_spec = manifest.get("spec") if manifest.get("kind") == "campaign" else None
+    sim_exps = {e.name: e for e in sim.all_experiments()}
+    run = RunDir(real)
+    out: dict[str, RigExperiment] = {}
+    for e in exps:
+        df = read_dataset(run.dataset(e["name"]))
+        Ts = sample_time(df)
+        u = df["u"].to_numpy(float)
+        th_v, al_v = df["theta_v"].to_numpy(float), df["alpha_v"].to_numpy(float)
+        th, al = theta_deg(th_v, cal), alpha_deg(al_v, cal)
+        hint = 0
+        if raw_spec is not None:
+            for d in raw_spec.get("experiment", []):
+                if d.get("name") == e["name"] and d.get("signal") == "multisine" and "period" in d:
+                    hint = int(round(float(d["period"]) / Ts))
+        se = sim_exps.get(e["name"])
+        out[e["name"]] = RigExperiment(
+            name=e["name"],
+            kind=str(e.get("signal", "imported")),
+            Ts=Ts,
+            t=df["t"].to_numpy(float),
+            u=u,
+            theta=th,
+            alpha=al,
+            theta_v=th_v,
+            alpha_v=al_v,
+            sst={c: float(np.sum((y - y.mean()) ** 2)) for c, y in zip(CHANNELS, (th, al), strict=True)},
+            plant=dict(se.plant) if se else {},
+            daq=dict(se.daq) if se else {},
+            period=command_period(u, hint),
+            role=str(e.get("role", "identification")),
+        )
+    readings = {n: theta_deg(x.theta_v, cal, unwrap=False) for n, x in out.items()}
+    ends = pot_track_ends(list(readings.values()))
+    for n, x in out.items():
+        x.valid = {
+            "theta": valid_samples(readings[n], ends, x.theta_v, adc_range),
+            "alpha": valid_samples(np.zeros(1), None, x.alpha_v, adc_range),
+        }
+    return out
+
+
+def masked_share(experiments: dict[str, RigExperiment]) -> dict[str, float]:
+    """Share of the real samples per channel not compared (pot dead band, ADC clipping)."""
+    n = sum(x.u.size for x in experiments.values())
+    return {c: float(sum(int(np.sum(~x.valid[c])) for x in experiments.values())) / n for c in CHANNELS}
+
+
+def multisine_design(real: Path, exp: RigExperiment) -> MultisineLines | None:
+    """The multisine line design of a periodic campaign experiment (None when it cannot be rebuilt)."""
+    m = load_manifest(real)
+    if m.get("kind") != "campaign" or exp.period == 0:
+        return None
+    table = next((d for d in m["spec"].get("experiment", []) if d.get("name") == exp.name), None)
+    entry = next((e for e in m["experiments"] if e["name"] == exp.name), None)
+    if table is None or entry is None or table.get("signal") != "multisine":
+        return None
+    return multisine_lines(
+        exp.period,
+        exp.Ts,
+        float(table["f_min"]),
+        float(table["f_max"]),
+        odd=bool(table.get("odd", True)),
+        seed=int(entry["seed"]),
+        skip_one_per_group=bool(table.get("skip_one_per_group", True)),
+    )
+
+
+def split_folds(experiments: dict[str, RigExperiment]) -> tuple[list[str], list[str]]:
+    """Two folds A, B of experiment names for 2-fold cross-fitting (fit on A, score on B, and back): within each
+    signal kind (sorted by peak |u|, then name) the experiments alternate between the folds, the first of
+    every other kind going to B, so both folds span the kinds and the command levels. One experiment: it is
+    both folds (nothing can be held out)."""
+    names = list(experiments)
+    if len(names) == 1:
+        return names, names
+    kinds: dict[str, list[str]] = {}
+    for n in names:
+        kinds.setdefault(experiments[n].kind, []).append(n)
+    a, b = [], []
+    for g, kind in enumerate(sorted(kinds)):
+        grp = sorted(kinds[kind], key=lambda n: (round(experiments[n].peak_command_v, 6), n))
+        for i, n in enumerate(grp):
+            (a if (i + g) % 2 == 0 else b).append(n)
+    if not b:  # every kind a singleton of the same parity
+        b.append(a.pop())
+    order = {n: i for i, n in enumerate(names)}
+    return sorted(a, key=order.get), sorted(b, key=order.get)

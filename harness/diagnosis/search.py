@@ -1,0 +1,510 @@
+"""The search for the effects behind the gap: recalibration, screening, joint refit, forward selection, backward
+elimination, importance, and the gap stage by stage. Every score is on held-out data (2-fold cross-fitting).
+
+Recalibration first: the linear parameters (:data:`harness.diagnosis.recalibrate.LINEAR`) fitted on each fold
+(its first FIT_SECONDS), scored on the other. Then greedy forward selection, round by round:
+
+1. screening (:func:`screen`): each candidate's parameter alone, on the current rig and, since recalibration has
+   already absorbed part of any effect (friction raises Beq, a delay lowers the motor gain and raises Jeq, a second
+   mode shifts Ks), also on the spec's own linear rig;
+2. joint refit (:func:`refit_leaders`): the JOINT_TOP best and every candidate that moves the rig's resonances
+   (``joint``) refitted jointly with the linear parameters and the effects already chosen, from every value a
+   screening proposed for an integer;
+3. the best candidate enters when its screening or joint closure reaches MIN_CLOSURE and it lowers the held-out
+   gap; rounds go on while the gap is above NONE_RATIO x the floor.
+
+Score: closure = (E_before - E_after) / (E_before - E_floor), E the mean squared gap, E_floor = max(E_noise,
+GAP_RESOLUTION^2). Backward elimination (:func:`eliminate`) then drops an effect whose removal reopens less than
+DROP_MIN of the excess gap left after recalibration; the importance (:func:`importance`) is each effect's share of
+what the removals reopen. An effect found by its signature (the ADC lattice) is added last with its honest shrink.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from . import recalibrate as recal
+from .effects import BY_PARAM, EFFECTS, SECONDARY, Effect, effect_params
+from .experiments import RigExperiment
+from .result import Candidate, Decomposition, FittedParameter, FoundEffect, Gap, HeldOutGap, Step
+from .simulation import SSE, fit_pct, gap_summary, mean_squared_gap
+from .tasks import Pool
+
+__all__ = [
+    "DROP_MIN",
+    "EXPLAINED",
+    "GAP_RESOLUTION",
+    "JOINT_TOP",
+    "MIN_CLOSURE",
+    "NONE_RATIO",
+    "SearchResult",
+    "eliminate",
+    "importance",
+    "search",
+]
+
+Progress = Callable[[str], None]
+
+# Decision thresholds (see harness.diagnosis.diagnose for why these values)
+NONE_RATIO = 2.0  # gap within 2x the noise gap (E within 4x E_noise): no gap beyond noise
+MIN_CLOSURE = 0.3  # a candidate must close >= 30 % of the excess squared gap left on held-out experiments
+EXPLAINED = 0.5  # the effects found must close >= half the excess squared gap left for a verdict naming one
+GAP_RESOLUTION = 1e-3  # gap (fit 99.9 %) below which no sensor calibration can tell sim from rig
+DROP_MIN = 0.05  # an effect whose removal reopens less than 5 % of the excess gap is dropped
+JOINT_TOP = 2  # candidates refitted jointly with the linear parameters per round
+
+Overrides = dict[str, Any]  # {"plant.Ks": 1.5, "daq.delay_samples": 1, ...}
+
+
+def shrink_pct(before: float, after: float) -> float:
+    """How much a gap fell [%]: 100 (1 - after / before)."""
+    return 100.0 * (1.0 - after / before) if before > 0 else 0.0
+
+
+def closure(msg_before: float, msg_after: float, msg_floor: float) -> float:
+    """Share of the excess mean squared gap (above the floor) closed: (E_before - E_after) / (E_before - E_floor)."""
+    excess = msg_before - msg_floor
+    return (msg_before - msg_after) / excess if excess > 0 else 0.0
+
+
+@dataclass
+class CrossFit:
+    """The 2-fold cross-fit the search scores on: fit k is made on ``fits[k]`` and scored on ``helds[k]``, so
+    every experiment is held out once; ``noise``: the noise floor's mean squared gap E_noise."""
+
+    pool: Pool
+    experiments: dict[str, RigExperiment]
+    names: list[str]
+    fits: list[list[str]]
+    helds: list[list[str]]
+    noise: float
+
+    @property
+    def floor(self) -> float:
+        """E_floor = max(E_noise, GAP_RESOLUTION^2): below it no gap can be told from noise or calibration."""
+        return max(self.noise, GAP_RESOLUTION**2)
+
+    def msg(self, sse: SSE) -> float:
+        """Mean squared gap over every experiment."""
+        return mean_squared_gap(sse, self.experiments, self.names)
+
+    def held_out(self, pair: list[dict[str, Any]]) -> float:
+        """Mean squared gap of the two folds' task results, merged (each experiment scored by the fit not made
+        on it)."""
+        return self.msg({**pair[0]["sse"], **pair[1]["sse"]})
+
+    def score(self, overrides: list[Overrides]) -> float:
+        """Held-out mean squared gap of per-fold overrides."""
+        s1, s2 = self.pool.map([("sse", overrides[k], self.helds[k]) for k in (0, 1)])
+        return self.msg({**s1, **s2})
+
+
+@dataclass
+class Forward:
+    """The forward selection's state: the effects chosen, (effect, held-out E once it was added) in order, every
+    round's ranked candidates, the per-fold parameters and the held-out E of the current model."""
+
+    chosen: list[str]
+    added: list[tuple[str, float]]
+    rounds: list[list[dict[str, Any]]]
+    bases: list[Overrides]
+    msg: float
+
+
+@dataclass
+class SearchResult:
+    """What the search finds: verdict, effects, candidates, rounds, gap, parameter table, whether recalibration
+    was applied, and the final parameters (all experiments)."""
+
+    verdict: str
+    effects: list[FoundEffect]
+    candidates: list[Candidate]
+    rounds: list[list[dict[str, Any]]]
+    gap: Gap
+    parameters: dict[str, FittedParameter]
+    recalibration_applied: bool
+    final: Overrides
+
+
+def screen(
+    cf: CrossFit, remaining: list[Effect], rigs: list[list[Overrides]], refs: list[float]
+) -> list[dict[str, Any]]:
+    """Each candidate's parameter fitted alone on each fold on top of each rig in ``rigs`` (per-fold overrides;
+    the current one first, held-out E ``refs``); ranked by the best screening closure. Each entry: effect, the
+    folds' parameters on the current rig, the starts for a joint refit, screen_score, params, and on the current
+    rig held_out_share_pct, shrink_pct, gap_after."""
+    e_base = refs[0]
+    res = cf.pool.map([("fit", c, b[k], cf.fits[k], cf.helds[k]) for b in rigs for c in remaining for k in (0, 1)])
+    ranked = []
+    for i, c in enumerate(remaining):
+        opts = []
+        for j, b in enumerate(rigs):
+            pair = res[2 * (j * len(remaining) + i) : 2 * (j * len(remaining) + i) + 2]
+            e_cv = cf.held_out(pair)
+            opts.append((closure(refs[j], e_cv, cf.floor), e_cv, [{**b[k], **r["params"]} for k, r in enumerate(pair)]))
+        e_cv = opts[0][1]  # the honest share is on the current rig
+        ranked.append(
+            {
+                "effect": c.name,
+                "fold_params": opts[0][2],
+                "start": max(opts, key=lambda o: o[0])[2],
+                "starts": [o[2] for o in opts],
+                "screen_score": max(o[0] for o in opts),
+                "params": {c.param: c.combine([p[c.param] for p in opts[0][2]])},
+                "held_out_share_pct": 100.0 * closure(e_base, e_cv, cf.floor),
+                "shrink_pct": shrink_pct(math.sqrt(e_base), math.sqrt(e_cv)),
+                "gap_after": math.sqrt(e_cv),
+            }
+        )
+    ranked.sort(key=lambda r: (-r["screen_score"], r["effect"]))
+    return ranked
+
+
+def refit_leaders(
+    cf: CrossFit, ranked: list[dict[str, Any]], by_name: dict[str, Effect], chosen: list[str], e_base: float
+) -> None:
+    """The leaders of a screening (the JOINT_TOP best with half of MIN_CLOSURE, and every ``joint`` candidate)
+    refitted jointly with the linear parameters and the continuous parameters of the effects ``chosen``; an entry
+    of ``ranked`` is updated in place when its joint refit closes more on held-out data."""
+    leaders = [r for r in ranked[:JOINT_TOP] if r["screen_score"] >= 0.5 * MIN_CLOSURE]
+    leaders += [r for r in ranked[JOINT_TOP:] if by_name[r["effect"]].joint]
+    free_before = [EFFECTS[e].param for e in chosen if EFFECTS[e].continuous]
+    calls, slots = [], []
+    for r in leaders:
+        c = by_name[r["effect"]]
+        free = free_before + ([c.param] if c.continuous else [])
+        for k in (0, 1):
+            # an integer is not moved by least squares: every value a screening proposed is refitted
+            starts = [r["start"][k]]
+            if not c.continuous:
+                starts = list({st[k][c.param]: st[k] for st in r["starts"]}.values())
+            slots.append((len(calls), len(starts)))
+            calls += [("refit", st, free, cf.fits[k], cf.helds[k]) for st in starts]
+    joint = cf.pool.map(calls)
+    for i, r in enumerate(leaders):
+        pair = [min(joint[a : a + m], key=lambda q: q["fit_msg"]) for a, m in slots[2 * i : 2 * i + 2]]
+        e_j = cf.held_out(pair)
+        if e_j < r["gap_after"] ** 2:
+            c = by_name[r["effect"]]
+            r.update(
+                fold_params=[q["params"] for q in pair],
+                params={c.param: c.combine([q["params"][c.param] for q in pair])},
+                held_out_share_pct=100.0 * closure(e_base, e_j, cf.floor),
+                shrink_pct=shrink_pct(math.sqrt(e_base), math.sqrt(e_j)),
+                gap_after=math.sqrt(e_j),
+                refit="jointly with the linear parameters",
+            )
+
+
+def _closes(r: dict[str, Any]) -> float:
+    """A candidate's best closure: its screening's or its held-out share (after a joint refit)."""
+    return max(r["screen_score"], r["held_out_share_pct"] / 100.0)
+
+
+def forward_selection(
+    cf: CrossFit,
+    searched: list[Effect],
+    bases: list[Overrides],
+    e_start: float,
+    e0: float,
+    recal_paid: bool,
+    no_gap: bool,
+    say: Progress,
+) -> Forward:
+    """Greedy forward selection of the ``searched`` effects on top of the recalibrated rig ``bases`` (held-out E
+    ``e_start``; ``e0`` that of the simulation as given). The candidates are screened once for the record even
+    when there is no gap beyond noise."""
+    fw = Forward(chosen=[], added=[], rounds=[], bases=bases, msg=e_start)
+    by_name = {c.name: c for c in searched}
+    remaining = list(searched)
+    while remaining:
+        beyond = not no_gap and fw.msg > NONE_RATIO**2 * cf.floor
+        if fw.rounds and not beyond:
+            break
+        # the spec's own linear rig (with the effects chosen so far): the recalibrated one has already absorbed
+        # part of the effect (friction raises Beq, a delay lowers the motor gain) and would hide it
+        rigs, refs = [fw.bases], [fw.msg]
+        if recal_paid:
+            spec_lin = [{q: v for q, v in b.items() if q not in recal.LINEAR} for b in fw.bases]
+            rigs.append(spec_lin)
+            refs.append(cf.score(spec_lin) if fw.rounds else e0)
+        ranked = screen(cf, remaining, rigs, refs)
+        fw.rounds.append(ranked)
+        if not beyond:
+            break
+        refit_leaders(cf, ranked, by_name, fw.chosen, fw.msg)
+        ranked.sort(key=lambda r: (-r["held_out_share_pct"], r["effect"]))
+        best = max(ranked, key=lambda r: (_closes(r), -ranked.index(r)))
+        say(
+            f"round {len(fw.rounds)}: "
+            + ", ".join(
+                f"{r['effect']} {r['held_out_share_pct']:.1f} %{' (joint)' if 'refit' in r else ''}" for r in ranked
+            )
+        )
+        if _closes(best) < MIN_CLOSURE or best["gap_after"] ** 2 >= fw.msg:
+            break
+        fw.bases = [dict(b) for b in best["fold_params"]]
+        fw.chosen.append(best["effect"])
+        fw.msg = best["gap_after"] ** 2
+        fw.added.append((best["effect"], fw.msg))
+        remaining = [c for c in remaining if c.name != best["effect"]]
+        say(f"  gap left {math.sqrt(fw.msg):.4f} (noise {math.sqrt(cf.noise):.4f})")
+    return fw
+
+
+def eliminate(cf: CrossFit, fw: Forward, e_start: float) -> tuple[dict[str, float], float]:
+    """Drop-one on held-out data: each chosen effect removed from the final model (the others and the jointly
+    refitted linear parameters kept); the effect whose removal reopens least is dropped (from ``fw.chosen`` and
+    ``fw.bases``, in place) while that is less than DROP_MIN of the excess gap left after recalibration
+    (``e_start``). Returns ({effect: held-out E without it}, held-out E of the effects kept)."""
+    e_expl = fw.msg
+    excess = e_start - cf.floor
+    chosen, bases = fw.chosen, fw.bases
+    while chosen:
+        calls = []
+        for e in chosen:
+            ps = EFFECTS[e].params
+            calls += [("sse", {q: v for q, v in bases[k].items() if q not in ps}, cf.helds[k]) for k in (0, 1)]
+        sses = cf.pool.map(calls)
+        without = {e: cf.msg({**sses[2 * j], **sses[2 * j + 1]}) for j, e in enumerate(chosen)}
+        weakest = min(chosen, key=lambda e: (without[e], -chosen.index(e)))
+        if excess <= 0 or (without[weakest] - e_expl) / excess >= DROP_MIN:
+            return without, e_expl
+        e_expl = without[weakest]
+        for b in bases:
+            for q in EFFECTS[weakest].params:
+                b.pop(q, None)
+        chosen.remove(weakest)
+    return {}, e_expl
+
+
+def importance(without: dict[str, float], e_expl: float) -> dict[str, float]:
+    """Drop-one importance [0, 1]: what removing each effect alone from the final model reopens (E_without -
+    E_final), as its share of what all of them reopen; the order is that of the gap each removal reopens."""
+    reopen = {e: max(w - e_expl, 0.0) for e, w in without.items()}
+    total = sum(reopen.values())
+    return {e: r / total if total > 0 else 1.0 / len(reopen) for e, r in reopen.items()}
+
+
+def waterfall(cf: CrossFit, fw: Forward, order: list[str]) -> list[float]:
+    """Held-out E after each effect of ``order`` is added: as the forward selection measured it (each stage with
+    its own joint refit), or, when an effect was dropped again, with the final parameters; the effects found by
+    their signature last, on the final model."""
+    kept_forward = [e for e, _ in fw.added] == fw.chosen
+    lin = [{q: v for q, v in b.items() if q in recal.LINEAR} for b in fw.bases]
+    redo = range(len(fw.chosen), len(order)) if kept_forward else range(len(order))
+    calls = []
+    for j in redo:
+        keep = effect_params(order[: j + 1])
+        calls += [
+            ("sse", {**lin[k], **{q: v for q, v in fw.bases[k].items() if q in keep}}, cf.helds[k]) for k in (0, 1)
+        ]
+    sses = cf.pool.map(calls)
+    msgs = [e for _, e in fw.added] if kept_forward else []
+    return msgs + [cf.msg({**sses[2 * i], **sses[2 * i + 1]}) for i in range(len(redo))]
+
+
+def final_params(
+    cf: CrossFit, bases: list[Overrides], order: list[str]
+) -> tuple[Overrides, dict[str, FittedParameter]]:
+    """The reported parameters: integers from the folds (when they disagree, settled by the lower gap on all
+    experiments), then the linear and continuous effect parameters fitted jointly on every experiment's fit
+    window from the folds' combined values, with 95 % intervals; returns (overrides, parameter table)."""
+    start: Overrides = {}
+    for prm in set(bases[0]) | set(bases[1]):
+        vals = [b[prm] for b in bases if prm in b]
+        start[prm] = BY_PARAM[prm].combine(vals) if prm in BY_PARAM else float(math.exp(np.mean(np.log(vals))))
+    for name in order:
+        eff = EFFECTS[name]
+        if not eff.continuous and bases[0][eff.param] != bases[1][eff.param]:
+            opts = sorted({bases[0][eff.param], bases[1][eff.param]})
+            sse = cf.pool.map([("sse", {**start, eff.param: v}, cf.names) for v in opts])
+            start[eff.param] = min(zip(opts, sse, strict=True), key=lambda o: cf.msg(o[1]))[0]
+    free = [EFFECTS[e].param for e in order if EFFECTS[e].continuous]
+    (res,) = cf.pool.map([("refit", start, free, cf.names, [], 20)])
+    final = res["params"]
+    table = {}
+    extras = [x for p in free for x in BY_PARAM[p].extra]
+    for prm in [*recal.LINEAR, *free, *extras]:
+        nom, val, ci = cf.pool.setup.nominal(prm), float(final[prm]), res["ci95"][prm]
+        row = FittedParameter(nominal=nom, fitted=val, ci95=[float(ci[0]), float(ci[1])], change_pct=math.nan, unit="")
+        if prm in recal.LINEAR:
+            row.change_pct = 100.0 * (val / nom - 1.0)
+            row.unit = recal.LINEAR[prm].unit
+            row.finding = recal.finding(prm, nom, val, ci)
+        elif prm in SECONDARY:
+            row.unit = SECONDARY[prm].unit
+            row.finding = f"{SECONDARY[prm].label}: {val:.3g} (spec {nom:.3g})"
+        else:
+            row.unit = BY_PARAM[prm].unit
+        table[prm] = row
+    return final, table
+
+
+GAP_DEFINITION = (
+    "gap = sqrt(mean over experiments and channels (theta, alpha) of ||y_real - y_sim||^2 / ||y_real - mean||^2) "
+    "over valid samples (pot dead band and ADC clipping masked); fit % = 100 (1 - gap); shrink % = 100 (1 - "
+    "gap_after / gap_before); held_out: every experiment scored with parameters fitted on the other fold; after: "
+    "final parameters, all data"
+)
+DECOMPOSITION_DEFINITION = (
+    "held-out gaps: before = the simulation as given; after_recalibration = its linear parameters fitted on the "
+    "other fold; after_effects = with the effects found, fitted jointly with the linear parameters on the other "
+    "fold; closed_pct = share of the excess (above the floor) squared gap the stage closes, floor = max(noise "
+    "floor, resolution)^2"
+)
+
+
+def search(
+    pool: Pool,
+    experiments: dict[str, RigExperiment],
+    folds: tuple[list[str], list[str]],
+    cands: list[Effect],
+    e_noise: float,
+    say: Progress,
+) -> SearchResult:
+    """Recalibration, then greedy selection of the candidate effects ``cands`` on top of it, with 2-fold
+    cross-fitting; verdict, effects, candidates, the parameter table and the gap decomposition (see the module)."""
+    names = list(experiments)
+    cf = CrossFit(pool, experiments, names, [folds[0], folds[1]], [folds[1], folds[0]], e_noise)
+    # the simulation as given, and recalibrated
+    (sse0,) = pool.map([("sse", {}, names)])
+    e0 = cf.msg(sse0)
+    say(f"gap before: fit {fit_pct(e0):.2f} %, noise floor {fit_pct(e_noise):.3f} %")
+    rec = pool.map([("refit", {}, [], cf.fits[k], cf.helds[k]) for k in (0, 1)])
+    e_recal = cf.held_out(rec)
+    recal_paid = e_recal < e0
+    bases: list[Overrides] = [dict(r["params"]) for r in rec] if recal_paid else [{}, {}]
+    e_start = min(e0, e_recal)
+    say(f"recalibrated linear parameters: held-out fit {fit_pct(e_recal):.2f} %")
+    no_gap = e_start <= NONE_RATIO**2 * cf.floor
+    # the effects: forward selection, backward elimination, importance; those found by their signature last
+    searched = [c for c in cands if not c.signature]
+    signature = [c for c in cands if c.signature]
+    fw = forward_selection(cf, searched, bases, e_start, e0, recal_paid, no_gap, say)
+    e_base = fw.msg
+    without, e_expl = eliminate(cf, fw, e_start)
+    shares = importance(without, e_expl)
+    for c in signature:
+        for k in (0, 1):
+            fw.bases[k][c.param] = c.values[0]
+    order = fw.chosen + [c.name for c in signature]
+    steps = [("recalibration", e_recal, recal_paid)] + [
+        (e, m, True) for e, m in zip(order, waterfall(cf, fw, order), strict=True)
+    ]
+    explained = min(closure(e_start, e_expl, cf.floor), 1.0) if not no_gap else math.nan
+    final, table = final_params(cf, fw.bases, order)
+    (sse_final,) = pool.map([("sse", final, names)])
+    effects = _found_effects(cf, fw.bases, order, steps, e0 if not recal_paid else e_recal, final, shares)
+    if no_gap:
+        verdict = signature[0].name if signature else "none"
+    elif fw.chosen and explained >= EXPLAINED:
+        verdict = max(fw.chosen, key=lambda e: (shares[e], -fw.chosen.index(e)))
+    else:
+        verdict = "unexplained"
+    e_after = steps[-1][1] if len(steps) > 1 else e_start
+    before, after = gap_summary(sse0, experiments, names), gap_summary(sse_final, experiments, names)
+    gap = Gap(
+        before=before,
+        after=after,
+        held_out=HeldOutGap(math.sqrt(e0), math.sqrt(e_after), fit_pct(e0), fit_pct(e_after)),
+        shrink_pct=shrink_pct(math.sqrt(e0), math.sqrt(e_after)),
+        shrink_pct_in_sample=shrink_pct(before.gap, after.gap),
+        explained_pct=100.0 * explained,
+        decomposition=Decomposition(
+            before=math.sqrt(e0),
+            after_recalibration=math.sqrt(e_recal),
+            after_effects=math.sqrt(e_after),
+            noise_floor=math.sqrt(e_noise),
+            resolution=GAP_RESOLUTION,
+            steps=[
+                Step(stage, math.sqrt(m), 100.0 * closure(e0 if i == 0 else steps[i - 1][1], m, cf.floor), applied)
+                for i, (stage, m, applied) in enumerate(steps)
+            ],
+            definition=DECOMPOSITION_DEFINITION,
+        ),
+        definition=GAP_DEFINITION,
+    )
+    return SearchResult(
+        verdict=verdict,
+        effects=effects,
+        candidates=_candidate_table(cf, fw, signature, {c.name for c in cands}, e_base),
+        rounds=[
+            [{k: v for k, v in r.items() if k not in ("fold_params", "start", "starts")} for r in rnd]
+            for rnd in fw.rounds
+        ],
+        gap=gap,
+        parameters=table,
+        recalibration_applied=recal_paid,
+        final=final,
+    )
+
+
+def _found_effects(
+    cf: CrossFit,
+    bases: list[Overrides],
+    order: list[str],
+    steps: list[tuple[str, float, bool]],
+    e_first: float,
+    final: Overrides,
+    shares: dict[str, float],
+) -> list[FoundEffect]:
+    """The effects found, in ``order``, each with the held-out gap before and after it was added (the waterfall
+    ``steps`` after the recalibration; ``e_first`` the held-out E the first effect started from)."""
+    effects = []
+    prev = e_first
+    for name, (_, m, _) in zip(order, steps[1:], strict=True):
+        gb, ga = math.sqrt(prev), math.sqrt(m)
+        p = EFFECTS[name].param
+        effects.append(
+            FoundEffect(
+                effect=name,
+                params={p: final[p]},
+                params_folds=[{p: bases[0][p]}, {p: bases[1][p]}],
+                gap_before=gb,
+                gap_after=ga,
+                shrink_pct=shrink_pct(gb, ga),
+                fit_pct_before=100.0 * (1.0 - gb),
+                fit_pct_after=100.0 * (1.0 - ga),
+                importance_pct=100.0 * shares[name] if name in shares else math.nan,
+                fitted_on=[cf.fits[0], cf.fits[1]],
+                held_out=[cf.helds[0], cf.helds[1]],
+                selected_by=EFFECTS[name].selected_by,
+            )
+        )
+        prev = m
+    return effects
+
+
+def _candidate_table(
+    cf: CrossFit, fw: Forward, signature: list[Effect], tried: set[str], e_base: float
+) -> list[Candidate]:
+    """The first round's candidates, best held-out share first, with the effects found by their signature scored
+    on every experiment on top of fold A's model; then the effects not tried, with the reason."""
+    out = [
+        Candidate(r["effect"], r["params"], r["held_out_share_pct"], r["shrink_pct"], r["gap_after"], r.get("refit"))
+        for r in (fw.rounds[0] if fw.rounds else [])
+    ]
+    for c in signature:
+        (sq,) = cf.pool.map([("sse", {**fw.bases[0], c.param: c.values[0]}, cf.names)])
+        e_q = cf.msg(sq)
+        out.append(
+            Candidate(
+                effect=c.name,
+                params={c.param: c.values[0]},
+                held_out_share_pct=100.0 * closure(e_base, e_q, cf.floor),
+                shrink_pct=shrink_pct(math.sqrt(e_base), math.sqrt(e_q)),
+                gap_after=math.sqrt(e_q),
+                note="bits from the ADC lattice of the data (nothing fitted, so all experiments are held out)",
+            )
+        )
+    out.sort(key=lambda c: (-c.held_out_share_pct, c.effect))
+    for name, eff in EFFECTS.items():
+        if name not in tried:
+            out.append(Candidate(effect=name, params={}, held_out_share_pct=math.nan, note=eff.skipped))
+    return out

@@ -1,0 +1,162 @@
+"""An experiment of the real rig re-simulated on the sim spec's rig, and the gap between them.
+
+Every experiment is re-simulated on the sim spec's rig (plant and DAQ FMUs, the spec's ``[plant]``/``[daq]`` and
+its per-experiment overrides, measurement noise off, DAQ sample rate 1/Ts of the data) with the real command ``u``
+from the data. Both sides are converted to degrees the way each is calibrated: real volts with the real run's
+calibration, simulated volts with :func:`harness.ident.calibration.daq_calibration` of the simulated DAQ (its pot
+gain and offset; when the real gauge was calibrated on a comb, the least-squares Ke of the simulated gauge over the
+same comb angles, so a gauge nonlinearity is calibrated alike on both sides). theta [deg] is unwrapped; the
+simulation starts at the first real shaft angle (so pot wraps coincide) and its constant offset is then fitted by
+least squares (the integrator's unknown initial state, as MATLAB's ``compare`` estimates it: one noisy first sample
+must not offset a whole record).
+
+Gap. Per experiment and channel q = ||y_real - y_sim||^2 / ||y_real - mean||^2 over valid samples; the mean
+squared gap E = mean q over experiments and channels (channels with no motion skipped), the gap g = sqrt(E), fit %
+= 100 (1 - g) (MATLAB ``compare``'s fit, pooled).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .. import spec as specmod
+from ..executor import FmuBytes
+from ..ident.calibration import Calibration, alpha_deg, daq_calibration, theta_deg
+from .experiments import CHANNELS, DEADBAND_GUARD, RigExperiment
+from .result import ExperimentGap, GapSummary
+
+__all__ = [
+    "SSE",
+    "Setup",
+    "fit_pct",
+    "fmu_value",
+    "gap_summary",
+    "mean_squared_gap",
+    "residuals",
+    "sim_calibration",
+    "sim_rig",
+    "simulate",
+]
+
+SSE = dict[str, dict[str, float]]  # experiment -> channel -> sum of squared residuals [deg^2]
+MODELS = {"plant": "flexjoint", "daq": "daq"}  # the FMU behind each rig table
+
+
+def fmu_value(table: Mapping[str, Any], model: str, name: str) -> float:
+    """Parameter ``name`` of FMU ``model`` ("flexjoint", "daq"): its value in ``table``, else the FMU's default."""
+    return float(table.get(name, specmod.fmu_parameters(model)[name][1]))
+
+
+@dataclass
+class Setup:
+    """The simulation being judged: its rig parameters (noise off), the real run's comb angles [deg] for the
+    sim-side gauge calibration (None: use the sim's gauge gain), the real experiments, and the plant and DAQ
+    FMUs as bytes ({"flexjoint": ..., "daq": ...})."""
+
+    plant: dict[str, Any]
+    daq: dict[str, Any]
+    comb_angles: np.ndarray | None
+    experiments: dict[str, RigExperiment]
+    fmus: dict[str, FmuBytes] = field(default_factory=dict)
+
+    def nominal(self, param: str) -> float:
+        """The simulation's own value of an FMU parameter ("plant.Ks"): the sim spec's, else the FMU default."""
+        table, name = param.split(".", 1)
+        return fmu_value(self.plant if table == "plant" else self.daq, MODELS[table], name)
+
+
+def sim_rig(sim: specmod.Spec) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The sim spec's rig parameters with measurement noise off: (plant, daq)."""
+    plant = {"internal_step": sim.internal_step, **sim.plant}
+    daq = {**sim.daq, "noise_theta": 0.0, "noise_alpha": 0.0}
+    return plant, daq
+
+
+def _split_overrides(over: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """{"plant.x": v, "daq.y": w} -> ({"x": v}, {"y": w})."""
+    plant, daq = {}, {}
+    for k, v in over.items():
+        table, name = k.split(".", 1)
+        (plant if table == "plant" else daq)[name] = v
+    return plant, daq
+
+
+def sim_calibration(daq: Mapping[str, Any], comb_angles: np.ndarray | None) -> Calibration:
+    """The calibration that converts the simulated DAQ's volts (``daq``: its parameters, FMU defaults for the
+    rest), made as the real rig's: :func:`harness.ident.calibration.daq_calibration`."""
+    return daq_calibration(
+        *(fmu_value(daq, "daq", k) for k in ("pot_gain", "pot_offset", "gauge_gain", "gauge_offset", "gauge_cubic")),
+        comb_angles=comb_angles,
+    )
+
+
+def simulate(
+    rig: Any, setup: Setup, exp: RigExperiment, over: Mapping[str, Any], n: int | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Simulated (theta, alpha) [deg] of one experiment (its first ``n`` samples) on the sim rig with ``over``
+    ({"plant.x": v, ...}), and the mask of the theta samples where the simulated pot is on its track."""
+    p_over, d_over = _split_overrides(over)
+    plant = {**setup.plant, **exp.plant, **p_over}
+    daq = {**setup.daq, **exp.daq, **d_over}
+    plant.setdefault("theta_start", math.radians(float(exp.theta[0])))
+    res = rig.run(exp.u[:n], exp.Ts, plant=plant, daq=daq)
+    cal = sim_calibration(daq, setup.comb_angles)
+    reading = theta_deg(res["theta_v"], cal, unwrap=False)
+    edge = 180.0 - 0.5 * fmu_value(daq, "daq", "pot_deadband") - DEADBAND_GUARD
+    on_track = np.abs(reading) < edge
+    th = np.unwrap(reading, period=360.0)
+    ok = on_track & exp.valid["theta"][: th.size]
+    d = exp.theta[: th.size] - th
+    th += float(np.mean(d[ok])) if ok.any() else float(np.mean(d))  # initial shaft angle: least squares
+    return th, alpha_deg(res["alpha_v"], cal), on_track
+
+
+def residuals(
+    rig: Any, setup: Setup, exp: RigExperiment, over: Mapping[str, Any], n: int | None = None
+) -> dict[str, np.ndarray]:
+    """Residual y_real - y_sim [deg] per channel of one experiment (first ``n`` samples), 0 where a sample is not
+    valid on either side (pot dead band, ADC clipping)."""
+    th, al, on_track = simulate(rig, setup, exp, over, n)
+    m = th.size
+    e_th = np.where(exp.valid["theta"][:m] & on_track, exp.theta[:m] - th, 0.0)
+    e_al = np.where(exp.valid["alpha"][:m], exp.alpha[:m] - al, 0.0)
+    return {"theta": e_th, "alpha": e_al}
+
+
+def mean_squared_gap(sse: SSE, experiments: dict[str, RigExperiment], names: list[str], window: str = "all") -> float:
+    """The mean squared gap E: mean over ``names`` and both channels of sse / sst over a window (see
+    :meth:`RigExperiment.window`; channels with no motion skipped); the gap is sqrt(E)."""
+    ssts = {n: experiments[n].window(window)[1] for n in names}
+    qs = [sse[n][c] / ssts[n][c] for n in names for c in CHANNELS if ssts[n][c] > 0]
+    return float(np.mean(qs)) if qs else math.nan
+
+
+def fit_pct(e: float) -> float:
+    """Fit % = 100 (1 - sqrt(E)) of a mean squared gap E."""
+    return 100.0 * (1.0 - math.sqrt(e))
+
+
+def gap_summary(sse: SSE, experiments: dict[str, RigExperiment], names: list[str]) -> GapSummary:
+    """Gap over ``names``: fit % = 100 (1 - sqrt(E)), ``gap`` = sqrt(E), residual RMS [deg] per channel, and
+    per experiment the fit % and residual RMS [deg] per channel."""
+    E = mean_squared_gap(sse, experiments, names)
+    n_tot = sum(experiments[n].u.size for n in names)
+    per = {}
+    for n in names:
+        x = experiments[n]
+        per[n] = ExperimentGap(
+            fit_pct={c: 100.0 * (1.0 - math.sqrt(sse[n][c] / x.sst[c])) if x.sst[c] > 0 else math.nan
+                     for c in CHANNELS},
+            rms_deg={c: math.sqrt(sse[n][c] / x.u.size) for c in CHANNELS},
+        )  # fmt: skip
+    return GapSummary(
+        gap=math.sqrt(E),
+        fit_pct=100.0 * (1.0 - math.sqrt(E)),
+        rms_deg={c: math.sqrt(sum(sse[n][c] for n in names) / n_tot) for c in CHANNELS},
+        experiments=per,
+    )

@@ -1,0 +1,180 @@
+"""The diagnosis's simulations as tasks of a :class:`harness.executor.Executor`.
+
+The setup (simulation, real experiments, FMU bytes) is sent to every worker once and each worker loads the rig
+once. Three tasks, given as ``(kind, *args)`` calls to :meth:`Pool.map`:
+
+- ``("sse", over, names[, window])``: squared errors per experiment and channel with overrides ``over``;
+- ``("fit", effect, base, fit, every)``: :func:`screen_effect`, one effect's parameter alone on top of ``base``;
+- ``("refit", base, free, fit, every[, max_nfev])``: :func:`joint_refit`, the linear parameters (and the
+  continuous effect parameters ``free``) by output-error least squares.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+from scipy.optimize import minimize_scalar
+
+from ..executor import Executor, worker_rig
+from . import recalibrate as recal
+from .effects import BY_PARAM, Effect
+from .experiments import CHANNELS
+from .simulation import SSE, Setup, mean_squared_gap, residuals
+
+__all__ = ["Pool", "joint_refit", "screen_effect", "squared_errors"]
+
+Progress = Callable[[str], None]
+
+_CTX: dict[str, Any] = {}
+
+
+def _bind(setup: Setup) -> None:
+    """Make ``setup`` and its rig (loaded once per process, from the FMU bytes) the current ones of this process."""
+    _CTX["setup"] = setup
+    _CTX["rig"] = worker_rig(setup.fmus)
+
+
+def squared_errors(over: dict[str, Any], names: list[str], window: str = "all") -> SSE:
+    """Squared errors [deg^2] per experiment and channel for overrides ``over`` over a window (see
+    :meth:`harness.diagnosis.experiments.RigExperiment.window`)."""
+    setup: Setup = _CTX["setup"]
+    out = {}
+    for n in names:
+        x = setup.experiments[n]
+        e = residuals(_CTX["rig"], setup, x, over, x.window(window)[0])
+        out[n] = {c: float(np.sum(e[c] ** 2)) for c in CHANNELS}
+    return out
+
+
+def _residual_vector(over: dict[str, Any], names: list[str]) -> np.ndarray:
+    """The fit windows' residuals of ``names``, each channel scaled by 1 / sqrt(K sst) so that the sum of
+    squares is the mean squared gap (K = number of experiment-channels that move): what least squares minimises."""
+    setup: Setup = _CTX["setup"]
+    parts = []
+    k = sum(1 for n in names for c in CHANNELS if setup.experiments[n].sst_fit[c] > 0)
+    for n in names:
+        x = setup.experiments[n]
+        e = residuals(_CTX["rig"], setup, x, over, x.n_fit)
+        parts += [e[c] / math.sqrt(k * x.sst_fit[c]) for c in CHANNELS if x.sst_fit[c] > 0]
+    return np.concatenate(parts)
+
+
+def _screen_msg(over: dict[str, Any], names: list[str]) -> float:
+    """Mean squared gap of ``names`` over their screening windows."""
+    return mean_squared_gap(squared_errors(over, names, "screen"), _CTX["setup"].experiments, names, "screen")
+
+
+def _fit_continuous(eff: Effect, base: dict[str, Any], names: list[str]) -> tuple[float, float, int]:
+    """Coarse grid over [lo, hi] (log or linear) then bounded Brent on the best bracket; returns (value, mean
+    squared gap on ``names``' screening windows, evaluations)."""
+    log = eff.kind == "log"
+    fwd = (lambda x: math.log(x)) if log else (lambda x: x)
+    inv = (lambda s: math.exp(s)) if log else (lambda s: s)
+    s_lo, s_hi = fwd(eff.lo), fwd(eff.hi)
+    pts = np.linspace(s_lo, s_hi, eff.grid)
+    vals = [_screen_msg({**base, eff.param: inv(s)}, names) for s in pts]
+    i = int(np.argmin(vals))
+    best_s, best_v = float(pts[i]), float(vals[i])
+    res = minimize_scalar(
+        lambda s: _screen_msg({**base, eff.param: inv(s)}, names),
+        bounds=(pts[max(i - 1, 0)], pts[min(i + 1, eff.grid - 1)]),
+        method="bounded",
+        options={"xatol": 0.01 if log else 0.002 * (s_hi - s_lo), "maxiter": 10},
+    )
+    if res.fun < best_v:
+        best_s, best_v = float(res.x), float(res.fun)
+    return inv(best_s), best_v, eff.grid + int(res.nfev)
+
+
+def screen_effect(eff: Effect, base: dict[str, Any], fit: list[str], every: list[str]) -> dict[str, Any]:
+    """Screen one effect on top of ``base`` on experiments ``fit`` (their first SCREEN_SECONDS): integers
+    enumerated, continuous parameters on a coarse grid and a bounded Brent refinement; squared errors on
+    ``every`` experiment. Returns effect, params, fit_msg (mean squared gap on the fit), sse, evaluations."""
+    if eff.kind == "int":
+        scores = [(_screen_msg({**base, eff.param: v}, fit), v) for v in eff.values]
+        msg_fit, value = min(scores, key=lambda s: (s[0], s[1]))
+        value, n = int(value), len(scores)
+    else:
+        value, msg_fit, n = _fit_continuous(eff, base, fit)
+    return {
+        "effect": eff.name,
+        "params": {eff.param: value},
+        "fit_msg": msg_fit,
+        "sse": squared_errors({**base, eff.param: value}, every),
+        "evaluations": n + len(every),
+    }
+
+
+def joint_refit(
+    base: dict[str, Any], free: list[str], fit: list[str], every: list[str], max_nfev: int = 30
+) -> dict[str, Any]:
+    """Output-error least squares of the linear parameters (:data:`harness.diagnosis.recalibrate.LINEAR`) and the
+    continuous effect parameters named in ``free`` (with their secondary parameters), from their values in
+    ``base`` (linear ones default to the sim's), on the fit windows of ``fit``; squared errors on ``every``.
+    Returns params, ci95, fit_msg (the mean squared gap at the solution), evaluations, sse."""
+    setup: Setup = _CTX["setup"]
+    bounds: dict[str, recal.Bound] = {}
+    nominal: dict[str, float] = {}
+    for prm, b in recal.LINEAR.items():
+        bounds[prm], nominal[prm] = b, setup.nominal(prm)
+    for prm in free:
+        eff = BY_PARAM[prm]
+        bounds[prm], nominal[prm] = eff.bound(float(base[prm])), float(base[prm])
+        for x, b in eff.extra.items():
+            bounds[x], nominal[x] = b, setup.nominal(x)
+    fixed = {k: v for k, v in base.items() if k not in bounds}
+    f = recal.fit(
+        lambda prm: _residual_vector(prm, fit),
+        bounds,
+        nominal,
+        start={k: float(v) for k, v in base.items() if k in bounds},
+        fixed=fixed,
+        max_nfev=max_nfev,
+    )
+    params = {**fixed, **f.values}
+    return {
+        "params": params,
+        "ci95": f.ci95,
+        "fit_msg": f.cost,
+        "evaluations": f.nfev,
+        "sse": squared_errors(params, every) if every else {},
+    }
+
+
+TASKS: dict[str, Callable[..., Any]] = {"sse": squared_errors, "fit": screen_effect, "refit": joint_refit}
+
+
+def _run_call(call: tuple[Any, ...], setup: Setup) -> Any:
+    _bind(setup)
+    kind, *args = call
+    return TASKS[kind](*args)
+
+
+def _label(call: tuple[Any, ...]) -> str:
+    """What a task does, for the progress line: "screen backlash", "refit linear + coulomb_torque", "score"."""
+    kind = call[0]
+    if kind == "fit":
+        return f"screen {call[1].name}"
+    if kind == "refit":
+        return "refit linear" + "".join(f" + {p.split('.', 1)[1]}" for p in call[2])
+    return "score"
+
+
+class Pool:
+    """The diagnosis's simulations as tasks of a :class:`harness.executor.Executor` (the setup is sent to every
+    worker once; each worker loads the rig once): ``map`` takes ``(kind, *args)`` calls (see the module)."""
+
+    def __init__(
+        self, setup: Setup, workers: int | None, scheduler: str | None = None, progress: Progress | None = None
+    ) -> None:
+        self.setup = setup
+        self.ex = Executor(workers, scheduler, progress)
+
+    def map(self, calls: list[tuple[Any, ...]]) -> list[Any]:
+        return self.ex.map(_run_call, calls, self.setup, desc="diagnosis", labels=[_label(c) for c in calls])
+
+    def close(self) -> None:
+        self.ex.close()
