@@ -16,6 +16,7 @@ is not written back, so ``Diagnosis.load(p).write(q)`` gives ``q`` the bytes of 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import numbers
@@ -384,11 +385,17 @@ def _plain(obj: Any) -> Any:
     return obj
 
 
+@functools.cache
+def _hints(cls: type) -> dict[str, Any]:
+    """The resolved field types of a dataclass."""
+    return typing.get_type_hints(cls)
+
+
 def _build(cls: type[T], doc: Any, where: str) -> T:
     """Dataclass ``cls`` from JSON object ``doc`` (``where``: its place in the file, for the error)."""
     if not isinstance(doc, dict):
         raise DataError(f"{where}: expected an object, got {type(doc).__name__}")
-    hints = typing.get_type_hints(cls)
+    hints = _hints(cls)
     fs = dataclasses.fields(cls)  # type: ignore[arg-type]
     keys = {_key(f) for f in fs}
     unknown = sorted(set(doc) - keys)
