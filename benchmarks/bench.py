@@ -304,9 +304,9 @@ def bench_diagnose(workers: int = 2) -> dict[str, Any]:
     return {
         "wall_s": wall,
         "workers": workers,
-        "effects": [e["effect"] for e in d["effects"]],
-        "verdict": d["verdict"],
-        "held_out_shrink_pct": d["gap"]["shrink_pct"],
+        "effects": d.effect_names,
+        "verdict": d.verdict,
+        "held_out_shrink_pct": d.gap.shrink_pct,
         "target": "diagnosis of the 9 experiments < 60 s on 2 cores",
     }
 
@@ -339,15 +339,16 @@ def bench_diagnosis_table(workers: int | None = None) -> dict[str, Any]:
             run_campaign(specmod.load("nominal", [*MISMATCH, *sets]), run, fmus=build_all())
             t0 = time.perf_counter()
             d = diagnose_run(run, "nominal", workers=workers)
-            dec = d["gap"]["decomposition"]
+            dec = d.gap.decomposition
             rows[name] = {
-                "verdict": d["verdict"],
-                "effects": {k: v for e in d["effects"] for k, v in e["params"].items()},
-                "Ks": d["parameters"]["plant.Ks"]["fitted"],
-                "Beq": d["parameters"]["plant.Beq"]["fitted"],
+                "verdict": d.verdict,
+                "effects": d.fitted_effect_params(),
+                "Ks": d.parameters["plant.Ks"].fitted,
+                "Beq": d.parameters["plant.Beq"].fitted,
                 "fit_pct": {
-                    k: 100.0 * (1.0 - dec[k]) for k in ("before", "after_recalibration", "after_effects", "noise_floor")
-                },  # fmt: skip
+                    k: 100.0 * (1.0 - getattr(dec, k))
+                    for k in ("before", "after_recalibration", "after_effects", "noise_floor")
+                },
                 "wall_s": time.perf_counter() - t0,
             }
     return {"rows": rows, "mismatch": MISMATCH}

@@ -20,6 +20,7 @@ from ._version import __version__
 from .diagnosis.blindtest import FAMILIES
 from .diagnosis.blindtest import blindtest as run_blind
 from .diagnosis.diagnose import diagnose_run
+from .diagnosis.result import Diagnosis
 from .executor import session
 from .fmu.build import MODELS, build_fmu
 from .fmu.cosim import FMUError
@@ -401,27 +402,23 @@ def report(
     out.print(f"{path} ({path.stat().st_size / 1024:.1f} kB), {path.parent / 'figures'}, {recording}")
 
 
-def diagnosis_summary(d: dict) -> str:
+def diagnosis_summary(d: Diagnosis) -> str:
     """A few lines for the terminal: verdict, effects in greedy order with their fitted parameters, the shrink."""
-    lines = [f"verdict: {d['verdict']}"]
-    for name, row in d.get("parameters", {}).items():
-        if "finding" in row:
-            lo, hi = row["ci95"]
-            lines.append(f"  {name}: {row['finding']} (95 % interval {lo:.4g}..{hi:.4g})")
-    for e in d.get("effects", []):
-        params = ", ".join(f"{k}={v:.4g}" for k, v in e["params"].items())
-        lines.append(f"  + {e['effect']} ({params}): shrink {e['shrink_pct']:.1f} % on held-out experiments")
-    gap = d.get("gap", {})
-    dec = gap.get("decomposition")
-    if dec:
-        fits = [f"{k.replace('_', ' ')} {100 * (1 - dec[k]):.2f} %" for k in
-                ("before", "after_recalibration", "after_effects", "noise_floor")]  # fmt: skip
-        lines.append("held-out fit: " + ", ".join(fits))
-    if "shrink_pct" in gap:
-        lines.append(
-            f"gap: fit {gap['before']['fit_pct']:.2f} % -> {gap['after']['fit_pct']:.2f} %, "
-            f"total shrink {gap['shrink_pct']:.1f} %"
-        )
+    lines = [f"verdict: {d.verdict}"]
+    for name, p in d.parameters.items():
+        if p.finding is not None:
+            lo, hi = p.ci95
+            lines.append(f"  {name}: {p.finding} (95 % interval {lo:.4g}..{hi:.4g})")
+    for e in d.effects:
+        params = ", ".join(f"{k}={v:.4g}" for k, v in e.params.items())
+        lines.append(f"  + {e.effect} ({params}): shrink {e.shrink_pct:.1f} % on held-out experiments")
+    dec = d.gap.decomposition
+    fits = {"before": dec.before, "after recalibration": dec.after_recalibration,
+            "after effects": dec.after_effects, "noise floor": dec.noise_floor}  # fmt: skip
+    lines.append("held-out fit: " + ", ".join(f"{k} {100 * (1 - g):.2f} %" for k, g in fits.items()))
+    lines.append(
+        f"gap: fit {d.gap.before.fit_pct:.2f} % -> {d.gap.after.fit_pct:.2f} %, total shrink {d.gap.shrink_pct:.1f} %"
+    )
     return "\n".join(lines)
 
 

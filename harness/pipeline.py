@@ -71,8 +71,8 @@ def run_pipeline(
     cf = crossfit_run(out)
     say(f"cross-fit through FMUs: selected average {cf.loc['selected', 'average']:.2f} %")
     d = diagnose_run(out, sim, out)
-    found = " + ".join(e["effect"] for e in d.get("effects", [])) or d["verdict"]
-    say(f"diagnosis against {sim}: {found} (verdict {d['verdict']}, held-out shrink {d['gap']['shrink_pct']:.1f} %)")
+    found = " + ".join(d.effect_names) or d.verdict
+    say(f"diagnosis against {sim}: {found} (verdict {d.verdict}, held-out shrink {d.gap.shrink_pct:.1f} %)")
     write_report(out)
     log_run(out, rrd=rrd, spawn=spawn, connect=connect)
     verdict = accept(out)

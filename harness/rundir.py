@@ -18,8 +18,10 @@ Layout::
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
+import numbers
 import os
 import tempfile
 import types
@@ -133,12 +135,18 @@ def to_plain(obj: Any) -> Any:
     return obj
 
 
+@functools.cache
+def _hints(cls: type) -> dict[str, Any]:
+    """The resolved field types of a dataclass."""
+    return typing.get_type_hints(cls)
+
+
 def from_plain(cls: type[T], doc: Any, where: str) -> T:
     """Dataclass ``cls`` from JSON object ``doc``, every value checked against its field's type; ``where`` (its
     place in the file) starts the one-line :class:`DataError` of a missing key, an unknown one or a wrong type."""
     if not isinstance(doc, dict):
         raise DataError(f"{where}: expected an object, got {type(doc).__name__}")
-    hints = typing.get_type_hints(cls)
+    hints = _hints(cls)
     fs = dataclasses.fields(cls)  # type: ignore[arg-type]
     keys = {_key(f) for f in fs}
     unknown = sorted(set(doc) - keys)
@@ -178,10 +186,10 @@ def _plain_value(tp: Any, v: Any, where: str) -> Any:
     if tp is float:
         if v is None:
             return math.nan
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
+        if isinstance(v, bool) or not isinstance(v, numbers.Real):
             raise DataError(f"{where}: expected a number, got {v!r}")
         return v
-    if tp is int and (isinstance(v, bool) or not isinstance(v, int)):
+    if tp is int and (isinstance(v, bool) or not isinstance(v, numbers.Integral)):
         raise DataError(f"{where}: expected an integer, got {v!r}")
     if tp in (str, bool) and not isinstance(v, tp):
         raise DataError(f"{where}: expected {tp.__name__}, got {v!r}")
@@ -344,11 +352,6 @@ def read_dataset(path: Path) -> pd.DataFrame:
 def sample_time(df: pd.DataFrame) -> float:
     """Sampling period Ts [s] of a validated dataset."""
     return float(np.median(np.diff(df["t"].to_numpy())))
-
-
-def load_manifest(run: Path) -> dict[str, Any]:
-    """manifest.json as plain JSON (readers not yet on :class:`Manifest`)."""
-    return to_plain(Manifest.load(run))
 
 
 def recorded_spec(run: Path) -> Spec | None:

@@ -39,7 +39,7 @@ def test_imported_run_has_the_dataset_layout(tmp_path):
     runs = data.load_run(out)
     assert list(runs) == ["rig1"] and len(runs["rig1"]) == 100
     assert list(runs["rig1"].columns) == ["t", "u", "theta_v", "alpha_v", "theta", "alpha"]
-    assert data.load_manifest(out)["kind"] == "import"
+    assert data.Manifest.load(out).kind == "import"
 
 
 @pytest.mark.parametrize(

@@ -1,6 +1,6 @@
 """The diagnoser on short runs of the blind campaign with known hidden effects: on our twin, on our twin with its
-linear parameters off the datasheet (the rows of issue 8's table), and on rigs of an independent simulator
-(tests/indeprig.py: no FMU, other friction, backlash and link models); and its building blocks checked against
+linear parameters off the datasheet (the rows of the README's off-datasheet table), and on rigs of an independent
+simulator (tests/indeprig.py: no FMU, other friction, backlash and link models); and its building blocks checked against
 independent constructions (ADC lattice, noise estimate, gauge calibration, folds, dead-band mask, candidate
 rules)."""
 
@@ -46,20 +46,19 @@ def coulomb_diag(runs, tmp_path_factory):
 
 def test_coulomb_friction_named_and_fitted(coulomb_diag):
     d, out = coulomb_diag
-    assert d["verdict"] == "coulomb_friction"
-    first = d["effects"][0]
-    fitted = first["params"]["plant.coulomb_torque"]
+    assert d.verdict == "coulomb_friction"
+    fitted = d.effects[0].params["plant.coulomb_torque"]
     assert abs(fitted - 0.05) / 0.05 < 0.20
     # the gap shrinks on held-out experiments to near the noise floor
-    assert d["gap"]["shrink_pct"] > 80.0
-    assert d["gap"]["held_out"]["gap_after"] < 3.0 * d["noise_floor"]["gap"]
+    assert d.gap.shrink_pct > 80.0
+    assert d.gap.held_out.gap_after < 3.0 * d.noise_floor.gap
     # candidates ranked by held-out share, friction first; every candidate tried has fitted parameters
     cands = Diagnosis.load(out).candidates
     shares = [c.held_out_share_pct for c in cands if c.tried]
     assert shares == sorted(shares, reverse=True) and all(c.params for c in cands if c.tried)
     assert {c.effect: c.note for c in cands if not c.tried} == {"quantization": "no ADC lattice in the data"}
-    assert d["candidates"][0]["effect"] == "coulomb_friction"
-    assert {c["effect"] for c in d["candidates"]} >= {"backlash", "saturation", "delay", "gauge_nonlinearity"}
+    assert d.candidates[0].effect == "coulomb_friction"
+    assert {c.effect for c in d.candidates} >= {"backlash", "saturation", "delay", "gauge_nonlinearity"}
     assert (out / "diagnosis.json").exists()
 
 
@@ -74,21 +73,23 @@ def test_diagnosis_json_round_trips_through_its_dataclasses(coulomb_diag, tmp_pa
     diag = Diagnosis.load(out)
     diag.write(tmp_path / "again.json")
     assert (tmp_path / "again.json").read_bytes() == (out / "diagnosis.json").read_bytes()
-    assert diag.verdict == d["verdict"] == diag.effect_names[0] == "coulomb_friction"
-    assert diag.fitted_effect_params() == d["effects"][0]["params"]
+    d.write(tmp_path / "returned.json")  # diagnose_run returns what the file holds
+    assert (tmp_path / "returned.json").read_bytes() == (out / "diagnosis.json").read_bytes()
+    assert diag.verdict == diag.effect_names[0] == "coulomb_friction"
+    assert diag.fitted_effect_params() == d.effects[0].params
     assert diag.importance_pct() == {"coulomb_friction": pytest.approx(100.0)}
-    assert diag.waterfall()[-1][1] == d["gap"]["held_out"]["gap_after"] == diag.gap.held_out.gap_after
+    assert diag.waterfall()[-1][1] == diag.gap.held_out.gap_after
 
 
 def test_none_rig_gives_none(runs, tmp_path):
     d = dg.diagnose_run(runs["none"], campaign_spec(quick=True), tmp_path, workers=2)
-    assert d["verdict"] == "none"
-    assert d["effects"] == []
+    assert d.verdict == "none"
+    assert d.effects == []
     # the gap is the noise: within NONE_RATIO of the noise floor estimated from the data
-    assert d["gap"]["before"]["gap"] <= dg.NONE_RATIO * d["noise_floor"]["gap"]
+    assert d.gap.before.gap <= dg.NONE_RATIO * d.noise_floor.gap
     # the estimated noise matches the rig's: 0.002 V rms on both sensors, through Kp and Ke
-    assert d["noise_floor"]["theta_deg"] == pytest.approx(0.002 * 35.5145, rel=0.15)
-    assert d["noise_floor"]["alpha_deg"] == pytest.approx(0.002 * 3.3636, rel=0.15)
+    assert d.noise_floor.theta_deg == pytest.approx(0.002 * 35.5145, rel=0.15)
+    assert d.noise_floor.alpha_deg == pytest.approx(0.002 * 3.3636, rel=0.15)
 
 
 def _exp(name: str, theta_v: np.ndarray, alpha_v: np.ndarray, kind: str = "prbs", period: int = 0) -> RigExperiment:
@@ -198,8 +199,8 @@ def test_effect_names_are_the_interface():
     }
 
 
-# issue 8's table on the quick blind campaign: a real rig's linear mismatch (stiffer link, more damping) plus one
-# effect; each verdict names the effect (or none) and the linear parameters come back as findings
+# the README's off-datasheet table on the quick blind campaign: a real rig's linear mismatch (stiffer link, more
+# damping) plus one effect; each verdict names the effect (or none) and the linear parameters come back as findings
 MISMATCH = ["plant.Ks=1.5", "plant.Beq=0.0052", "plant.zeta_link=0.02"]
 
 
@@ -215,24 +216,24 @@ MISMATCH = ["plant.Ks=1.5", "plant.Beq=0.0052", "plant.zeta_link=0.02"]
 def test_mismatched_twin_recalibrates_then_names_the_effect(tmp_path, fmus, name, sets, verdict, param, value):
     run = _run(tmp_path, name, [*MISMATCH, *sets, "campaign.seed=21"])
     d = dg.diagnose_run(run, campaign_spec(quick=True), tmp_path / "out", workers=1)
-    assert d["verdict"] == verdict
-    found = {k: v for e in d["effects"] for k, v in e["params"].items()}
+    assert d.verdict == verdict
+    found = d.fitted_effect_params()
     assert set(found) == ({param} if param else set())  # no spurious effect tags along
     if param:
         assert found[param] == pytest.approx(value, rel=0.25 if isinstance(value, float) else 0)
         # drop-one importance is a share of what the removals reopen: a lone effect has all of it
-        assert d["effects"][0]["importance_pct"] == pytest.approx(100.0)
-    ks, beq = d["parameters"]["plant.Ks"], d["parameters"]["plant.Beq"]
-    assert ks["fitted"] == pytest.approx(1.5, rel=0.10) and beq["fitted"] == pytest.approx(0.0052, rel=0.25)
-    assert ks["change_pct"] == pytest.approx(100 * (ks["fitted"] / 1.3 - 1))
-    assert ks["ci95"][0] <= ks["fitted"] <= ks["ci95"][1]
-    assert "higher than the spec" in ks["finding"]
-    dec = d["gap"]["decomposition"]
-    assert dec["after_effects"] <= dec["after_recalibration"] < dec["before"]
-    assert dec["after_effects"] <= dg.NONE_RATIO * max(dec["noise_floor"], dg.GAP_RESOLUTION)
+        assert d.effects[0].importance_pct == pytest.approx(100.0)
+    ks, beq = d.parameters["plant.Ks"], d.parameters["plant.Beq"]
+    assert ks.fitted == pytest.approx(1.5, rel=0.10) and beq.fitted == pytest.approx(0.0052, rel=0.25)
+    assert ks.change_pct == pytest.approx(100 * (ks.fitted / 1.3 - 1))
+    assert ks.ci95[0] <= ks.fitted <= ks.ci95[1]
+    assert "higher than the spec" in ks.finding
+    dec = d.gap.decomposition
+    assert dec.after_effects <= dec.after_recalibration < dec.before
+    assert dec.after_effects <= dg.NONE_RATIO * max(dec.noise_floor, dg.GAP_RESOLUTION)
     # where: the stiffer link is not read as a pot-wrap problem once the dead band is masked
     for stage in ("before", "after_recalibration"):
-        assert "pot wraps" not in d["where"][stage]["theta"].get("headline", "")
+        assert "pot wraps" not in d.where[stage]["theta"].get("headline", "")
 
 
 INDEPENDENT = {
@@ -254,21 +255,21 @@ def test_independent_simulator_rigs(tmp_path, fmus, name):
     spec = campaign_spec(quick=True)
     run = make_run(tmp_path / name, spec, rig, seed=5)
     d = dg.diagnose_run(run, spec, tmp_path / "out", workers=1)
-    assert d["verdict"] == verdict
-    found = {k: v for e in d["effects"] for k, v in e["params"].items()}
+    assert d.verdict == verdict
+    found = d.fitted_effect_params()
     assert set(found) == ({param} if param else set())
     if param:
         assert found[param] == pytest.approx(truth, rel=tol)
-    assert d["parameters"]["plant.Ks"]["fitted"] == pytest.approx(1.45, rel=0.10)
-    assert d["parameters"]["plant.Beq"]["fitted"] == pytest.approx(rig.Beq, rel=0.25)
+    assert d.parameters["plant.Ks"].fitted == pytest.approx(1.45, rel=0.10)
+    assert d.parameters["plant.Beq"].fitted == pytest.approx(rig.Beq, rel=0.25)
 
 
 def test_identical_noise_free_data_is_none(tmp_path, fmus):
     quiet = ["daq.noise_theta=0", "daq.noise_alpha=0"]
     run = _run(tmp_path, "quiet", quiet)
     d = dg.diagnose_run(run, campaign_spec(quick=True, overrides=quiet), tmp_path / "out", workers=1)
-    assert d["verdict"] == "none" and d["effects"] == []
-    assert d["gap"]["before"]["fit_pct"] > 99.9  # the same rig: only calibration rounding separates them
+    assert d.verdict == "none" and d.effects == []
+    assert d.gap.before.fit_pct > 99.9  # the same rig: only calibration rounding separates them
 
 
 def test_adc_lattice_survives_volts_written_to_six_decimals():
@@ -303,10 +304,10 @@ def test_out_of_library_sensor_errors_are_unexplained(tmp_path, fmus, post, nuis
             "truth_params": {}, "nuisance": nuisance, "post": post, "campaign_seed": 17}  # fmt: skip
     run = bt.make_rig_run(case, tmp_path / "rig", quick=True)
     d = dg.diagnose_run(run, campaign_spec(quick=True), tmp_path / "out", workers=1)
-    assert d["verdict"] == "unexplained"
-    assert d["gap"]["explained_pct"] < 100 * dg.EXPLAINED
+    assert d.verdict == "unexplained"
+    assert d.gap.explained_pct < 100 * dg.EXPLAINED
     if nuisance:  # the linear mismatch is still found under a sensor error
-        assert d["parameters"]["plant.Ks"]["fitted"] == pytest.approx(1.15, rel=0.10)
+        assert d.parameters["plant.Ks"].fitted == pytest.approx(1.15, rel=0.10)
 
 
 def test_candidate_rules_of_the_effect_table():

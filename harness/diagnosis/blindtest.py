@@ -27,7 +27,7 @@ and of one kind:
 
 The campaign runs with a per-case seed (new noise), the truth is removed from the run's manifest (its spec
 tables are those of blind.toml), and :func:`harness.diagnosis.diagnose.diagnose_run` judges it against blind.toml.
-Scores (issue 8's): top-1 effect and fitted magnitude within 25 % (integers: exact; within 20 % also reported)
+Scores: top-1 effect and fitted magnitude within 25 % (integers: exact; within 20 % also reported)
 on single cases; ``none`` answered on rigs with no effect (never an effect); recalibrated Ks and Beq within 10 %
 and 25 % of the rig's on the nuisance and independent families; out-of-library cases answered
 ``unexplained``; both effects found on two-effect cases. Every score per family and pooled.
@@ -40,6 +40,7 @@ import shutil
 import tempfile
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -51,7 +52,7 @@ from .. import spec as specmod
 from ..executor import Executor, FmuBytes, fmu_bytes, fmu_file
 from ..fmu.build import build_all
 from ..rig.campaign import run_campaign
-from ..rundir import RunDir, load_manifest, read_dataset, write_dataset, write_json
+from ..rundir import Manifest, RunDir, read_dataset, write_dataset, write_json
 from .diagnose import diagnose_run
 from .effects import EFFECTS
 from .result import Diagnosis
@@ -178,12 +179,11 @@ def _independent_rig(ind: ModuleType, case: dict[str, Any]) -> Any:
 def _post(dest: Path, spec: specmod.Spec, post: dict[str, float], gauge_offset: float) -> None:
     """Apply the out-of-library sensor effects to a written run: gauge gain drift about the rig's gauge offset
     [V] (identification experiments) and the pot's linearity error (every experiment)."""
-    manifest = load_manifest(dest)
-    for e in manifest["experiments"]:
-        p = RunDir(dest).dataset(e["name"])
+    for e in Manifest.load(dest).experiments:
+        p = RunDir(dest).dataset(e.name)
         df = read_dataset(p)
         cols = {c: df[c].to_numpy(float) for c in df.columns}
-        if post.get("gauge_drift") and e["role"] != "calibration":
+        if post.get("gauge_drift") and e.role != "calibration":
             t = cols["t"]
             gain = 1.0 + post["gauge_drift"] * (t - t[0]) / max(t[-1] - t[0], 1e-12)
             cols["alpha_v"] = gauge_offset + (cols["alpha_v"] - gauge_offset) * gain
@@ -214,11 +214,8 @@ def make_rig_run(case: dict[str, Any], dest: Path, fmus: dict[str, Path] | None 
         offset = fmu_value(spec.daq, "daq", "gauge_offset")
     if case.get("post"):
         _post(dest, spec, case["post"], offset)
-    manifest = load_manifest(dest)
-    manifest["spec"] = specmod.apply_overrides(base.raw, seed)
-    manifest["spec_sha256"] = "hidden"
-    manifest.pop("generator", None)
-    write_json(dest / "manifest.json", manifest)
+    m = Manifest.load(dest)
+    replace(m, spec=specmod.apply_overrides(base.raw, seed), spec_sha256="hidden", generator=None).write(dest)
     return dest
 
 
@@ -348,7 +345,7 @@ TARGETS = {
 
 
 def totals(cases: list[dict[str, Any]]) -> dict[str, Any]:
-    """Pooled scores, the scores per family, the targets of issue 8 and whether the pooled scores meet them."""
+    """Pooled scores, the scores per family, the targets (the README's) and whether the pooled scores meet them."""
     res = scores(cases)
     res["families"] = {f: scores([c for c in cases if c.get("family", "twin") == f]) for f in FAMILIES}
     res["families"] = {f: v for f, v in res["families"].items() if v["n_cases"]}
@@ -381,8 +378,7 @@ def run_case(
         if d.exists():
             shutil.rmtree(d)
         make_rig_run(case, d, files, quick)
-        diagnose_run(d, campaign_spec(quick), d, workers=1, fmus=files)
-        diag = Diagnosis.load(d)
+        diag = diagnose_run(d, campaign_spec(quick), d, workers=1, fmus=files)
     return {**case, "score": score_case(case, diag), "timing_s": time.perf_counter() - tc}
 
 

@@ -39,7 +39,6 @@ import os
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 from .. import spec as specmod
 from ..executor import fmu_bytes
@@ -81,13 +80,13 @@ def diagnose_run(
     workers: int | None = None,
     scheduler: str | None = None,
     fmus: dict[str, Path] | None = None,
-) -> dict[str, Any]:
+) -> Diagnosis:
     """Diagnose the gap between run directory ``real`` and the simulation spec ``sim`` (a path, a name in
     specs/ or a loaded Spec); the candidates are fitted as tasks of a :class:`harness.executor.Executor`
     (``workers`` processes of the default local cluster, 1 = serial, or the Dask cluster at ``scheduler``); ``fmus``:
     the built plant and DAQ FMUs (default: built or taken from the cache). Writes ``out/diagnosis.json`` (default
-    out = real; :class:`harness.diagnosis.result.Diagnosis`) and returns its content plus ``timing_s``
-    (wall-clock seconds, written to ``diagnosis.timing.json`` so that diagnosis.json is byte-stable)."""
+    out = real) and returns it as a :class:`harness.diagnosis.result.Diagnosis`; the wall-clock seconds go to
+    ``diagnosis.timing.json``, so that diagnosis.json is byte-stable."""
 
     t0 = time.perf_counter()
     say = progress or (lambda _m: None)
@@ -138,4 +137,4 @@ def diagnose_run(
     timing = time.perf_counter() - t0
     write_json(RunDir(dest).diagnosis_timing, {"timing_s": timing, "workers": workers, "scheduler": scheduler})
     say(f"verdict {diagnosis.verdict}")
-    return {**diagnosis.to_dict(), "timing_s": timing}
+    return diagnosis

@@ -18,7 +18,7 @@ import numpy as np
 from .. import spec as specmod
 from ..ident.calibration import Calibration, alpha_deg, theta_deg
 from ..rig.signals import MultisineLines, multisine_lines
-from ..rundir import DataError, RunDir, load_manifest, read_dataset, sample_time
+from ..rundir import DataError, Manifest, RunDir, read_dataset, sample_time
 
 __all__ = [
     "CHANNELS",
@@ -131,16 +131,16 @@ def load_experiments(real: Path, cal: Calibration, sim: specmod.Spec, adc_range:
     """Every non-calibration experiment of run ``real`` as a :class:`RigExperiment` (manifest order), converted
     with ``cal``, with the sim spec's per-experiment overrides and the samples that can be compared marked valid
     (pot dead band and clipping at the ADC's ``adc_range`` [V] masked)."""
-    manifest = load_manifest(real)
-    exps = [e for e in manifest["experiments"] if e.get("role", "identification") != "calibration"]
+    manifest = Manifest.load(real)
+    exps = [e for e in manifest.experiments if e.role != "calibration"]
     if not exps:
         raise DataError(f"{real}: no identification or analysis experiments to diagnose")
-    raw_spec = manifest.get("spec") if manifest.get("kind") == "campaign" else None
+    raw_spec = manifest.spec if manifest.kind == "campaign" else None
     sim_exps = {e.name: e for e in sim.all_experiments()}
     run = RunDir(real)
     out: dict[str, RigExperiment] = {}
     for e in exps:
-        df = read_dataset(run.dataset(e["name"]))
+        df = read_dataset(run.dataset(e.name))
         Ts = sample_time(df)
         u = df["u"].to_numpy(float)
         th_v, al_v = df["theta_v"].to_numpy(float), df["alpha_v"].to_numpy(float)
@@ -148,12 +148,12 @@ def load_experiments(real: Path, cal: Calibration, sim: specmod.Spec, adc_range:
         hint = 0
         if raw_spec is not None:
             for d in raw_spec.get("experiment", []):
-                if d.get("name") == e["name"] and d.get("signal") == "multisine" and "period" in d:
+                if d.get("name") == e.name and d.get("signal") == "multisine" and "period" in d:
                     hint = int(round(float(d["period"]) / Ts))
-        se = sim_exps.get(e["name"])
-        out[e["name"]] = RigExperiment(
-            name=e["name"],
-            kind=str(e.get("signal", "imported")),
+        se = sim_exps.get(e.name)
+        out[e.name] = RigExperiment(
+            name=e.name,
+            kind=e.signal or "imported",
             Ts=Ts,
             t=df["t"].to_numpy(float),
             u=u,
@@ -165,7 +165,7 @@ def load_experiments(real: Path, cal: Calibration, sim: specmod.Spec, adc_range:
             plant=dict(se.plant) if se else {},
             daq=dict(se.daq) if se else {},
             period=command_period(u, hint),
-            role=str(e.get("role", "identification")),
+            role=e.role,
         )
     readings = {n: theta_deg(x.theta_v, cal, unwrap=False) for n, x in out.items()}
     ends = pot_track_ends(list(readings.values()))
@@ -185,11 +185,11 @@ def masked_share(experiments: dict[str, RigExperiment]) -> dict[str, float]:
 
 def multisine_design(real: Path, exp: RigExperiment) -> MultisineLines | None:
     """The multisine line design of a periodic campaign experiment (None when it cannot be rebuilt)."""
-    m = load_manifest(real)
-    if m.get("kind") != "campaign" or exp.period == 0:
+    m = Manifest.load(real)
+    if m.kind != "campaign" or m.spec is None or exp.period == 0:
         return None
-    table = next((d for d in m["spec"].get("experiment", []) if d.get("name") == exp.name), None)
-    entry = next((e for e in m["experiments"] if e["name"] == exp.name), None)
+    table = next((d for d in m.spec.get("experiment", []) if d.get("name") == exp.name), None)
+    entry = m.entry(exp.name)
     if table is None or entry is None or table.get("signal") != "multisine":
         return None
     return multisine_lines(
@@ -198,7 +198,7 @@ def multisine_design(real: Path, exp: RigExperiment) -> MultisineLines | None:
         float(table["f_min"]),
         float(table["f_max"]),
         odd=bool(table.get("odd", True)),
-        seed=int(entry["seed"]),
+        seed=int(entry.seed or 0),
         skip_one_per_group=bool(table.get("skip_one_per_group", True)),
     )
 

@@ -15,21 +15,16 @@ is not written back, so ``Diagnosis.load(p).write(q)`` gives ``q`` the bytes of 
 
 from __future__ import annotations
 
-import dataclasses
-import functools
 import json
 import math
-import numbers
 import os
-import types
-import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
 
 import numpy as np
 
-from ..rundir import DataError, RunDir, write_json
+from ..rundir import DataError, RunDir, from_plain, to_plain, write_json
 
 __all__ = [
     "Candidate",
@@ -51,11 +46,6 @@ __all__ = [
 
 T = TypeVar("T")
 FIRST_STAGE = "simulation as given"  # the waterfall's first bar: the held-out gap before anything is fitted
-
-
-def _key(f: dataclasses.Field) -> str:
-    """The JSON key of a dataclass field (``metadata["key"]`` when the key is not a Python name)."""
-    return f.metadata.get("key", f.name)
 
 
 # ----------------------------------------------------------------------------------------------- the parts
@@ -312,11 +302,11 @@ class Diagnosis:
     def from_dict(cls, doc: Any) -> Diagnosis:
         """The diagnosis from the JSON's content; a missing key, an unknown one or a value of the wrong type
         raises :class:`harness.rundir.DataError` naming where."""
-        return _build(cls, doc, "diagnosis")
+        return from_plain(cls, doc, "diagnosis")
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON's content (NaN where the file has null; optional keys that are None left out)."""
-        return _plain(self)
+        return to_plain(self)
 
     def rounded(self, digits: int = 10) -> Diagnosis:
         """The same diagnosis with every float to ``digits`` significant digits (:func:`round_floats`): what the
@@ -366,80 +356,3 @@ def round_floats(x: Any, digits: int = 10) -> Any:
 
 
 # ----------------------------------------------------------------------------------------------- conversion
-
-
-def _plain(obj: Any) -> Any:
-    """JSON content of a dataclass tree: fields under their keys, optional None fields left out."""
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        out = {}
-        for f in dataclasses.fields(obj):
-            v = getattr(obj, f.name)
-            if v is None and f.default is None:
-                continue
-            out[_key(f)] = _plain(v)
-        return out
-    if isinstance(obj, dict):
-        return {k: _plain(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_plain(v) for v in obj]
-    return obj
-
-
-@functools.cache
-def _hints(cls: type) -> dict[str, Any]:
-    """The resolved field types of a dataclass."""
-    return typing.get_type_hints(cls)
-
-
-def _build(cls: type[T], doc: Any, where: str) -> T:
-    """Dataclass ``cls`` from JSON object ``doc`` (``where``: its place in the file, for the error)."""
-    if not isinstance(doc, dict):
-        raise DataError(f"{where}: expected an object, got {type(doc).__name__}")
-    hints = _hints(cls)
-    fs = dataclasses.fields(cls)  # type: ignore[arg-type]
-    keys = {_key(f) for f in fs}
-    unknown = sorted(set(doc) - keys)
-    if unknown:
-        raise DataError(f"{where}: unknown key(s) {', '.join(unknown)}")
-    kw = {}
-    for f in fs:
-        k = _key(f)
-        if k in doc:
-            kw[f.name] = _value(hints[f.name], doc[k], f"{where}.{k}")
-        elif f.default is not dataclasses.MISSING:
-            kw[f.name] = f.default
-        else:
-            raise DataError(f"{where}: missing key {k!r}")
-    return cls(**kw)
-
-
-def _value(tp: Any, v: Any, where: str) -> Any:
-    """JSON value ``v`` checked against type ``tp`` (dataclass, list[...], dict[str, ...], float, int, str, bool,
-    Any, X | None); numbers are kept as written (an int stays an int), null in a float becomes NaN."""
-    origin, args = typing.get_origin(tp), typing.get_args(tp)
-    if origin in (typing.Union, types.UnionType):
-        inner = [a for a in args if a is not type(None)]
-        return _value(inner[0], v, where)
-    if tp is Any:
-        return v
-    if dataclasses.is_dataclass(tp):
-        return _build(tp, v, where)
-    if origin is list:
-        if not isinstance(v, list):
-            raise DataError(f"{where}: expected a list, got {type(v).__name__}")
-        return [_value(args[0], x, f"{where}[{i}]") for i, x in enumerate(v)]
-    if origin is dict:
-        if not isinstance(v, dict):
-            raise DataError(f"{where}: expected an object, got {type(v).__name__}")
-        return {k: _value(args[1], x, f"{where}.{k}") for k, x in v.items()}
-    if tp is float:
-        if v is None:
-            return math.nan
-        if isinstance(v, bool) or not isinstance(v, numbers.Real):
-            raise DataError(f"{where}: expected a number, got {v!r}")
-        return v
-    if tp is int and (isinstance(v, bool) or not isinstance(v, numbers.Integral)):
-        raise DataError(f"{where}: expected an integer, got {v!r}")
-    if tp in (str, bool) and not isinstance(v, tp):
-        raise DataError(f"{where}: expected {tp.__name__}, got {v!r}")
-    return v

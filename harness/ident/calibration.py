@@ -1,6 +1,6 @@
 """Sensor calibration of the rig: potentiometer gain Kp, strain-gauge gain Ke, motor dead zone.
 
-Conventions (seed 000, section 2): shaft angle theta [deg] = Kp (theta_v - pot_offset_v), Kp in deg/V;
+Conventions (lab 1, section 2): shaft angle theta [deg] = Kp (theta_v - pot_offset_v), Kp in deg/V;
 deflection alpha [deg] = Ke (alpha_v - gauge_offset_v), Ke in deg/V; tip angle y = theta + alpha [deg].
 The potentiometer wraps from its top voltage to its bottom one at +-180 deg and has a dead band of a few
 degrees there, where its voltage holds at the end values.
@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from ..rundir import load_manifest, read_dataset, write_json
+from ..rundir import Manifest, RunDir, read_dataset, write_json
 from .preprocess import as_signal, time_axis
 
 __all__ = [
@@ -41,15 +41,15 @@ __all__ = [
     "tip_deg",
 ]
 
-# Seed 000 (section 2): Kp = 360 / (5.0635 + 5.0732) deg/V, Ke = -3.3636 deg/V, dead zone 0.3369 V
-SEED_CALIBRATION = {"Kp": 35.5145, "Ke": -3.3636, "dead_zone_v": 0.3369}
+# Lab 1 (section 2): Kp = 360 / (5.0635 + 5.0732) deg/V, Ke = -3.3636 deg/V, dead zone 0.3369 V
+LAB1_CALIBRATION = {"Kp": 35.5145, "Ke": -3.3636, "dead_zone_v": 0.3369}
 
 
 # --- potentiometer
 
 
 def kp_from_wrap_voltages(v_max: float, v_min: float) -> float:
-    """The seed formula Kp = 360 / (v_max - v_min) [deg/V] from the pot's end voltages [V]."""
+    """Lab 1's formula Kp = 360 / (v_max - v_min) [deg/V] from the pot's end voltages [V]."""
     v_max, v_min = float(v_max), float(v_min)
     if not (math.isfinite(v_max) and math.isfinite(v_min)) or v_max <= v_min:
         raise ValueError(f"need finite v_max > v_min, got v_max={v_max} V, v_min={v_min} V")
@@ -60,7 +60,7 @@ def kp_from_wrap_voltages(v_max: float, v_min: float) -> float:
 class PotCalibration:
     """Potentiometer calibration from a constant-speed ramp through several wraps.
 
-    Kp [deg/V] from the wrap timing (true gain); Kp_span [deg/V] = 360 / (v_max - v_min), the seed formula,
+    Kp [deg/V] from the wrap timing (true gain); Kp_span [deg/V] = 360 / (v_max - v_min), lab 1's formula,
     which over-estimates Kp by 360 / (360 - deadband_deg); v_max, v_min [V] the end voltages; deadband_deg
     = 360 - Kp (v_max - v_min); n_wraps the number of wraps seen. lag_s [s]: when the record starts at rest
     with the command step at t[0], the time after t[0] at which the steady-speed asymptote passes the start
@@ -178,7 +178,7 @@ class GaugeCalibration:
 
 
 def _sensor_line(angle_deg: Any, volts: Any) -> tuple[float, float, float, float]:
-    """Least-squares line angle = gain (volts - offset_v) of a sensor's calibration table, the seed's regression
+    """Least-squares line angle = gain (volts - offset_v) of a sensor's calibration table, lab 1's regression
     of angle [deg] on voltage [V] with intercept: (gain [deg/V], offset_v [V], r2, residual_std [deg])."""
     x = as_signal("volts", volts)
     y = as_signal("angle_deg", angle_deg, x.size)
@@ -240,7 +240,7 @@ def comb_table(
     """Comb table (angle [deg], gauge voltage [V]) from a record of comb deflections held still.
 
     Each hold (t_start, t_end) [s] is averaged from 0.5 s to 2 s after its start (clipped to t_end), as in
-    the seed. ``alpha_true_deg`` is either one angle per hold (e.g. -atan(l/D)) or a time series like
+    lab 1. ``alpha_true_deg`` is either one angle per hold (e.g. -atan(l/D)) or a time series like
     ``alpha_v``, averaged over the same windows.
     """
     t = time_axis(t)
@@ -521,19 +521,18 @@ def calibrate_run(run: Path) -> Calibration:
     """Calibrate the sensors from a run's calibration experiments and write ``calibration.json``.
 
     Kp from the pot ramp through its wraps, Ke by least squares over the comb holds, the dead zone from the slow
-    up/down ramps. Missing experiments fall back to the seed's numbers, and ``source`` says so.
+    up/down ramps. Missing experiments fall back to lab 1's numbers, and ``source`` says so.
     """
     run = Path(run)
-    manifest = load_manifest(run)
-    cal_exps = {e["name"]: e for e in manifest["experiments"] if e.get("role") == "calibration"}
+    cal_exps = {e.name: e for e in Manifest.load(run).entries("calibration")}
     source: dict[str, Any] = {}
-    # the seed's own Kp and Ke stand in when a run has no calibration experiments (imported measurements)
-    Kp, Ke, offset, dz, lag = SEED_CALIBRATION["Kp"], SEED_CALIBRATION["Ke"], 0.0, math.nan, 0.0
+    # lab 1's own Kp and Ke stand in when a run has no calibration experiments (imported measurements)
+    Kp, Ke, offset, dz, lag = LAB1_CALIBRATION["Kp"], LAB1_CALIBRATION["Ke"], 0.0, math.nan, 0.0
 
     def data(name: str):
-        return read_dataset(run / "data" / f"{name}.parquet")
+        return read_dataset(RunDir(run).dataset(name))
 
-    pot = [n for n, e in cal_exps.items() if e["signal"] == "constant"]
+    pot = [n for n, e in cal_exps.items() if e.signal == "constant"]
     if pot:
         df = data(pot[0])
         pc = kp_from_ramp(df["t"].to_numpy(), df["theta_v"].to_numpy())
@@ -549,8 +548,8 @@ def calibrate_run(run: Path) -> Calibration:
             "lag_s": pc.lag_s,
         }
     else:
-        source["Kp"] = {"method": "seed 000 value (no pot ramp in this run)"}
-    comb = [n for n, e in cal_exps.items() if e["signal"] == "comb"]
+        source["Kp"] = {"method": "lab 1's value (no pot ramp in this run)"}
+    comb = [n for n, e in cal_exps.items() if e.signal == "comb"]
     if comb:
         df = data(comb[0])
         holds, angles = _holds(df["comb_angle"].to_numpy(), df["t"].to_numpy())
@@ -565,8 +564,8 @@ def calibrate_run(run: Path) -> Calibration:
             "r2": gc.r2,
         }
     else:
-        source["Ke"] = {"method": "seed 000 value (no comb in this run)"}
-    ramps = [n for n, e in cal_exps.items() if e["signal"] == "ramp"]
+        source["Ke"] = {"method": "lab 1's value (no comb in this run)"}
+    ramps = [n for n, e in cal_exps.items() if e.signal == "ramp"]
     if ramps:
         ests = []
         for n in ramps:

@@ -15,7 +15,7 @@ import numpy as np
 import pandas as pd
 
 from ..ident import armax, lti
-from ..ident.calibration import SEED_CALIBRATION as LAB1_CALIBRATION
+from ..ident.calibration import LAB1_CALIBRATION
 from ..ident.preprocess import filter_response
 from ..rundir import atomic_write_bytes
 from . import figures

@@ -41,7 +41,7 @@ import pandas as pd
 import pyarrow.parquet as pq
 import scipy.io
 
-from ..ident.calibration import SEED_CALIBRATION, Calibration, alpha_deg, theta_deg
+from ..ident.calibration import LAB1_CALIBRATION, Calibration, alpha_deg, theta_deg
 from ..rundir import DataError, ExperimentEntry, Manifest, RunDir, validate, write_dataset
 
 __all__ = [
@@ -649,7 +649,7 @@ def calibration_option(kp: float | None, ke: float | None, file: Path | None) ->
 def _calibration(opts: ImportOptions) -> Calibration:
     if opts.calibration is not None:
         return opts.calibration
-    s = SEED_CALIBRATION
+    s = LAB1_CALIBRATION
     why = {"method": "assumed at import: lab 1's value (no calibration given)"}
     return Calibration(Kp=s["Kp"], Ke=s["Ke"], source={"Kp": why, "Ke": why, "assumed": True})
 
