@@ -77,16 +77,16 @@ def _ramp_onset_record(Vth, slope, Ts, *, K=101.0, tau=0.03, delay=1, Kp=35.5, r
     return t, u, Kp * _pot_volts(theta, Kp, 8.0, rng)
 
 
-def test_dead_zone_from_ramp_within_one_percent():
+def test_dead_zone_from_ramps_within_one_percent():
     rng = np.random.default_rng(5)
     Vth, Ts, tau = 0.34, 0.02, 0.03
     for slope in (0.02, 0.05):
         est = []
         for sign in (1.0, -1.0):
             t, u, th = _ramp_onset_record(Vth, sign * slope, Ts, tau=tau, rng=rng)
-            v = cal.dead_zone_from_ramp(t, u, th)
+            v = cal.dead_zone_estimate(t, u, th).v_th
             assert v == pytest.approx(Vth, rel=0.01), (slope, sign, v)
-            v_corr = cal.dead_zone_from_ramp(t, u, th, lag_s=tau + Ts)  # lag as PotCalibration.lag_s gives
+            v_corr = cal.dead_zone_estimate(t, u, th, lag_s=tau + Ts).v_th  # lag as PotCalibration.lag_s gives
             assert v_corr == pytest.approx(Vth, rel=0.003), (slope, sign, v_corr)
             est.append(cal.dead_zone_estimate(t, u, th))
         both = cal.dead_zone_merge(*est)
@@ -101,7 +101,7 @@ def test_dead_zone_from_ramp_within_one_percent():
     dz = cal.dead_zone_estimate(t, u, th)
     assert dz.v_up == pytest.approx(Vth, rel=0.01) and dz.v_down == pytest.approx(Vth, rel=0.01)
     with pytest.raises(ValueError, match="no motion onset"):
-        cal.dead_zone_from_ramp(t1, u1, np.full(t1.size, 3.0))
+        cal.dead_zone_estimate(t1, u1, np.full(t1.size, 3.0))
 
 
 def test_comb_table_averages_settled_part_and_recovers_ke():

@@ -30,7 +30,6 @@ __all__ = [
     "comb_table",
     "daq_calibration",
     "dead_zone_estimate",
-    "dead_zone_from_ramp",
     "dead_zone_merge",
     "gauge_volts",
     "ke_from_comb",
@@ -387,11 +386,6 @@ def dead_zone_estimate(t: Any, u: Any, theta_deg: Any, *, lag_s: float = 0.0) ->
     if not found:
         raise ValueError("no motion onset found: the ramp never moved the shaft out of its noise band")
     return _dead_zone(found.get(1.0), found.get(-1.0))
-
-
-def dead_zone_from_ramp(t: Any, u: Any, theta_deg: Any, *, lag_s: float = 0.0) -> float:
-    """Dead-zone threshold V_th [V]: mean of the up and down ramp estimates of :func:`dead_zone_estimate`."""
-    return dead_zone_estimate(t, u, theta_deg, lag_s=lag_s).v_th
 
 
 def dead_zone_merge(*estimates: DeadZone) -> DeadZone:
