@@ -115,6 +115,15 @@ def _effects_lines(diag: Diagnosis) -> list[str]:
     return lines
 
 
+def _ci_halfwidth(ci95: list[float], fitted: float) -> str:
+    """A 95 % interval as +- its half-width, in % of the fitted value (the interval's ends agree to more digits
+    than a table shows)."""
+    if len(ci95) != 2 or not all(math.isfinite(v) for v in ci95):
+        return "—"
+    half = (ci95[1] - ci95[0]) / 2.0
+    return f"± {100.0 * half / abs(fitted):.2g} %" if fitted else f"± {half:.2g}"
+
+
 def _parameters_lines(diag: Diagnosis) -> list[str]:
     if not diag.parameters:
         return []
@@ -124,14 +133,14 @@ def _parameters_lines(diag: Diagnosis) -> list[str]:
             p.unit,
             fmt_any(p.nominal),
             fmt_any(p.fitted),
-            f"{fmt_any(p.ci95[0])} .. {fmt_any(p.ci95[1])}" if len(p.ci95) == 2 else "—",
+            _ci_halfwidth(p.ci95, p.fitted),
             fmt(p.change_pct, 1),
             p.finding or "—",
         ]
         for name, p in diag.parameters.items()
     ]
     note = " It was applied." if diag.recalibration_applied else " It closed too little to be kept."
-    header = ["parameter", "unit", "nominal", "fitted", "95 % CI", "change [%]", "finding"]
+    header = ["parameter", "unit", "nominal", "fitted", "95 % interval", "change [%]", "finding"]
     return [
         "Linear parameters of the simulation recalibrated against the data (within physical bounds): a linear "
         f"mismatch is a finding about the rig, not an unmodelled effect.{note}",
