@@ -13,6 +13,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from harness.rundir import Manifest
+
 
 def flexjoint(*args, cwd=None, env=None):
     env = None if env is None else {**os.environ, **env}
@@ -75,15 +77,26 @@ def test_campaign_command_writes_a_run(tmp_path):
 def test_accept_gates_the_selected_model(tmp_path, fits, code):
     names = ["a", "b", "c"]
     (tmp_path / "models").mkdir()
-    (tmp_path / "manifest.json").write_text(
-        json.dumps({"kind": "campaign", "spec": {"accept": {"min_fit": 80, "min_average_fit": 85}}, "experiments": []})
-    )
+    accept = {"accept": {"min_fit": 80, "min_average_fit": 85}}
+    Manifest(kind="campaign", spec=accept, experiments=[], sample_rate=50.0).write(tmp_path)
     cv = {n: (None if np.isnan(f) else f) for n, f in zip(names, fits, strict=True)}
     (tmp_path / "models" / "selected.json").write_text(json.dumps({"cv": cv}))
     r = flexjoint("accept", tmp_path)
     assert r.returncode == code, r.stderr + r.stdout
     if code:
         assert "b: 79.00 % < 80 %" in r.stderr and "c: unstable" in r.stderr
+
+
+def test_malformed_manifest_is_one_line(tmp_path):
+    (tmp_path / "manifest.json").write_text(json.dumps({"kind": "campaign", "experiments": []}))
+    r = flexjoint("accept", tmp_path)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1
+    assert "manifest.json: manifest: missing key 'sample_rate'" in r.stderr
+    (tmp_path / "manifest.json").write_text(
+        json.dumps({"kind": "campaign", "experiments": [{"name": 3}], "sample_rate": 50})
+    )
+    r = flexjoint("accept", tmp_path)
+    assert r.returncode == 2 and "manifest.experiments[0].name: expected str, got 3" in r.stderr
 
 
 TINY = (
