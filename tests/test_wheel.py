@@ -66,12 +66,14 @@ def _fresh_venv(tmp: Path, wheel: Path) -> Path:
 
 def _dependency_dirs() -> list[str]:
     """Where this interpreter finds the dependencies (its site dirs and whatever .pth files added), minus the
-    clone and any directory that holds a ``harness`` package of its own."""
+    clone (but not a virtual environment's site-packages inside it, as CI may make) and any directory that holds
+    a ``harness`` package of its own."""
     user = site.getusersitepackages()
     out: list[str] = []
     for d in [*site.getsitepackages(), *([user] if os.path.isdir(user) else []), *sys.path]:
         p = Path(d or ".").resolve()
-        if not p.is_dir() or p == ROOT or ROOT in p.parents or (p / "harness").exists() or str(p) in out:
+        in_clone = p == ROOT or (ROOT in p.parents and "site-packages" not in p.parts)  # a venv in the clone is fine
+        if not p.is_dir() or in_clone or (p / "harness").exists() or str(p) in out:
             continue
         out.append(str(p))
     return out
