@@ -60,18 +60,17 @@ def with_integrator(model: ArmaxModel, af: float) -> control.TransferFunction:
 
 
 def _siso_tf(sys: Any) -> control.TransferFunction:
-    if isinstance(sys, ArmaxModel):
-        return to_tf(sys)
+    """A SISO transfer function of an ArmaxModel, a transfer function or a state-space system."""
+    sys = _lti(sys)
     if isinstance(sys, control.StateSpace):
         sys = control.ss2tf(sys)
     if not isinstance(sys, control.TransferFunction):
         raise ValueError(f"expected an ArmaxModel or a python-control LTI system, got {type(sys).__name__}")
-    if sys.ninputs != 1 or sys.noutputs != 1:
-        raise ValueError(f"only SISO systems are supported, got {sys.noutputs}x{sys.ninputs}")
     return sys
 
 
 def _lti(sys: Any) -> control.LTI:
+    """A SISO python-control LTI system of an ArmaxModel or of an LTI system (ValueError otherwise)."""
     if isinstance(sys, ArmaxModel):
         return to_tf(sys)
     if not isinstance(sys, control.LTI):
