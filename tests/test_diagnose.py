@@ -106,7 +106,6 @@ def _exp(name: str, theta_v: np.ndarray, alpha_v: np.ndarray, kind: str = "prbs"
         alpha=al,
         theta_v=theta_v,
         alpha_v=alpha_v,
-        sst={"theta": float(np.sum((th - th.mean()) ** 2)), "alpha": float(np.sum((al - al.mean()) ** 2))},
         period=period,
     )
 

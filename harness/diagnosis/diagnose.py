@@ -111,8 +111,8 @@ def diagnose_run(
         pool.close()
     recal_over = {k: v for k, v in found.final.items() if k in recal.LINEAR}
     where = {
-        "before": where_gap(setup, real),
-        "after_recalibration": where_gap(setup, real, recal_over),
+        "before": where_gap(setup),
+        "after_recalibration": where_gap(setup, recal_over),
         "masked": masked_share(experiments),
     }
     dest = Path(out) if out is not None else real

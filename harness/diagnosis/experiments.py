@@ -29,7 +29,6 @@ __all__ = [
     "command_period",
     "load_experiments",
     "masked_share",
-    "multisine_design",
     "pot_track_ends",
     "split_folds",
     "valid_samples",
@@ -46,7 +45,8 @@ class RigExperiment:
     """One experiment of the real rig ready to be re-simulated: command ``u`` [V] at ``Ts`` [s], real
     ``theta``/``alpha`` [deg] (calibrated, theta unwrapped), raw volts, ``sst`` per channel [deg^2] (sum of
     squares about the mean), the sim spec's per-experiment ``plant``/``daq`` overrides, ``kind`` (signal),
-    ``period`` (samples of a periodic command, 0 if none) and ``valid`` per channel (samples that measure the
+    ``period`` (samples of a periodic command, 0 if none), ``lines`` (the multisine line design of a periodic
+    campaign experiment, for its BLA; None otherwise) and ``valid`` per channel (samples that measure the
     shaft). The fit window (first FIT_SECONDS) and the screening window (first SCREEN_SECONDS) have their own
     sample counts and sums of squares."""
 
@@ -59,11 +59,12 @@ class RigExperiment:
     alpha: np.ndarray
     theta_v: np.ndarray
     alpha_v: np.ndarray
-    sst: dict[str, float]
     plant: dict[str, Any] = field(default_factory=dict)
     daq: dict[str, Any] = field(default_factory=dict)
     period: int = 0
     role: str = "identification"
+    lines: MultisineLines | None = None
+    sst: dict[str, float] = field(init=False)
     n_fit: int = 0
     sst_fit: dict[str, float] = field(default_factory=dict)
     n_screen: int = 0
@@ -75,6 +76,7 @@ class RigExperiment:
         for c in CHANNELS:
             self.valid.setdefault(c, np.ones(self.u.size, dtype=bool))
         self.n_screen = min(self.n_fit, max(16, int(round(SCREEN_SECONDS / self.Ts))))
+        self.sst = self._sst(self.u.size)
         self.sst_fit, self.sst_screen = self._sst(self.n_fit), self._sst(self.n_screen)
 
     def _sst(self, n: int) -> dict[str, float]:
@@ -145,13 +147,11 @@ def load_experiments(real: Path, cal: Calibration, sim: specmod.Spec, adc_range:
         u = df["u"].to_numpy(float)
         th_v, al_v = df["theta_v"].to_numpy(float), df["alpha_v"].to_numpy(float)
         th, al = theta_deg(th_v, cal), alpha_deg(al_v, cal)
-        hint = 0
-        if raw_spec is not None:
-            for d in raw_spec.get("experiment", []):
-                if d.get("name") == e.name and d.get("signal") == "multisine" and "period" in d:
-                    hint = int(round(float(d["period"]) / Ts))
+        table = next((d for d in raw_spec.get("experiment", []) if d.get("name") == e.name), None) if raw_spec else None
+        multisine = table is not None and table.get("signal") == "multisine"
+        hint = int(round(float(table["period"]) / Ts)) if multisine and "period" in table else 0
         se = sim_exps.get(e.name)
-        out[e.name] = RigExperiment(
+        x = RigExperiment(
             name=e.name,
             kind=e.signal or "imported",
             Ts=Ts,
@@ -161,12 +161,22 @@ def load_experiments(real: Path, cal: Calibration, sim: specmod.Spec, adc_range:
             alpha=al,
             theta_v=th_v,
             alpha_v=al_v,
-            sst={c: float(np.sum((y - y.mean()) ** 2)) for c, y in zip(CHANNELS, (th, al), strict=True)},
             plant=dict(se.plant) if se else {},
             daq=dict(se.daq) if se else {},
             period=command_period(u, hint),
             role=e.role,
         )
+        if multisine and x.period:
+            x.lines = multisine_lines(
+                x.period,
+                Ts,
+                float(table["f_min"]),
+                float(table["f_max"]),
+                odd=bool(table.get("odd", True)),
+                seed=int(e.seed or 0),
+                skip_one_per_group=bool(table.get("skip_one_per_group", True)),
+            )
+        out[e.name] = x
     readings = {n: theta_deg(x.theta_v, cal, unwrap=False) for n, x in out.items()}
     ends = pot_track_ends(list(readings.values()))
     for n, x in out.items():
@@ -181,26 +191,6 @@ def masked_share(experiments: dict[str, RigExperiment]) -> dict[str, float]:
     """Share of the real samples per channel not compared (pot dead band, ADC clipping)."""
     n = sum(x.u.size for x in experiments.values())
     return {c: float(sum(int(np.sum(~x.valid[c])) for x in experiments.values())) / n for c in CHANNELS}
-
-
-def multisine_design(real: Path, exp: RigExperiment) -> MultisineLines | None:
-    """The multisine line design of a periodic campaign experiment (None when it cannot be rebuilt)."""
-    m = Manifest.load(real)
-    if m.kind != "campaign" or m.spec is None or exp.period == 0:
-        return None
-    table = next((d for d in m.spec.get("experiment", []) if d.get("name") == exp.name), None)
-    entry = m.entry(exp.name)
-    if table is None or entry is None or table.get("signal") != "multisine":
-        return None
-    return multisine_lines(
-        exp.period,
-        exp.Ts,
-        float(table["f_min"]),
-        float(table["f_max"]),
-        odd=bool(table.get("odd", True)),
-        seed=int(entry.seed or 0),
-        skip_one_per_group=bool(table.get("skip_one_per_group", True)),
-    )
 
 
 def split_folds(experiments: dict[str, RigExperiment]) -> tuple[list[str], list[str]]:

@@ -20,6 +20,7 @@ import numpy as np
 from ..ident.calibration import Calibration
 from .experiments import CHANNELS, RigExperiment
 from .result import NoiseFloor
+from .simulation import fit_pct
 
 __all__ = [
     "TRANSIENT_S",
@@ -154,7 +155,7 @@ def noise_floor(experiments: dict[str, RigExperiment], adc_range: float, cal: Ca
         method=sigma["method"],
         sources=sigma["from"],
         gap=math.sqrt(e_noise),
-        fit_pct=100.0 * (1.0 - math.sqrt(e_noise)),
+        fit_pct=fit_pct(e_noise),
         adc_lattice_bits=bits,
         estimated_deg=estimated,
     )

@@ -150,13 +150,12 @@ def gap_summary(sse: SSE, experiments: dict[str, RigExperiment], names: list[str
     for n in names:
         x = experiments[n]
         per[n] = ExperimentGap(
-            fit_pct={c: 100.0 * (1.0 - math.sqrt(sse[n][c] / x.sst[c])) if x.sst[c] > 0 else math.nan
-                     for c in CHANNELS},
+            fit_pct={c: fit_pct(sse[n][c] / x.sst[c]) if x.sst[c] > 0 else math.nan for c in CHANNELS},
             rms_deg={c: math.sqrt(sse[n][c] / x.u.size) for c in CHANNELS},
         )  # fmt: skip
     return GapSummary(
         gap=math.sqrt(E),
-        fit_pct=100.0 * (1.0 - math.sqrt(E)),
+        fit_pct=fit_pct(E),
         rms_deg={c: math.sqrt(sum(sse[n][c] for n in names) / n_tot) for c in CHANNELS},
         experiments=per,
     )

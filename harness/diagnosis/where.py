@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -38,7 +37,6 @@ from scipy.signal import lfilter, savgol_coeffs, savgol_filter, welch
 from ..executor import worker_rig
 from ..ident.preprocess import as_signal, time_axis
 from ..rig.signals import MultisineLines
-from .experiments import multisine_design
 from .frf import NAN, band_edges, bla, frf_gap, json_float, json_floats, positive, safe_ratio
 from .simulation import Setup, simulate
 
@@ -750,8 +748,8 @@ def _bridge(y_real: np.ndarray, y_sim: np.ndarray, ok: np.ndarray) -> np.ndarray
     return y_real - e
 
 
-def where_gap(setup: Setup, real: Path, over: Mapping[str, Any] | None = None) -> dict[str, Any]:
-    """Where the gap of the simulation (with overrides ``over``) lies: per experiment of run ``real`` and channel
+def where_gap(setup: Setup, over: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """Where the gap of the simulation (with overrides ``over``) lies: per experiment and channel
     (theta in the rate domain, alpha in the angle domain) :func:`where` (for a multisine also the simulated FRF
     against the measured BLA), pooled per channel by :func:`summarise_where`. Samples masked as invalid are
     bridged (:func:`_bridge`)."""
@@ -761,8 +759,7 @@ def where_gap(setup: Setup, real: Path, over: Mapping[str, Any] | None = None) -
         th, al, on_track = simulate(rig, setup, x, over or {})
         th = _bridge(x.theta, th, x.valid["theta"] & on_track)
         al = _bridge(x.alpha, al, x.valid["alpha"])
-        lines = multisine_design(real, x)
-        ms = {"period_samples": x.period, "lines": lines} if lines is not None else {}
+        ms = {"period_samples": x.period, "lines": x.lines} if x.lines is not None else {}
         for ch, yr, ys, dom in (("theta", x.theta, th, "rate"), ("alpha", x.alpha, al, "angle")):
             try:
                 per[ch][name] = where(x.t, x.u, yr, ys, x.Ts, theta_v=x.theta_v, theta_deg=x.theta, domain=dom, **ms)
