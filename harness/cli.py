@@ -22,12 +22,13 @@ from .diagnosis.blindtest import blindtest as run_blind
 from .diagnosis.diagnose import diagnose_run
 from .diagnosis.result import Diagnosis
 from .executor import session
+from .fmu.binding import FMUError
 from .fmu.build import MODELS, build_fmu
-from .fmu.cosim import FMUError
 from .ident.accept import accept as gate
 from .ident.crossfit import crossfit_run
 from .ident.doubled_rate import doubled_rate_check
 from .pipeline import identify_run, run_pipeline
+from .render.load import load_results
 from .render.report import write_report
 from .render.viewer import log_run
 from .rig.campaign import run_campaign
@@ -61,7 +62,6 @@ WorkersOpt = Annotated[
 
 
 def _user_errors() -> tuple[type[BaseException], ...]:
-
     return (
         SpecError,
         DataError,
@@ -397,8 +397,9 @@ def report(
 ) -> None:
     """Write report.md, figures/ and run.rrd for any run directory, each section from what the directory holds."""
 
-    path = write_report(run_dir)
-    recording = log_run(run_dir, rrd=rrd, spawn=spawn, connect=connect)
+    res = load_results(run_dir)
+    path = write_report(run_dir, res)
+    recording = log_run(run_dir, rrd=rrd, spawn=spawn, connect=connect, results=res)
     out.print(f"{path} ({path.stat().st_size / 1024:.1f} kB), {path.parent / 'figures'}, {recording}")
 
 

@@ -16,6 +16,7 @@ from .ident.calibration import calibrate_run, load_calibration
 from .ident.crossfit import crossfit_run
 from .ident.doubled_rate import doubled_rate_check
 from .ident.identify import prepare, run_grid, write_grid
+from .render.load import load_results
 from .render.report import write_report
 from .render.viewer import log_run
 from .rig.campaign import run_campaign
@@ -66,15 +67,16 @@ def run_pipeline(
     sel = res.grid.loc[res.selected]
     say(f"identified: ARMAX({sel.na},{sel.nb},{sel.nc},{sel.nk}), mean cross-validation {sel.cv_mean:.2f} %")
     if ident.get("doubled_rate", True):
-        doubled_rate_check(out, res.models[res.selected], ident, cal)
+        doubled_rate_check(out, res.models[res.selected], ident, cal, fmus=fmus)
         say("doubled-rate check")
     cf = crossfit_run(out)
     say(f"cross-fit through FMUs: selected average {cf.loc['selected', 'average']:.2f} %")
-    d = diagnose_run(out, sim, out)
+    d = diagnose_run(out, sim, out, fmus=fmus)
     found = " + ".join(d.effect_names) or d.verdict
     say(f"diagnosis against {sim}: {found} (verdict {d.verdict}, held-out shrink {d.gap.shrink_pct:.1f} %)")
-    write_report(out)
-    log_run(out, rrd=rrd, spawn=spawn, connect=connect)
+    res = load_results(out)
+    write_report(out, res)
+    log_run(out, rrd=rrd, spawn=spawn, connect=connect, results=res)
     verdict = accept(out)
     say("report.md and run.rrd written")
     return (

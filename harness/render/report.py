@@ -423,8 +423,9 @@ def _section_diagnosis(res: RunResults, figdir: Path) -> list[str]:
 
 
 # ----------------------------------------------------------------------------------------------- entry point
-def write_report(run: Path) -> Path:
+def write_report(run: Path, results: RunResults | None = None) -> Path:
     """Write ``<run>/report.md`` and ``<run>/figures/*.png`` from the run directory alone; returns report.md.
+    ``results``: the run already loaded (:func:`harness.render.load.load_results`), shared with the viewer.
 
     Any run directory (a campaign, an import, identified or not, diagnosed or not): each section is written from
     what the directory holds and skipped (or one line) when it has nothing for it. Sections: run header (with the
@@ -435,7 +436,7 @@ def write_report(run: Path) -> Path:
     it means, recalibrated parameters, effects with their importance, gap waterfall, folds, where).
     Every file is written atomically (temp file + rename).
     """
-    res = load_results(run)
+    res = results if results is not None else load_results(run)
     figdir = res.paths.figures
     figdir.mkdir(parents=True, exist_ok=True)
     lines = _section_header(res)

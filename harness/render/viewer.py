@@ -522,16 +522,18 @@ def log_run(
     rrd: Path | None = None,
     spawn: bool = False,
     connect: str | None = None,
+    results: RunResults | None = None,
 ) -> Path | None:
     """Log a run directory to Rerun: always to ``rrd`` (default ``<run>/run.rrd``, written atomically), and
     live to a spawned viewer (``spawn=True``) or a running one (``connect`` = gRPC URL such as
     ``rerun+http://127.0.0.1:9876/proxy``). One recording, application id ``flexjoint``, recording id from
-    the manifest's spec hash; the blueprint travels with it. Returns the path of the ``.rrd`` file.
+    the manifest's spec hash; the blueprint travels with it. ``results``: the run already loaded
+    (:func:`harness.render.load.load_results`), shared with the report. Returns the path of the ``.rrd`` file.
     """
     if connect is not None:
         _check_url(connect)
-    res = load_results(Path(run))
-    out = Path(rrd) if rrd is not None else res.run / "run.rrd"
+    res = results if results is not None else load_results(Path(run))
+    out = Path(rrd) if rrd is not None else res.paths.recording
     _write_rrd(res, out)
     if spawn or connect is not None:
         _stream_live(res, spawn, connect)
