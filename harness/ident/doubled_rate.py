@@ -19,13 +19,18 @@ from .identify import prepare
 
 
 def doubled_rate_check(
-    run: Path, selected: armax.ArmaxModel, ident: dict[str, Any], cal: Calibration, experiment: str | None = None
+    run: Path,
+    selected: armax.ArmaxModel,
+    ident: dict[str, Any],
+    cal: Calibration,
+    experiment: str | None = None,
+    fmus: dict[str, Path] | None = None,
 ) -> dict[str, Any]:
     """Lab 1's section 3.4: run an experiment at twice the sampling rate and score the 50 Hz model on it.
 
     Reports the 50 Hz model applied sample by sample to 100 Hz data, as lab 1 did (its per-sample gain is
     twice too large: it "thinks the effect of the input is much bigger"), and the same orders re-identified at
-    100 Hz.
+    100 Hz. ``fmus``: the built plant and DAQ FMUs (default: built, or taken from the cache).
     """
 
     spec = recorded_spec(run)
@@ -34,7 +39,7 @@ def doubled_rate_check(
     exp = spec.experiment(experiment or spec.experiments[len(spec.experiments) // 2].name)
     fast = specmod.from_dict(specmod.apply_overrides(spec.raw, [f"campaign.sample_rate={2 * spec.sample_rate}"]))
 
-    cols = simulate_spec(fast, build_all(), experiments=[fast.experiment(exp.name)], workers=1)[exp.name]
+    cols = simulate_spec(fast, fmus or build_all(), experiments=[fast.experiment(exp.name)], workers=1)[exp.name]
     p = prepare({exp.name: pd.DataFrame(cols)}, cal, float(ident["af"]), str(ident["output"]))[exp.name]
     ic = str(ident["ic"])
     out: dict[str, Any] = {
