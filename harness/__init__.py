@@ -8,72 +8,71 @@ The package follows the data flow, one subpackage per stage::
          -> render (report.md and figures, the Rerun recording)
 
 ``fmu`` holds the FMUs' build, XML reader and binding; ``pipeline`` runs every stage for ``flexjoint run``.
-The names below are the public API, in that order.
+The names below are the public API, in that order. They are imported on first use (PEP 562), so that
+``import harness.ident.armax`` or a Dask worker unpickling a task loads only the stages it needs.
 """
 
-# ruff: noqa: I001  (the imports are in data-flow order, not alphabetical)
-from ._version import __version__
-from .spec import Experiment, Spec, SpecError
-from .spec import load as load_spec
-from .fmu.build import build_all
-from .rig.signals import generate as generate_signal
-from .rig.campaign import run_campaign, simulate_spec
-from .rig.records import import_records
-from .rundir import DataError, Manifest, RunDir, load_run, read_dataset
-from .ident.calibration import Calibration, calibrate_run
-from .ident.preprocess import filter_coefficients, filter_response
-from .ident.armax import ArmaxModel, compare, estimate, predict, resid, simulate
-from .ident.identify import prepare, run_grid
-from .ident.export import export_model
-from .ident.crossfit import crossfit_run
-from .ident.accept import accept
-from .diagnosis.diagnose import diagnose_run
-from .diagnosis.result import Diagnosis
-from .diagnosis.blindtest import blindtest
-from .render.report import write_report
-from .render.viewer import log_run
-from .pipeline import identify_run, run_pipeline
-from .sweep import run_sweep
-from .executor import Executor
+from __future__ import annotations
 
-__all__ = [
-    "__version__",
-    "Experiment",
-    "Spec",
-    "SpecError",
-    "load_spec",
-    "build_all",
-    "generate_signal",
-    "run_campaign",
-    "simulate_spec",
-    "import_records",
-    "DataError",
-    "Manifest",
-    "RunDir",
-    "load_run",
-    "read_dataset",
-    "Calibration",
-    "calibrate_run",
-    "filter_coefficients",
-    "filter_response",
-    "ArmaxModel",
-    "compare",
-    "estimate",
-    "predict",
-    "resid",
-    "simulate",
-    "prepare",
-    "run_grid",
-    "export_model",
-    "crossfit_run",
-    "accept",
-    "diagnose_run",
-    "Diagnosis",
-    "blindtest",
-    "write_report",
-    "log_run",
-    "identify_run",
-    "run_pipeline",
-    "run_sweep",
-    "Executor",
-]
+import importlib
+from typing import Any
+
+from ._version import __version__
+
+# public name -> (module of the package, attribute), in data-flow order
+_API: dict[str, tuple[str, str]] = {
+    "Experiment": ("spec", "Experiment"),
+    "Spec": ("spec", "Spec"),
+    "SpecError": ("spec", "SpecError"),
+    "load_spec": ("spec", "load"),
+    "build_all": ("fmu.build", "build_all"),
+    "generate_signal": ("rig.signals", "generate"),
+    "run_campaign": ("rig.campaign", "run_campaign"),
+    "simulate_spec": ("rig.campaign", "simulate_spec"),
+    "import_records": ("rig.records", "import_records"),
+    "DataError": ("rundir", "DataError"),
+    "Manifest": ("rundir", "Manifest"),
+    "RunDir": ("rundir", "RunDir"),
+    "load_run": ("rundir", "load_run"),
+    "read_dataset": ("rundir", "read_dataset"),
+    "Calibration": ("ident.calibration", "Calibration"),
+    "calibrate_run": ("ident.calibration", "calibrate_run"),
+    "filter_coefficients": ("ident.preprocess", "filter_coefficients"),
+    "filter_response": ("ident.preprocess", "filter_response"),
+    "ArmaxModel": ("ident.armax", "ArmaxModel"),
+    "compare": ("ident.armax", "compare"),
+    "estimate": ("ident.armax", "estimate"),
+    "predict": ("ident.armax", "predict"),
+    "resid": ("ident.armax", "resid"),
+    "simulate": ("ident.armax", "simulate"),
+    "prepare": ("ident.identify", "prepare"),
+    "run_grid": ("ident.identify", "run_grid"),
+    "export_model": ("ident.export", "export_model"),
+    "crossfit_run": ("ident.crossfit", "crossfit_run"),
+    "accept": ("ident.accept", "accept"),
+    "diagnose_run": ("diagnosis.diagnose", "diagnose_run"),
+    "Diagnosis": ("diagnosis.result", "Diagnosis"),
+    "blindtest": ("diagnosis.blindtest", "blindtest"),
+    "write_report": ("render.report", "write_report"),
+    "log_run": ("render.viewer", "log_run"),
+    "identify_run": ("pipeline", "identify_run"),
+    "run_pipeline": ("pipeline", "run_pipeline"),
+    "run_sweep": ("sweep", "run_sweep"),
+    "Executor": ("executor", "Executor"),
+}
+
+__all__ = ["__version__", *_API]
+
+
+def __getattr__(name: str) -> Any:
+    """The public name ``name``, imported from its module on first use."""
+    if name not in _API:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    module, attr = _API[name]
+    value = getattr(importlib.import_module(f"{__name__}.{module}"), attr)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *_API})
