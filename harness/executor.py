@@ -2,7 +2,7 @@
 
 ``Executor(workers, scheduler, progress)`` picks its backend once:
 
-- ``workers == 1`` (or env ``FLEXJOINT_WORKERS=1``): serial, in this process, without importing Dask (the debug
+- ``workers == 1`` (or env ``FLEXJOINT_WORKERS=1``): serial, in this process, without a cluster (the debug
   path; breakpoints and tracebacks work as usual);
 - inside a Dask task (a worker process) with no explicit ``scheduler``: serial too, so nested parallel code (a
   campaign inside a sweep task) never starts a cluster inside a cluster;
@@ -33,7 +33,6 @@ import hashlib
 import logging
 import os
 import shutil
-import sys
 import tempfile
 import threading
 import uuid
@@ -175,9 +174,6 @@ def _call(fn: Callable[..., T], item: Any, *shared: Any) -> T:
 
 def in_worker() -> bool:
     """True inside a Dask worker process (a task's code)."""
-    if "distributed" not in sys.modules:
-        return False
-
     try:
         get_worker()
     except ValueError:
@@ -243,7 +239,6 @@ class Executor:
                 self._start(workers, scheduler, dashboard)
 
     def _start(self, workers: int | None, scheduler: str | None, dashboard: str | None) -> None:
-
         if scheduler is not None:
             try:
                 self.client = Client(scheduler, timeout=CONNECT_TIMEOUT_S, set_as_default=False)
@@ -319,7 +314,6 @@ class Executor:
         return self._map_dask(fn, items, shared, desc, names)
 
     def _map_dask(self, fn: Callable[..., T], items: list[Any], shared: tuple, desc: str, names: list[str]) -> list:
-
         if not items:
             return []
         refs = [self._scatter(s) for s in shared]

@@ -410,7 +410,6 @@ def summarise(table: pd.DataFrame, varies: Sequence[Vary], thresholds: Mapping[s
 
 # ----------------------------------------------------------------------------------------------- outputs
 def _write_parquet(path: Path, table: pd.DataFrame) -> None:
-
     sink = pa.BufferOutputStream()
     t = pa.Table.from_pandas(table, preserve_index=False)
     t = t.replace_schema_metadata(None)  # no pandas metadata blob: plain columns, stable bytes

@@ -13,8 +13,8 @@ from fmpy import read_model_description, simulate_fmu
 from fmpy.validation import validate_fmu
 
 from benchmarks.problems import demo_problem
+from harness.fmu.binding import FMUError
 from harness.fmu.build import build_fmu, fmu_source_dir
-from harness.fmu.cosim import FMUError
 from harness.ident import armax as ax
 from harness.ident import export, lti
 

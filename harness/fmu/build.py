@@ -83,7 +83,6 @@ def available_models() -> list[str]:
 
 
 def _fmpy_headers() -> dict[str, bytes]:
-
     cdir = Path(fmpy.__file__).parent / "c-code"
     return {h: (cdir / h).read_bytes() for h in FMI_HEADERS}
 

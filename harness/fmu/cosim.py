@@ -20,9 +20,9 @@ from typing import Any
 import numpy as np
 from fmpy.fmi2 import fmi2Boolean, fmi2Real, fmi2ValueReference
 
-from .binding import FMUError, load
+from .binding import load
 
-__all__ = ["DEG", "FMUError", "Rig"]
+__all__ = ["DEG", "Rig"]
 
 DEG = 180.0 / np.pi
 

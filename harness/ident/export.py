@@ -53,7 +53,6 @@ __all__ = [
 NMAX = 16  # must equal NMAX in fmus/armax/config.h (tests check it)
 COEFFICIENT_FILE = "resources/coefficients.txt"
 _ZIP_DATE = (1980, 1, 1, 0, 0, 0)
-_INT_PARAMS = ("na", "nb", "nc", "nk")
 
 
 # ----------------------------------------------------------------------------------------------- parameters
@@ -149,11 +148,6 @@ def _zip_bytes(files: dict[str, bytes]) -> bytes:
     return buf.getvalue()
 
 
-def _generic_fmu() -> Path:
-
-    return build_fmu("armax")
-
-
 def model_fmu_bytes(
     record: dict[str, Any] | ArmaxModel, *, af: float | None = None, u_offset: float = 0.0, y0: float = 0.0
 ) -> bytes:
@@ -168,7 +162,7 @@ def model_fmu_bytes(
         f"{orders} model {name!r}{where}, Ts = {model.Ts!r} s, af = {af!r}: y_f = B/A (u - u_offset), "
         f"y = y0 + (z - af) / ((1 - af)(z - 1)) y_f"
     )
-    with zipfile.ZipFile(_generic_fmu()) as zf:
+    with zipfile.ZipFile(build_fmu("armax")) as zf:  # the generic armax FMU
         files = {n: zf.read(n) for n in zf.namelist() if not n.endswith("/")}
     xml = _with_start_values(files["modelDescription.xml"].decode(), params, desc)
     files["modelDescription.xml"] = xml.encode()

@@ -128,7 +128,6 @@ def simulate_spec(
 
 
 def versions() -> dict[str, str]:
-
     return {
         "harness": __version__,
         "python": platform.python_version(),

@@ -302,7 +302,6 @@ def _leaf_names(items: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 
 
 def _read_mat(path: Path) -> RawTable:
-
     items: dict[str, np.ndarray] = {}
     seen: list[str] = []
     if h5py.is_hdf5(path):
