@@ -147,13 +147,14 @@ def worker_cache(key: str, factory: Callable[[], T]) -> T:
 
 
 def worker_rig(fmus: Mapping[str, FmuBytes | Path | str]) -> Any:
-    """The rig twin (:class:`harness.fmu.cosim.Rig`) of ``{"flexjoint": ..., "daq": ...}``, loaded once per process
-    (and thread) and reused by every later task; FMUs given as bytes are written with :func:`fmu_file`."""
+    """The rig twin (:class:`harness.fmu.cosim.Rig`) of ``{"flexjoint": ..., "daq": ...[, "controller": ...]}``,
+    loaded once per process (and thread) and reused by every later task; FMUs given as bytes are written with
+    :func:`fmu_file`."""
 
     files = {k: fmu_file(v) if isinstance(v, FmuBytes) else Path(v) for k, v in fmus.items()}
     digest = {k: v.sha256 if isinstance(v, FmuBytes) else str(Path(v).resolve()) for k, v in fmus.items()}
-    key = f"rig:{digest['flexjoint']}:{digest['daq']}"
-    return worker_cache(key, lambda: Rig(files["flexjoint"], files["daq"]))
+    key = f"rig:{digest['flexjoint']}:{digest['daq']}:{digest.get('controller')}"
+    return worker_cache(key, lambda: Rig(files["flexjoint"], files["daq"], files.get("controller")))
 
 
 # ----------------------------------------------------------------------------------------------- BLAS

@@ -38,6 +38,7 @@ import pyarrow.parquet as pq
 from .spec import Spec, from_dict
 
 REQUIRED = ("t", "u", "theta_v", "alpha_v")
+CHECKED = ("ref",)  # optional columns that must be finite where present: a closed-loop record's reference [deg]
 T = TypeVar("T")
 
 
@@ -202,7 +203,11 @@ class ExperimentEntry:
     """One experiment of a run (its dataset is ``data/<name>.parquet``): ``role`` "identification",
     "validation" or "calibration"; ``n`` samples. A campaign adds the command ``signal`` and the experiment's
     random ``seed``; an import its ``sample_rate`` [Hz], the record's ``columns`` and ``units`` per channel, the
-    largest clock-jitter correction [s] and, for encoder counts, the angle lattice [deg] per channel."""
+    largest clock-jitter correction [s] and, for encoder counts, the angle lattice [deg] per channel.
+
+    A closed-loop experiment has ``loop`` "closed", its dataset a ``ref`` column (the reference of theta [deg]) and
+    its ``controller`` (:class:`harness.rig.controller.Controller` as a dict: kind, gains, source, R^2 when
+    identified). ``theta_sensor`` is "pot" (default) or "encoder" with ``counts_per_rev``."""
 
     name: str
     role: str = "identification"
@@ -214,6 +219,10 @@ class ExperimentEntry:
     units: dict[str, str] | None = None
     jitter_corrected_s: float | None = None
     lattice_deg: dict[str, float] | None = None
+    loop: str | None = None
+    controller: dict[str, Any] | None = None
+    theta_sensor: str | None = None
+    counts_per_rev: float | None = None
 
 
 @dataclass
@@ -319,13 +328,14 @@ def write_dataset(path: Path, columns: dict[str, np.ndarray]) -> None:
 
 
 def validate(df: pd.DataFrame, name: str) -> pd.DataFrame:
-    """Check a dataset: required columns, finite numbers, uniform strictly increasing time."""
+    """Check a dataset: required columns (and a closed-loop record's reference ``ref``) finite numbers, uniform
+    strictly increasing time."""
     missing = [c for c in REQUIRED if c not in df.columns]
     if missing:
         raise DataError(f"{name}: missing column(s) {', '.join(missing)}; need {', '.join(REQUIRED)}")
     if len(df) < 16:
         raise DataError(f"{name}: only {len(df)} rows; need at least 16 samples")
-    for c in REQUIRED:
+    for c in (*REQUIRED, *(c for c in CHECKED if c in df.columns)):
         col = pd.to_numeric(df[c], errors="coerce").to_numpy(dtype=float)
         bad = np.flatnonzero(~np.isfinite(col))
         if bad.size:

@@ -8,6 +8,9 @@ A spec has these tables (everything but ``[campaign]`` and one experiment is opt
     [[calibration]]  experiments for Kp (pot_ramp), Ke (comb) and the dead zone (ramp)
     [[experiment]]   identification experiments: name, signal, duration [s] and the signal's parameters,
                      optional ``plant = {...}`` / ``daq = {...}`` overrides for that experiment only
+    [controller] the closed loop's controller: kind ("state_feedback" or "pid"), K = [4 gains] or kp, ki, kd,
+                 cutoff [Hz] of its velocity filter, u_limit [V], sample_rate [Hz] (default the campaign's)
+    [[experiment]] with ``loop = "closed"``: run under the controller, its signal the theta reference [deg]
     [identify]   na, nb, nc ranges, nk, af, output, fit_threshold [%], selection tolerance [fit points]
     [accept]     min_fit [%] per dataset, min_average_fit [%] for the selected model
 
@@ -29,12 +32,15 @@ import tomllib
 
 from .fmu.build import bundled_dir
 from .fmu.modeldesc import source_model
+from .rig.controller import Controller
 from .rig.signals import SIGNAL_KINDS, check_params
 
 SPEC_DIR = bundled_dir("specs")  # the bundled specs: harness/_specs in a wheel, specs/ in a clone
 
 CAMPAIGN_KEYS = {"name", "sample_rate", "seed", "internal_step", "description"}
-EXPERIMENT_KEYS = {"name", "signal", "duration", "plant", "daq", "role"}
+EXPERIMENT_KEYS = {"name", "signal", "duration", "plant", "daq", "role", "loop"}
+CONTROLLER_KEYS = {"kind", "K", "kp", "ki", "kd", "cutoff", "u_limit", "sample_rate"}
+LOOPS = ("open", "closed")
 COMB_PARAMS = {"deflections_cm", "D_cm", "hold", "ramp"}
 IDENTIFY_DEFAULTS: dict[str, Any] = {
     "na": [1, 8],
@@ -76,6 +82,7 @@ class Experiment:
     plant: dict[str, Any] = field(default_factory=dict)
     daq: dict[str, Any] = field(default_factory=dict)
     role: str = "identification"
+    loop: str = "open"  # "closed": under the spec's controller, the signal is the theta reference [deg]
 
 
 @dataclass
@@ -94,6 +101,7 @@ class Spec:
     accept: dict[str, Any]
     raw: dict[str, Any]
     path: str = ""
+    controller: Controller | None = None
 
     @property
     def Ts(self) -> float:
@@ -165,7 +173,34 @@ def _experiment(where: str, d: dict[str, Any], role: str) -> Experiment:
         plant=_check_params(f"{where}.plant", "flexjoint", d.get("plant", {})),
         daq=_check_params(f"{where}.daq", "daq", d.get("daq", {})),
         role=str(d.get("role", role)),
+        loop=_loop(where, d.get("loop", "open"), signal),
     )
+
+
+def _loop(where: str, loop: Any, signal: str) -> str:
+    if loop not in LOOPS:
+        raise SpecError(f"{where}.loop {loop!r} unknown; valid: {', '.join(LOOPS)}")
+    if loop == "closed" and signal == "comb":
+        raise SpecError(f"{where}: a comb calibration holds the hub and cannot run closed loop")
+    return loop
+
+
+def _controller(d: Any) -> Controller:
+    """The ``[controller]`` table as a :class:`Controller`; one :class:`SpecError` line for a bad one."""
+    if not isinstance(d, dict):
+        raise SpecError("[controller] must be a table")
+    _check_keys("[controller]", d, CONTROLLER_KEYS)
+    for k, v in d.items():
+        vals = v if k == "K" and isinstance(v, list) else [v]
+        if k != "kind" and any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in vals):
+            raise SpecError(f"[controller].{k} must be {'a list of 4 numbers' if k == 'K' else 'a number'}, got {v!r}")
+    if "K" in d and not isinstance(d["K"], list):
+        raise SpecError(f"[controller].K must be a list of 4 numbers, got {d['K']!r}")
+    kw = {k: [float(x) for x in v] if k == "K" else v for k, v in d.items()}
+    try:
+        return Controller(**kw)
+    except (TypeError, ValueError) as err:
+        raise SpecError(f"[controller]: {err}") from None
 
 
 def parse_value(text: str) -> Any:
@@ -184,15 +219,17 @@ def apply_overrides(raw: dict[str, Any], overrides: list[str]) -> dict[str, Any]
             raise SpecError(f"--set {item!r}: expected table.name=value, e.g. plant.backlash=0.004")
         key, value = item.split("=", 1)
         table, name = key.strip().split(".", 1)
-        if table not in ("campaign", "plant", "daq", "identify", "accept"):
-            raise SpecError(f"--set {item!r}: table must be one of campaign, plant, daq, identify, accept")
+        if table not in ("campaign", "plant", "daq", "controller", "identify", "accept"):
+            raise SpecError(f"--set {item!r}: table must be one of campaign, plant, daq, controller, identify, accept")
         raw.setdefault(table, {})[name.strip()] = parse_value(value.strip())
     return raw
 
 
 def from_dict(raw: dict[str, Any], path: str = "") -> Spec:
     """Validate a raw spec dict (as read from TOML) into a :class:`Spec`."""
-    _check_keys("spec", raw, {"campaign", "plant", "daq", "calibration", "experiment", "identify", "accept"})
+    _check_keys(
+        "spec", raw, {"campaign", "plant", "daq", "controller", "calibration", "experiment", "identify", "accept"}
+    )
     camp = raw.get("campaign", {})
     _check_keys("[campaign]", camp, CAMPAIGN_KEYS)
     rate = camp.get("sample_rate", 50.0)
@@ -216,6 +253,10 @@ def from_dict(raw: dict[str, Any], path: str = "") -> Spec:
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
         raise SpecError(f"duplicate experiment name(s): {', '.join(dup)}")
+    controller = _controller(raw["controller"]) if "controller" in raw else None
+    closed = [e.name for e in (*cal, *exps) if e.loop == "closed"]
+    if closed and controller is None:
+        raise SpecError(f"experiment(s) {', '.join(closed)} run closed loop but the spec has no [controller] table")
     identify = dict(IDENTIFY_DEFAULTS)
     _check_keys("[identify]", raw.get("identify", {}), IDENTIFY_DEFAULTS)
     identify.update(raw.get("identify", {}))
@@ -235,6 +276,7 @@ def from_dict(raw: dict[str, Any], path: str = "") -> Spec:
         accept=accept,
         raw=raw,
         path=path,
+        controller=controller,
     )
     check_memory(spec)  # before the signal checks below generate any signal at this rate
     for e in spec.all_experiments():

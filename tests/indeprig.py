@@ -1,9 +1,10 @@
 """An independent simulator of the flexible-joint rig, for checking the diagnoser on data our FMUs did not make.
 
-Nothing here uses the project's FMUs, ``harness.fmu.plant`` or ``harness.fmu.cosim``: the beam, the drive train, the
-friction and backlash laws, the integrator (scipy's ``solve_ivp``) and the DAQ are written anew, with other
-model structures than the twin's. Only the command signals (``harness.rig.signals``), the experiment seeds and the
-run-directory format (``harness.rig.campaign``, ``harness.rundir``) are shared, since they are not the plant.
+Nothing here uses the project's FMUs, ``harness.fmu.plant``, ``harness.fmu.cosim`` or ``harness.rig.controller``: the
+beam, the drive train, the friction and backlash laws, the integrator (scipy's ``solve_ivp``), the DAQ and the closed
+loop's controller are written anew, with other model structures than the twin's. Only the command signals
+(``harness.rig.signals``), the experiment seeds and the run-directory format (``harness.rig.campaign``,
+``harness.rundir``) are shared, since they are not the plant.
 
 Physics (SI, angles in rad, all torques at the load shaft):
 
@@ -43,12 +44,26 @@ Integration: ``solve_ivp`` per stretch of constant input (so the held command ne
 rtol x (0.01 rad, 0.1 mm, 1 rad/s, 10 mm/s). Measured against rtol 1e-10 references on the blind campaign's
 records: <= 1e-6 deg (smooth), ~2e-5 deg (friction + play); rtol 1e-6 left 1e-2 deg on friction + play (stick-slip
 timing), which is why 1e-7. Both are far below the noise (0.07 deg on the pot, 0.007 deg on the gauge).
+
+Closed loop (:func:`simulate_closed`): the controller is a lab controller written from the law's specification
+(:class:`LabLaw`: state feedback u = K (x_ref - x) on (theta, alpha, theta_dot, alpha_dot) or PID on theta with the
+derivative on the measurement and conditional-integration anti-windup; velocities by backward differences through a
+first-order low-pass, v_0 = 0; output clamp). It reads its own DAQ's sampled volts (noise and ADC included) with the
+rig's nominal calibration (pot gain, gauge Ke, offsets). The command of sample k is held over [t_k, t_k+1) (direct
+feedthrough, the project's master's convention), then DAC clamp, delay and amplifier limit as in open loop. The
+plant is stepped one sample at a time by the same ``solve_ivp`` stepping as :func:`integrate` (a closed loop's
+command changes every sample, as a noisy open-loop command does). A 6 s record at 500 Hz takes ~0.4 s on a smooth
+rig and ~1.3 s with friction and play. On a smooth rig DOP853 takes one step per sample: its states agree with the
+exact zero-order-hold propagation of the same command to ~1e-12 deg (1e-8 deg with 3 modes); with friction and play,
+rtol 1e-7 against 1e-10 differ by ~3e-5 deg. With a 12-bit ADC the loop is sensitive to which side of a code edge a
+sample falls: a 1e-5 deg difference can flip a code and the two runs then differ by a few tenths of a degree, as two
+runs of a real rig would, though each is an equally accurate solution.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, fields, replace
 from functools import cache
 from pathlib import Path
@@ -56,6 +71,7 @@ from typing import Any
 
 import numpy as np
 from scipy.integrate import solve_ivp
+from scipy.linalg import expm
 from scipy.optimize import brentq
 
 DEG = 180.0 / math.pi
@@ -63,6 +79,7 @@ MAX_MODES = 3
 RTOL = 1e-7
 METHOD = "DOP853"
 METHOD_NONSMOOTH = "LSODA"
+DIVERGED_ALPHA = math.radians(45.0)  # a closed loop whose link deflects more has diverged (the link would break)
 CONTACT_RAMP = 1e-4  # rad of gear penetration over which the contact damping fades in
 _QUAD_NODES = 64
 
@@ -420,6 +437,44 @@ class _Plant:
         return rhs, jac
 
 
+class _Stepper:
+    """The per-stretch stepping shared by :func:`integrate` (open loop) and :func:`simulate_closed`: ``solve_ivp``
+    over a stretch of constant input, DOP853 on a smooth plant, LSODA with the analytic Jacobian on one with
+    friction or play, ``rtol`` and atol = rtol x the plant's scales, ``max_step = Ts``, and each stretch's first
+    step the solver's last step of the previous one-sample stretch (offered, never imposed: the error control
+    still rejects it)."""
+
+    def __init__(self, plant: _Plant, Ts: float, rtol: float) -> None:
+        self.plant, self.Ts, self.rtol = plant, Ts, rtol
+        self.method = METHOD_NONSMOOTH if (plant.friction or plant.play) else METHOD
+        self.atol = plant.atol_per_rtol * rtol
+        self.h_last = Ts
+
+    def advance(self, s0: np.ndarray, t: np.ndarray, drive: float, tau_tip: float) -> np.ndarray:
+        """States at t[1:] [shape (len(t) - 1, 2N)] from ``s0`` at t[0], amplifier voltage ``drive`` [V] and tip
+        torque ``tau_tip`` [N m] held over [t[0], t[-1]]."""
+        rhs, jac = self.plant.functions(drive, tau_tip)
+        one = t.size == 2  # one sample: the end point is a solver step, no interpolation needed
+        sol = solve_ivp(
+            rhs,
+            (t[0], t[-1]),
+            s0,
+            method=self.method,
+            t_eval=None if one else t[1:],
+            rtol=self.rtol,
+            atol=self.atol,
+            max_step=self.Ts,
+            first_step=min(self.h_last, t[-1] - t[0]),
+            **({"jac": jac} if self.method in ("LSODA", "Radau", "BDF") else {}),
+        )
+        if not sol.success:
+            raise RuntimeError(f"solve_ivp failed at t = {t[0]:.3f} s: {sol.message}")
+        if one:
+            self.h_last = float(sol.t[-1] - sol.t[-2])
+            return sol.y[:, -1:].T
+        return sol.y.T
+
+
 def integrate(
     rig: IndepRig,
     u_amp: np.ndarray,
@@ -433,39 +488,17 @@ def integrate(
     plant = _Plant(rig, hub_locked)
     n = u_amp.size
     tau = np.zeros(n) if tau_tip is None else np.asarray(tau_tip, dtype=float)
-    method = METHOD_NONSMOOTH if (plant.friction or plant.play) else METHOD
     S = np.zeros((n, 2 * plant.N))
     drive = np.zeros(n) if plant.locked else u_amp
     change = np.flatnonzero((np.diff(drive) != 0) | (np.diff(tau) != 0)) + 1
     starts = np.concatenate([[0], change])
     stops = np.concatenate([change, [n]])
     t = np.arange(n) * Ts
-    h_last = Ts  # the solver's last step, offered as the first step of the next stretch
+    stepper = _Stepper(plant, Ts, rtol)
     for k0, k1 in zip(starts, stops, strict=True):
         k_end = min(int(k1), n - 1)  # the state at t_n is not needed
-        if k_end <= k0:
-            continue
-        rhs, jac = plant.functions(float(drive[k0]), float(tau[k0]))
-        one = k_end == k0 + 1  # one sample: the end point is a solver step, no interpolation needed
-        sol = solve_ivp(
-            rhs,
-            (t[k0], t[k_end]),
-            S[k0],
-            method=method,
-            t_eval=None if one else t[k0 + 1 : k_end + 1],
-            rtol=rtol,
-            atol=plant.atol_per_rtol * rtol,
-            max_step=Ts,
-            first_step=min(h_last, t[k_end] - t[k0]),
-            **({"jac": jac} if method in ("LSODA", "Radau", "BDF") else {}),
-        )
-        if not sol.success:
-            raise RuntimeError(f"solve_ivp failed at t = {t[k0]:.3f} s: {sol.message}")
-        if one:
-            S[k_end] = sol.y[:, -1]
-            h_last = float(sol.t[-1] - sol.t[-2])
-        else:
-            S[k0 + 1 : k_end + 1] = sol.y.T
+        if k_end > k0:
+            S[k0 + 1 : k_end + 1] = stepper.advance(S[k0], t[k0 : k_end + 1], float(drive[k0]), float(tau[k0]))
     return plant, S
 
 
@@ -528,28 +561,271 @@ def simulate(
         if tau_tip.shape != u.shape or not np.all(np.isfinite(tau_tip)):
             raise ValueError("tau_tip must be finite and as long as u")
     plant, S = integrate(rig, u_amp, Ts, tau_tip, hub_locked, rtol)
-    N, nh = plant.N, plant.nh
-    q = S[:, nh:N]
-    if plant.locked:
-        theta = theta_m = theta_dot = np.zeros(n)
-    else:
-        theta, theta_m, theta_dot = S[:, plant.ih], S[:, plant.im], S[:, N + plant.ih]
-    alpha = q.sum(axis=1) / rig.L_link
-    alpha_gauge = gauge_scale(rig) * (q @ beam_of(rig).curv0)
-    rng_theta, rng_alpha = (np.random.default_rng(s) for s in np.random.SeedSequence(int(seed)).spawn(2))
-    theta_v = pot_volts(theta * DEG, rig) + rig.noise_theta * rng_theta.standard_normal(n)
-    alpha_v = gauge_volts(alpha_gauge * DEG, rig) + rig.noise_alpha * rng_alpha.standard_normal(n)
+    out = _outputs(rig, plant, S)
+    noise_theta, noise_alpha = _noise(rig, seed, n)
+    theta_v = pot_volts(out["theta"], rig) + noise_theta
+    alpha_v = gauge_volts(out["alpha_gauge"], rig) + noise_alpha
     return {
         "t": np.arange(n) * Ts,
         "u": u,
         "u_plant": u_amp,
         "theta_v": adc(theta_v, int(rig.adc_bits), rig.adc_range),
         "alpha_v": adc(alpha_v, int(rig.adc_bits), rig.adc_range),
+        **out,
+    }
+
+
+def _outputs(rig: IndepRig, plant: _Plant, S: np.ndarray) -> dict[str, np.ndarray]:
+    """theta, alpha, theta_m [deg], theta_dot [deg/s] and the gauge-equivalent alpha_gauge [deg] of states S."""
+    N, nh = plant.N, plant.nh
+    q = S[:, nh:N]
+    if plant.locked:
+        theta = theta_m = theta_dot = np.zeros(len(S))
+    else:
+        theta, theta_m, theta_dot = S[:, plant.ih], S[:, plant.im], S[:, N + plant.ih]
+    alpha = q.sum(axis=1) / rig.L_link
+    alpha_gauge = gauge_scale(rig) * (q @ beam_of(rig).curv0)
+    return {
         "theta": theta * DEG,
         "alpha": alpha * DEG,
         "theta_m": theta_m * DEG,
         "theta_dot": theta_dot * DEG,
         "alpha_gauge": alpha_gauge * DEG,
+    }
+
+
+def _noise(rig: IndepRig, seed: int, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The measurement noise [V] of the pot and the gauge for ``n`` samples: two streams spawned from ``seed``."""
+    rng_theta, rng_alpha = (np.random.default_rng(s) for s in np.random.SeedSequence(int(seed)).spawn(2))
+    return rig.noise_theta * rng_theta.standard_normal(n), rig.noise_alpha * rng_alpha.standard_normal(n)
+
+
+# ------------------------------------------------------------------ closed loop
+
+
+@dataclass(frozen=True)
+class LabLaw:
+    """The closed loop's control law, written anew from its specification (the project's controller is not used).
+
+    ``state_feedback``: u = K (x_ref - x) on x = (theta, alpha, theta_dot, alpha_dot) [rad, rad/s], x_ref = (ref,
+    0, 0, 0). ``pid`` on e = ref - theta: u = kp e + ki I - kd theta_dot (derivative on the measurement), I the
+    forward-Euler integral of e, not advanced at a sample whose output is clamped (conditional integration).
+    Velocities: the backward difference through a first-order low-pass at ``cutoff`` [Hz], v_0 = 0. Output
+    clamped to +-``u_limit`` [V] (0: none).
+    """
+
+    kind: str = "state_feedback"
+    K: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+    kp: float = 0.0
+    ki: float = 0.0
+    kd: float = 0.0
+    cutoff: float = 50.0
+    u_limit: float = 0.0
+    sample_rate: float | None = None
+
+    @classmethod
+    def of(cls, controller: Any) -> LabLaw:
+        """From a spec's controller (any object with these attributes, e.g. ``harness.rig.controller.Controller``)
+        or its dict (``to_dict()``, a manifest's ``controller``); other keys (source, r2) are ignored."""
+        if isinstance(controller, LabLaw):
+            return controller
+        if isinstance(controller, Mapping):
+            get = controller.get
+        else:
+
+            def get(name: str, default: Any = None) -> Any:
+                return getattr(controller, name, default)
+
+        law = cls(
+            kind=str(get("kind", "state_feedback")),
+            K=tuple(float(k) for k in get("K", (0.0,) * 4)),  # type: ignore[arg-type]
+            **{k: float(get(k, getattr(cls, k))) for k in ("kp", "ki", "kd", "cutoff", "u_limit")},
+            sample_rate=None if get("sample_rate") is None else float(get("sample_rate")),
+        )
+        if law.kind not in ("state_feedback", "pid"):
+            raise ValueError(f"controller kind {law.kind!r} unknown; valid: state_feedback, pid")
+        if len(law.K) != 4 or not all(math.isfinite(v) for v in (*law.K, law.kp, law.ki, law.kd, law.u_limit)):
+            raise ValueError("controller: K must be 4 finite gains, kp, ki, kd and u_limit finite")
+        if not (law.cutoff > 0 and math.isfinite(law.cutoff)) or law.u_limit < 0:
+            raise ValueError(f"controller: need cutoff > 0 Hz and u_limit >= 0 V, got {law.cutoff}, {law.u_limit}")
+        return law
+
+
+def nominal_calibration(rig: IndepRig) -> tuple[float, float, float, float]:
+    """The lab controller's angle calibration (theta_gain [deg/V], theta_offset [V], alpha_gain [deg/V],
+    alpha_offset [V]): the rig's nominal pot gain and gauge Ke with their offsets (no cubic term, no dead band)."""
+    return rig.pot_gain, rig.pot_offset, rig.gauge_Ke, rig.gauge_offset
+
+
+class LabController:
+    """A lab controller at ``Ts``: every sample it converts the DAQ's volts with its calibration and returns the
+    command of :class:`LabLaw` (state carried from sample to sample: last angles, filtered velocities, integral)."""
+
+    def __init__(self, law: LabLaw, Ts: float, calibration: tuple[float, float, float, float]) -> None:
+        self.law, self.Ts = law, Ts
+        self.th_gain, self.th_off, self.al_gain, self.al_off = calibration
+        self.a = math.exp(-2.0 * math.pi * law.cutoff * Ts)
+        self.lim = law.u_limit if law.u_limit > 0 else math.inf
+        self.last: tuple[float, float] | None = None
+        self.v_th = self.v_al = self.integral = 0.0
+
+    def step(self, ref: float, theta_v: float, alpha_v: float) -> float:
+        """Command u [V] at this sample from the reference [rad] and the sampled volts."""
+        law, Ts, a = self.law, self.Ts, self.a
+        th = math.radians(self.th_gain * (theta_v - self.th_off))
+        al = math.radians(self.al_gain * (alpha_v - self.al_off))
+        d_th, d_al = (0.0, 0.0) if self.last is None else ((th - self.last[0]) / Ts, (al - self.last[1]) / Ts)
+        self.last = (th, al)
+        self.v_th = a * self.v_th + (1.0 - a) * d_th
+        self.v_al = a * self.v_al + (1.0 - a) * d_al
+        if law.kind == "state_feedback":
+            k = law.K
+            raw = k[0] * (ref - th) - k[1] * al - k[2] * self.v_th - k[3] * self.v_al
+            return min(max(raw, -self.lim), self.lim)
+        e = ref - th
+        raw = law.kp * e + law.ki * self.integral - law.kd * self.v_th
+        u = min(max(raw, -self.lim), self.lim)
+        if u == raw:
+            self.integral += Ts * e
+        return u
+
+
+def zoh(rig: IndepRig, Ts: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The rig without friction, play and limits sampled exactly with a zero-order hold at ``Ts``: (Ad, Bd, C) with
+    s_k+1 = Ad s_k + Bd u_k (u the amplifier voltage [V]) and C s = (theta, alpha_gauge) [rad]; s as in
+    :func:`integrate` (rigid gear)."""
+    plant = _Plant(replace(rig, coulomb_torque=0.0, backlash=0.0), hub_locked=False)
+    n2 = 2 * plant.N
+    aug = np.zeros((n2 + 1, n2 + 1))
+    aug[:n2, :n2], aug[:n2, n2] = plant.A, plant.b_u
+    E = expm(aug * Ts)
+    C = np.zeros((2, n2))
+    C[0, plant.ih] = 1.0
+    C[1, plant.nh : plant.N] = gauge_scale(rig) * beam_of(rig).curv0
+    return E[:n2, :n2], E[:n2, n2], C
+
+
+def closed_loop_poles(rig: IndepRig, controller: Any, Ts: float) -> np.ndarray:
+    """Eigenvalues of the sampled closed loop linearised about rest: the rig without friction, play and limits
+    (exact zero-order-hold discretisation), its command delay, the controller's velocity filters and integrator.
+
+    Loop state z_k = (plant state s_k, angles read at k-1, velocities at k-1, integral, commands u_{k-1..k-d});
+    the pot reads theta and the gauge alpha_gauge (the cubic term has no slope at rest)."""
+    law = LabLaw.of(controller)
+    Ad, Bd, C = zoh(rig, Ts)
+    n2, d = Ad.shape[0], int(rig.delay_samples)
+    a = math.exp(-2.0 * math.pi * law.cutoff * Ts)
+    i_y, i_v, i_I, i_u = n2, n2 + 2, n2 + 4, n2 + 5  # block offsets in z
+    nz = i_u + d
+    y = np.zeros((2, nz))  # angles read at k
+    y[:, :n2] = C
+    v = a * np.eye(2, nz, i_v) + (1.0 - a) / Ts * (y - np.eye(2, nz, i_y))  # filtered velocities at k
+    if law.kind == "state_feedback":
+        F = -law.K[0] * y[0] - law.K[1] * y[1] - law.K[2] * v[0] - law.K[3] * v[1]
+    else:
+        F = -law.kp * y[0] + law.ki * np.eye(1, nz, i_I)[0] - law.kd * v[0]
+    Phi = np.zeros((nz, nz))
+    applied = F if d == 0 else np.eye(1, nz, i_u + d - 1)[0]  # the command acting over [t_k, t_k+1)
+    Phi[:n2, :n2] = Ad
+    Phi[:n2] += np.outer(Bd, applied)
+    Phi[i_y : i_y + 2] = y
+    Phi[i_v : i_v + 2] = v
+    if law.kind == "pid":  # state feedback has no integral: its row stays zero (a pole at 0, not a spurious 1)
+        Phi[i_I] = np.eye(1, nz, i_I)[0] - Ts * y[0]
+    if d:
+        Phi[i_u] = F
+        Phi[i_u + 1 : i_u + d, i_u : i_u + d - 1] = np.eye(d - 1)
+    return np.linalg.eigvals(Phi)
+
+
+def check_stable(rig: IndepRig, controller: Any, Ts: float) -> None:
+    """Raise ValueError (one line) when the controller destabilises the rig (a pole of
+    :func:`closed_loop_poles` outside the unit circle)."""
+    z = closed_loop_poles(rig, controller, Ts)
+    worst = z[np.argmax(np.abs(z))]
+    if abs(worst) > 1.0 + 1e-9:
+        law = LabLaw.of(controller)
+        f = abs(np.angle(worst)) / (2 * math.pi * Ts)
+        where = f"{f:.2f} Hz" if f > 0 else "real"
+        gains = f"K = {list(law.K)}" if law.kind == "state_feedback" else f"kp, ki, kd = {law.kp}, {law.ki}, {law.kd}"
+        raise ValueError(
+            f"controller ({law.kind}, {gains}) destabilises the rig: closed-loop pole |z| = {abs(worst):.4f} > 1 "
+            f"({where}) at Ts = {Ts:g} s, rig linearised without friction, play and limits"
+        )
+
+
+def simulate_closed(
+    rig: IndepRig,
+    ref_rad: np.ndarray,
+    Ts: float,
+    controller: Any,
+    seed: int = 0,
+    rtol: float = RTOL,
+    check: bool = True,
+) -> dict[str, np.ndarray]:
+    """Run one closed-loop record: the shaft tracks ``ref_rad`` [rad per sample at Ts] under ``controller`` (a
+    spec's controller or its dict, :meth:`LabLaw.of`), from rest; ``seed`` draws the noise.
+
+    Sample by sample: at t_k the DAQ samples the state (noise, ADC, as :func:`simulate`); the controller converts
+    those volts with :func:`nominal_calibration` and computes u_k, which after the DAC clamp, ``delay_samples`` and
+    the amplifier limit is held over [t_k, t_k+1) (direct feedthrough, as the project's co-simulation master);
+    the plant is integrated over that interval by the same stepping as :func:`integrate`.
+
+    A controller that destabilises the rig is refused with a one-line ValueError: with ``check``, before the run
+    on a smooth rig (:func:`check_stable`: there the linearisation is the rig, but for its limits); on a rig with
+    friction or play, whose linearisation at rest is not defined (a stuck hub clamps the link, which can hold a
+    loop the linear part would lose: the lab rig's LQR with a second mode and one sample of delay), when the run
+    diverges: the link deflects more than :data:`DIVERGED_ALPHA` or the shaft strays more than half a turn from the
+    reference (the pot wraps: the controller has lost the angle).
+
+    Returns the keys of :func:`simulate` (``u`` the controller's command [V]) plus ``ref`` [deg].
+    """
+    ref = np.asarray(ref_rad, dtype=float)
+    if ref.ndim != 1 or ref.size < 2 or not np.all(np.isfinite(ref)):
+        raise ValueError("ref_rad must be a 1-D array of at least 2 finite angles")
+    if not Ts > 0:
+        raise ValueError(f"Ts must be > 0, got {Ts}")
+    rig.validate()
+    law = LabLaw.of(controller)
+    if law.sample_rate is not None and abs(law.sample_rate * Ts - 1.0) > 1e-9:
+        raise ValueError(f"controller sample_rate {law.sample_rate:g} Hz differs from the DAQ's {1 / Ts:g} Hz")
+    if check and not (rig.coulomb_torque > 0 or rig.backlash > 0):
+        check_stable(rig, law, Ts)
+    n, d = ref.size, int(rig.delay_samples)
+    plant = _Plant(rig, hub_locked=False)
+    stepper = _Stepper(plant, Ts, rtol)
+    ctl = LabController(law, Ts, nominal_calibration(rig))
+    noise_theta, noise_alpha = _noise(rig, seed, n)
+    bits, fs = int(rig.adc_bits), rig.adc_range
+    t = np.arange(n) * Ts
+    S = np.zeros((n, 2 * plant.N))
+    u, u_amp, theta_v, alpha_v = (np.zeros(n) for _ in range(4))
+    ih, curv = plant.ih, gauge_scale(rig) * beam_of(rig).curv0 * DEG  # alpha_gauge [deg] per modal coordinate
+    amp = rig.amp_limit if rig.amp_limit > 0 else math.inf
+    q_tip = np.zeros(2 * plant.N)  # alpha [rad] = q_tip @ s
+    q_tip[plant.nh : plant.N] = 1.0 / rig.L_link
+    for k in range(n):
+        s = S[k]
+        if abs(float(q_tip @ s)) > DIVERGED_ALPHA or abs(s[ih] - ref[k]) > math.pi:
+            raise ValueError(
+                f"closed loop diverged at t = {t[k]:.3f} s (theta {s[ih] * DEG:.1f} deg, reference "
+                f"{ref[k] * DEG:.1f} deg, alpha {q_tip @ s * DEG:.1f} deg): the controller destabilises the rig"
+            )
+        theta_v[k] = adc(pot_volts(s[ih] * DEG, rig) + noise_theta[k], bits, fs)
+        alpha_v[k] = adc(gauge_volts(curv @ s[plant.nh : plant.N], rig) + noise_alpha[k], bits, fs)
+        u[k] = ctl.step(float(ref[k]), float(theta_v[k]), float(alpha_v[k]))
+        if k >= d:
+            u_amp[k] = min(max(min(max(u[k - d], -rig.dac_limit), rig.dac_limit), -amp), amp)
+        if k + 1 < n:
+            S[k + 1] = stepper.advance(s, t[k : k + 2], float(u_amp[k]), 0.0)[0]
+    return {
+        "t": t,
+        "u": u,
+        "u_plant": u_amp,
+        "theta_v": theta_v,
+        "alpha_v": alpha_v,
+        **_outputs(rig, plant, S),
+        "ref": ref * DEG,
     }
 
 
@@ -604,6 +880,9 @@ def make_run(dest: Path, spec: Any, rig: IndepRig, seed: int) -> Path:
     Same layout as ``harness.rig.campaign.run_campaign``: ``data/<experiment>.parquet`` and ``manifest.json``. The
     spec's [plant]/[daq] tables describe the twin and are not applied (the rig replaces them); an experiment's
     own overrides are applied where their names are IndepRig fields. ``seed`` draws the measurement noise.
+    A closed-loop experiment (``loop = "closed"``) runs under the spec's [controller] (:func:`simulate_closed`),
+    its signal the theta reference [deg]: its dataset adds ``ref`` [deg], its ``u`` is the controller's command,
+    and its manifest entry has ``loop`` "closed" and the ``controller`` (``to_dict()``).
     """
     import platform
 
@@ -623,16 +902,26 @@ def make_run(dest: Path, spec: Any, rig: IndepRig, seed: int) -> Path:
         over = {k: v for k, v in {**exp.plant, **exp.daq}.items() if k in _OVERRIDABLE}
         r = replace(rig, **over) if over else rig
         noise_seed = int(np.random.SeedSequence([int(seed), e_seed]).generate_state(1)[0])
+        entry = {"name": exp.name, "role": exp.role, "signal": exp.signal, "n": n, "seed": e_seed}
         if exp.signal == "comb":
             tau, comb = comb_run(r, exp.params, exp.duration, Ts)
             res = simulate(r, np.zeros(n), Ts, noise_seed, tau_tip=tau, hub_locked=True)
+        elif exp.loop == "closed":
+            if spec.controller is None:
+                raise ValueError(f"experiment {exp.name!r} runs closed loop but the spec has no [controller]")
+            ref = generate(exp.signal, n, Ts, exp.params, e_seed)  # the theta reference [deg]
+            res = simulate_closed(r, np.radians(ref), Ts, spec.controller, noise_seed)
+            res["ref"] = ref
+            entry.update(loop="closed", controller=spec.controller.to_dict())
         else:
             res = simulate(r, generate(exp.signal, n, Ts, exp.params, e_seed), Ts, noise_seed)
         cols = {k: res[k] for k in ("t", "u", "theta_v", "alpha_v", "theta", "alpha")}
         if exp.signal == "comb":
             cols["tau_tip"], cols["comb_angle"] = tau, comb
+        if exp.loop == "closed":
+            cols["ref"] = res["ref"]
         write_dataset(dest / "data" / f"{exp.name}.parquet", cols)
-        entries.append({"name": exp.name, "role": exp.role, "signal": exp.signal, "n": n, "seed": e_seed})
+        entries.append(entry)
     manifest = {
         "kind": "campaign",
         "generator": "tests/indeprig.py",

@@ -144,7 +144,8 @@ def test_specs_lists_the_bundled_specs_and_init_copies_one(tmp_path):
     assert copied.read_text() == (SPEC_DIR / "nominal.toml").read_text()
     assert "exists; pass --force" in _one_line_error(flexjoint("init", tmp_path / "mine", "--spec", "nominal"))
     assert flexjoint("init", tmp_path / "mine", "--spec", "nominal", "--force").returncode == 0
-    assert "bundled: blind, lab, nominal" in _one_line_error(flexjoint("init", tmp_path, "--spec", "nope"))
+    bundled = "bundled: blind, blind_closed, closed_loop, lab, nominal"
+    assert bundled in _one_line_error(flexjoint("init", tmp_path, "--spec", "nope"))
 
 
 def test_build_failure_exits_non_zero(tmp_path):

@@ -26,12 +26,14 @@
     X(gauge_cubic, 10, 0.0)      \
     X(adc_range, 12, 10.0)       \
     X(noise_theta, 13, 0.0)      \
-    X(noise_alpha, 14, 0.0)
+    X(noise_alpha, 14, 0.0)      \
+    X(encoder_counts, 17, 4096.0)
 #define INTEGER_PARAMETERS(X)    \
     X(dac_bits, 1, 0)            \
     X(delay_samples, 4, 0)       \
     X(adc_bits, 11, 0)           \
-    X(seed, 15, 0)
+    X(seed, 15, 0)               \
+    X(theta_sensor, 16, 0)
 #define INPUTS(X)                \
     X(u, 30)                     \
     X(theta, 31)                 \
@@ -58,6 +60,7 @@ typedef struct {
     int delay_head;
     int64_t next_sample; /* index k of the next sample instant k / sample_rate not yet taken */
     uint64_t key_theta, key_alpha; /* PRNG stream keys derived from seed */
+    int inputs_changed; /* inputs set since the last sample: reading theta_v or alpha_v previews the next one */
 } ModelData;
 
 #endif

@@ -5,13 +5,19 @@
  * from the inputs set before that call; the outputs then hold that sample.  So with the master's order
  * (set inputs at t_k -> daq.doStep(t_k) -> read outputs) the outputs are the samples taken at t_k.
  * fmi2ExitInitializationMode previews the first sample from the inputs set before it (without pushing
- * it into the delay line; the doStep at the start time takes it for real, with the same noise).
+ * it into the delay line; the doStep at the start time takes it for real, with the same noise).  Likewise,
+ * reading theta_v or alpha_v after theta or alpha_gauge were set and before the next doStep previews the
+ * readings of the next sample (same noise, nothing committed): the closed loop's master reads the samples at
+ * t_k, lets the controller compute u_k, sets it and then steps the DAQ (direct feedthrough).
  *
  * Command path:  u -> DAC quantisation (dac_bits over +-dac_range, 0 = ideal) -> clamp +-out_limit
  *                -> delay by delay_samples samples (zeros before the first command) -> u_plant [V].
  * Potentiometer: theta [rad] -> degrees wrapped to [-180, 180); on the track v = wrapped / pot_gain +
  *                pot_offset; in the dead band (|wrapped| > 180 - pot_deadband / 2) the wiper is off the
  *                track and reads the track end sign(wrapped) (180 - pot_deadband / 2) / pot_gain + offset.
+ * Encoder (theta_sensor = 1): theta in degrees rounded to whole counts of 360 / encoder_counts, no wrap, no
+ *                dead band, no noise, no ADC; reported on the pot's scale, v = counted / pot_gain + pot_offset,
+ *                so that one calibration reads both.
  * Strain gauge:  v_lin = alpha_deg / gauge_gain + gauge_offset, v = v_lin (1 + gauge_cubic (alpha_deg/10)^2).
  * Then white Gaussian noise (noise_theta, noise_alpha V rms), then ADC quantisation (round to
  * LSB = 2 adc_range / 2^adc_bits and clamp to +-adc_range; 0 bits = ideal, no clamp).
@@ -62,6 +68,9 @@ bool validate(ModelInstance *comp, char *msg, size_t len) {
     CHECK(d->adc_range > 0, "invalid parameter adc_range = %g: must be > 0", d->adc_range);
     CHECK(d->noise_theta >= 0, "invalid parameter noise_theta = %g: must be >= 0", d->noise_theta);
     CHECK(d->noise_alpha >= 0, "invalid parameter noise_alpha = %g: must be >= 0", d->noise_alpha);
+    CHECK(d->theta_sensor == 0 || d->theta_sensor == 1,
+          "invalid parameter theta_sensor = %d: must be 0 (potentiometer) or 1 (encoder)", d->theta_sensor);
+    CHECK(d->encoder_counts > 0, "invalid parameter encoder_counts = %g: must be > 0", d->encoder_counts);
     return true;
 }
 
@@ -115,10 +124,29 @@ static double command(const ModelData *d, double u) {
     return fmin(fmax(v, -d->out_limit), d->out_limit);
 }
 
+static double encoderVoltage(const ModelData *d, double theta) {
+    const double step = 360.0 / d->encoder_counts;
+    return round(theta * RAD2DEG / step) * step / d->pot_gain + d->pot_offset;
+}
+
+/* the readings theta_v, alpha_v of sample number k of the inputs */
+static void sampleSensors(ModelData *d, int64_t k) {
+    double va = gaugeVoltage(d, d->alpha_gauge);
+    if (d->noise_alpha > 0) va += d->noise_alpha * gauss(d->key_alpha, k);
+    d->alpha_v = quantize(va, d->adc_bits, d->adc_range);
+    if (d->theta_sensor == 1) {
+        d->theta_v = encoderVoltage(d, d->theta);
+    } else {
+        double vt = potVoltage(d, d->theta);
+        if (d->noise_theta > 0) vt += d->noise_theta * gauss(d->key_theta, k);
+        d->theta_v = quantize(vt, d->adc_bits, d->adc_range);
+    }
+    d->inputs_changed = 0;
+}
+
 /* sample number k of the inputs; commit = push the command into the delay line */
 static void takeSample(ModelData *d, int64_t k, int commit) {
     const double cmd = command(d, d->u);
-    double vt = potVoltage(d, d->theta), va = gaugeVoltage(d, d->alpha_gauge);
     if (d->delay_samples > 0) {
         d->u_plant = d->delay_line[d->delay_head];
         if (commit) {
@@ -128,10 +156,7 @@ static void takeSample(ModelData *d, int64_t k, int commit) {
     } else {
         d->u_plant = cmd;
     }
-    if (d->noise_theta > 0) vt += d->noise_theta * gauss(d->key_theta, k);
-    if (d->noise_alpha > 0) va += d->noise_alpha * gauss(d->key_alpha, k);
-    d->theta_v = quantize(vt, d->adc_bits, d->adc_range);
-    d->alpha_v = quantize(va, d->adc_bits, d->adc_range);
+    sampleSensors(d, k);
 }
 
 /* ------------------------------------------------------------ life cycle */
@@ -181,6 +206,7 @@ fmi2Status doStep(ModelInstance *comp, double t, double h) {
     if (k < d->next_sample) k = d->next_sample;
     for (; (double)k < kEnd; k++) takeSample(d, k, 1);
     if (k > d->next_sample) d->next_sample = k;
+    d->inputs_changed = 0;
     return fmi2OK;
 }
 
@@ -210,6 +236,8 @@ fmi2Status getFloat64(ModelInstance *comp, fmi2ValueReference vr, double *value)
         *value = *p;
         return fmi2OK;
     }
+    if ((vr == vr_theta_v || vr == vr_alpha_v) && d->inputs_changed && comp->state == StateStepComplete)
+        sampleSensors(d, d->next_sample); /* preview of the next sample's readings */
     switch (vr) {
         INPUTS(GET_CASE)
         OUTPUTS(GET_CASE)
@@ -228,8 +256,8 @@ fmi2Status setFloat64(ModelInstance *comp, fmi2ValueReference vr, double value) 
     }
     switch (vr) {
     case vr_u: d->u = value; return fmi2OK;
-    case vr_theta: d->theta = value; return fmi2OK;
-    case vr_alpha_gauge: d->alpha_gauge = value; return fmi2OK;
+    case vr_theta: d->theta = value; d->inputs_changed = 1; return fmi2OK;
+    case vr_alpha_gauge: d->alpha_gauge = value; d->inputs_changed = 1; return fmi2OK;
     case vr_u_plant:
     case vr_theta_v:
     case vr_alpha_v: logError(comp, "output value reference %u cannot be set", (unsigned)vr); return fmi2Error;

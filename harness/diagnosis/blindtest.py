@@ -6,6 +6,10 @@ compact campaign) in one of three families:
 - ``twin``: our own FMUs with the textbook linear parameters (the linear part of rig and simulation agree);
 - ``nuisance``: our own FMUs with the linear parameters drawn off the datasheet as on a real rig (:data:`NUISANCE`:
   Ks +-25 %, Beq x0.5..x2, zeta_link x0.5..x3, Jeq +-15 %, motor gain +-10 %, the motor gain carried by kt);
+- ``closed``: the nuisance family run as real rigs are, under LQR state feedback tracking square references
+  (``specs/blind_closed.toml``: 6 s records, every other case at 500 Hz and 1 kHz), the logged command being the
+  controller's output; diagnosed against the same closed loop on the textbook rig, each record replayed through
+  the controller FMU;
 - ``independent``: rigs from an independent simulator that uses neither our FMUs nor ``harness.fmu.plant``
   (``tests/indeprig.py`` of a source checkout: scipy ``solve_ivp``, Stribeck friction, backlash as a dead-band
   contact spring between motor and hub inertias, link modes from the beam's E I, its own pot, gauge and DAQ), with
@@ -61,7 +65,9 @@ from .simulation import fmu_value
 Progress = Callable[[str], None]
 
 BLIND_SPEC = specmod.SPEC_DIR / "blind.toml"
-FAMILIES = ("twin", "nuisance", "independent")
+CLOSED_SPEC = specmod.SPEC_DIR / "blind_closed.toml"
+FAMILIES = ("twin", "nuisance", "independent", "closed")
+CLOSED_RATES = (500.0, 1000.0)  # Hz: the closed family's cases alternate between these sample rates
 
 # linear parameter -> (low factor, high factor, log-uniform) of the textbook value: a real rig's spread
 NUISANCE: dict[str, tuple[float, float, bool]] = {
@@ -129,7 +135,7 @@ def plan(n: int, seed: int, families: tuple[str, ...] = ("twin",)) -> list[dict[
             extra["gauge_drift"] = float(rng.uniform(0.10, 0.30))
         elif what == "pot_nonlinearity":
             extra["pot_nonlinearity"] = float(rng.uniform(0.01, 0.02))
-        nuisance = _draw_nuisance(rng) if family != "twin" else {}
+        nuisance = _draw_nuisance(rng) if family != "twin" else {}  # closed: the twin with nuisance, in feedback
         cases.append(
             {
                 "case": i,
@@ -145,19 +151,30 @@ def plan(n: int, seed: int, families: tuple[str, ...] = ("twin",)) -> list[dict[
     return cases
 
 
-def campaign_spec(quick: bool = False, overrides: list[str] | None = None) -> specmod.Spec:
-    """The blind campaign (specs/blind.toml) with ``--set``-style overrides; ``quick`` shortens every
-    experiment to 12 s and the multisine to 5 periods of 4 s (same commands and levels: for tests)."""
-    base = specmod.load(BLIND_SPEC)
-    raw = base.raw
+def campaign_spec(quick: bool = False, overrides: list[str] | None = None, family: str = "twin") -> specmod.Spec:
+    """The blind campaign of a family (specs/blind.toml; the closed family's specs/blind_closed.toml) with
+    ``--set``-style overrides; ``quick`` shortens every open-loop experiment to 12 s and the multisine to 5
+    periods of 4 s, every closed-loop one to 4 s (same commands and levels: for tests)."""
+    path = CLOSED_SPEC if family == "closed" else BLIND_SPEC
+    raw = specmod.load(path).raw
     if quick:
         raw = specmod.apply_overrides(raw, [])  # a deep copy
         for e in raw["experiment"]:
-            if e["signal"] == "multisine":
+            if e.get("loop") == "closed":
+                e["duration"] = 4.0
+            elif e["signal"] == "multisine":
                 e.update(period=4.0, duration=20.0)
             else:
                 e["duration"] = 12.0
-    return specmod.from_dict(specmod.apply_overrides(raw, overrides or []), str(BLIND_SPEC))
+    return specmod.from_dict(specmod.apply_overrides(raw, overrides or []), str(path))
+
+
+def _case_sets(case: dict[str, Any]) -> list[str]:
+    """The overrides that make a case's campaign: its seed, and the closed family's sample rate."""
+    sets = [f"campaign.seed={case['campaign_seed']}"]
+    if case.get("family") == "closed":
+        sets.append(f"campaign.sample_rate={CLOSED_RATES[case['case'] % len(CLOSED_RATES)]}")
+    return sets
 
 
 def independent_simulator() -> ModuleType | None:
@@ -197,9 +214,10 @@ def make_rig_run(case: dict[str, Any], dest: Path, fmus: dict[str, Path] | None 
     """Run the case's hidden rig on the blind campaign into ``dest`` (our FMUs, or the independent simulator for
     that family) and hide the truth from its manifest."""
 
-    base = campaign_spec(quick)
-    seed = [f"campaign.seed={case['campaign_seed']}"]
-    if case.get("family") == "independent":
+    family = case.get("family", "twin")
+    base = campaign_spec(quick, family=family)
+    seed = _case_sets(case)
+    if family == "independent":
         ind = independent_simulator()
         if ind is None:
             raise ValueError("the independent family needs tests/indeprig.py of a source checkout")
@@ -209,7 +227,7 @@ def make_rig_run(case: dict[str, Any], dest: Path, fmus: dict[str, Path] | None 
         offset = float(rig.gauge_offset)
     else:
         sets = [f"{k}={v}" for k, v in {**case.get("nuisance", {}), **case["truth_params"]}.items()] + seed
-        spec = campaign_spec(quick, sets)
+        spec = campaign_spec(quick, sets, family)
         run_campaign(spec, dest, fmus=fmus, workers=1)
         offset = fmu_value(spec.daq, "daq", "gauge_offset")
     if case.get("post"):
@@ -378,7 +396,8 @@ def run_case(
         if d.exists():
             shutil.rmtree(d)
         make_rig_run(case, d, files, quick)
-        diag = diagnose_run(d, campaign_spec(quick), d, workers=1, fmus=files)
+        sim = campaign_spec(quick, _case_sets(case)[1:], case.get("family", "twin"))  # the case's rate, not seed
+        diag = diagnose_run(d, sim, d, workers=1, fmus=files)
     return {**case, "score": score_case(case, diag), "timing_s": time.perf_counter() - tc}
 
 
@@ -408,7 +427,7 @@ def blindtest(
         skipped.append("independent: no tests/indeprig.py (a source checkout) to simulate it")
         say(f"skipped family {skipped[-1]}")
     cases = plan(n, seed, families)
-    fmus = {k: fmu_bytes(v) for k, v in build_all().items() if k in ("flexjoint", "daq")}
+    fmus = {k: fmu_bytes(v) for k, v in build_all().items()}
     out = Path(out)
     root = out.resolve() / "blind_cases" if keep else None
     with Executor(workers=workers, scheduler=scheduler, progress=progress) as ex:

@@ -18,12 +18,14 @@ import numpy as np
 from .. import spec as specmod
 from ..ident.calibration import Calibration, alpha_deg, theta_deg
 from ..rig.signals import MultisineLines, multisine_lines
-from ..rundir import DataError, Manifest, RunDir, read_dataset, sample_time
+from ..rundir import DataError, ExperimentEntry, Manifest, RunDir, read_dataset, sample_time
 
 __all__ = [
     "CHANNELS",
     "DEADBAND_GUARD",
     "FIT_SECONDS",
+    "REPLAYS",
+    "SHOOTING_SECONDS",
     "SCREEN_SECONDS",
     "RigExperiment",
     "command_period",
@@ -35,6 +37,12 @@ __all__ = [
 ]
 
 CHANNELS = ("theta", "alpha")
+REPLAYS = {
+    "open": "the logged command replayed open loop",
+    "closed": "the reference replayed through the controller FMU in closed loop",
+    "shooting": "the logged command replayed open loop in windows restarted from the measured state",
+}  # how an experiment is re-simulated
+SHOOTING_SECONDS = 1.0  # s: window of the multiple-shooting replay
 FIT_SECONDS = 20.0  # s: parameters are fitted on the first 20 s of each experiment (scored on all of it)
 SCREEN_SECONDS = 12.0  # s: candidates are screened on the first 12 s of each experiment
 DEADBAND_GUARD = 1.5  # deg: samples this close to a pot track end (its dead band) are not compared
@@ -47,8 +55,11 @@ class RigExperiment:
     squares about the mean), the sim spec's per-experiment ``plant``/``daq`` overrides, ``kind`` (signal),
     ``period`` (samples of a periodic command, 0 if none), ``lines`` (the multisine line design of a periodic
     campaign experiment, for its BLA; None otherwise) and ``valid`` per channel (samples that measure the
-    shaft). The fit window (first FIT_SECONDS) and the screening window (first SCREEN_SECONDS) have their own
-    sample counts and sums of squares."""
+    shaft). A closed-loop record has its reference ``ref`` [deg] and ``controller`` (a
+    :class:`harness.rig.controller.Controller` as a dict); ``replay`` says how it is re-simulated (:data:`REPLAYS`)
+    and ``replay_reason`` why; ``encoder``: theta was read by an encoder (no pot wrap or dead band). The fit
+    window (first FIT_SECONDS) and the screening window (first SCREEN_SECONDS) have their own sample counts and
+    sums of squares."""
 
     name: str
     kind: str
@@ -70,6 +81,11 @@ class RigExperiment:
     n_screen: int = 0
     sst_screen: dict[str, float] = field(default_factory=dict)
     valid: dict[str, np.ndarray] = field(default_factory=dict)
+    ref: np.ndarray | None = None
+    controller: dict[str, Any] | None = None
+    replay: str = "open"
+    replay_reason: str = "an open-loop experiment: its command replayed as logged"
+    encoder: bool = False
 
     def __post_init__(self) -> None:
         self.n_fit = min(self.u.size, max(16, int(round(FIT_SECONDS / self.Ts))))
@@ -129,10 +145,40 @@ def valid_samples(
     return ok
 
 
-def load_experiments(real: Path, cal: Calibration, sim: specmod.Spec, adc_range: float) -> dict[str, RigExperiment]:
+def _loop(x: RigExperiment, e: ExperimentEntry, df: Any, replay: str) -> None:
+    """How experiment ``x`` is replayed (``replay`` "auto" or one of :data:`REPLAYS`): a closed-loop record with
+    its controller in closed loop, one without (or with a controller too poorly identified) by multiple shooting,
+    an open-loop one as logged."""
+    if "ref" in df.columns:
+        x.ref = df["ref"].to_numpy(float)
+    x.controller = e.controller if e.loop == "closed" else None
+    closed_record = x.ref is not None or e.loop == "closed"
+    if replay == "auto":
+        if x.controller is not None and x.ref is not None:
+            x.replay, x.replay_reason = "closed", f"a closed-loop record with its controller ({_source(e)})"
+        elif closed_record:
+            x.replay = "shooting"
+            x.replay_reason = "a closed-loop record without a usable controller: open-loop replay would drift"
+        return
+    if replay == "closed" and (x.controller is None or x.ref is None):
+        raise DataError(f"experiment {x.name!r}: closed-loop replay needs a reference and a controller; it has none")
+    x.replay, x.replay_reason = replay, "as asked (--replay)"
+
+
+def _source(e: ExperimentEntry) -> str:
+    c = e.controller or {}
+    src = str(c.get("source", "spec"))
+    return f"{src}, R^2 {c['r2']:.3f}" if c.get("r2") is not None else src
+
+
+def load_experiments(
+    real: Path, cal: Calibration, sim: specmod.Spec, adc_range: float, replay: str = "auto"
+) -> dict[str, RigExperiment]:
     """Every non-calibration experiment of run ``real`` as a :class:`RigExperiment` (manifest order), converted
     with ``cal``, with the sim spec's per-experiment overrides and the samples that can be compared marked valid
-    (pot dead band and clipping at the ADC's ``adc_range`` [V] masked)."""
+    (pot dead band and clipping at the ADC's ``adc_range`` [V] masked; an encoder has neither dead band nor wrap).
+    ``replay``: "auto" (closed-loop records in closed loop where their controller is known, else by multiple
+    shooting; open-loop ones as logged) or one of :data:`REPLAYS` for every experiment."""
     manifest = Manifest.load(real)
     exps = [e for e in manifest.experiments if e.role != "calibration"]
     if not exps:
@@ -165,7 +211,11 @@ def load_experiments(real: Path, cal: Calibration, sim: specmod.Spec, adc_range:
             daq=dict(se.daq) if se else {},
             period=command_period(u, hint),
             role=e.role,
+            encoder=e.theta_sensor == "encoder",
         )
+        _loop(x, e, df, replay)
+        if x.encoder and e.counts_per_rev:
+            x.daq = {"theta_sensor": 1, "encoder_counts": float(e.counts_per_rev), **x.daq}
         if multisine and x.period:
             x.lines = multisine_lines(
                 x.period,
@@ -178,10 +228,10 @@ def load_experiments(real: Path, cal: Calibration, sim: specmod.Spec, adc_range:
             )
         out[e.name] = x
     readings = {n: theta_deg(x.theta_v, cal, unwrap=False) for n, x in out.items()}
-    ends = pot_track_ends(list(readings.values()))
+    ends = pot_track_ends([r for n, r in readings.items() if not out[n].encoder] or [np.zeros(1)])
     for n, x in out.items():
         x.valid = {
-            "theta": valid_samples(readings[n], ends, x.theta_v, adc_range),
+            "theta": valid_samples(readings[n], None if x.encoder else ends, x.theta_v, adc_range),
             "alpha": valid_samples(np.zeros(1), None, x.alpha_v, adc_range),
         }
     return out

@@ -1,14 +1,22 @@
 """An experiment of the real rig re-simulated on the sim spec's rig, and the gap between them.
 
 Every experiment is re-simulated on the sim spec's rig (plant and DAQ FMUs, the spec's ``[plant]``/``[daq]`` and
-its per-experiment overrides, measurement noise off, DAQ sample rate 1/Ts of the data) with the real command ``u``
-from the data. Both sides are converted to degrees the way each is calibrated: real volts with the real run's
-calibration, simulated volts with :func:`harness.ident.calibration.daq_calibration` of the simulated DAQ (its pot
+its per-experiment overrides, measurement noise off, DAQ sample rate 1/Ts of the data) as it was run
+(:attr:`RigExperiment.replay`): an open-loop experiment with the real command ``u`` from the data; a closed-loop
+record from its reference through the controller FMU (reference -> controller -> DAQ -> plant -> DAQ ->
+controller), started at the measured shaft angle; a closed-loop record whose controller is not known by multiple
+shooting: the real command replayed open loop in windows of SHOOTING_SECONDS, each started again from the measured
+state (theta, alpha and their rates, smoothed), so that the drift an open-loop replay of a feedback-controlled
+command integrates cannot dominate the gap.
+
+Both sides are converted to degrees the way each is calibrated: real volts with the real run's calibration,
+simulated volts with :func:`harness.ident.calibration.daq_calibration` of the simulated DAQ (its pot
 gain and offset; when the real gauge was calibrated on a comb, the least-squares Ke of the simulated gauge over the
 same comb angles, so a gauge nonlinearity is calibrated alike on both sides). theta [deg] is unwrapped; the
 simulation starts at the first real shaft angle (so pot wraps coincide) and its constant offset is then fitted by
 least squares (the integrator's unknown initial state, as MATLAB's ``compare`` estimates it: one noisy first sample
-must not offset a whole record).
+must not offset a whole record). A closed-loop or multiple-shooting replay starts from the measured angle and
+keeps it: the feedback (or the restart) fixes the offset.
 
 Gap. Per experiment and channel q = ||y_real - y_sim||^2 / ||y_real - mean||^2 over valid samples; the mean
 squared gap E = mean q over experiments and channels (channels with no motion skipped), the gap g = sqrt(E), fit %
@@ -23,11 +31,13 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from scipy.signal import savgol_filter
 
 from .. import spec as specmod
 from ..executor import FmuBytes
 from ..ident.calibration import Calibration, alpha_deg, daq_calibration, theta_deg
-from .experiments import CHANNELS, DEADBAND_GUARD, RigExperiment
+from ..rig.controller import Controller
+from .experiments import CHANNELS, DEADBAND_GUARD, SHOOTING_SECONDS, RigExperiment
 from .result import ExperimentGap, GapSummary
 
 __all__ = [
@@ -37,6 +47,7 @@ __all__ = [
     "fmu_value",
     "gap_summary",
     "mean_squared_gap",
+    "measured_state",
     "residuals",
     "sim_calibration",
     "sim_rig",
@@ -45,6 +56,7 @@ __all__ = [
 
 SSE = dict[str, dict[str, float]]  # experiment -> channel -> sum of squared residuals [deg^2]
 MODELS = {"plant": "flexjoint", "daq": "daq"}  # the FMU behind each rig table
+SMOOTH_SECONDS = 0.02  # s: window of the smoothed rates that start a multiple-shooting window
 
 
 def fmu_value(table: Mapping[str, Any], model: str, name: str) -> float:
@@ -104,16 +116,53 @@ def simulate(
     plant = {**setup.plant, **exp.plant, **p_over}
     daq = {**setup.daq, **exp.daq, **d_over}
     plant.setdefault("theta_start", math.radians(float(exp.theta[0])))
-    res = rig.run(exp.u[:n], exp.Ts, plant=plant, daq=daq)
+    if exp.replay == "closed":
+        ctrl = Controller(**exp.controller).fmu_parameters(1.0 / exp.Ts)  # type: ignore[arg-type]
+        res = rig.run_closed(np.radians(exp.ref[:n]), exp.Ts, ctrl, plant=plant, daq=daq)  # type: ignore[index]
+    elif exp.replay == "shooting":
+        res = _shooting(rig, exp, plant, daq, n)
+    else:
+        res = rig.run(exp.u[:n], exp.Ts, plant=plant, daq=daq)
     cal = sim_calibration(daq, setup.comb_angles)
     reading = theta_deg(res["theta_v"], cal, unwrap=False)
-    edge = 180.0 - 0.5 * fmu_value(daq, "daq", "pot_deadband") - DEADBAND_GUARD
-    on_track = np.abs(reading) < edge
+    if exp.encoder:
+        on_track = np.ones(reading.size, dtype=bool)
+    else:
+        edge = 180.0 - 0.5 * fmu_value(daq, "daq", "pot_deadband") - DEADBAND_GUARD
+        on_track = np.abs(reading) < edge
     th = np.unwrap(reading, period=360.0)
-    ok = on_track & exp.valid["theta"][: th.size]
-    d = exp.theta[: th.size] - th
-    th += float(np.mean(d[ok])) if ok.any() else float(np.mean(d))  # initial shaft angle: least squares
+    if exp.replay == "open":
+        ok = on_track & exp.valid["theta"][: th.size]
+        d = exp.theta[: th.size] - th
+        th += float(np.mean(d[ok])) if ok.any() else float(np.mean(d))  # initial shaft angle: least squares
+    else:  # started at the measured angle: only whole turns of the pot's wrap to restore
+        th += 360.0 * np.round((exp.theta[0] - th[0]) / 360.0)
     return th, alpha_deg(res["alpha_v"], cal), on_track
+
+
+def measured_state(exp: RigExperiment) -> np.ndarray:
+    """The measured state per sample, (n, 4): theta, alpha [rad] and their rates [rad/s] (Savitzky-Golay, cubic,
+    over SMOOTH_SECONDS: differences of quantized angles are steps)."""
+    w = max(5, int(round(SMOOTH_SECONDS / exp.Ts)) | 1)
+    th, al = np.radians(exp.theta), np.radians(exp.alpha)
+    if th.size <= w:
+        return np.column_stack([th, al, np.gradient(th, exp.Ts), np.gradient(al, exp.Ts)])
+    rates = [savgol_filter(x, w, 3, deriv=1, delta=exp.Ts) for x in (th, al)]
+    return np.column_stack([th, al, *rates])
+
+
+def _shooting(rig: Any, exp: RigExperiment, plant: dict[str, Any], daq: dict[str, Any], n: int | None) -> dict:
+    """Multiple-shooting replay: the logged command open loop in windows of SHOOTING_SECONDS, each started from
+    the measured state (:func:`measured_state`); the windows' outputs end to end."""
+    m = exp.u[:n].size
+    w = max(2, int(round(SHOOTING_SECONDS / exp.Ts)))
+    x0 = measured_state(exp)
+    parts = []
+    for s in range(0, m, w):
+        start = {"theta_start": x0[s, 0], "alpha_start": x0[s, 1], "theta_dot_start": x0[s, 2]}
+        start["alpha_dot_start"] = x0[s, 3]
+        parts.append(rig.run(exp.u[s : min(s + w, m)], exp.Ts, plant={**plant, **start}, daq=daq))
+    return {k: np.concatenate([p[k] for p in parts]) for k in ("theta_v", "alpha_v")}
 
 
 def residuals(

@@ -38,7 +38,7 @@ except ImportError:  # Windows
     fcntl = None
 
 BUILD_TAG = "flexjoint-harness-build-1"  # bump when the staging or compile recipe changes
-MODELS = ("flexjoint", "daq")
+MODELS = ("flexjoint", "daq", "controller")
 FMI_HEADERS = ("fmi2Functions.h", "fmi2FunctionTypes.h", "fmi2TypesPlatform.h")
 
 
@@ -275,5 +275,5 @@ def build_fmu(name: str, out_dir: Path | None = None, force: bool = False) -> Pa
 
 
 def build_all(out_dir: Path | None = None, force: bool = False) -> dict[str, Path]:
-    """Build the rig twin: ``{"flexjoint": Path, "daq": Path}``."""
+    """Build the rig twin: ``{"flexjoint": Path, "daq": Path, "controller": Path}``."""
     return {name: build_fmu(name, out_dir=out_dir, force=force) for name in MODELS}

@@ -2,8 +2,8 @@
 
 ``run_campaign(spec, out)`` writes ``out/data/<experiment>.parquet`` (columns ``t, u, theta_v, alpha_v`` and
 the true ``theta, alpha`` [deg]; a comb experiment adds ``tau_tip`` [N m] and ``comb_angle`` [deg, NaN between
-holds]) and ``out/manifest.json`` (resolved spec, its hash, FMU hashes, seeds, versions). The same spec gives
-the same bytes.
+holds]; a closed-loop experiment adds its reference ``ref`` [deg], and its ``u`` is the controller's command) and
+``out/manifest.json`` (resolved spec, its hash, FMU hashes, seeds, versions). The same spec gives the same bytes.
 """
 
 from __future__ import annotations
@@ -91,6 +91,10 @@ def _experiment_inputs(spec: Spec, exp: Experiment) -> tuple[np.ndarray, dict, d
 def simulate_experiment(rig: Any, spec: Spec, exp: Experiment) -> dict[str, np.ndarray]:
     """Run one experiment of a spec on a loaded :class:`harness.fmu.cosim.Rig`; returns the dataset columns."""
     u, plant, daq, tau, comb = _experiment_inputs(spec, exp)
+    if exp.loop == "closed":
+        ctrl = spec.controller.fmu_parameters(spec.sample_rate)  # type: ignore[union-attr]  # checked by the spec
+        res = rig.run_closed(np.radians(u), spec.Ts, ctrl, plant=plant, daq=daq)
+        return {k: res[k] for k in ("t", "u", "theta_v", "alpha_v", "theta", "alpha", "ref")}
     res = rig.run(u, spec.Ts, plant=plant, daq=daq, tau_tip=tau)
     cols = {k: res[k] for k in ("t", "u", "theta_v", "alpha_v", "theta", "alpha")}
     if tau is not None:
@@ -172,6 +176,8 @@ def run_campaign(
                 signal=e.signal,
                 n=int(round(e.duration * spec.sample_rate)),
                 seed=experiment_seed(spec, e),
+                loop="closed" if e.loop == "closed" else None,
+                controller=spec.controller.to_dict() if e.loop == "closed" and spec.controller else None,
             )
             for e in spec.all_experiments()
         ],

@@ -1,0 +1,189 @@
+/*
+ * controller: a lab's digital controller, sampled at sample_rate [Hz], the loop's u = f(ref, measured angles).
+ *
+ * A sample is taken at every instant t_k = k / sample_rate with t_k in [t, t + h) of fmi2DoStep(t, h), from the
+ * inputs set before that call; the outputs then hold it.  With the master's order (set ref and the DAQ's samples
+ * at t_k -> controller.doStep(t_k) -> read u -> DAQ command) u_k acts over [t_k, t_k+1): direct feedthrough, as a
+ * lab controller that computes and writes its command within the sample.
+ *
+ * Angles from the DAQ's volts (the controller's own calibration, as the lab's script has it):
+ *     theta = theta_gain (theta_v - theta_offset),  alpha = alpha_gain (alpha_v - alpha_offset)   [deg -> rad]
+ * Velocities by filtered differences, as lab controllers compute them:
+ *     v_k = a v_(k-1) + (1 - a) (x_k - x_(k-1)) / Ts,  a = exp(-2 pi cutoff Ts),  v_0 = 0
+ * kind 1, state feedback on x = (theta, alpha, theta_dot, alpha_dot), x_ref = (ref, 0, 0, 0):
+ *     u = k_theta (ref - theta) - k_alpha alpha - k_theta_dot theta_dot - k_alpha_dot alpha_dot
+ * kind 2, PID on theta (derivative on the measurement: a step of ref gives no kick):
+ *     u = kp e + ki I - kd theta_dot,  e = ref - theta,  I += Ts e after the sample unless u was limited
+ * then u = clamp(u, +-u_limit) (u_limit = 0: none).
+ * harness.rig.controller.law is the same computation in numpy (the test oracle).
+ */
+#include <math.h>
+#include <string.h>
+
+#include "fmi2common.h"
+
+#define DEG2RAD 0.017453292519943295
+#define TWO_PI 6.283185307179586
+
+void setStartValues(ModelInstance *comp) {
+    ModelData *d = &comp->data;
+    memset(d, 0, sizeof(*d));
+    REAL_PARAMETERS(SET_START)
+    INTEGER_PARAMETERS(SET_START)
+}
+
+bool validate(ModelInstance *comp, char *msg, size_t len) {
+    const ModelData *d = &comp->data;
+    const struct {
+        const char *name;
+        double value;
+    } reals[] = {REAL_PARAMETERS(NAME_VALUE)};
+    size_t i;
+    for (i = 0; i < sizeof(reals) / sizeof(reals[0]); i++)
+        CHECK(isfinite(reals[i].value), "invalid parameter %s = %g: must be finite", reals[i].name,
+              reals[i].value);
+    CHECK(d->kind == KIND_STATE_FEEDBACK || d->kind == KIND_PID,
+          "invalid parameter kind = %d: must be 1 (state feedback) or 2 (PID)", d->kind);
+    CHECK(d->sample_rate > 0, "invalid parameter sample_rate = %g: must be > 0", d->sample_rate);
+    CHECK(d->cutoff > 0, "invalid parameter cutoff = %g: must be > 0", d->cutoff);
+    CHECK(d->u_limit >= 0, "invalid parameter u_limit = %g: must be >= 0 (0 = none)", d->u_limit);
+    CHECK(d->theta_gain != 0, "invalid parameter theta_gain = %g: must be non-zero", d->theta_gain);
+    CHECK(d->alpha_gain != 0, "invalid parameter alpha_gain = %g: must be non-zero", d->alpha_gain);
+    return true;
+}
+
+/* the sample at the current inputs; commit = advance the controller's state to it */
+static void takeSample(ModelData *d, int commit) {
+    const double Ts = 1.0 / d->sample_rate;
+    const double a = exp(-TWO_PI * d->cutoff * Ts);
+    const double lim = d->u_limit > 0 ? d->u_limit : INFINITY;
+    const double th = d->theta_gain * (d->theta_v - d->theta_offset) * DEG2RAD;
+    const double al = d->alpha_gain * (d->alpha_v - d->alpha_offset) * DEG2RAD;
+    const double dth = d->have_last ? (th - d->last_theta) / Ts : 0.0;
+    const double dal = d->have_last ? (al - d->last_alpha) / Ts : 0.0;
+    const double vth = a * d->v_theta + (1.0 - a) * dth;
+    const double val = a * d->v_alpha + (1.0 - a) * dal;
+    double raw, u;
+    if (d->kind == KIND_STATE_FEEDBACK)
+        raw = d->k_theta * (d->ref - th) - d->k_alpha * al - d->k_theta_dot * vth - d->k_alpha_dot * val;
+    else
+        raw = d->kp * (d->ref - th) + d->ki * d->integral - d->kd * vth;
+    u = fmin(fmax(raw, -lim), lim);
+    d->u = u;
+    d->theta = th;
+    d->alpha = al;
+    d->theta_dot = vth;
+    d->alpha_dot = val;
+    if (!commit) return;
+    if (d->kind == KIND_PID && u == raw) d->integral += Ts * (d->ref - th); /* anti-windup: hold while limited */
+    d->last_theta = th;
+    d->last_alpha = al;
+    d->v_theta = vth;
+    d->v_alpha = val;
+    d->have_last = 1;
+}
+
+/* ------------------------------------------------------------ life cycle */
+
+fmi2Status initialize(ModelInstance *comp) {
+    ModelData *d = &comp->data;
+    d->have_last = 0;
+    d->v_theta = d->v_alpha = d->integral = 0.0;
+    d->next_sample = (int64_t)ceil(comp->startTime * d->sample_rate - 1e-6);
+    takeSample(d, 0); /* preview of the first sample */
+    return fmi2OK;
+}
+
+void releaseModel(ModelInstance *comp) { (void)comp; }
+
+fmi2Status doStep(ModelInstance *comp, double t, double h) {
+    ModelData *d = &comp->data;
+    const double fs = d->sample_rate;
+    const double kEnd = (t + h) * fs - 1e-6; /* sample instants strictly before t + h */
+    int64_t k;
+    if (h * fs > 1e7) {
+        logError(comp, "communication step %g s spans more than 1e7 samples", h);
+        return fmi2Error;
+    }
+    if (!isfinite(d->ref) || !isfinite(d->theta_v) || !isfinite(d->alpha_v)) {
+        logError(comp, "input ref, theta_v or alpha_v is not finite at t = %g s", t);
+        return fmi2Error;
+    }
+    k = (int64_t)ceil(t * fs - 1e-6);
+    if (k < d->next_sample) k = d->next_sample;
+    for (; (double)k < kEnd; k++) takeSample(d, 1);
+    if (k > d->next_sample) d->next_sample = k;
+    return fmi2OK;
+}
+
+void calculateValues(ModelInstance *comp) { (void)comp; /* outputs change only at samples */ }
+
+/* ------------------------------------------------------- get / set */
+
+static double *realParameter(ModelData *d, fmi2ValueReference vr, const char **pname) {
+    switch (vr) {
+        REAL_PARAMETERS(PARAMETER_CASE)
+    default: return NULL;
+    }
+}
+
+static int *intParameter(ModelData *d, fmi2ValueReference vr, const char **pname) {
+    switch (vr) {
+        INTEGER_PARAMETERS(PARAMETER_CASE)
+    default: return NULL;
+    }
+}
+
+fmi2Status getFloat64(ModelInstance *comp, fmi2ValueReference vr, double *value) {
+    ModelData *d = &comp->data;
+    const char *name;
+    double *p = realParameter(d, vr, &name);
+    if (p) {
+        *value = *p;
+        return fmi2OK;
+    }
+    switch (vr) {
+        INPUTS(GET_CASE)
+        OUTPUTS(GET_CASE)
+    default: return unknownReference(comp, "Real", vr);
+    }
+}
+
+fmi2Status setFloat64(ModelInstance *comp, fmi2ValueReference vr, double value) {
+    ModelData *d = &comp->data;
+    const char *name;
+    double *p = realParameter(d, vr, &name);
+    if (p) {
+        if (!parametersSettable(comp)) return fixedAfterInit(comp, name);
+        *p = value;
+        return fmi2OK;
+    }
+    switch (vr) {
+    case vr_ref: d->ref = value; return fmi2OK;
+    case vr_theta_v: d->theta_v = value; return fmi2OK;
+    case vr_alpha_v: d->alpha_v = value; return fmi2OK;
+    default:
+        if (vr >= vr_u && vr <= vr_alpha_dot) {
+            logError(comp, "output value reference %u cannot be set", (unsigned)vr);
+            return fmi2Error;
+        }
+        return unknownReference(comp, "Real", vr);
+    }
+}
+
+fmi2Status getInt32(ModelInstance *comp, fmi2ValueReference vr, int *value) {
+    const char *name;
+    int *p = intParameter(&comp->data, vr, &name);
+    if (!p) return unknownReference(comp, "Integer", vr);
+    *value = *p;
+    return fmi2OK;
+}
+
+fmi2Status setInt32(ModelInstance *comp, fmi2ValueReference vr, int value) {
+    const char *name;
+    int *p = intParameter(&comp->data, vr, &name);
+    if (!p) return unknownReference(comp, "Integer", vr);
+    if (!parametersSettable(comp)) return fixedAfterInit(comp, name);
+    *p = value;
+    return fmi2OK;
+}

@@ -1,0 +1,122 @@
+"""The closed loop's controller: its law, the controller FMU's parameters, and the law run on sampled data.
+
+Real rigs are run under feedback; the logged command is this law's output, computed every sample from the
+measured angles. Two kinds, as lab controllers are written:
+
+- ``state_feedback``: u = K (x_ref - x) on x = (theta, alpha, theta_dot, alpha_dot), x_ref = (ref, 0, 0, 0),
+  K = (k_theta, k_alpha, k_theta_dot, k_alpha_dot) [V/rad, V/rad, V s/rad, V s/rad];
+- ``pid``: u = kp e + ki I - kd theta_dot on e = ref - theta (derivative on the measurement, so a square
+  reference gives no kick), I the integral of e (forward Euler, held while the output is limited)
+  [V/rad, V/(rad s), V s/rad].
+
+Velocities are filtered differences, as lab controllers compute them: v_k = a v_{k-1} + (1 - a) (x_k - x_{k-1})
+/ Ts with a = exp(-2 pi cutoff Ts) and v_0 = 0 (a first-order low-pass at ``cutoff`` [Hz] on the backward
+difference). The output is clamped to +-``u_limit`` [V] (0: no limit). Angles enter in volts, as the DAQ reads
+them, and are converted with the controller's own calibration: theta [deg] = theta_gain (theta_v - theta_offset),
+alpha [deg] = alpha_gain (alpha_v - alpha_offset).
+
+:func:`law` is the same computation in numpy: the controller FMU's test oracle, and what identifies a controller
+from a record.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+__all__ = ["KINDS", "Controller", "filtered_rate", "law"]
+
+KINDS = {"state_feedback": 1, "pid": 2}  # kind name -> the FMU's Integer parameter ``kind``
+
+
+@dataclass(frozen=True)
+class Controller:
+    """A controller as a spec or a record names it. ``K`` (state feedback) or ``kp``/``ki``/``kd`` (PID) as in
+    the module docstring; ``cutoff`` [Hz] of the velocity filter; ``u_limit`` [V] (0: none); ``sample_rate``
+    [Hz] (None: the data's); ``source`` "spec", "given" or "identified" (then ``r2`` of the least-squares fit
+    of the logged command)."""
+
+    kind: str = "state_feedback"
+    K: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0, 0.0])
+    kp: float = 0.0
+    ki: float = 0.0
+    kd: float = 0.0
+    cutoff: float = 50.0
+    u_limit: float = 0.0
+    sample_rate: float | None = None
+    source: str = "spec"
+    r2: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.kind not in KINDS:
+            raise ValueError(f"controller kind {self.kind!r} unknown; valid: {', '.join(KINDS)}")
+        if len(self.K) != 4:
+            raise ValueError(f"controller K must have 4 gains (theta, alpha, theta_dot, alpha_dot), got {len(self.K)}")
+        vals = [*self.K, self.kp, self.ki, self.kd, self.cutoff, self.u_limit]
+        if not all(math.isfinite(float(v)) for v in vals):
+            raise ValueError("controller gains, cutoff and u_limit must be finite numbers")
+        if not self.cutoff > 0:
+            raise ValueError(f"controller cutoff must be > 0 Hz, got {self.cutoff}")
+        if self.u_limit < 0:
+            raise ValueError(f"controller u_limit must be >= 0 V (0: none), got {self.u_limit}")
+
+    def fmu_parameters(self, sample_rate: float) -> dict[str, Any]:
+        """Parameters of the controller FMU (fmus/controller) at ``sample_rate`` [Hz] unless the controller
+        has its own; the angle calibration (theta_gain ...) is the caller's to add."""
+        k = [float(v) for v in self.K]
+        return {
+            "kind": KINDS[self.kind],
+            "sample_rate": float(self.sample_rate or sample_rate),
+            "k_theta": k[0],
+            "k_alpha": k[1],
+            "k_theta_dot": k[2],
+            "k_alpha_dot": k[3],
+            "kp": float(self.kp),
+            "ki": float(self.ki),
+            "kd": float(self.kd),
+            "cutoff": float(self.cutoff),
+            "u_limit": float(self.u_limit),
+        }
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain content (for manifest.json and diagnosis.json), None fields left out."""
+        return {k: v for k, v in asdict(self).items() if v is not None}
+
+
+def filtered_rate(x: np.ndarray, Ts: float, cutoff: float) -> np.ndarray:
+    """Velocity of samples ``x`` at ``Ts`` [s] as a lab controller computes it: the backward difference through a
+    first-order low-pass at ``cutoff`` [Hz], v_0 = 0 (units of x per second)."""
+    x = np.asarray(x, dtype=float)
+    a = math.exp(-2.0 * math.pi * cutoff * Ts)
+    d = np.zeros_like(x)
+    d[1:] = np.diff(x) / Ts
+    v = np.empty_like(x)
+    acc = 0.0
+    for k in range(x.size):  # a scalar recursion: scipy.signal.lfilter would need its own initial conditions
+        acc = a * acc + (1.0 - a) * d[k]
+        v[k] = acc
+    return v
+
+
+def law(c: Controller, ref: np.ndarray, theta: np.ndarray, alpha: np.ndarray, Ts: float) -> np.ndarray:
+    """The command u [V] a controller computes at every sample from the reference and the measured angles, all in
+    rad at ``Ts`` [s] (the controller FMU's computation, in numpy)."""
+    ref, theta, alpha = (np.asarray(v, dtype=float) for v in (ref, theta, alpha))
+    th_dot = filtered_rate(theta, Ts, c.cutoff)
+    lim = c.u_limit if c.u_limit > 0 else math.inf
+    if c.kind == "state_feedback":
+        k = c.K
+        u = k[0] * (ref - theta) - k[1] * alpha - k[2] * th_dot - k[3] * filtered_rate(alpha, Ts, c.cutoff)
+        return np.clip(u, -lim, lim)
+    e = ref - theta
+    u = np.empty_like(e)
+    integral = 0.0
+    for i in range(e.size):
+        raw = c.kp * e[i] + c.ki * integral - c.kd * th_dot[i]
+        u[i] = min(max(raw, -lim), lim)
+        if u[i] == raw:  # integrate only while the output is not limited (anti-windup)
+            integral += Ts * e[i]
+    return u

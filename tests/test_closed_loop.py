@@ -1,0 +1,179 @@
+"""Closed loop end to end: the spec's [controller], a closed-loop campaign, and each replay of its records."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from harness import spec as specmod
+from harness.diagnosis.experiments import load_experiments
+from harness.diagnosis.simulation import Setup, fit_pct, residuals, sim_rig
+from harness.executor import fmu_bytes
+from harness.fmu.build import build_all
+from harness.fmu.cosim import Rig
+from harness.ident.calibration import LAB1_CALIBRATION, Calibration, alpha_deg, theta_deg
+from harness.rig.campaign import run_campaign
+from harness.rig.controller import Controller, law
+from harness.rundir import Manifest, RunDir, read_dataset
+
+
+def _quick(extra: list[str] | None = None) -> specmod.Spec:
+    """specs/closed_loop.toml with two 4 s experiments (same controller and rig)."""
+    raw = specmod.load("closed_loop").raw
+    raw = specmod.apply_overrides(raw, extra or [])
+    raw["experiment"] = [dict(e, duration=4.0) for e in raw["experiment"][:2]]
+    raw["calibration"] = []
+    return specmod.from_dict(raw, str(specmod.resolve_path("closed_loop")))
+
+
+def test_controller_table_is_parsed_and_checked():
+    s = specmod.load("closed_loop")
+    assert s.controller == Controller(K=[9.231, -18.769, 1.203, -0.041], cutoff=15.0, u_limit=10.0)
+    assert [e.loop for e in s.experiments] == ["closed"] * 4
+    assert specmod.load("closed_loop", ["controller.cutoff=40"]).controller.cutoff == 40.0
+    raw = specmod.load("closed_loop").raw
+    for bad, msg in [
+        ({"kind": "lqr"}, r"\[controller\]: controller kind 'lqr' unknown; valid: state_feedback, pid"),
+        ({"K": [1.0, 2.0]}, r"\[controller\]: controller K must have 4 gains"),
+        ({"gain": 1.0}, r"unknown key\(s\) gain in \[controller\]"),
+        ({"cutoff": -1.0}, r"cutoff must be > 0 Hz"),
+        ({"K": "big"}, r"\[controller\].K must be a list of 4 numbers"),
+    ]:
+        with pytest.raises(specmod.SpecError, match=msg):
+            specmod.from_dict({**raw, "controller": {**raw["controller"], **bad}})
+    no_ctrl = {k: v for k, v in raw.items() if k != "controller"}
+    with pytest.raises(specmod.SpecError, match=r"run closed loop but the spec has no \[controller\] table"):
+        specmod.from_dict(no_ctrl)
+    with pytest.raises(specmod.SpecError, match=r"loop 'half' unknown; valid: open, closed"):
+        specmod.from_dict({**raw, "experiment": [{**raw["experiment"][0], "loop": "half"}]})
+
+
+@pytest.fixture(scope="module")
+def closed_run(tmp_path_factory):
+    """A closed-loop campaign of the lab rig (two 4 s square references at 500 Hz)."""
+    out = tmp_path_factory.mktemp("closed")
+    run_campaign(_quick(), out, workers=1)
+    return out
+
+
+def test_closed_loop_campaign_logs_the_controllers_command(closed_run, tmp_path):
+    m = Manifest.load(closed_run)
+    e = m.experiments[0]
+    assert e.loop == "closed" and e.controller["K"] == [9.231, -18.769, 1.203, -0.041]
+    df = read_dataset(RunDir(closed_run).dataset(e.name))
+    assert {"ref", "u", "theta_v", "alpha_v", "theta", "alpha"} <= set(df.columns)
+    ref = df["ref"].to_numpy()
+    assert set(np.unique(np.round(ref, 9))) == {-30.0, 30.0}
+    # the logged command is the law of the logged (measured) angles: nothing else drives the rig
+    cal = Calibration(Kp=LAB1_CALIBRATION["Kp"], Ke=LAB1_CALIBRATION["Ke"])
+    th = np.radians(theta_deg(df["theta_v"].to_numpy(), cal, unwrap=False))
+    al = np.radians(alpha_deg(df["alpha_v"].to_numpy(), cal))
+    u = law(Controller(**e.controller), np.radians(ref), th, al, 1 / 500.0)
+    assert np.max(np.abs(u - df["u"].to_numpy())) < 1e-9
+    # it tracks: within 3 deg of the reference 1.5 s after each step
+    theta = df["theta"].to_numpy()
+    t = df["t"].to_numpy()
+    settled = (t % 2.0) > 1.5
+    assert np.max(np.abs(theta[settled] - ref[settled])) < 3.0
+    # same spec, same bytes
+    run_campaign(_quick(), tmp_path, workers=1)
+    assert RunDir(tmp_path).dataset(e.name).read_bytes() == RunDir(closed_run).dataset(e.name).read_bytes()
+
+
+def test_each_replay_of_a_closed_loop_record(closed_run):
+    """On a closed-loop record of the lab rig against the same rig (noise off in the simulation): the closed-loop
+    replay reproduces it to the noise; multiple shooting stays close; the open-loop replay of the controller's
+    command drifts."""
+    sim = _quick()
+    plant, daq = sim_rig(sim)
+    cal = Calibration(Kp=LAB1_CALIBRATION["Kp"], Ke=LAB1_CALIBRATION["Ke"])
+    fits = {}
+    fmus = build_all()
+    with Rig(fmus["flexjoint"], fmus["daq"], fmus["controller"]) as rig:
+        for replay in ("closed", "shooting", "open"):
+            exps = load_experiments(closed_run, cal, sim, 10.0, replay=replay)
+            setup = Setup(plant, daq, None, exps, {k: fmu_bytes(v) for k, v in fmus.items()})
+            q = []
+            for x in exps.values():
+                r = residuals(rig, setup, x, {})
+                q += [float(np.sum(r[c] ** 2)) / x.sst[c] for c in ("theta", "alpha")]
+                assert x.replay == replay
+            fits[replay] = fit_pct(float(np.mean(q)))
+    assert fits["closed"] > 97.0, fits
+    assert fits["shooting"] > 90.0, fits
+    assert fits["closed"] > fits["shooting"] > fits["open"], fits
+    assert math.isfinite(fits["open"])
+
+
+def test_controller_fmu_is_valid_and_equals_the_law():
+    """The controller FMU alone, driven by recorded-looking samples: its command equals harness.rig.controller.law
+    (the same equations in numpy) for both kinds, through the output limit and the PID's anti-windup."""
+    from fmpy.validation import validate_fmu
+
+    from harness.fmu.binding import load
+
+    fmu = build_all()["controller"]
+    assert validate_fmu(str(fmu)) == []
+    Ts, n = 1e-3, 3000
+    t = np.arange(n) * Ts
+    rng = np.random.default_rng(7)
+    ref = np.radians(np.where(t % 1.0 < 0.5, 25.0, -25.0))
+    theta = np.radians(20.0 * np.sin(2 * np.pi * 1.3 * t)) + 1e-3 * rng.standard_normal(n)
+    alpha = np.radians(3.0 * np.sin(2 * np.pi * 11.0 * t)) + 1e-4 * rng.standard_normal(n)
+    kp, ka = 35.5145, -3.3636
+    theta_v, alpha_v = np.degrees(theta) / kp + 0.01, np.degrees(alpha) / ka - 0.02
+    cases = [
+        Controller(K=[9.231, -18.769, 1.203, -0.041], cutoff=15.0, u_limit=4.0),
+        Controller(kind="pid", kp=12.0, ki=40.0, kd=0.8, cutoff=30.0, u_limit=3.0),
+    ]
+    inst = load(fmu, "controller")
+    try:
+        for c in cases:
+            p = c.fmu_parameters(1 / Ts) | {"theta_offset": 0.01, "alpha_offset": -0.02}
+            inst.initialize(p, n * Ts)
+            inst.exit_initialization()
+            u = np.empty(n)
+            for k in range(n):
+                inst.slave.setReal(
+                    [inst.vr("ref"), inst.vr("theta_v"), inst.vr("alpha_v")], [ref[k], theta_v[k], alpha_v[k]]
+                )
+                inst.slave.doStep(k * Ts, Ts)
+                u[k] = inst.get(["u"])["u"]
+            th = np.radians(kp * (theta_v - 0.01))
+            al = np.radians(ka * (alpha_v + 0.02))
+            want = law(c, ref, th, al, Ts)
+            assert np.max(np.abs(u - want)) < 1e-9, c.kind
+            assert 0 < np.mean(np.abs(want) == c.u_limit) < 0.9  # the limit acts, and lets go
+        with pytest.raises(Exception, match="invalid parameter cutoff = -1: must be > 0"):
+            inst.initialize({"cutoff": -1.0}, 1.0)
+            inst.exit_initialization()
+    finally:
+        inst.free()
+
+
+def test_encoder_daq_reads_whole_counts_without_wrap_or_dead_band():
+    """theta_sensor = 1: the DAQ reads theta in whole counts of 360/encoder_counts, on the pot's scale, through a
+    full turn (where a pot wraps and sits in its dead band) and without noise or ADC."""
+    fmus = build_all()
+    Ts = 2e-3
+    u = np.r_[np.full(1500, 6.0), np.zeros(500)]
+    daq = {"theta_sensor": 1, "encoder_counts": 1024.0, "noise_theta": 0.01, "adc_bits": 12}
+    with Rig(fmus["flexjoint"], fmus["daq"]) as rig:
+        r = rig.run(u, Ts, daq=daq)
+        pot = rig.run(u, Ts)
+    counted = r["theta_v"] * 35.5145
+    assert np.max(np.abs(counted - np.round(r["theta"] / (360 / 1024)) * (360 / 1024))) < 1e-9
+    assert r["theta"][-1] > 400.0 and counted[-1] > 400.0  # more than a turn: no wrap
+    assert np.max(np.abs(pot["theta_v"] * 35.5145)) < 180.0  # the pot wraps
+
+
+def test_a_destabilising_controller_is_one_line(tmp_path):
+    flipped = _quick(["controller.K=[9.231, 18.769, 1.203, -0.041]"])  # k_alpha of the wrong sign
+    with pytest.raises(
+        ValueError, match=r"^closed loop diverged at t = \d+\.\d+ s .*: the controller destabilises"
+    ) as e:
+        run_campaign(flipped, tmp_path / "run", workers=1)
+    assert "\n" not in str(e.value)
+    assert not (tmp_path / "run" / "manifest.json").exists()
