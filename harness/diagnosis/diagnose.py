@@ -99,7 +99,8 @@ def diagnose_run(
     adc_range = fmu_value(daq, "daq", "adc_range")
     experiments = load_experiments(real, cal, sim_spec, adc_range)
     fmus = fmus or build_all()
-    setup = Setup(plant, daq, cal.comb_angles, experiments, {k: fmu_bytes(fmus[k]) for k in ("flexjoint", "daq")})
+    shipped = {k: fmu_bytes(fmus[k]) for k in ("flexjoint", "daq", "controller") if k in fmus}
+    setup = Setup(plant, daq, cal.comb_angles, experiments, shipped)
     folds = split_folds(experiments)
     noise, e_noise = noise_floor(experiments, adc_range, cal)
     top = max(x.peak_command_v for x in experiments.values())
