@@ -35,23 +35,27 @@ closes 0-26 %.
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
+
 from .. import spec as specmod
-from ..executor import fmu_bytes
+from ..executor import fmu_bytes, worker_rig
 from ..fmu.build import build_all
 from ..ident.calibration import load_calibration
 from ..rundir import RunDir, write_json
 from . import recalibrate as recal
 from .effects import CandidateContext, candidates
 from .experiments import load_experiments, masked_share, split_folds
-from .noise import noise_floor
-from .result import Diagnosis, Folds, SensorCalibration, Thresholds
+from .noise import noise_floor, noise_mean_squared_gap
+from .result import Diagnosis, Folds, NoiseFloor, SensorCalibration, Thresholds
 from .search import EXPLAINED, GAP_RESOLUTION, MIN_CLOSURE, NONE_RATIO, search
-from .simulation import Setup, fmu_value, sim_rig
+from .simulation import Setup, fit_pct, fmu_value, loop_noise_gap, sim_rig
 from .tasks import Pool
 from .where import where_gap
 
@@ -70,6 +74,24 @@ THRESHOLDS = Thresholds(
     "names the effect whose removal reopens most of the gap when the effects together close >= explained "
     "of the excess left after recalibration, else unexplained",
 )
+
+
+def _with_loop_noise(setup: Setup, noise: NoiseFloor, e_noise: float) -> tuple[NoiseFloor, float]:
+    """The noise floor with, for experiments replayed in closed loop, the noise the real controller fed back
+    (:func:`harness.diagnosis.simulation.loop_noise_gap`) in place of the measurement noise alone."""
+    rms = {"theta": noise.theta_deg, "alpha": noise.alpha_deg}
+    loop = (
+        loop_noise_gap(worker_rig(setup.fmus), setup, rms)
+        if any(x.replay == "closed" for x in setup.experiments.values())
+        else {}
+    )
+    if not loop:
+        return noise, e_noise
+    names = list(setup.experiments)
+    per = [loop.get(n, noise_mean_squared_gap(setup.experiments, rms, [n])) for n in names]
+    e = max(e_noise, float(np.mean(per)))
+    method = noise.method + "; closed-loop replays: with the noise their controller fed back, by simulation"
+    return replace(noise, gap=math.sqrt(e), fit_pct=fit_pct(e), method=method), e
 
 
 def diagnose_run(
@@ -103,6 +125,7 @@ def diagnose_run(
     setup = Setup(plant, daq, cal.comb_angles, experiments, shipped)
     folds = split_folds(experiments)
     noise, e_noise = noise_floor(experiments, adc_range, cal)
+    noise, e_noise = _with_loop_noise(setup, noise, e_noise)
     top = max(x.peak_command_v for x in experiments.values())
     cands = candidates(CandidateContext(plant, daq, top, noise.adc_lattice_bits))
     pool = Pool(setup, workers, scheduler, progress)

@@ -4,7 +4,8 @@ Every experiment is re-simulated on the sim spec's rig (plant and DAQ FMUs, the 
 its per-experiment overrides, measurement noise off, DAQ sample rate 1/Ts of the data) as it was run
 (:attr:`RigExperiment.replay`): an open-loop experiment with the real command ``u`` from the data; a closed-loop
 record from its reference through the controller FMU (reference -> controller -> DAQ -> plant -> DAQ ->
-controller), started at the measured shaft angle; a closed-loop record whose controller is not known by multiple
+controller), started at the measured shaft angle (trial parameters whose loop diverges hold its last sample: a
+large gap, not an error); a closed-loop record whose controller is not known by multiple
 shooting: the real command replayed open loop in windows of SHOOTING_SECONDS, each started again from the measured
 state (theta, alpha and their rates, smoothed), so that the drift an open-loop replay of a feedback-controlled
 command integrates cannot dominate the gap.
@@ -46,6 +47,7 @@ __all__ = [
     "fit_pct",
     "fmu_value",
     "gap_summary",
+    "loop_noise_gap",
     "mean_squared_gap",
     "measured_state",
     "residuals",
@@ -57,6 +59,7 @@ __all__ = [
 SSE = dict[str, dict[str, float]]  # experiment -> channel -> sum of squared residuals [deg^2]
 MODELS = {"plant": "flexjoint", "daq": "daq"}  # the FMU behind each rig table
 SMOOTH_SECONDS = 0.02  # s: window of the smoothed rates that start a multiple-shooting window
+LOOP_NOISE_SEEDS = (1, 2)  # noise seeds of the simulated closed loops that measure the noise fed back
 
 
 def fmu_value(table: Mapping[str, Any], model: str, name: str) -> float:
@@ -118,7 +121,8 @@ def simulate(
     plant.setdefault("theta_start", math.radians(float(exp.theta[0])))
     if exp.replay == "closed":
         ctrl = Controller(**exp.controller).fmu_parameters(1.0 / exp.Ts)  # type: ignore[arg-type]
-        res = rig.run_closed(np.radians(exp.ref[:n]), exp.Ts, ctrl, plant=plant, daq=daq)  # type: ignore[index]
+        ref = np.radians(exp.ref[:n])  # type: ignore[index]
+        res = rig.run_closed(ref, exp.Ts, ctrl, plant=plant, daq=daq, diverged="hold")
     elif exp.replay == "shooting":
         res = _shooting(rig, exp, plant, daq, n)
     else:
@@ -208,3 +212,30 @@ def gap_summary(sse: SSE, experiments: dict[str, RigExperiment], names: list[str
         rms_deg={c: math.sqrt(sum(sse[n][c] for n in names) / n_tot) for c in CHANNELS},
         experiments=per,
     )
+
+
+def loop_noise_gap(rig: Any, setup: Setup, sigma_deg: Mapping[str, float]) -> dict[str, float]:
+    """The mean squared gap that measurement noise alone leaves on each closed-loop replay: the controller of the real
+    rig acted on noisy samples, so its command, and the motion, carry noise fed back through the loop, which a
+    noise-free closed-loop replay cannot reproduce. Measured on the sim rig as given: the replay with the DAQ's
+    noise set to ``sigma_deg`` (the data's noise RMS [deg] per channel, through the sim DAQ's gains) against the
+    noise-free replay, averaged over LOOP_NOISE_SEEDS; normalised as :func:`mean_squared_gap`. {experiment: E}
+    for the experiments replayed in closed loop (the direct measurement noise is part of it)."""
+    daq = setup.daq
+    volts = {
+        "daq.noise_theta": sigma_deg["theta"] / abs(fmu_value(daq, "daq", "pot_gain")),
+        "daq.noise_alpha": sigma_deg["alpha"] / abs(fmu_value(daq, "daq", "gauge_gain")),
+    }
+    out = {}
+    for name, x in setup.experiments.items():
+        if x.replay != "closed":
+            continue
+        th0, al0, on0 = simulate(rig, setup, x, {})
+        qs = []
+        for seed in LOOP_NOISE_SEEDS:
+            th, al, on = simulate(rig, setup, x, {**volts, "daq.seed": seed})
+            ok = on & on0 & x.valid["theta"][: th.size]
+            sse = {"theta": float(np.sum((th - th0)[ok] ** 2)), "alpha": float(np.sum((al - al0) ** 2))}
+            qs += [sse[c] / x.sst[c] for c in CHANNELS if x.sst[c] > 0]
+        out[name] = float(np.mean(qs)) if qs else 0.0
+    return out

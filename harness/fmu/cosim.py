@@ -154,15 +154,18 @@ class Rig:
         controller: dict[str, Any],
         plant: dict[str, Any] | None = None,
         daq: dict[str, Any] | None = None,
+        diverged: str = "raise",
     ) -> dict[str, np.ndarray]:
         """Run one closed-loop experiment: the shaft angle tracks ``ref`` [rad per sample at ``Ts`` s] under the
         controller FMU with parameters ``controller`` (:meth:`harness.rig.controller.Controller.fmu_parameters`; its
         angle calibration theta_gain/theta_offset/alpha_gain/alpha_offset defaults to the DAQ's pot and gauge
         parameters, the lab's own calibration of its rig).
 
-        Returns the keys of :meth:`run` (``u`` the controller's command [V]) plus ``ref`` [deg]. Raises
-        :class:`ClosedLoopError` (one line) when the loop diverges: the link deflects more than DIVERGED_ALPHA_DEG or
-        the shaft strays more than half a turn from the reference.
+        Returns the keys of :meth:`run` (``u`` the controller's command [V]) plus ``ref`` [deg]. When the loop
+        diverges (the link deflects more than DIVERGED_ALPHA_DEG or the shaft strays more than half a turn from the
+        reference) ``diverged="raise"`` raises :class:`ClosedLoopError` (one line); ``"hold"`` stops there and holds
+        the last sample to the end (a fit's trial parameters that destabilise the loop: a large gap, not an error),
+        and the result's ``diverged_at`` is that sample's index (-1 when the loop held).
         """
         if self.controller is None:
             raise ValueError("this rig was loaded without the controller FMU: Rig(plant, daq, controller)")
@@ -214,10 +217,15 @@ class Rig:
         out = np.empty((n, 7))
         h = ctypes.c_double(Ts)
         lim_alpha, lim_theta = DIVERGED_ALPHA_DEG / DEG, np.pi
+        stopped = -1
         for k in range(n):
             t = ctypes.c_double(k * Ts)
             fp.fmi2GetReal(cp, p_out, 4, pout)
             if abs(pout[1]) > lim_alpha or abs(pout[0] - ref[k]) > lim_theta:
+                if diverged == "hold" and k > 0:
+                    out[k:] = out[k - 1]
+                    stopped = k
+                    break
                 raise ClosedLoopError(
                     f"closed loop diverged at t = {k * Ts:.3f} s (theta {pout[0] * DEG:.1f} deg, reference "
                     f"{ref[k] * DEG:.1f} deg, alpha {pout[1] * DEG:.1f} deg): the controller destabilises the rig"
@@ -253,4 +261,5 @@ class Rig:
             "alpha": out[:, 5] * DEG,
             "theta_dot": out[:, 6] * DEG,
             "ref": ref * DEG,
+            "diverged_at": np.array(stopped),
         }
