@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
 
@@ -82,29 +80,39 @@ def test_closed_loop_campaign_logs_the_controllers_command(closed_run, tmp_path)
     assert RunDir(tmp_path).dataset(e.name).read_bytes() == RunDir(closed_run).dataset(e.name).read_bytes()
 
 
-def test_each_replay_of_a_closed_loop_record(closed_run):
-    """On a closed-loop record of the lab rig against the same rig (noise off in the simulation): the closed-loop
-    replay reproduces it to the noise; multiple shooting stays close; the open-loop replay of the controller's
-    command drifts."""
-    sim = _quick()
+def _replay_fits(run, sim: specmod.Spec) -> dict[str, dict[str, float]]:
+    """Fit % per replay kind and channel of every experiment of ``run`` re-simulated on ``sim`` (noise off)."""
     plant, daq = sim_rig(sim)
     cal = Calibration(Kp=LAB1_CALIBRATION["Kp"], Ke=LAB1_CALIBRATION["Ke"])
     fits = {}
     fmus = build_all()
     with Rig(fmus["flexjoint"], fmus["daq"], fmus["controller"]) as rig:
         for replay in ("closed", "shooting", "open"):
-            exps = load_experiments(closed_run, cal, sim, 10.0, replay=replay)
+            exps = load_experiments(run, cal, sim, 10.0, replay=replay)
             setup = Setup(plant, daq, None, exps, {k: fmu_bytes(v) for k, v in fmus.items()})
-            q = []
+            q: dict[str, list[float]] = {"theta": [], "alpha": []}
             for x in exps.values():
-                r = residuals(rig, setup, x, {})
-                q += [float(np.sum(r[c] ** 2)) / x.sst[c] for c in ("theta", "alpha")]
                 assert x.replay == replay
-            fits[replay] = fit_pct(float(np.mean(q)))
-    assert fits["closed"] > 97.0, fits
-    assert fits["shooting"] > 90.0, fits
-    assert fits["closed"] > fits["shooting"] > fits["open"], fits
-    assert math.isfinite(fits["open"])
+                r = residuals(rig, setup, x, {})
+                for c in q:
+                    q[c].append(float(np.sum(r[c] ** 2)) / x.sst[c])
+            fits[replay] = {c: fit_pct(float(np.mean(v))) for c, v in q.items()}
+    return fits
+
+
+def test_each_replay_of_a_closed_loop_record(closed_run):
+    """A closed-loop record of the lab rig (friction, second mode, delay) replayed three ways. On the rig itself the
+    open-loop replay of the logged command has nothing to drift from (99 %), and the closed-loop replay misses only
+    the noise the controller fed back. On the linear textbook rig (the usual simulation) the open-loop replay
+    drifts (theta 40 %); the closed loop holds theta (92 %); multiple shooting restarts the drift every second but
+    starts each window without the second mode's and the friction's state (42 %)."""
+    same = _replay_fits(closed_run, _quick())
+    assert same["open"]["theta"] > 99.0 and same["open"]["alpha"] > 99.0, same
+    assert same["closed"]["theta"] > 98.0 and same["closed"]["alpha"] > 94.0, same
+    linear = _replay_fits(closed_run, _quick(["plant.coulomb_torque=0", "plant.n_modes=1", "daq.delay_samples=0"]))
+    assert linear["closed"]["theta"] > 90.0 > 50.0 > linear["open"]["theta"], linear
+    assert linear["shooting"]["theta"] > linear["open"]["theta"], linear
+    assert linear["closed"]["alpha"] > linear["open"]["alpha"], linear
 
 
 def test_controller_fmu_is_valid_and_equals_the_law():

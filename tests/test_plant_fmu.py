@@ -339,3 +339,95 @@ def test_linear_fast_path_equals_the_generic_rk4_path(fmu_runner):
     slow = fmu_runner["flexjoint"].run({"n_modes": 2, "coulomb_torque": 1e-15}, {"u": u, "tau_tip": tau}, outs, dt, n)
     for k in outs:
         np.testing.assert_allclose(slow[k], fast[k], rtol=0, atol=1e-7 * np.abs(fast[k]).max())
+
+
+# ---------------------------------------------------------------- tip mass and initial state
+
+
+def test_tip_mass_frequency_is_the_exact_cantilever_with_tip_mass():
+    """The assumed modes with a tip mass against the exact first root of a clamped-free beam with a tip mass mu
+    m_link: 1 + cos(x) cosh(x) + mu x (cos(x) sinh(x) - sin(x) cosh(x)) = 0 (Ritz: from above, converging)."""
+    from scipy.optimize import brentq
+
+    from harness.fmu.plant import ks_for_first_mode
+
+    f_bare = mode_frequencies(PlantParams(n_modes=1))[1, 0]
+    for mu, tol in [(0.5, 1.5e-3), (1.0, 2e-3), (2.0, 2.5e-3)]:
+
+        def char(x: float, mu: float = mu) -> float:
+            return 1 + math.cos(x) * math.cosh(x) + mu * x * (math.cos(x) * math.sinh(x) - math.sin(x) * math.cosh(x))
+
+        exact = f_bare * (brentq(char, 0.3, BETA[0]) / BETA[0]) ** 2
+        f = [mode_frequencies(PlantParams(n_modes=n, m_tip=mu * 0.065))[1, 0] for n in (1, 2, 3)]
+        assert f[0] > f[1] > f[2] > exact  # Ritz bounds from above
+        assert f[1] == pytest.approx(exact, rel=tol)  # two modes (the FMU's usual) within 0.25 %
+    p = PlantParams(m_tip=0.05, L_link=0.45, m_link=0.06, n_modes=2)
+    ks = ks_for_first_mode(p, 2.5)
+    assert mode_frequencies(PlantParams(m_tip=0.05, L_link=0.45, m_link=0.06, n_modes=2, Ks=ks))[1, 0] == (
+        pytest.approx(2.5, rel=1e-9)
+    )
+    with pytest.raises(ValueError, match="first mode must be a frequency > 0 Hz"):
+        ks_for_first_mode(p, 0.0)
+
+
+def test_tip_mass_fmu_matches_state_space_and_zero_changes_nothing(fmu_runner):
+    dt, n = 0.01, 300
+    t = np.arange(n) * dt
+    u = 1.5 * np.sin(2 * np.pi * 0.7 * t) + np.sign(np.sin(2 * np.pi * 0.4 * t))
+    tau = np.zeros(n)
+    params = {"n_modes": 2, "internal_step": 2.5e-4, "m_tip": 0.04}
+    res = fmu_runner["flexjoint"].run(params, {"u": u, "tau_tip": tau}, OUTPUTS, dt, n)
+    got = np.column_stack([res[k] for k in OUTPUTS])
+    ref = zoh_reference(PlantParams(**params), u, tau, dt)
+    assert np.abs(got - ref).max() < 1e-6
+    # the clamped link rings at the oracle's tip-mass frequencies
+    pulse = np.zeros(2000)
+    pulse[:5] = 0.01
+    res = fmu_runner["flexjoint"].run(
+        {**params, "hub_locked": 1}, {"tau_tip": pulse}, ["alpha", "alpha_gauge"], 1e-3, 2000
+    )
+    s = prony_poles([res["alpha"][10:], res["alpha_gauge"][10:]], 4, 1e-3)
+    fc = np.sort(np.abs(s[s.imag > 0])) / (2 * np.pi)
+    np.testing.assert_allclose(fc, mode_frequencies(PlantParams(**params))[1], rtol=0.01)
+    # m_tip = 0 is the model without it, to the bit
+    a = fmu_runner["flexjoint"].run({"n_modes": 2}, {"u": u}, OUTPUTS, dt, n)
+    b = fmu_runner["flexjoint"].run({"n_modes": 2, "m_tip": 0.0}, {"u": u}, OUTPUTS, dt, n)
+    assert all(np.array_equal(a[k], b[k]) for k in OUTPUTS)
+
+
+@pytest.mark.parametrize("effects", [{}, {"backlash": 0.004}, {"coulomb_torque": 0.02}])
+def test_initial_state_parameters(fmu_runner, effects):
+    """theta_start, alpha_start (mode 1), theta_dot_start, alpha_dot_start are the outputs at t = 0, and the linear
+    rig then follows the state-space solution from that state."""
+    start = {"theta_start": 0.3, "alpha_start": 0.02, "theta_dot_start": -1.5, "alpha_dot_start": 0.4}
+    dt, n = 0.005, 200
+    u = np.full(n, 0.5)
+    res = fmu_runner["flexjoint"].run({"n_modes": 2, **start, **effects}, {"u": u}, OUTPUTS, dt, n)
+    init = res["init"]
+    assert (init["theta"], init["alpha"], init["theta_dot"], init["alpha_dot"]) == pytest.approx(
+        (0.3, 0.02, -1.5, 0.4), abs=1e-15
+    )
+    if effects:
+        return
+    p = PlantParams(n_modes=2)
+    A, B, C, _ = state_space(p)
+    x = np.zeros(A.shape[0])
+    x[0], x[1], x[3], x[4] = 0.3, 0.02, -1.5, 0.4
+    sol = solve_ivp(
+        lambda t, z: A @ z + B[:, 0] * 0.5,
+        (0, n * dt),
+        x,
+        t_eval=(np.arange(n) + 1) * dt,
+        rtol=1e-10,
+        atol=1e-13,
+        method="DOP853",
+    )
+    np.testing.assert_allclose(res["theta"], (C @ sol.y)[0], atol=1e-6)
+    np.testing.assert_allclose(res["alpha"], (C @ sol.y)[1], atol=1e-6)
+
+
+def test_negative_tip_mass_is_refused(fmu_runner):
+    with pytest.raises(FMICallException):
+        fmu_runner["flexjoint"].run({"m_tip": -1.0}, {"u": 0.0}, ["theta"], 0.01, 2)
+    with pytest.raises(ValueError, match="invalid parameter m_tip = -1.0: must be >= 0"):
+        PlantParams(m_tip=-1.0).validate()

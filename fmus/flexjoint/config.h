@@ -33,7 +33,11 @@
     X(Jm_share, 16, 0.5)         \
     X(amp_limit, 17, 0.0)        \
     X(internal_step, 18, 1e-3)   \
-    X(theta_start, 19, 0.0)
+    X(theta_start, 19, 0.0)      \
+    X(m_tip, 21, 0.0)            \
+    X(alpha_start, 22, 0.0)      \
+    X(theta_dot_start, 23, 0.0)  \
+    X(alpha_dot_start, 24, 0.0)
 #define INTEGER_PARAMETERS(X)    \
     X(n_modes, 12, 1)            \
     X(hub_locked, 20, 0)
@@ -74,6 +78,8 @@ typedef struct {
     double c_g;                     /* static gauge calibration factor */
     double Minv_r[MAX_DOF][MAX_DOF]; /* inverse mass matrix, rigid gear (Jeq on the hub) */
     double Minv_f[MAX_DOF][MAX_DOF]; /* inverse mass matrix, hub side only (gear in the play) */
+    double Mc_inv[MAX_DOF][MAX_DOF]; /* inverse modal mass of the clamped link (hub at rest), index 1..n */
+    double M0[MAX_DOF];             /* hub row of the mass matrix: hub-mode coupling [kg.m2], index 1..n */
     double h_max;                   /* largest internal step [s]: internal_step, limited for RK4 stability */
     double Fs;                      /* static friction torque [N.m] */
 

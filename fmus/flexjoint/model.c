@@ -8,6 +8,8 @@
  *   Jl = m L^2 / 3,  J_i = m L^2 / 4,  b_i = (-1)^(i+1) m L^2 / (beta_i L)^2,
  *   k_i = J_i w_i^2,  w_i = w_1 (beta_i / beta_1)^2,  w_1 = sqrt(Ks / Jl),  c_i = 2 zeta J_i w_i.
  *   M = [[Jeq + Jl, b^T], [b, diag(J_i)]],  K = diag(0, k_i).
+ * A tip mass m_tip at x = L moves with L (theta_dot + sum a_i'): it adds m_tip L^2 to every entry of M (and
+ * nothing to K); then the modes couple through it and M is inverted in full (m_tip = 0 keeps the arrow form).
  * The tip torque tau_tip enters theta and every a_i with unit generalised force.
  * Strain gauge: root curvature phi_i''(0) = 2 (-1)^(i+1) beta_i^2, so per unit a_i mode i reads
  * g_i = (-1)^(i+1) (beta_i / beta_1)^2 times mode 1 (mode 2: -6.27); c_g scales the reading so that a
@@ -93,6 +95,7 @@ bool validate(ModelInstance *comp, char *msg, size_t len) {
     CHECK(d->internal_step > 0, "invalid parameter internal_step = %g: must be > 0", d->internal_step);
     CHECK(d->hub_locked == 0 || d->hub_locked == 1, "invalid parameter hub_locked = %d: must be 0 or 1",
           d->hub_locked);
+    CHECK(d->m_tip >= 0, "invalid parameter m_tip = %g: tip mass must be >= 0", d->m_tip);
     return true;
 }
 
@@ -108,6 +111,43 @@ static void arrowInverse(double a, const double *b, double J, int N, double Minv
         Minv[0][i] = Minv[i][0] = -b[i] / (J * s);
         for (j = 1; j < N; j++) Minv[i][j] = (i == j ? 1.0 / J : 0.0) + b[i] * b[j] / (J * J * s);
     }
+}
+
+/* inverse of the symmetric positive definite n x n matrix A (rows/columns off..off+n-1 of MAX_DOF arrays) by
+   Gauss-Jordan elimination; n <= MAX_DOF */
+static void fullInverse(double A[MAX_DOF][MAX_DOF], int off, int n, double Minv[MAX_DOF][MAX_DOF]) {
+    double T[MAX_DOF][2 * MAX_DOF];
+    int i, j, r;
+    for (i = 0; i < n; i++)
+        for (j = 0; j < n; j++) {
+            T[i][j] = A[off + i][off + j];
+            T[i][n + j] = (i == j) ? 1.0 : 0.0;
+        }
+    for (r = 0; r < n; r++) { /* no pivoting needed: A is positive definite */
+        const double p = T[r][r];
+        for (j = 0; j < 2 * n; j++) T[r][j] /= p;
+        for (i = 0; i < n; i++) {
+            const double f = T[i][r];
+            if (i == r || f == 0.0) continue;
+            for (j = 0; j < 2 * n; j++) T[i][j] -= f * T[r][j];
+        }
+    }
+    for (i = 0; i < n; i++)
+        for (j = 0; j < n; j++) Minv[off + i][off + j] = T[i][n + j];
+}
+
+/* the mass matrix [[a, b^T + mt], [b + mt, J I + mt]] with mt = m_tip L^2 on every entry, inverted into Minv */
+static void massInverse(const ModelData *d, double a, double Minv[MAX_DOF][MAX_DOF]) {
+    double M[MAX_DOF][MAX_DOF];
+    const double mt = d->m_tip * d->L_link * d->L_link;
+    int i, j;
+    if (mt == 0.0) {
+        arrowInverse(a, d->b, d->Jmode, d->N, Minv);
+        return;
+    }
+    for (i = 0; i < d->N; i++)
+        for (j = 0; j < d->N; j++) M[i][j] = mt + (i == 0 ? (j == 0 ? a : d->b[j]) : (j == 0 ? d->b[i] : (i == j ? d->Jmode : 0.0)));
+    fullInverse(M, 0, d->N, Minv);
 }
 
 static double infNorm(const double *A, int n) {
@@ -192,8 +232,18 @@ fmi2Status initialize(ModelInstance *comp) {
     d->Bm = d->Jm_share * d->Beq;
     d->Bh = d->Beq - d->Bm;
     d->Fs = d->stiction_ratio * d->coulomb_torque;
-    arrowInverse(d->Jeq + Jl, d->b, d->Jmode, d->N, d->Minv_r);
-    arrowInverse(d->Jh + Jl, d->b, d->Jmode, d->N, d->Minv_f);
+    massInverse(d, d->Jeq + Jl, d->Minv_r);
+    massInverse(d, d->Jh + Jl, d->Minv_f);
+    {   /* the clamped link (hub at rest): modal mass J I + mt and the hub row b + mt */
+        const double mt = d->m_tip * L * L;
+        double Mc[MAX_DOF][MAX_DOF];
+        int j;
+        for (i = 1; i < d->N; i++) {
+            d->M0[i] = d->b[i] + mt;
+            for (j = 1; j < d->N; j++) Mc[i][j] = mt + (i == j ? d->Jmode : 0.0);
+        }
+        fullInverse(Mc, 1, d->N - 1, d->Mc_inv);
+    }
 
     /* RK4 stability: |lambda h| <= 2 for every configuration that can occur */
     rho = hubRadius(d, d->Minv_r, d->Beq + d->Bemf);
@@ -210,10 +260,14 @@ fmi2Status initialize(ModelInstance *comp) {
 
     memset(d->X, 0, sizeof(d->X));
     d->X[0] = d->theta_start;
-    d->X[2 * d->N] = d->theta_start;
-    d->stuck = (d->coulomb_torque > 0) ? 1 : 0;
+    d->X[1] = d->alpha_start; /* an initial deflection and deflection rate in mode 1 */
+    d->X[d->N] = d->theta_dot_start;
+    d->X[d->N + 1] = d->alpha_dot_start;
+    d->X[2 * d->N] = d->theta_start; /* the motor side with the hub: teeth at the middle of the play */
+    d->X[2 * d->N + 1] = d->theta_dot_start;
+    d->stuck = (d->coulomb_torque > 0 && d->theta_dot_start == 0.0) ? 1 : 0;
     d->side = 0;
-    d->slip = 0;
+    d->slip = (d->coulomb_torque > 0 && d->theta_dot_start != 0.0) ? (d->theta_dot_start > 0 ? 1 : -1) : 0;
     d->linear = d->coulomb_torque == 0.0 && d->backlash == 0.0 && !d->hub_locked;
     d->lin_h = 0.0;
     return fmi2OK;
@@ -243,7 +297,14 @@ static void deriv(const ModelData *d, const double *X, double *dX) {
     modalForces(d, X, Q);
     if (d->hub_locked || d->stuck) {
         dX[N] = 0.0;
-        for (i = 1; i < N; i++) dX[N + i] = Q[i] / d->Jmode;
+        if (d->m_tip == 0.0)
+            for (i = 1; i < N; i++) dX[N + i] = Q[i] / d->Jmode;
+        else
+            for (i = 1; i < N; i++) {
+                double s = 0.0;
+                for (j = 1; j < N; j++) s += d->Mc_inv[i][j] * Q[j];
+                dX[N + i] = s;
+            }
     } else {
         const double v0 = X[N];
         const double (*Minv)[MAX_DOF] = coupled ? d->Minv_r : d->Minv_f;
@@ -286,7 +347,15 @@ static double frictionRequired(const ModelData *d) {
     double Q[MAX_DOF], s = 0.0;
     int i;
     modalForces(d, d->X, Q);
-    for (i = 1; i < d->N; i++) s += d->b[i] * Q[i] / d->Jmode;
+    if (d->m_tip == 0.0)
+        for (i = 1; i < d->N; i++) s += d->b[i] * Q[i] / d->Jmode;
+    else
+        for (i = 1; i < d->N; i++) {
+            double acc = 0.0; /* modal acceleration of the clamped link */
+            int j;
+            for (j = 1; j < d->N; j++) acc += d->Mc_inv[i][j] * Q[j];
+            s += d->M0[i] * acc;
+        }
     return s - d->tau_tip - (isCoupled(d) ? motorTorque(d, 0.0) : 0.0);
 }
 

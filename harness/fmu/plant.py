@@ -143,7 +143,8 @@ def mass_stiffness(p: PlantParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(M, K, D) for the coordinates [theta, a_1..a_n] with the hub free (rigid gear).
 
     M [kg.m2], K [N.m/rad], D [N.m.s/rad]; D holds Beq plus the motor's back-EMF damping on theta
-    and the modal damping 2 zeta J_i w_i on each a_i.
+    and the modal damping 2 zeta J_i w_i on each a_i. A tip mass m_tip moves with L (theta' + sum a_i'): its
+    kinetic energy adds m_tip L^2 to every entry of M.
     """
     p.validate()
     n = int(p.n_modes)
@@ -158,6 +159,7 @@ def mass_stiffness(p: PlantParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     M[0, 0] = p.Jeq + Jl
     M[0, 1:] = M[1:, 0] = b
     M[1:, 1:] = Jmode
+    M += p.m_tip * L**2  # the tip mass: its velocity L (theta' + sum a_i') couples every coordinate
     K = np.zeros((N, N))
     K[1:, 1:] = np.diag(np.diag(Jmode) * w**2)
     _, Bemf = motor_constants(p)
@@ -223,8 +225,18 @@ def mode_frequencies(p: PlantParams) -> np.ndarray:
 
     lam = np.sort(eigh(K, M, eigvals_only=True))[1:]  # drop the rigid-body mode
     free = np.sqrt(np.maximum(lam, 0.0)) / (2 * math.pi)
-    clamped = np.sqrt(np.sort(np.linalg.eigvalsh(np.linalg.solve(M[1:, 1:], K[1:, 1:])))) / (2 * math.pi)
+    clamped = np.sqrt(np.sort(eigh(K[1:, 1:], M[1:, 1:], eigvals_only=True))) / (2 * math.pi)
     return np.vstack([free, clamped])
+
+
+def ks_for_first_mode(p: PlantParams, f1_hz: float) -> float:
+    """The link stiffness Ks [N.m/rad] that puts the first clamped mode (hub held, as a lab sheet measures it) at
+    ``f1_hz`` [Hz] with ``p``'s link, tip mass and modes: the clamped frequencies scale with sqrt(Ks) (K is linear
+    in Ks, M does not depend on it)."""
+    if not (math.isfinite(f1_hz) and f1_hz > 0):
+        raise ValueError(f"first mode must be a frequency > 0 Hz, got {f1_hz}")
+    f0 = float(mode_frequencies(p)[1, 0])
+    return float(p.Ks * (f1_hz / f0) ** 2)
 
 
 def steady_speed(p: PlantParams, V: float) -> float:
