@@ -8,34 +8,19 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.console import Console
-from rich.table import Table
 
 from . import clone
-from . import spec as specmod
 from ._version import __version__
-from .diagnosis.blindtest import FAMILIES
-from .diagnosis.blindtest import blindtest as run_blind
-from .diagnosis.diagnose import diagnose_run
-from .diagnosis.result import Diagnosis
-from .executor import session
-from .fmu.binding import FMUError
-from .fmu.build import MODELS, build_fmu
-from .ident.accept import accept as gate
-from .ident.crossfit import crossfit_run
-from .ident.doubled_rate import doubled_rate_check
-from .pipeline import identify_run, run_pipeline
-from .render.load import load_results
-from .render.report import write_report
-from .render.viewer import log_run
-from .rig.campaign import run_campaign
-from .rig.records import ImportOptions, calibration_option, import_records, parse_map
-from .rundir import DataError, write_json
-from .spec import SPEC_DIR, SpecError, bundled_specs
-from .sweep import run_sweep
+
+if TYPE_CHECKING:
+    from .diagnosis.result import Diagnosis
+
+# A command imports what it runs when it runs (here, and only here, imports sit inside functions): ``--help`` and
+# ``--version`` then answer without loading numpy, fmpy, Dask or the pipeline.
 
 app = typer.Typer(
     add_completion=False,
@@ -62,10 +47,11 @@ WorkersOpt = Annotated[
 
 
 def _user_errors() -> tuple[type[BaseException], ...]:
+    """The library's errors that are a user's mistake (one line, exit 2): its own kinds where they are loaded (a
+    command that failed before importing them cannot have raised them), and the built-in ones it raises."""
+    own = [getattr(sys.modules.get(m), n, None) for m, n in _OWN_ERRORS]
     return (
-        SpecError,
-        DataError,
-        FMUError,
+        *(e for e in own if isinstance(e, type)),
         ValueError,
         FileNotFoundError,
         RuntimeError,
@@ -74,6 +60,9 @@ def _user_errors() -> tuple[type[BaseException], ...]:
         FileExistsError,
         PermissionError,
     )
+
+
+_OWN_ERRORS = (("harness.spec", "SpecError"), ("harness.rundir", "DataError"), ("harness.fmu.binding", "FMUError"))
 
 
 def _out_dir(path: Path, option: str = "--out") -> Path:
@@ -164,7 +153,9 @@ def _main(
 
 @app.command()
 def build(force: Annotated[bool, typer.Option(help="rebuild even if cached")] = False) -> None:
-    """Compile the FMUs in fmus/ (plant, DAQ, generic ARMAX model) into the cache, only when sources changed."""
+    """Compile the FMUs in fmus/ (plant, DAQ, controller, generic ARMAX model) into the cache, only when sources
+    changed."""
+    from .fmu.build import MODELS, build_fmu
 
     for name in (*MODELS, "armax"):
         path = build_fmu(name, force=force)
@@ -174,6 +165,7 @@ def build(force: Annotated[bool, typer.Option(help="rebuild even if cached")] = 
 @app.command()
 def specs() -> None:
     """List the bundled campaign specs (name and description); use a name wherever a SPEC is expected."""
+    from .spec import SPEC_DIR, bundled_specs
 
     found = bundled_specs()
     if not found:
@@ -191,6 +183,7 @@ def init(
     force: Annotated[bool, typer.Option(help="overwrite an existing file")] = False,
 ) -> None:
     """Copy a bundled spec into DIRECTORY to edit, then run it with `flexjoint campaign DIRECTORY/NAME.toml`."""
+    from .spec import SPEC_DIR, SpecError, bundled_specs
 
     found = bundled_specs()
     name = spec.removesuffix(".toml")
@@ -213,6 +206,8 @@ def campaign(
     workers: WorkersOpt = None,
 ) -> None:
     """Run a spec's experiments on the rig twin: writes manifest.json and data/<experiment>.parquet."""
+    from . import spec as specmod
+    from .rig.campaign import run_campaign
 
     _out_dir(out_dir)
     s = specmod.load(spec, set_ or [])
@@ -234,6 +229,7 @@ def import_(
     calibration: Annotated[Path | None, typer.Option(help="calibration.json to carry (Kp, Ke, offsets)")] = None,
 ) -> None:
     """Bring real records into a run directory: data/<name>.parquet, calibration.json, manifest.json."""
+    from .rig.records import ImportOptions, calibration_option, import_records, parse_map
 
     opts = ImportOptions(
         columns=parse_map(columns, "--columns"),
@@ -255,6 +251,10 @@ def identify(
     workers: WorkersOpt = None,
 ) -> None:
     """Calibrate, then the ARMAX grid per dataset, cross-validation and selection: grid.csv, models/."""
+    from . import spec as specmod
+    from .executor import session
+    from .ident.doubled_rate import doubled_rate_check
+    from .pipeline import identify_run
 
     over = specmod.apply_overrides({}, set_ or []).get("identify", {})
     with session(workers, scheduler):  # the grid's tasks run on this session's cluster
@@ -278,6 +278,7 @@ def identify(
 
 def crossval_table(res):
     """Lab 1's table 2: each dataset's best model (rows) cross-validated on every dataset (columns)."""
+    from rich.table import Table
 
     t = Table(title="cross-validation fit % (rows: model of dataset i; columns: dataset j)")
     t.add_column("model")
@@ -300,6 +301,7 @@ def accept(
     min_average_fit: Annotated[float | None, typer.Option(help="override [accept].min_average_fit [%]")] = None,
 ) -> None:
     """Exit 0 when the selected model meets the spec's fit thresholds, 1 (naming the failing cells) when not."""
+    from .ident.accept import accept as gate
 
     over = {k: v for k, v in (("min_fit", min_fit), ("min_average_fit", min_average_fit)) if v is not None}
     v = gate(run_dir, over)
@@ -316,6 +318,7 @@ def accept(
 @app.command()
 def crossfit(run_dir: Annotated[Path, typer.Argument(help="run directory with identified models")]) -> None:
     """Export every model as an FMU and score each on every dataset through fmpy: crossfit.csv."""
+    from .ident.crossfit import crossfit_run
 
     df = crossfit_run(run_dir, progress=_progress("crossfit"))
     out.print(df.round(2).to_string())
@@ -330,6 +333,7 @@ def diagnose(
     workers: WorkersOpt = None,
 ) -> None:
     """Where the sim-to-real gap lies, which unmodelled effect causes it, how far it shrinks: diagnosis.json."""
+    from .diagnosis.diagnose import diagnose_run
 
     if out_dir is not None:
         _out_dir(out_dir)
@@ -363,6 +367,8 @@ def sweep(
     workers: WorkersOpt = None,
 ) -> None:
     """Monte Carlo over rig tolerances: N rigs, each one's campaign, identification and acceptance, as tasks."""
+    from . import spec as specmod
+    from .sweep import run_sweep
 
     _out_dir(out_dir)
     s = specmod.load(spec, set_ or [])
@@ -396,6 +402,9 @@ def report(
     connect: Annotated[str | None, typer.Option("--connect", help="stream to a running viewer at URL")] = None,
 ) -> None:
     """Write report.md, figures/ and run.rrd for any run directory, each section from what the directory holds."""
+    from .render.load import load_results
+    from .render.report import write_report
+    from .render.viewer import log_run
 
     res = load_results(run_dir)
     path = write_report(run_dir, res)
@@ -438,6 +447,8 @@ def blindtest(
 ) -> None:
     """Score the diagnoser on rigs with hidden effects (none, one, two, outside the library), on our twin, on the
     twin with its linear parameters off the datasheet and on an independent simulator: blindtest.json."""
+    from .diagnosis.blindtest import FAMILIES
+    from .diagnosis.blindtest import blindtest as run_blind
 
     fams = tuple(family) if family else FAMILIES
     res = run_blind(
@@ -452,6 +463,7 @@ def blindtest(
 
 def blindtest_table(tot: dict):
     """The blind test's scores per family and pooled, each share with its 95 % interval and count."""
+    from rich.table import Table
 
     def cell(share: dict) -> str:
         if not share["n"]:
@@ -492,6 +504,9 @@ def run(
     workers: WorkersOpt = None,
 ) -> None:
     """The whole pipeline: build, campaign, calibrate, identify, export, cross-fit, diagnose, report, Rerun."""
+    from . import spec as specmod
+    from .executor import session
+    from .pipeline import run_pipeline
 
     if out_dir is None:
         out_dir = Path("runs") / time.strftime("%Y%m%d-%H%M%S")
@@ -515,6 +530,8 @@ def bench(
     ] = 0,
 ) -> None:
     """Measure speed against the named peers (fmpy simulate_fmu, sippy-unipi) and write JSON."""
+
+    from .rundir import write_json
 
     bench = clone.load_package("benchmarks.bench")
     if bench is None:

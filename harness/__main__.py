@@ -1,0 +1,20 @@
+"""The ``flexjoint`` console script and ``python -m harness``: the command line of :mod:`harness.cli`, with a Ctrl-C
+while the command line itself is still loading answered like one during a command: one line, exit code 130."""
+
+from __future__ import annotations
+
+import sys
+
+
+def main() -> None:
+    """Load the command line and run it; an interrupt while loading it is one line on stderr and exit code 130."""
+    try:
+        from .cli import main as cli_main
+    except KeyboardInterrupt:
+        print("error: interrupted", file=sys.stderr)
+        raise SystemExit(130) from None
+    cli_main()
+
+
+if __name__ == "__main__":
+    main()
