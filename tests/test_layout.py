@@ -104,9 +104,14 @@ def test_no_import_cycle() -> None:
     assert cycles(graph) == []
 
 
+LAZY = ("harness.cli", "harness.__main__")  # the command-line layer: a command imports what it runs when it runs
+
+
 def test_imports_at_the_top_of_files() -> None:
     late = []
     for mod, path in _modules().items():
+        if mod in LAZY:
+            continue
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
                 late += [f"{mod}:{n.lineno}" for n in ast.walk(node) if isinstance(n, (ast.Import, ast.ImportFrom))]
