@@ -222,13 +222,25 @@ def import_(
     out_dir: Annotated[Path, typer.Option("--out", help="run directory to write")],
     columns: Annotated[str | None, typer.Option(help="column map, e.g. time=t,Vm=u,hub=theta,tip=alpha")] = None,
     units: Annotated[str | None, typer.Option(help="units, e.g. theta=deg,alpha=rad,u=V,t=s")] = None,
-    link_length: Annotated[float | None, typer.Option(help="link length [m] for tip deflections in m")] = None,
+    link_length: Annotated[float | None, typer.Option(help="link length in m (for tip deflections in m or mm)")] = None,
     counts_per_rev: Annotated[float | None, typer.Option(help="encoder counts per revolution")] = None,
-    kp: Annotated[float | None, typer.Option("--kp", help="pot gain Kp [deg/V] of the lab's DAQ")] = None,
-    ke: Annotated[float | None, typer.Option("--ke", help="gauge gain Ke [deg/V] of the lab's DAQ")] = None,
+    kp: Annotated[float | None, typer.Option("--kp", help="pot gain Kp in deg/V of the lab's DAQ")] = None,
+    ke: Annotated[float | None, typer.Option("--ke", help="gauge gain Ke in deg/V of the lab's DAQ")] = None,
     calibration: Annotated[Path | None, typer.Option(help="calibration.json to carry (Kp, Ke, offsets)")] = None,
+    controller: Annotated[
+        str | None,
+        typer.Option(
+            help="controller of closed-loop records (a column mapped to ref): state_feedback:K=k1,k2,k3,k4;cutoff=HZ;"
+            "u_limit=V or pid:kp=..;ki=..;kd=..;cutoff=HZ (default: identified from the record, with its R^2)"
+        ),
+    ] = None,
+    theta_sensor: Annotated[
+        str | None, typer.Option(help="pot or encoder (default: encoder when theta is in counts, else pot)")
+    ] = None,
 ) -> None:
-    """Bring real records into a run directory: data/<name>.parquet, calibration.json, manifest.json."""
+    """Bring real records into a run directory: data/<name>.parquet, calibration.json, manifest.json. A column
+    mapped to ref (--columns theta_ref_deg=ref) makes a record closed loop, its controller given or identified."""
+    from .rig.controller import parse_controller
     from .rig.records import ImportOptions, calibration_option, import_records, parse_map
 
     opts = ImportOptions(
@@ -237,6 +249,8 @@ def import_(
         link_length=link_length,
         counts_per_rev=counts_per_rev,
         calibration=calibration_option(kp, ke, calibration),
+        controller=parse_controller(controller) if controller else None,
+        theta_sensor=theta_sensor,
     )
     note = lambda m: err.print(f"note: {m}", markup=False, soft_wrap=True)  # noqa: E731
     written = import_records(files, out_dir, opts, note=note)
@@ -297,8 +311,8 @@ def crossval_table(res):
 @app.command()
 def accept(
     run_dir: Annotated[Path, typer.Argument(help="run directory with an identified model")],
-    min_fit: Annotated[float | None, typer.Option(help="override [accept].min_fit [%]")] = None,
-    min_average_fit: Annotated[float | None, typer.Option(help="override [accept].min_average_fit [%]")] = None,
+    min_fit: Annotated[float | None, typer.Option(help="override accept.min_fit (%)")] = None,
+    min_average_fit: Annotated[float | None, typer.Option(help="override accept.min_average_fit (%)")] = None,
 ) -> None:
     """Exit 0 when the selected model meets the spec's fit thresholds, 1 (naming the failing cells) when not."""
     from .ident.accept import accept as gate
@@ -329,6 +343,13 @@ def diagnose(
     real: Annotated[Path, typer.Option("--real", help="run directory of the rig (campaign or import)")],
     sim: Annotated[str, typer.Option("--sim", help="spec of the simulation being judged")] = "nominal",
     out_dir: Annotated[Path | None, typer.Option("--out", help="where to write diagnosis.json (default REAL)")] = None,
+    replay: Annotated[
+        str,
+        typer.Option(
+            help="how experiments are re-simulated: auto (closed-loop records through their controller, or by "
+            "multiple shooting without one; open-loop ones as logged), closed, shooting or open for all"
+        ),
+    ] = "auto",
     scheduler: SchedulerOpt = None,
     workers: WorkersOpt = None,
 ) -> None:
@@ -337,7 +358,7 @@ def diagnose(
 
     if out_dir is not None:
         _out_dir(out_dir)
-    d = diagnose_run(real, sim, out_dir, progress=_progress("diagnose"), **_parallel(workers, scheduler))
+    d = diagnose_run(real, sim, out_dir, progress=_progress("diagnose"), replay=replay, **_parallel(workers, scheduler))
     out.print(diagnosis_summary(d))
 
 

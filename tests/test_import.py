@@ -232,7 +232,8 @@ def fast_rates(twins, tmp_path_factory):
         enc = {"t": df["t"], "u": df["u"], "theta_counts": counts, "alpha_rad": np.radians(al)}
         rec.append(_mat73(tmp / "enc" / f"{name}.mat", enc))
         ref.append(_volts_csv(tmp / "v500" / f"{name}.csv", df["t"], df["u"], counts * 360.0 / CPR, al))
-    out[500] = (_import(rec, tmp / "enc_run", counts_per_rev=CPR), _import(ref, tmp / "v500_run"))
+    # the angles are the pot rig's on an encoder's lattice: said to be a pot, so both runs are the same rig
+    out[500] = (_import(rec, tmp / "enc_run", counts_per_rev=CPR, theta_sensor="pot"), _import(ref, tmp / "v500_run"))
     rec, ref = [], []
     for name, df in twins[1000].items():
         th, al = _deg(df)

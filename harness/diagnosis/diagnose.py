@@ -51,7 +51,7 @@ from ..ident.calibration import load_calibration
 from ..rundir import RunDir, write_json
 from . import recalibrate as recal
 from .effects import CandidateContext, candidates
-from .experiments import load_experiments, masked_share, split_folds
+from .experiments import REPLAYS, load_experiments, masked_share, split_folds
 from .noise import noise_floor, noise_mean_squared_gap
 from .result import Diagnosis, Folds, NoiseFloor, SensorCalibration, Thresholds
 from .search import EXPLAINED, GAP_RESOLUTION, MIN_CLOSURE, NONE_RATIO, search
@@ -102,11 +102,13 @@ def diagnose_run(
     workers: int | None = None,
     scheduler: str | None = None,
     fmus: dict[str, Path] | None = None,
+    replay: str = "auto",
 ) -> Diagnosis:
     """Diagnose the gap between run directory ``real`` and the simulation spec ``sim`` (a path, a name in
     specs/ or a loaded Spec); the candidates are fitted as tasks of a :class:`harness.executor.Executor`
     (``workers`` processes of the default local cluster, 1 = serial, or the Dask cluster at ``scheduler``); ``fmus``:
-    the built plant and DAQ FMUs (default: built or taken from the cache). Writes ``out/diagnosis.json`` (default
+    the built plant and DAQ FMUs (default: built or taken from the cache); ``replay``: how each experiment is
+    re-simulated (:func:`harness.diagnosis.experiments.load_experiments`). Writes ``out/diagnosis.json`` (default
     out = real) and returns it as a :class:`harness.diagnosis.result.Diagnosis`; the wall-clock seconds go to
     ``diagnosis.timing.json``, so that diagnosis.json is byte-stable."""
 
@@ -119,7 +121,9 @@ def diagnose_run(
     cal = load_calibration(real)
     plant, daq = sim_rig(sim_spec)
     adc_range = fmu_value(daq, "daq", "adc_range")
-    experiments = load_experiments(real, cal, sim_spec, adc_range)
+    if replay != "auto" and replay not in REPLAYS:
+        raise ValueError(f"replay {replay!r} unknown; valid: auto, {', '.join(REPLAYS)}")
+    experiments = load_experiments(real, cal, sim_spec, adc_range, replay)
     fmus = fmus or build_all()
     shipped = {k: fmu_bytes(fmus[k]) for k in ("flexjoint", "daq", "controller") if k in fmus}
     setup = Setup(plant, daq, cal.comb_angles, experiments, shipped)

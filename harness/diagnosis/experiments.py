@@ -17,6 +17,7 @@ import numpy as np
 
 from .. import spec as specmod
 from ..ident.calibration import Calibration, alpha_deg, theta_deg
+from ..rig.controller import R2_MIN
 from ..rig.signals import MultisineLines, multisine_lines
 from ..rundir import DataError, ExperimentEntry, Manifest, RunDir, read_dataset, sample_time
 
@@ -153,12 +154,15 @@ def _loop(x: RigExperiment, e: ExperimentEntry, df: Any, replay: str) -> None:
         x.ref = df["ref"].to_numpy(float)
     x.controller = e.controller if e.loop == "closed" else None
     closed_record = x.ref is not None or e.loop == "closed"
+    trusted = x.controller is not None and (x.controller.get("r2") is None or x.controller["r2"] >= R2_MIN)
     if replay == "auto":
-        if x.controller is not None and x.ref is not None:
+        if trusted and x.ref is not None:
             x.replay, x.replay_reason = "closed", f"a closed-loop record with its controller ({_source(e)})"
         elif closed_record:
             x.replay = "shooting"
-            x.replay_reason = "a closed-loop record without a usable controller: open-loop replay would drift"
+            why = f"its identified controller explains too little (R^2 {x.controller['r2']:.3f} < {R2_MIN})" if (
+                x.controller is not None) else "no controller known"  # fmt: skip
+            x.replay_reason = f"a closed-loop record, {why}: an open-loop replay would drift"
         return
     if replay == "closed" and (x.controller is None or x.ref is None):
         raise DataError(f"experiment {x.name!r}: closed-loop replay needs a reference and a controller; it has none")

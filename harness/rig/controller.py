@@ -27,7 +27,17 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["KINDS", "Controller", "filtered_rate", "law"]
+__all__ = [
+    "CUTOFFS",
+    "KINDS",
+    "R2_MIN",
+    "Controller",
+    "filtered_rate",
+    "identify_controller",
+    "law",
+    "output_limit",
+    "parse_controller",
+]
 
 KINDS = {"state_feedback": 1, "pid": 2}  # kind name -> the FMU's Integer parameter ``kind``
 
@@ -120,3 +130,90 @@ def law(c: Controller, ref: np.ndarray, theta: np.ndarray, alpha: np.ndarray, Ts
         if u[i] == raw:  # integrate only while the output is not limited (anti-windup)
             integral += Ts * e[i]
     return u
+
+
+R2_MIN = 0.9  # below this R^2 an identified controller is not trusted for a closed-loop replay
+CUTOFFS = (5.0, 10.0, 15.0, 25.0, 50.0, 100.0)  # Hz: velocity-filter cutoffs tried when identifying a controller
+
+
+def _regressors(kind: str, ref: np.ndarray, theta: np.ndarray, alpha: np.ndarray, Ts: float, cutoff: float):
+    """The columns u is regressed on: state feedback (ref - theta, -alpha, -theta_dot, -alpha_dot); PID (e,
+    integral of e, -theta_dot)."""
+    th_dot = filtered_rate(theta, Ts, cutoff)
+    e = ref - theta
+    if kind == "state_feedback":
+        return np.column_stack([e, -alpha, -th_dot, -filtered_rate(alpha, Ts, cutoff)])
+    integral = np.concatenate([[0.0], np.cumsum(e[:-1]) * Ts])
+    return np.column_stack([e, integral, -th_dot])
+
+
+def output_limit(u: np.ndarray) -> float:
+    """The command's clamp [V] when the record shows one (at least 3 samples at the same largest |u|: a free
+    signal does not return to its exact peak), else 0."""
+    top = float(np.max(np.abs(u)))
+    at = np.isclose(np.abs(u), top, rtol=0.0, atol=1e-9 * max(top, 1.0))
+    return top if top > 0 and np.count_nonzero(at) >= 3 else 0.0
+
+
+def identify_controller(
+    ref: np.ndarray,
+    theta: np.ndarray,
+    alpha: np.ndarray,
+    u: np.ndarray,
+    Ts: float,
+    kind: str = "state_feedback",
+    cutoff: float | None = None,
+) -> Controller:
+    """The controller that computed a record's command: least squares of ``u`` [V] on the regressors of ``kind``
+    from ``ref``, ``theta``, ``alpha`` [rad] at ``Ts`` [s], over the samples where u is not at its clamp (see
+    :func:`output_limit`); the velocity-filter ``cutoff`` [Hz] given, or the one of :data:`CUTOFFS` (below Nyquist)
+    with the best R^2. Returns it with ``source="identified"`` and that ``r2``."""
+    if kind not in KINDS:
+        raise ValueError(f"controller kind {kind!r} unknown; valid: {', '.join(KINDS)}")
+    ref, theta, alpha, u = (np.asarray(v, dtype=float) for v in (ref, theta, alpha, u))
+    if not ref.size == theta.size == alpha.size == u.size:
+        raise ValueError("ref, theta, alpha and u must have the same length")
+    lim = output_limit(u)
+    free = np.abs(u) < lim if lim > 0 else np.ones(u.size, dtype=bool)
+    sst = float(np.sum((u[free] - np.mean(u[free])) ** 2))
+    if free.sum() < 10 or sst == 0.0:
+        raise ValueError("the command does not move: no controller can be identified from it")
+    nyquist = 0.5 / Ts
+    tried = [cutoff] if cutoff is not None else [c for c in CUTOFFS if c < nyquist] or [0.5 * nyquist]
+    best: tuple[float, float, np.ndarray] | None = None
+    for c in tried:
+        X = _regressors(kind, ref, theta, alpha, Ts, c)[free]
+        k, *_ = np.linalg.lstsq(X, u[free], rcond=None)
+        r2 = 1.0 - float(np.sum((u[free] - X @ k) ** 2)) / sst
+        if best is None or r2 > best[0]:
+            best = (r2, c, k)
+    r2, c, k = best  # type: ignore[misc]
+    gains = [float(v) for v in k]
+    if kind == "state_feedback":
+        return Controller(K=gains, cutoff=c, u_limit=lim, source="identified", r2=r2)
+    return Controller(kind="pid", kp=gains[0], ki=gains[1], kd=gains[2], cutoff=c, u_limit=lim, source="identified",
+                      r2=r2)  # fmt: skip
+
+
+def parse_controller(text: str) -> Controller:
+    """A controller from its command-line form ``KIND:NAME=VALUE;...``: ``state_feedback:K=9.2,-18.8,1.2,0;cutoff=15;
+    u_limit=10`` or ``pid:kp=12;ki=40;kd=0.8;cutoff=30``; ``source="given"``."""
+    kind, sep, rest = str(text).partition(":")
+    kind = kind.strip()
+    if not sep or kind not in KINDS:
+        raise ValueError(f"--controller {text!r}: expected KIND:NAME=VALUE;... with KIND one of {', '.join(KINDS)}, "
+                         "e.g. state_feedback:K=9.2,-18.8,1.2,0;cutoff=15")  # fmt: skip
+    names = {"state_feedback": ("K", "cutoff", "u_limit"), "pid": ("kp", "ki", "kd", "cutoff", "u_limit")}[kind]
+    args: dict[str, Any] = {"kind": kind, "source": "given"}
+    for item in [s for s in rest.split(";") if s.strip()]:
+        name, eq, value = (p.strip() for p in item.partition("="))
+        if not eq or name not in names:
+            raise ValueError(f"--controller {text!r}: {name!r} is not a {kind} setting; valid: {', '.join(names)}")
+        try:
+            nums = [float(v) for v in value.split(",")]
+        except ValueError:
+            raise ValueError(f"--controller {text!r}: {name}={value!r} is not a number") from None
+        args[name] = nums if name == "K" else nums[0]
+        if (name == "K") != (len(nums) > 1) and name != "K":
+            raise ValueError(f"--controller {text!r}: {name} takes one number")
+    return Controller(**args)

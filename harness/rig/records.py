@@ -19,6 +19,14 @@ Rules, no silent guesses:
   across: the nearer sample is taken) and the largest correction is reported; beyond that: refused;
 - no calibration given: lab 1's Kp and Ke are assumed and a note says so.
 
+Closed-loop records (every public record of a flexible link is one: the logged ``u`` is a controller's output):
+a reference column given the role ``ref`` (``{"theta_ref_deg": "ref"}``, in deg, rad, counts or the pot's volts)
+becomes the dataset's ``ref`` [deg] and makes the experiment closed loop. Its controller is the one given
+(``ImportOptions.controller``) or identified from the record (:func:`harness.rig.controller.identify_controller`,
+both kinds tried, the better R^2 kept); below ``R2_MIN`` it is recorded but said not to be trusted, and the
+diagnosis then replays the record open loop by multiple shooting. ``theta_sensor="encoder"`` (or theta in encoder
+counts) with ``counts_per_rev``: theta has no pot wrap or dead band to mask.
+
 The dataset written (``data/<name>.parquet``) is the same whatever the format: ``t`` [s], ``u`` [V],
 ``theta_v``, ``alpha_v`` [V] as the lab's DAQ reads them (angles converted with the calibration: theta_v =
 theta / Kp + pot_offset_v, alpha_v = alpha / Ke + gauge_offset_v; an encoder angle is not wrapped like a pot),
@@ -43,6 +51,7 @@ import scipy.io
 
 from ..ident.calibration import LAB1_CALIBRATION, Calibration, alpha_deg, theta_deg
 from ..rundir import DataError, ExperimentEntry, Manifest, RunDir, validate, write_dataset
+from .controller import KINDS, R2_MIN, Controller, identify_controller
 
 __all__ = [
     "CHANNELS",
@@ -58,6 +67,8 @@ __all__ = [
 
 Note = Callable[[str], None]
 CHANNELS = ("t", "u", "theta", "alpha")
+OPTIONAL = ("ref",)  # channels a record may have: the closed loop's reference of theta
+THETA_SENSORS = ("pot", "encoder")
 MIN_RATE = 10.0  # Hz: slower records cannot show the link's first mode (~3-4.5 Hz)
 JITTER_LIMIT = 0.1  # largest time-stamp correction resampled, as a share of the sample interval
 UNITS = {
@@ -65,6 +76,7 @@ UNITS = {
     "u": ("V",),
     "theta": ("V", "deg", "rad", "counts"),
     "alpha": ("V", "deg", "rad", "counts", "m", "mm"),
+    "ref": ("V", "deg", "rad", "counts"),
 }
 _UNIT_NAMES = {
     "s": "s", "sec": "s", "secs": "s", "second": "s", "seconds": "s",
@@ -80,6 +92,7 @@ _ALIASES = {
     "t": "t", "time": "t",
     "u": "u", "vm": "u", "v_m": "u", "command": "u", "cmd": "u",
     "theta": "theta", "alpha": "alpha",
+    "ref": "ref", "reference": "ref", "theta_ref": "ref", "setpoint": "ref",
 }  # fmt: skip
 _TIME_FACTOR = {"s": 1.0, "ms": 1e-3, "us": 1e-6}
 _SUFFIXES = sorted(_UNIT_NAMES, key=len, reverse=True)
@@ -89,13 +102,17 @@ _SUFFIXES = sorted(_UNIT_NAMES, key=len, reverse=True)
 class ImportOptions:
     """How to read records: ``columns`` source column (name or position) -> channel (t, u, theta, alpha,
     theta_v, alpha_v or with a unit suffix, theta_deg); ``units`` channel or column -> unit; ``link_length``
-    [m] for tip deflections; ``counts_per_rev`` of an encoder; ``calibration`` to carry (None: assume lab 1's)."""
+    [m] for tip deflections; ``counts_per_rev`` of an encoder; ``calibration`` to carry (None: assume lab 1's);
+    ``controller`` of a closed-loop record (None: identified from it); ``theta_sensor`` "pot" or "encoder" (None:
+    an encoder when theta is in counts, else a pot)."""
 
     columns: dict[str, str] = field(default_factory=dict)
     units: dict[str, str] = field(default_factory=dict)
     link_length: float | None = None
     counts_per_rev: float | None = None
     calibration: Calibration | None = None
+    controller: Controller | None = None
+    theta_sensor: str | None = None
 
 
 @dataclass
@@ -383,12 +400,12 @@ def _lookup(table: RawTable, key: str) -> int | None:
 
 def resolve(table: RawTable, opts: ImportOptions) -> dict[str, Channel]:
     """The t, u, theta, alpha channels of ``table`` with their units (map, then names; volts preferred)."""
-    picked: dict[str, list[tuple[int, str | None, bool]]] = {c: [] for c in CHANNELS}
+    picked: dict[str, list[tuple[int, str | None, bool]]] = {c: [] for c in (*CHANNELS, *OPTIONAL)}
     mapped: set[int] = set()
     for key, target in opts.columns.items():
         ch, unit = _channel(target)
         if ch is None:
-            raise DataError(f"--columns {key}={target}: unknown channel {target!r}; use t, u, theta, alpha, "
+            raise DataError(f"--columns {key}={target}: unknown channel {target!r}; use t, u, theta, alpha, ref, "
                             f"theta_v, alpha_v (or a unit suffix: theta_deg)")  # fmt: skip
         j = _lookup(table, key)
         if j is None:
@@ -400,8 +417,10 @@ def resolve(table: RawTable, opts: ImportOptions) -> dict[str, Channel]:
         if j not in mapped and ch is not None and not any(m for *_, m in picked[ch]):
             picked[ch].append((j, unit, False))
     out: dict[str, Channel] = {}
-    for ch in CHANNELS:
+    for ch in (*CHANNELS, *OPTIONAL):
         cands = picked[ch]
+        if not cands and ch in OPTIONAL:
+            continue
         if not cands:
             if not table.header:
                 raise DataError(
@@ -567,6 +586,9 @@ def normalise(table: RawTable, opts: ImportOptions, cal: Calibration, note: Note
     chans = resolve(table, opts)
     for msg in table.notes:
         remark(msg)
+    if "ref" in chans and chans["ref"].unit is None:
+        chans["ref"].unit = chans["theta"].unit
+        remark(f"reference {chans['ref'].column!r}: no unit given, taken as theta's ({chans['theta'].unit})")
     for ch, c in chans.items():
         if c.unit is None and ch != "t":
             raise DataError(
@@ -596,6 +618,9 @@ def normalise(table: RawTable, opts: ImportOptions, cal: Calibration, note: Note
             deg = _angle(ch, c, opts, table.file)
             off, gain = (cal.pot_offset_v, cal.Kp) if ch == "theta" else (cal.gauge_offset_v, cal.Ke)
             cols[f"{ch}_v"], cols[ch] = deg / gain + off, deg
+    if "ref" in chans:
+        c = chans["ref"]
+        cols["ref"] = theta_deg(c.values, cal) if c.unit == "V" else _angle("ref", c, opts, table.file)
     cols = {"t": t, "u": chans["u"].values, **cols}
     if grid is not None:
         wrapped = chans["theta"].unit == "V"
@@ -605,7 +630,7 @@ def normalise(table: RawTable, opts: ImportOptions, cal: Calibration, note: Note
             cols["theta"] = theta_deg(cols["theta_v"], cal)
         remark(f"host-clock jitter up to {1e6 * worst:.3g} us ({100 * worst / Ts:.2g} % of the {1e3 * Ts:.4g} ms "
                f"interval): resampled onto the uniform {1 / Ts:.6g} Hz grid by linear interpolation")  # fmt: skip
-    order = ("t", "u", "theta_v", "alpha_v", "theta", "alpha")
+    order = ("t", "u", "theta_v", "alpha_v", "theta", "alpha", *(k for k in OPTIONAL if k in cols))
     cols = {k: np.asarray(cols[k], dtype=float) for k in order}
     validate(pd.DataFrame(cols), table.file)
     rate = 1.0 / Ts
@@ -622,7 +647,44 @@ def normalise(table: RawTable, opts: ImportOptions, cal: Calibration, note: Note
     for ch in ("theta", "alpha"):
         if chans[ch].unit == "counts":
             entry.setdefault("lattice_deg", {})[ch] = 360.0 / float(opts.counts_per_rev or 1)
+    entry.update(_theta_sensor(chans["theta"], opts, table.file))
+    if "ref" in cols:
+        entry["loop"] = "closed"
+        entry["controller"] = _controller(cols, Ts, opts, remark).to_dict()
     return cols, {"entry": entry, "form": table.form, "notes": notes}
+
+
+def _theta_sensor(theta: Channel, opts: ImportOptions, file: str) -> dict[str, Any]:
+    """The manifest's ``theta_sensor`` (and ``counts_per_rev``) of a record: an encoder when said or when theta is
+    in counts."""
+    sensor = opts.theta_sensor or ("encoder" if theta.unit == "counts" else "pot")
+    if sensor not in THETA_SENSORS:
+        raise DataError(f"--theta-sensor {sensor!r}: use {' or '.join(THETA_SENSORS)}")
+    if sensor == "pot":
+        return {}
+    if not opts.counts_per_rev:
+        raise DataError(f"{file}: an encoder theta needs --counts-per-rev (e.g. 4096)")
+    return {"theta_sensor": "encoder", "counts_per_rev": float(opts.counts_per_rev)}
+
+
+def _controller(cols: dict[str, np.ndarray], Ts: float, opts: ImportOptions, remark: Note) -> Controller:
+    """A closed-loop record's controller: the one given, or identified from it (both kinds, the better R^2)."""
+    if opts.controller is not None:
+        return opts.controller
+    ref, th, al = (np.radians(cols[k]) for k in ("ref", "theta", "alpha"))
+    try:
+        found = [identify_controller(ref, th, al, cols["u"], Ts, kind) for kind in KINDS]
+    except ValueError as e:
+        raise DataError(f"closed-loop record: {e}") from None
+    best = max(found, key=lambda c: c.r2 or -math.inf)
+    gains = ", ".join(f"{v:.4g}" for v in best.K) if best.kind == "state_feedback" else (
+        f"kp {best.kp:.4g}, ki {best.ki:.4g}, kd {best.kd:.4g}")  # fmt: skip
+    remark(f"controller identified from the record: {best.kind} ({gains}), velocity filter {best.cutoff:g} Hz, "
+           f"R^2 {best.r2:.3f}")  # fmt: skip
+    if (best.r2 or 0.0) < R2_MIN:
+        remark(f"R^2 {best.r2:.3f} < {R2_MIN}: this controller does not explain the logged command; the diagnosis "
+               "replays the record open loop by multiple shooting, not in closed loop")  # fmt: skip
+    return best
 
 
 # ----------------------------------------------------------------------------------------------- entry point
