@@ -39,7 +39,7 @@ SPEC_DIR = bundled_dir("specs")  # the bundled specs: harness/_specs in a wheel,
 
 CAMPAIGN_KEYS = {"name", "sample_rate", "seed", "internal_step", "description"}
 EXPERIMENT_KEYS = {"name", "signal", "duration", "plant", "daq", "role", "loop"}
-CONTROLLER_KEYS = {"kind", "K", "kp", "ki", "kd", "cutoff", "u_limit", "sample_rate"}
+CONTROLLER_KEYS = {"kind", "K", "kp", "ki", "kd", "cutoff", "u_limit", "sample_rate", "ref_delay"}
 LOOPS = ("open", "closed")
 COMB_PARAMS = {"deflections_cm", "D_cm", "hold", "ramp"}
 IDENTIFY_DEFAULTS: dict[str, Any] = {

@@ -37,7 +37,7 @@ from scipy.signal import savgol_filter
 from .. import spec as specmod
 from ..executor import FmuBytes
 from ..ident.calibration import Calibration, alpha_deg, daq_calibration, theta_deg
-from ..rig.controller import Controller
+from ..rig.controller import Controller, delayed
 from .experiments import CHANNELS, DEADBAND_GUARD, SHOOTING_SECONDS, RigExperiment
 from .result import ExperimentGap, GapSummary
 
@@ -120,8 +120,9 @@ def simulate(
     daq = {**setup.daq, **exp.daq, **d_over}
     plant.setdefault("theta_start", math.radians(float(exp.theta[0])))
     if exp.replay == "closed":
-        ctrl = Controller(**exp.controller).fmu_parameters(1.0 / exp.Ts)  # type: ignore[arg-type]
-        ref = np.radians(exp.ref[:n])  # type: ignore[index]
+        c = Controller(**exp.controller)  # type: ignore[arg-type]
+        ctrl = c.fmu_parameters(1.0 / exp.Ts)
+        ref = np.radians(delayed(exp.ref, c.ref_delay)[:n])  # type: ignore[arg-type]  # what the controller acted on
         res = rig.run_closed(ref, exp.Ts, ctrl, plant=plant, daq=daq, diverged="hold")
     elif exp.replay == "shooting":
         res = _shooting(rig, exp, plant, daq, n)

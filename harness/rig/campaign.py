@@ -27,6 +27,7 @@ from ..fmu.build import build_all, fmu_sha256
 from ..fmu.plant import PlantParams, mass_stiffness
 from ..rundir import ExperimentEntry, Manifest, RunDir, write_dataset
 from ..spec import Experiment, Spec
+from .controller import delayed
 from .signals import generate
 
 Progress = Callable[[str], None]
@@ -92,9 +93,12 @@ def simulate_experiment(rig: Any, spec: Spec, exp: Experiment) -> dict[str, np.n
     """Run one experiment of a spec on a loaded :class:`harness.fmu.cosim.Rig`; returns the dataset columns."""
     u, plant, daq, tau, comb = _experiment_inputs(spec, exp)
     if exp.loop == "closed":
-        ctrl = spec.controller.fmu_parameters(spec.sample_rate)  # type: ignore[union-attr]  # checked by the spec
-        res = rig.run_closed(np.radians(u), spec.Ts, ctrl, plant=plant, daq=daq)
-        return {k: res[k] for k in ("t", "u", "theta_v", "alpha_v", "theta", "alpha", "ref")}
+        c = spec.controller
+        if c is None:  # the spec refuses a closed-loop experiment without a [controller]
+            raise ValueError(f"experiment {exp.name!r} runs closed loop but the spec has no [controller] table")
+        ref = np.radians(delayed(u, c.ref_delay))  # what the controller acts on; the log has u, the reference [deg]
+        res = rig.run_closed(ref, spec.Ts, c.fmu_parameters(spec.sample_rate), plant=plant, daq=daq)
+        return {**{k: res[k] for k in ("t", "u", "theta_v", "alpha_v", "theta", "alpha")}, "ref": u}
     res = rig.run(u, spec.Ts, plant=plant, daq=daq, tau_tip=tau)
     cols = {k: res[k] for k in ("t", "u", "theta_v", "alpha_v", "theta", "alpha")}
     if tau is not None:

@@ -11,9 +11,11 @@ measured angles. Two kinds, as lab controllers are written:
 
 Velocities are filtered differences, as lab controllers compute them: v_k = a v_{k-1} + (1 - a) (x_k - x_{k-1})
 / Ts with a = exp(-2 pi cutoff Ts) and v_0 = 0 (a first-order low-pass at ``cutoff`` [Hz] on the backward
-difference). The output is clamped to +-``u_limit`` [V] (0: no limit). Angles enter in volts, as the DAQ reads
-them, and are converted with the controller's own calibration: theta [deg] = theta_gain (theta_v - theta_offset),
-alpha [deg] = alpha_gain (alpha_v - alpha_offset).
+difference). The output is clamped to +-``u_limit`` [V] (0: no limit). A record may log its reference ahead of the
+command that used it (a lab's logger and controller in different loops): ``ref_delay`` samples, the controller then
+acting on ref_(k - ref_delay); the co-simulation feeds the controller FMU the reference so delayed. Angles enter in
+volts, as the DAQ reads them, and are converted with the controller's own calibration: theta [deg] = theta_gain
+(theta_v - theta_offset), alpha [deg] = alpha_gain (alpha_v - alpha_offset).
 
 :func:`law` is the same computation in numpy: the controller FMU's test oracle, and what identifies a controller
 from a record.
@@ -30,8 +32,10 @@ import numpy as np
 __all__ = [
     "CUTOFFS",
     "KINDS",
+    "MAX_REF_DELAY_S",
     "R2_MIN",
     "Controller",
+    "delayed",
     "filtered_rate",
     "identify_controller",
     "law",
@@ -46,7 +50,8 @@ KINDS = {"state_feedback": 1, "pid": 2}  # kind name -> the FMU's Integer parame
 class Controller:
     """A controller as a spec or a record names it. ``K`` (state feedback) or ``kp``/``ki``/``kd`` (PID) as in
     the module docstring; ``cutoff`` [Hz] of the velocity filter; ``u_limit`` [V] (0: none); ``sample_rate``
-    [Hz] (None: the data's); ``source`` "spec", "given" or "identified" (then ``r2`` of the least-squares fit
+    [Hz] (None: the data's); ``ref_delay`` [samples] of the reference it acts on behind the logged one; ``source``
+    "spec", "given" or "identified" (then ``r2`` of the least-squares fit
     of the logged command)."""
 
     kind: str = "state_feedback"
@@ -57,6 +62,7 @@ class Controller:
     cutoff: float = 50.0
     u_limit: float = 0.0
     sample_rate: float | None = None
+    ref_delay: int = 0
     source: str = "spec"
     r2: float | None = None
 
@@ -72,6 +78,8 @@ class Controller:
             raise ValueError(f"controller cutoff must be > 0 Hz, got {self.cutoff}")
         if self.u_limit < 0:
             raise ValueError(f"controller u_limit must be >= 0 V (0: none), got {self.u_limit}")
+        if int(self.ref_delay) != self.ref_delay or self.ref_delay < 0:
+            raise ValueError(f"controller ref_delay must be a whole number of samples >= 0, got {self.ref_delay}")
 
     def fmu_parameters(self, sample_rate: float) -> dict[str, Any]:
         """Parameters of the controller FMU (fmus/controller) at ``sample_rate`` [Hz] unless the controller
@@ -96,6 +104,13 @@ class Controller:
         return {k: v for k, v in asdict(self).items() if v is not None}
 
 
+def delayed(ref: np.ndarray, n: int) -> np.ndarray:
+    """``ref`` delayed by ``n`` samples, its first value held before it."""
+    ref = np.asarray(ref, dtype=float)
+    n = int(n)
+    return ref.copy() if n <= 0 else np.concatenate([np.full(min(n, ref.size), ref[0]), ref[: max(ref.size - n, 0)]])
+
+
 def filtered_rate(x: np.ndarray, Ts: float, cutoff: float) -> np.ndarray:
     """Velocity of samples ``x`` at ``Ts`` [s] as a lab controller computes it: the backward difference through a
     first-order low-pass at ``cutoff`` [Hz], v_0 = 0 (units of x per second)."""
@@ -115,6 +130,7 @@ def law(c: Controller, ref: np.ndarray, theta: np.ndarray, alpha: np.ndarray, Ts
     """The command u [V] a controller computes at every sample from the reference and the measured angles, all in
     rad at ``Ts`` [s] (the controller FMU's computation, in numpy)."""
     ref, theta, alpha = (np.asarray(v, dtype=float) for v in (ref, theta, alpha))
+    ref = delayed(ref, c.ref_delay)
     th_dot = filtered_rate(theta, Ts, c.cutoff)
     lim = c.u_limit if c.u_limit > 0 else math.inf
     if c.kind == "state_feedback":
@@ -134,6 +150,7 @@ def law(c: Controller, ref: np.ndarray, theta: np.ndarray, alpha: np.ndarray, Ts
 
 R2_MIN = 0.9  # below this R^2 an identified controller is not trusted for a closed-loop replay
 CUTOFFS = (5.0, 10.0, 15.0, 25.0, 50.0, 100.0)  # Hz: velocity-filter cutoffs tried when identifying a controller
+MAX_REF_DELAY_S = 0.02  # s: reference delays tried when identifying a controller, up to this
 
 
 def _regressors(kind: str, ref: np.ndarray, theta: np.ndarray, alpha: np.ndarray, Ts: float, cutoff: float):
@@ -163,11 +180,13 @@ def identify_controller(
     Ts: float,
     kind: str = "state_feedback",
     cutoff: float | None = None,
+    ref_delay: int | None = None,
 ) -> Controller:
     """The controller that computed a record's command: least squares of ``u`` [V] on the regressors of ``kind``
     from ``ref``, ``theta``, ``alpha`` [rad] at ``Ts`` [s], over the samples where u is not at its clamp (see
-    :func:`output_limit`); the velocity-filter ``cutoff`` [Hz] given, or the one of :data:`CUTOFFS` (below Nyquist)
-    with the best R^2. Returns it with ``source="identified"`` and that ``r2``."""
+    :func:`output_limit`); the velocity-filter ``cutoff`` [Hz] and the reference's delay ``ref_delay``
+    [samples] given, or those of :data:`CUTOFFS` (below Nyquist) and 0..MAX_REF_DELAY_S with the best R^2. Returns
+    it with ``source="identified"`` and that ``r2``."""
     if kind not in KINDS:
         raise ValueError(f"controller kind {kind!r} unknown; valid: {', '.join(KINDS)}")
     ref, theta, alpha, u = (np.asarray(v, dtype=float) for v in (ref, theta, alpha, u))
@@ -180,19 +199,26 @@ def identify_controller(
         raise ValueError("the command does not move: no controller can be identified from it")
     nyquist = 0.5 / Ts
     tried = [cutoff] if cutoff is not None else [c for c in CUTOFFS if c < nyquist] or [0.5 * nyquist]
-    best: tuple[float, float, np.ndarray] | None = None
+    delays = range(0, int(round(MAX_REF_DELAY_S / Ts)) + 1) if ref_delay is None else [ref_delay]
+    best: tuple[float, float, int, np.ndarray] | None = None
     for c in tried:
-        X = _regressors(kind, ref, theta, alpha, Ts, c)[free]
-        k, *_ = np.linalg.lstsq(X, u[free], rcond=None)
-        r2 = 1.0 - float(np.sum((u[free] - X @ k) ** 2)) / sst
-        if best is None or r2 > best[0]:
-            best = (r2, c, k)
-    r2, c, k = best  # type: ignore[misc]
+        X0 = _regressors(kind, ref, theta, alpha, Ts, c)  # the states' columns do not depend on the delay
+        for dly in delays:
+            X = X0.copy()
+            X[:, 0] = e = delayed(ref, dly) - theta
+            if kind == "pid":
+                X[:, 1] = np.concatenate([[0.0], np.cumsum(e[:-1]) * Ts])
+            X = X[free]
+            k, *_ = np.linalg.lstsq(X, u[free], rcond=None)
+            r2 = 1.0 - float(np.sum((u[free] - X @ k) ** 2)) / sst
+            if best is None or r2 > best[0]:
+                best = (r2, c, dly, k)
+    r2, c, dly, k = best  # type: ignore[misc]
     gains = [float(v) for v in k]
+    common = {"cutoff": c, "u_limit": lim, "ref_delay": dly, "source": "identified", "r2": r2}
     if kind == "state_feedback":
-        return Controller(K=gains, cutoff=c, u_limit=lim, source="identified", r2=r2)
-    return Controller(kind="pid", kp=gains[0], ki=gains[1], kd=gains[2], cutoff=c, u_limit=lim, source="identified",
-                      r2=r2)  # fmt: skip
+        return Controller(K=gains, **common)
+    return Controller(kind="pid", kp=gains[0], ki=gains[1], kd=gains[2], **common)
 
 
 def parse_controller(text: str) -> Controller:
@@ -203,7 +229,8 @@ def parse_controller(text: str) -> Controller:
     if not sep or kind not in KINDS:
         raise ValueError(f"--controller {text!r}: expected KIND:NAME=VALUE;... with KIND one of {', '.join(KINDS)}, "
                          "e.g. state_feedback:K=9.2,-18.8,1.2,0;cutoff=15")  # fmt: skip
-    names = {"state_feedback": ("K", "cutoff", "u_limit"), "pid": ("kp", "ki", "kd", "cutoff", "u_limit")}[kind]
+    names = {"state_feedback": ("K", "cutoff", "u_limit", "ref_delay"),
+             "pid": ("kp", "ki", "kd", "cutoff", "u_limit", "ref_delay")}[kind]  # fmt: skip
     args: dict[str, Any] = {"kind": kind, "source": "given"}
     for item in [s for s in rest.split(";") if s.strip()]:
         name, eq, value = (p.strip() for p in item.partition("="))
@@ -213,7 +240,7 @@ def parse_controller(text: str) -> Controller:
             nums = [float(v) for v in value.split(",")]
         except ValueError:
             raise ValueError(f"--controller {text!r}: {name}={value!r} is not a number") from None
-        args[name] = nums if name == "K" else nums[0]
+        args[name] = nums if name == "K" else int(nums[0]) if name == "ref_delay" else nums[0]
         if (name == "K") != (len(nums) > 1) and name != "K":
             raise ValueError(f"--controller {text!r}: {name} takes one number")
     return Controller(**args)

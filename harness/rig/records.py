@@ -680,7 +680,7 @@ def _controller(cols: dict[str, np.ndarray], Ts: float, opts: ImportOptions, rem
     gains = ", ".join(f"{v:.4g}" for v in best.K) if best.kind == "state_feedback" else (
         f"kp {best.kp:.4g}, ki {best.ki:.4g}, kd {best.kd:.4g}")  # fmt: skip
     remark(f"controller identified from the record: {best.kind} ({gains}), velocity filter {best.cutoff:g} Hz, "
-           f"R^2 {best.r2:.3f}")  # fmt: skip
+           f"reference delay {best.ref_delay} sample(s), R^2 {best.r2:.3f}")  # fmt: skip
     if (best.r2 or 0.0) < R2_MIN:
         remark(f"R^2 {best.r2:.3f} < {R2_MIN}: this controller does not explain the logged command; the diagnosis "
                "replays the record open loop by multiple shooting, not in closed loop")  # fmt: skip
