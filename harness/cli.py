@@ -220,26 +220,41 @@ def campaign(
 def import_(
     files: Annotated[list[Path], typer.Argument(help="records: .csv/.txt/.tsv, .mat (v5, v7.3), .parquet")],
     out_dir: Annotated[Path, typer.Option("--out", help="run directory to write")],
-    columns: Annotated[str | None, typer.Option(help="column map, e.g. time=t,Vm=u,hub=theta,tip=alpha")] = None,
+    columns: Annotated[
+        str | None, typer.Option(help="column map, e.g. time=t,Vm=u,hub=theta,tip=alpha (tip=-alpha: opposite sign)")
+    ] = None,
     units: Annotated[str | None, typer.Option(help="units, e.g. theta=deg,alpha=rad,u=V,t=s")] = None,
     link_length: Annotated[float | None, typer.Option(help="link length in m (for tip deflections in m or mm)")] = None,
-    counts_per_rev: Annotated[float | None, typer.Option(help="encoder counts per revolution")] = None,
+    counts_per_rev: Annotated[
+        float | None, typer.Option(help="encoder counts per revolution (> 0): theta's step is 360/counts deg")
+    ] = None,
     kp: Annotated[float | None, typer.Option("--kp", help="pot gain Kp in deg/V of the lab's DAQ")] = None,
     ke: Annotated[float | None, typer.Option("--ke", help="gauge gain Ke in deg/V of the lab's DAQ")] = None,
     calibration: Annotated[Path | None, typer.Option(help="calibration.json to carry (Kp, Ke, offsets)")] = None,
     controller: Annotated[
         str | None,
         typer.Option(
-            help="controller of closed-loop records (a column mapped to ref): state_feedback:K=k1,k2,k3,k4;cutoff=HZ;"
-            "u_limit=V or pid:kp=..;ki=..;kd=..;cutoff=HZ (default: identified from the record, with its R^2)"
+            help="controller of closed-loop records (a column mapped to ref), KIND:NAME=VALUE;... in quotes: "
+            "'state_feedback:K=k_theta,k_alpha,k_theta_dot,k_alpha_dot;cutoff=HZ;u_limit=V' (V/rad, V s/rad; "
+            "u = K (x_ref - x)) or 'pid:kp=V/rad;ki=V/(rad s);kd=V s/rad;cutoff=HZ;u_limit=V'; also ref_delay="
+            "SAMPLES, alpha_bias=DEG; cutoff: velocity filter (default 50 Hz), u_limit 0: none. Default: identified "
+            "from the record by least squares, with its R^2 (below 0.9: a warning, no closed-loop replay)"
         ),
     ] = None,
     theta_sensor: Annotated[
-        str | None, typer.Option(help="pot or encoder (default: encoder when theta is in counts, else pot)")
+        str | None,
+        typer.Option(
+            help="theta's sensor: pot (default; wrap and dead band) or encoder (needs --counts-per-rev; default when "
+            "theta is in counts)"
+        ),
     ] = None,
+    zero_alpha: Annotated[
+        bool, typer.Option(help="zero the deflection on each record's first 0.1 s at rest (the gauge's zero)")
+    ] = False,
 ) -> None:
     """Bring real records into a run directory: data/<name>.parquet, calibration.json, manifest.json. A column
-    mapped to ref (--columns theta_ref_deg=ref) makes a record closed loop, its controller given or identified."""
+    mapped to ref (--columns theta_ref_deg=ref) makes a record closed loop, its controller given or identified.
+    Records of any rate >= 10 Hz, at least 2 s and 100 samples long (two folds)."""
     from .rig.controller import parse_controller
     from .rig.records import ImportOptions, calibration_option, import_records, parse_map
 
@@ -251,8 +266,12 @@ def import_(
         calibration=calibration_option(kp, ke, calibration),
         controller=parse_controller(controller) if controller else None,
         theta_sensor=theta_sensor,
+        zero_alpha=zero_alpha,
     )
-    note = lambda m: err.print(f"note: {m}", markup=False, soft_wrap=True)  # noqa: E731
+
+    def note(m: str) -> None:
+        err.print(m if m.startswith("warning: ") else f"note: {m}", markup=False, soft_wrap=True)
+
     written = import_records(files, out_dir, opts, note=note)
     out.print(f"imported {len(written)} dataset(s) -> {out_dir}")
 
@@ -450,6 +469,9 @@ def diagnosis_summary(d: Diagnosis) -> str:
     lines.append(
         f"gap: fit {d.gap.before.fit_pct:.2f} % -> {d.gap.after.fit_pct:.2f} %, total shrink {d.gap.shrink_pct:.1f} %"
     )
+    lines += [f"caveat: {c}" for c in d.caveats or []]
+    replays = sorted({(r["replay"], r["reason"]) for r in (d.replays or {}).values()})
+    lines += [f"replay: {kind} ({why})" for kind, why in replays]
     return "\n".join(lines)
 
 

@@ -121,7 +121,7 @@ def test_encoder_theta(closed_csv, tmp_path):
     "text, msg",
     [
         ("lqr:K=1,2,3,4", r"expected KIND:NAME=VALUE;\.\.\. with KIND one of state_feedback, pid"),
-        ("pid:kp=1;gain=2", r"'gain' is not a pid setting; valid: kp, ki, kd, cutoff, u_limit"),
+        ("pid:kp=1;gain=2", r"'gain' is not a pid setting; valid: kp, ki, kd, cutoff, u_limit, ref_delay, alpha_bias"),
         ("pid:kp=x", r"kp='x' is not a number"),
         ("state_feedback:K=1,2", r"controller K must have 4 gains"),
     ],

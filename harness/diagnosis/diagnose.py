@@ -51,9 +51,9 @@ from ..ident.calibration import load_calibration
 from ..rundir import RunDir, write_json
 from . import recalibrate as recal
 from .effects import CandidateContext, candidates
-from .experiments import REPLAYS, load_experiments, masked_share, split_folds
+from .experiments import REPLAYS, RigExperiment, load_experiments, masked_share, split_folds
 from .noise import noise_floor, noise_mean_squared_gap
-from .result import Diagnosis, Folds, NoiseFloor, SensorCalibration, Thresholds
+from .result import Diagnosis, FittedParameter, Folds, NoiseFloor, SensorCalibration, Thresholds
 from .search import EXPLAINED, GAP_RESOLUTION, MIN_CLOSURE, NONE_RATIO, search
 from .simulation import Setup, fit_pct, fmu_value, loop_noise_gap, sim_rig
 from .tasks import Pool
@@ -92,6 +92,21 @@ def _with_loop_noise(setup: Setup, noise: NoiseFloor, e_noise: float) -> tuple[N
     e = max(e_noise, float(np.mean(per)))
     method = noise.method + "; closed-loop replays: with the noise their controller fed back, by simulation"
     return replace(noise, gap=math.sqrt(e), fit_pct=fit_pct(e), method=method), e
+
+
+def _replays(experiments: dict[str, RigExperiment]) -> dict[str, dict[str, str]] | None:
+    """Per experiment its replay and why, when any experiment was not replayed open loop as logged."""
+    if all(x.replay == "open" for x in experiments.values()):
+        return None
+    return {n: {"replay": x.replay, "reason": x.replay_reason} for n, x in experiments.items()}
+
+
+def _caveats(parameters: dict[str, FittedParameter], verdict: str) -> list[str] | None:
+    """What limits the verdict: each recalibrated parameter that ended at its bound (the spec may not describe the
+    rig, so an effect's share of the gap may be a wrong linear part's), each one the data do not determine."""
+    out = [f"verdict {verdict!r} reached with {p.finding}" for p in parameters.values() if p.at_bound]
+    out += [f"{p.finding}" for p in parameters.values() if p.identifiable is False and p.finding]
+    return out or None
 
 
 def diagnose_run(
@@ -160,6 +175,8 @@ def diagnose_run(
         noise_floor=noise,
         thresholds=THRESHOLDS,
         where=where,
+        replays=_replays(experiments),
+        caveats=_caveats(found.parameters, found.verdict),
     ).rounded()
     diagnosis.write(RunDir(dest).diagnosis)
     timing = time.perf_counter() - t0

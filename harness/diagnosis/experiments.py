@@ -58,7 +58,8 @@ class RigExperiment:
     campaign experiment, for its BLA; None otherwise) and ``valid`` per channel (samples that measure the
     shaft). A closed-loop record has its reference ``ref`` [deg] and ``controller`` (a
     :class:`harness.rig.controller.Controller` as a dict); ``replay`` says how it is re-simulated (:data:`REPLAYS`)
-    and ``replay_reason`` why; ``encoder``: theta was read by an encoder (no pot wrap or dead band). The fit
+    and ``replay_reason`` why; ``encoder``: theta was read by an encoder (no pot wrap or dead band);
+    ``lattice_deg``: the angle step [deg] per channel a record was written on (from its import). The fit
     window (first FIT_SECONDS) and the screening window (first SCREEN_SECONDS) have their own sample counts and
     sums of squares."""
 
@@ -87,6 +88,7 @@ class RigExperiment:
     replay: str = "open"
     replay_reason: str = "an open-loop experiment: its command replayed as logged"
     encoder: bool = False
+    lattice_deg: dict[str, float] | None = None
 
     def __post_init__(self) -> None:
         self.n_fit = min(self.u.size, max(16, int(round(FIT_SECONDS / self.Ts))))
@@ -216,6 +218,7 @@ def load_experiments(
             period=command_period(u, hint),
             role=e.role,
             encoder=e.theta_sensor == "encoder",
+            lattice_deg=e.lattice_deg,
         )
         _loop(x, e, df, replay)
         if x.encoder and e.counts_per_rev:

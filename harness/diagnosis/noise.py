@@ -137,7 +137,9 @@ def noise_mean_squared_gap(experiments: dict[str, RigExperiment], sigma: dict[st
 
 def noise_floor(experiments: dict[str, RigExperiment], adc_range: float, cal: Calibration) -> tuple[NoiseFloor, float]:
     """The noise floor of the data (:func:`noise_sigma`, plus the ADC's LSB^2 / 12 through Kp and Ke when the
-    volts sit on a lattice of an ADC of ``adc_range`` [V]) and its mean squared gap over every experiment."""
+    volts sit on a lattice of an ADC of ``adc_range`` [V], plus step^2 / 12 of a record written on an angle
+    lattice, its encoder's counts or its last decimal: ``RigExperiment.lattice_deg``) and its mean squared gap
+    over every experiment."""
     sigma = noise_sigma(experiments)
     bits = adc_lattice(experiments, adc_range)
     estimated = None
@@ -147,6 +149,12 @@ def noise_floor(experiments: dict[str, RigExperiment], adc_range: float, cal: Ca
         sigma["theta_deg"] = math.sqrt(sigma["theta_deg"] ** 2 + (cal.Kp * lsb) ** 2 / 12.0)
         sigma["alpha_deg"] = math.sqrt(sigma["alpha_deg"] ** 2 + (cal.Ke * lsb) ** 2 / 12.0)
         sigma["method"] += " + ADC quantisation variance LSB^2 / 12"
+    steps = {c: max((x.lattice_deg or {}).get(c, 0.0) for x in experiments.values()) for c in CHANNELS}
+    if any(steps.values()):  # a record written on an angle lattice: third differences of its steps are mostly 0
+        estimated = estimated or {"theta": sigma["theta_deg"], "alpha": sigma["alpha_deg"]}
+        for c in CHANNELS:
+            sigma[f"{c}_deg"] = math.sqrt(sigma[f"{c}_deg"] ** 2 + steps[c] ** 2 / 12.0)
+        sigma["method"] += " + the record's angle step^2 / 12"
     rms = {"theta": sigma["theta_deg"], "alpha": sigma["alpha_deg"]}
     e_noise = noise_mean_squared_gap(experiments, rms, list(experiments))
     floor = NoiseFloor(

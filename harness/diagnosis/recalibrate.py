@@ -122,12 +122,45 @@ def fit(
     return Fit({n: values[n] for n in names}, ci, float(2.0 * res.cost), int(res.nfev), n_eff)
 
 
+AT_BOUND = 0.02  # a fitted factor within 2 % (in log) of a bound sits at it
+UNIDENTIFIABLE = 100.0  # a 95 % interval wider than this factor (hi / lo) says the data do not determine it
+
+
+def at_bound(name: str, nominal: float, fitted: float) -> str | None:
+    """ "lower" or "upper" when ``fitted`` ends at (within AT_BOUND of) the bound of :data:`LINEAR`, else None."""
+    b = LINEAR.get(name)
+    if b is None or not nominal:
+        return None
+    lo, hi = _x_bounds(b)
+    x = _to_x(fitted, nominal, b)
+    if x <= lo + AT_BOUND * (1.0 if b.log else abs(lo) or 1.0):
+        return "lower"
+    if x >= hi - AT_BOUND * (1.0 if b.log else abs(hi) or 1.0):
+        return "upper"
+    return None
+
+
+def identifiable(ci95: tuple[float, float]) -> bool:
+    """False when the 95 % interval of a positive parameter spans more than UNIDENTIFIABLE (or reaches 0)."""
+    lo, hi = ci95
+    return lo > 0 and hi / lo <= UNIDENTIFIABLE
+
+
 def finding(name: str, nominal: float, fitted: float, ci95: tuple[float, float]) -> str:
     """One sentence a lab report would print: "the link stiffness is 15 % higher than the spec (1.3 -> 1.5 N
-    m/rad)", or "matches the spec" when the spec's value lies inside the 95 % interval or within 3 %."""
+    m/rad)", or "matches the spec" when the spec's value lies inside the 95 % interval or within 3 %; "at its upper
+    bound (1.6x the spec): the spec may not describe this rig" when the fit ended at a bound of :data:`LINEAR`;
+    "not identifiable from these data" when its interval spans more than UNIDENTIFIABLE."""
     b = LINEAR.get(name)
     label = b.label if b else name
     unit = f" {b.unit}" if b and b.unit != "1" else ""
+    side = at_bound(name, nominal, fitted)
+    if side is not None:
+        return (f"{label} at its {side} bound ({fitted / nominal:.2g}x the spec: {nominal:.4g} -> {fitted:.4g}{unit}): "
+                "the spec may not describe this rig")  # fmt: skip
+    if not identifiable(ci95):
+        return (f"{label} is not identifiable from these data (fitted {fitted:.4g}{unit}, 95 % interval "
+                f"{ci95[0]:.3g}..{ci95[1]:.3g}; spec {nominal:.4g})")  # fmt: skip
     change = 100.0 * (fitted / nominal - 1.0) if nominal else math.nan
     if (ci95[0] <= nominal <= ci95[1]) or abs(change) < 3.0:
         return f"{label} matches the spec ({nominal:.4g}{unit}, fitted {fitted:.4g})"

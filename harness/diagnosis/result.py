@@ -81,7 +81,9 @@ class FittedParameter:
     secondary parameter freed with one (backlash's ``plant.Jm_share``). ``nominal``: the simulation's value,
     ``fitted`` on every experiment's fit window, ``ci95`` its 95 % interval, ``change_pct`` = 100 (fitted /
     nominal - 1) for the linear parameters (NaN otherwise), ``unit``, ``finding``: one sentence (linear and
-    secondary parameters; None for an effect's own parameter)."""
+    secondary parameters; None for an effect's own parameter); for the linear ones ``at_bound`` ("lower", "upper"
+    or None: the fit ended at its search bound) and ``identifiable`` (False: the 95 % interval spans more than a
+    factor 100; left out otherwise)."""
 
     nominal: float
     fitted: float
@@ -89,11 +91,13 @@ class FittedParameter:
     change_pct: float
     unit: str
     finding: str | None = None
+    at_bound: str | None = None
+    identifiable: bool | None = None
 
     @property
     def off_spec(self) -> bool:
-        """A linear finding that the rig differs from the spec (not "matches the spec")."""
-        return self.finding is not None and "matches" not in self.finding
+        """A linear finding that the rig differs from the spec (not "matches the spec", not unidentifiable)."""
+        return self.finding is not None and "matches" not in self.finding and self.identifiable is not False
 
 
 @dataclass
@@ -262,7 +266,10 @@ class Diagnosis:
     """``diagnosis.json``: the verdict ("none", "unexplained", "quantization" or an effect's name), the effects
     found, the candidates, the parameter table, the gap and its decomposition, the noise floor, the folds, the
     thresholds, where the gap lies (``where``, plain JSON) and every round of the selection (``rounds``); ``real``:
-    the run directory of the data relative to the file's directory; ``sim_spec`` and its file name."""
+    the run directory of the data relative to the file's directory; ``sim_spec`` and its file name; ``replays``:
+    per experiment how it was re-simulated and why (when any was not an open-loop replay of its command);
+    ``caveats``: what limits the verdict (a recalibrated parameter at its bound: the spec may not describe the rig),
+    left out when there is none."""
 
     calibration: SensorCalibration
     candidates: list[Candidate]
@@ -279,6 +286,8 @@ class Diagnosis:
     thresholds: Thresholds
     verdict: str
     where: dict[str, Any]
+    replays: dict[str, dict[str, str]] | None = None
+    caveats: list[str] | None = None
 
     @classmethod
     def load(cls, path: str | os.PathLike[str]) -> Diagnosis:

@@ -337,6 +337,8 @@ def final_params(
             row.change_pct = 100.0 * (val / nom - 1.0)
             row.unit = recal.LINEAR[prm].unit
             row.finding = recal.finding(prm, nom, val, ci)
+            row.at_bound = recal.at_bound(prm, nom, val)
+            row.identifiable = None if recal.identifiable(ci) else False
         elif prm in SECONDARY:
             row.unit = SECONDARY[prm].unit
             row.finding = f"{SECONDARY[prm].label}: {val:.3g} (spec {nom:.3g})"

@@ -159,7 +159,8 @@ class Rig:
         """Run one closed-loop experiment: the shaft angle tracks ``ref`` [rad per sample at ``Ts`` s] under the
         controller FMU with parameters ``controller`` (:meth:`harness.rig.controller.Controller.fmu_parameters`; its
         angle calibration theta_gain/theta_offset/alpha_gain/alpha_offset defaults to the DAQ's pot and gauge
-        parameters, the lab's own calibration of its rig).
+        parameters, the lab's own calibration of its rig; an ``alpha_bias`` [deg] is the zero error of the deflection
+        the controller reads, folded into its alpha_offset).
 
         Returns the keys of :meth:`run` (``u`` the controller's command [V]) plus ``ref`` [deg]. When the loop
         diverges (the link deflects more than DIVERGED_ALPHA_DEG or the shaft strays more than half a turn from the
@@ -177,6 +178,8 @@ class Rig:
         dq_start = self.daq.description.variables
         ctrl_params = {k: float(daq_params.get(v, dq_start[v].start)) for k, v in CALIBRATION.items()}
         ctrl_params |= {"sample_rate": 1.0 / Ts, **controller}
+        bias = float(ctrl_params.pop("alpha_bias", 0.0))  # deg the controller reads on top of alpha: its zero error
+        ctrl_params["alpha_offset"] -= bias / ctrl_params["alpha_gain"]
         pl, dq, ct = self.plant, self.daq, self.controller
         pl.initialize(plant or {}, stop)
         dq.initialize(daq_params, stop)

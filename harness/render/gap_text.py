@@ -78,6 +78,12 @@ def _verdict_lines(diag: Diagnosis) -> list[str]:
     findings = diag.off_spec_findings()
     if findings:
         lines += ["Linear findings: " + "; ".join(findings) + ".", ""]
+    if diag.caveats:
+        lines += ["Caveats:", "", *[f"- {c}" for c in diag.caveats], ""]
+    if diag.replays:
+        lines += ["How each experiment was re-simulated:", ""]
+        lines += [f"- `{n}`: {r['replay']} ({r['reason']})" for n, r in diag.replays.items()]
+        lines += [""]
     return lines
 
 

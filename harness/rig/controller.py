@@ -50,7 +50,8 @@ KINDS = {"state_feedback": 1, "pid": 2}  # kind name -> the FMU's Integer parame
 class Controller:
     """A controller as a spec or a record names it. ``K`` (state feedback) or ``kp``/``ki``/``kd`` (PID) as in
     the module docstring; ``cutoff`` [Hz] of the velocity filter; ``u_limit`` [V] (0: none); ``sample_rate``
-    [Hz] (None: the data's); ``ref_delay`` [samples] of the reference it acts on behind the logged one; ``source``
+    [Hz] (None: the data's); ``ref_delay`` [samples] of the reference it acts on behind the logged one; ``alpha_bias``
+    [deg] the zero error of the deflection it reads (a record's gauge offset, removed from its data); ``source``
     "spec", "given" or "identified" (then ``r2`` of the least-squares fit
     of the logged command)."""
 
@@ -63,6 +64,7 @@ class Controller:
     u_limit: float = 0.0
     sample_rate: float | None = None
     ref_delay: int = 0
+    alpha_bias: float = 0.0
     source: str = "spec"
     r2: float | None = None
 
@@ -71,7 +73,7 @@ class Controller:
             raise ValueError(f"controller kind {self.kind!r} unknown; valid: {', '.join(KINDS)}")
         if len(self.K) != 4:
             raise ValueError(f"controller K must have 4 gains (theta, alpha, theta_dot, alpha_dot), got {len(self.K)}")
-        vals = [*self.K, self.kp, self.ki, self.kd, self.cutoff, self.u_limit]
+        vals = [*self.K, self.kp, self.ki, self.kd, self.cutoff, self.u_limit, self.alpha_bias]
         if not all(math.isfinite(float(v)) for v in vals):
             raise ValueError("controller gains, cutoff and u_limit must be finite numbers")
         if not self.cutoff > 0:
@@ -83,7 +85,8 @@ class Controller:
 
     def fmu_parameters(self, sample_rate: float) -> dict[str, Any]:
         """Parameters of the controller FMU (fmus/controller) at ``sample_rate`` [Hz] unless the controller
-        has its own; the angle calibration (theta_gain ...) is the caller's to add."""
+        has its own; the angle calibration (theta_gain ...) is the caller's to add, and with it ``alpha_bias`` (returned
+        as such: :meth:`harness.fmu.cosim.Rig.run_closed` turns it into the FMU's alpha_offset)."""
         k = [float(v) for v in self.K]
         return {
             "kind": KINDS[self.kind],
@@ -97,6 +100,7 @@ class Controller:
             "kd": float(self.kd),
             "cutoff": float(self.cutoff),
             "u_limit": float(self.u_limit),
+            "alpha_bias": float(self.alpha_bias),
         }
 
     def to_dict(self) -> dict[str, Any]:
@@ -131,6 +135,7 @@ def law(c: Controller, ref: np.ndarray, theta: np.ndarray, alpha: np.ndarray, Ts
     rad at ``Ts`` [s] (the controller FMU's computation, in numpy)."""
     ref, theta, alpha = (np.asarray(v, dtype=float) for v in (ref, theta, alpha))
     ref = delayed(ref, c.ref_delay)
+    alpha = alpha + math.radians(c.alpha_bias)
     th_dot = filtered_rate(theta, Ts, c.cutoff)
     lim = c.u_limit if c.u_limit > 0 else math.inf
     if c.kind == "state_feedback":
@@ -229,8 +234,8 @@ def parse_controller(text: str) -> Controller:
     if not sep or kind not in KINDS:
         raise ValueError(f"--controller {text!r}: expected KIND:NAME=VALUE;... with KIND one of {', '.join(KINDS)}, "
                          "e.g. state_feedback:K=9.2,-18.8,1.2,0;cutoff=15")  # fmt: skip
-    names = {"state_feedback": ("K", "cutoff", "u_limit", "ref_delay"),
-             "pid": ("kp", "ki", "kd", "cutoff", "u_limit", "ref_delay")}[kind]  # fmt: skip
+    common = ("cutoff", "u_limit", "ref_delay", "alpha_bias")
+    names = {"state_feedback": ("K", *common), "pid": ("kp", "ki", "kd", *common)}[kind]
     args: dict[str, Any] = {"kind": kind, "source": "given"}
     for item in [s for s in rest.split(";") if s.strip()]:
         name, eq, value = (p.strip() for p in item.partition("="))
@@ -244,3 +249,17 @@ def parse_controller(text: str) -> Controller:
         if (name == "K") != (len(nums) > 1) and name != "K":
             raise ValueError(f"--controller {text!r}: {name} takes one number")
     return Controller(**args)
+
+
+def command_r2(c: Controller, ref: np.ndarray, theta: np.ndarray, alpha: np.ndarray, u: np.ndarray, Ts: float) -> float:
+    """R^2 of a logged command ``u`` [V] by controller ``c``'s :func:`law` on ``ref``, ``theta``, ``alpha`` [rad] at
+    ``Ts`` [s], over the samples where u is not at its clamp (:func:`output_limit`); NaN when u does not move there.
+    How well a given controller explains a record (an identified one carries its own ``r2``)."""
+    u = np.asarray(u, dtype=float)
+    lim = output_limit(u)
+    free = np.abs(u) < lim if lim > 0 else np.ones(u.size, dtype=bool)
+    sst = float(np.sum((u[free] - np.mean(u[free])) ** 2)) if free.any() else 0.0
+    if sst == 0.0:
+        return math.nan
+    resid = u[free] - law(c, ref, theta, alpha, Ts)[free]
+    return 1.0 - float(np.sum(resid**2)) / sst
