@@ -1,0 +1,62 @@
+"""Real closed-loop records nobody here made (tests/fixtures/real/, provenance in its README), imported as recorded
+and diagnosed against their own lab sheet (specs/cu_flexible_arm.toml)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from harness.diagnosis.diagnose import diagnose_run
+from harness.rig.records import ImportOptions, import_records
+from harness.rundir import Manifest
+
+REAL = Path(__file__).parent / "fixtures" / "real"
+CU = [REAL / "flexibleArm_test_3.txt", REAL / "flexibleArm_test_4.txt"]
+CU_IMPORT = ImportOptions(  # the fixture README's import command
+    columns={"0": "t", "1": "theta", "2": "-alpha", "5": "ref", "6": "u"},
+    units={"t": "ms", "theta": "rad", "alpha": "m", "ref": "rad"},
+    link_length=0.45,
+    zero_alpha=True,
+)
+
+
+@pytest.fixture(scope="module")
+def cu_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("cu") / "run"
+    notes: list[str] = []
+    import_records(CU, out, CU_IMPORT, note=notes.append)
+    return out, notes
+
+
+def test_cu_records_import_closed_loop_with_the_labs_controller(cu_run):
+    run, notes = cu_run
+    m = Manifest.load(run)
+    assert m.sample_rate == 1000.0 and [e.n for e in m.experiments] == [10000, 10000]
+    for e in m.experiments:
+        c = e.controller
+        assert e.loop == "closed" and c["source"] == "identified" and c["kind"] == "state_feedback"
+        assert c["r2"] > 0.95 and c["ref_delay"] == 7 and c["cutoff"] == 25.0  # the log leads the command 7 ms
+        # the lab logged K1 7.778 V/rad, |K2| 1.667 V/m x 0.45 m, K3 1.333 V s/rad, K4 1.333 V s/m x 0.45 m
+        np.testing.assert_allclose(c["K"][:3], [7.778, 0.750, 1.333], rtol=0.15)
+        assert -0.6 < c["K"][3] < -0.3  # the tip-rate gain: the log's 0.6 V s/rad, with the record's own filter
+        assert -4.5 < c["alpha_bias"] < -3.5  # the gauge read ~4 deg at rest (negated): zeroed, kept for the controller
+        assert e.lattice_deg["theta"] == pytest.approx(np.degrees(0.001))  # printed to 0.001 rad
+    assert sum("alpha zeroed" in n for n in notes) == 2
+
+
+def test_cu_records_diagnosed_against_their_lab_sheet(cu_run):
+    """Closed-loop replay through the identified controller; held-out fit >= 70 % after recalibration and the
+    effects; the linear parameters that end at their bounds are flagged and the verdict carries the caveat."""
+    run, _ = cu_run
+    d = diagnose_run(run, "cu_flexible_arm", workers=2)
+    assert {r["replay"] for r in d.replays.values()} == {"closed"}
+    assert d.folds.A != d.folds.B
+    dec = d.gap.decomposition
+    assert 100 * (1 - dec.before) < 50.0 < 100 * (1 - dec.after_recalibration) < 100 * (1 - dec.after_effects)
+    assert 100 * (1 - dec.after_effects) >= 70.0
+    assert d.noise_floor.fit_pct < 100.0  # the records' 0.001 steps are in the floor
+    bound = {k for k, p in d.parameters.items() if p.at_bound}
+    assert bound and all("at its upper bound" in d.parameters[k].finding for k in bound)
+    assert len(d.caveats) >= len(bound) and all("the spec may not describe this rig" in c for c in d.caveats)
