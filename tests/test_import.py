@@ -17,12 +17,20 @@ import numpy as np
 import pandas as pd
 import pytest
 import scipy.io
+from scipy.linalg import expm
 
 from harness import spec as specmod
 from harness.diagnosis.diagnose import diagnose_run
 from harness.ident.calibration import Calibration
 from harness.rig.campaign import run_campaign
-from harness.rig.records import ImportOptions, import_records
+from harness.rig.controller import (
+    R2_MIN,
+    Controller,
+    command_r2,
+    identify_controller,
+    law,
+)
+from harness.rig.records import MIN_RECORD_SECONDS, ImportOptions, import_records
 from harness.rundir import DataError, Manifest, read_dataset
 
 KP, KE, GAUGE_OFFSET = 35.5145, -3.3636, 0.0125  # the lab's DAQ calibration carried by every import here
@@ -86,7 +94,7 @@ def twins(tmp_path_factory, fmus):
     return {
         50: _twin(tmp / "r50", 50.0, 8.0, ("prbs_small", "square_small", "chirp_slow")),
         500: _twin(tmp / "r500", 500.0, 2.0, ("prbs_small", "square_small")),
-        1000: _twin(tmp / "r1000", 1000.0, 1.5, ("prbs_small", "square_small")),
+        1000: _twin(tmp / "r1000", 1000.0, 2.0, ("prbs_small", "square_small")),  # 2 s: two folds of 1 s
     }
 
 
@@ -261,7 +269,20 @@ def test_fast_records_reach_the_same_diagnosis(fast_rates, twins, rate):
     rec, ref = runs[rate]
     _same_data(rec, ref, list(twins[rate]))
     a, b = diag[rate]
-    _same_numbers(b, a)
+    if rate == 500:  # the counts record says its angle step (360/4096 deg), which joins its noise floor
+        step = 360.0 / CPR
+        est = a["noise_floor"]["estimated_deg"]["theta"]
+        assert a["noise_floor"]["theta_deg"] ** 2 == pytest.approx(est**2 + step**2 / 12.0, rel=1e-6)
+        # the floor moves what is measured against it (shares of the excess gap); the findings do not
+        assert (a["verdict"], [e["effect"] for e in a["effects"]]) == (
+            b["verdict"],
+            [e["effect"] for e in b["effects"]],
+        )
+        for k, p in a["parameters"].items():
+            assert p["fitted"] == pytest.approx(b["parameters"][k]["fitted"], rel=1e-3), k
+        assert a["gap"]["before"] == b["gap"]["before"]
+    else:
+        _same_numbers(b, a)
     m = Manifest.load(rec)
     assert m.sample_rate == float(rate)
     assert read_dataset(rec / "data" / "prbs_small.parquet")["t"].diff().median() == pytest.approx(1.0 / rate)
@@ -398,3 +419,305 @@ def test_calibration_options(tmp_path):
     assert (cal["Kp"], cal["Ke"], cal["gauge_offset_v"]) == (KP, KE, GAUGE_OFFSET)
     assert Manifest.load(tmp_path / "r").calibration == "given"
     assert not math.isnan(read_dataset(tmp_path / "r" / "data" / "a.parquet")["theta"].iloc[3])
+
+
+# ----------------------------------------------------------------------------------------------- closed loop
+K_SF = [14.1, -28.1, 1.7, 0.2]  # V/rad, V/rad, V s/rad, V s/rad: a lab's LQR-type state feedback
+SF = Controller(K=K_SF, cutoff=25.0, u_limit=5.0)
+
+
+def _plant(Ts: float) -> tuple[np.ndarray, np.ndarray]:
+    """The textbook SRV02 + flexible link (x = theta, alpha, theta_dot, alpha_dot [rad, rad/s]; u [V]), zero-order
+    hold at ``Ts`` [s]: an independent closed loop for the controller's law, no FMU."""
+    Rm, kt, Kg, eta, Jeq, Beq, Jl, Ks = 2.6, 7.68e-3, 70.0, 0.9 * 0.69, 2.08e-3, 0.004, 3.8e-3, 1.3
+    g, b = eta * Kg * kt / Rm, Beq + eta * Kg**2 * kt**2 / Rm
+    M = np.zeros((5, 5))
+    M[0, 2] = M[1, 3] = 1.0
+    M[2, :5] = [0.0, Ks / Jeq, -b / Jeq, 0.0, g / Jeq]
+    M[3, :5] = [0.0, -Ks / Jeq - Ks / Jl, b / Jeq, 0.0, -g / Jeq]
+    E = expm(M * Ts)
+    return E[:4, :4], E[:4, 4]
+
+
+def _closed_loop(c: Controller, rate: float, seconds: float, offset_deg: float = 0.0, seed: int = 0):
+    """A closed-loop record as a lab takes it: a +-30 deg square reference (around ``offset_deg``), theta on a 4096
+    count encoder, alpha with 0.02 deg gauge noise, the command computed sample by sample by ``c`` from what was
+    measured. Returns t [s], ref, theta, alpha [rad], u [V]."""
+    Ts = 1.0 / rate
+    n = int(round(seconds * rate))
+    Ad, Bd = _plant(Ts)
+    t = np.arange(n) * Ts
+    ref = np.radians(offset_deg + np.where(t % 2.0 < 1.0, 30.0, -30.0) * (t >= 0.25))
+    rng = np.random.default_rng(seed)
+    step = 2 * math.pi / CPR
+    a = math.exp(-2 * math.pi * c.cutoff * Ts)
+    x = np.array([math.radians(offset_deg), 0.0, 0.0, 0.0])
+    th, al, u = np.empty(n), np.empty(n), np.empty(n)
+    vt = va = integral = 0.0
+    for k in range(n):
+        th[k] = np.round(x[0] / step) * step
+        al[k] = x[1] + math.radians(0.02) * rng.standard_normal()
+        if k:
+            vt = a * vt + (1 - a) * (th[k] - th[k - 1]) / Ts
+            va = a * va + (1 - a) * (al[k] - al[k - 1]) / Ts
+        e = ref[k] - th[k]
+        if c.kind == "state_feedback":
+            raw = c.K[0] * e - c.K[1] * al[k] - c.K[2] * vt - c.K[3] * va
+        else:
+            raw = c.kp * e + c.ki * integral - c.kd * vt
+        u[k] = min(max(raw, -c.u_limit), c.u_limit)
+        if u[k] == raw:
+            integral += Ts * e
+        x = Ad @ x + Bd * u[k]
+    return t, ref, th, al, u
+
+
+@pytest.mark.parametrize("rate", [500, 1000])
+def test_identify_controller_recovers_the_law_from_a_noisy_closed_loop_record(rate):
+    """A record the law itself made in closed loop (it is :func:`law` to the last bit), then logged with 0.02 V of
+    noise and clamped at 5 V, printed to 0.01 V: gains within 1.5 %, the filter, the clamp, R^2 > 0.999 (plain least
+    squares that keeps the noisy samples next to the clamp loses half the gains, and its R^2 still passes R2_MIN)."""
+    Ts = 1.0 / rate
+    t, ref, th, al, u = _closed_loop(SF, rate, 4.0)
+    np.testing.assert_allclose(law(SF, ref, th, al, Ts), u, rtol=0, atol=1e-12)
+    assert 0.01 < np.mean(np.abs(u) == 5.0) < 0.05  # the steps saturate the command
+    rng = np.random.default_rng(1)
+    logged = np.round(np.clip(u + 0.02 * rng.standard_normal(u.size), -5.0, 5.0), 2)
+    c = identify_controller(ref, th, al, logged, Ts)
+    np.testing.assert_allclose(c.K, K_SF, rtol=0.015)
+    assert (c.kind, c.cutoff, c.u_limit, c.ref_delay, c.source) == ("state_feedback", 25.0, 5.0, 0, "identified")
+    assert 0.999 < c.r2 < 1.0
+    # an amplifier's measured output: the noise on top of the clamp, no sample exactly at it
+    measured = u + 0.02 * rng.standard_normal(u.size)
+    c = identify_controller(ref, th, al, measured, Ts)
+    np.testing.assert_allclose(c.K, K_SF, rtol=0.015)
+    assert c.u_limit == pytest.approx(5.0, abs=0.01) and c.r2 > 0.999
+    # a PID on theta (derivative on the measurement, anti-windup) in the same loop
+    pid = Controller(kind="pid", kp=8.0, ki=4.0, kd=0.4, cutoff=50.0, u_limit=5.0)
+    t, ref, th, al, u = _closed_loop(pid, rate, 4.0)
+    np.testing.assert_allclose(law(pid, ref, th, al, Ts), u, rtol=0, atol=1e-12)
+    c = identify_controller(ref, th, al, u + 0.01 * rng.standard_normal(u.size), Ts, kind="pid")
+    np.testing.assert_allclose([c.kp, c.ki, c.kd], [8.0, 4.0, 0.4], rtol=0.015)
+    assert c.cutoff == 50.0 and c.r2 > 0.999
+    # a command that is no controller's: nothing explains it
+    noise = rng.normal(0.0, 2.0, u.size)
+    for kind in ("state_feedback", "pid"):
+        assert identify_controller(ref, th, al, noise, Ts, kind=kind).r2 < 0.05 < R2_MIN
+
+
+def _closed_frame(rate: float, seconds: float = 4.0, offset_deg: float = 0.0, noise: float = 0.0) -> pd.DataFrame:
+    """A closed-loop record in the columns a lab exports: time [s], Vm [V], theta_deg, alpha_deg, theta_ref_deg."""
+    t, ref, th, al, u = _closed_loop(SF, rate, seconds, offset_deg)
+    u = u + noise * np.random.default_rng(4).standard_normal(u.size)
+    return pd.DataFrame(
+        {"time": t, "Vm": u, "theta_deg": np.degrees(th), "alpha_deg": np.degrees(al), "theta_ref_deg": np.degrees(ref)}
+    )
+
+
+@pytest.mark.parametrize("rate", [500, 1000])
+def test_closed_loop_record_imports_with_its_reference_and_identified_controller(tmp_path, rate):
+    """500 Hz with the reference in rad (--units ref=rad), 1 kHz with time in ms and no unit: the dataset's ref is
+    the reference in degrees, the experiment closed loop at the record's rate, the controller identified."""
+    df = _closed_frame(rate)
+    ref_deg = df["theta_ref_deg"].to_numpy()
+    if rate == 500:
+        df = df.assign(setpoint=np.radians(ref_deg)).drop(columns="theta_ref_deg")
+        opts = {"columns": {"setpoint": "ref"}, "units": {"ref": "rad"}}
+    else:
+        df = df.assign(time=1000.0 * df["time"])
+        opts = {"columns": {"theta_ref_deg": "ref"}}
+    df.to_csv(tmp_path / "sq.csv", index=False, float_format="%.17g")
+    seen: list[str] = []
+    import_records([tmp_path / "sq.csv"], tmp_path / "run", ImportOptions(calibration=CAL, **opts), seen.append)
+    d = read_dataset(tmp_path / "run" / "data" / "sq.parquet")
+    assert list(d.columns) == [*VOLTS, "theta", "alpha", "ref"]
+    np.testing.assert_allclose(d["ref"], ref_deg, rtol=1e-12, atol=1e-12)
+    assert set(np.round(d["ref"], 9)) == {0.0, 30.0, -30.0}
+    np.testing.assert_allclose(d["theta_v"], d["theta"] / KP, rtol=1e-12)  # the importer's convention: theta / Kp
+    np.testing.assert_allclose(d["t"].diff().median(), 1.0 / rate, rtol=1e-9)
+    m = Manifest.load(tmp_path / "run")
+    e = m.experiments[0]
+    assert m.sample_rate == float(rate) and e.n == 4 * rate and e.loop == "closed"
+    assert e.units["ref"] == ("rad" if rate == 500 else "deg") and e.units["t"] == ("s" if rate == 500 else "ms")
+    c = e.controller
+    assert (c["kind"], c["source"], c["cutoff"], c["u_limit"], c["ref_delay"]) == ("state_feedback", "identified",
+                                                                                     25.0, 5.0, 0)  # fmt: skip
+    np.testing.assert_allclose(c["K"], K_SF, rtol=1e-6)  # logged exactly as computed: the law to rounding
+    assert c["r2"] > 0.999999
+    assert any("controller identified from the record: state_feedback (14.1, -28.1, 1.7, 0.2), velocity filter 25 Hz"
+               in s and "output limit 5 V" in s for s in seen), seen  # fmt: skip
+    assert not any(s.startswith("warning: ") for s in seen), seen
+    if rate == 1000:
+        assert any("sample interval of 1: taken as milliseconds (1000 Hz)" in s for s in seen), seen
+
+
+def test_given_controller_low_r2_warning_and_encoder(tmp_path):
+    """Through the command line: a given controller is recorded as given (its R^2 on the record said); a command no
+    controller explains is imported with one warning line; an encoder's theta past 180 deg stays unwrapped."""
+    df = _closed_frame(500, offset_deg=170.0)  # the hub swings across 180 deg: a pot would wrap, an encoder does not
+    df.to_csv(tmp_path / "enc.csv", index=False, float_format="%.17g")
+    CAL.to_json(tmp_path / "cal.json")
+    spec = "state_feedback:K=14.1,-28.1,1.7,0.2;cutoff=25;u_limit=5"
+    r = flexjoint("import", tmp_path / "enc.csv", "--out", tmp_path / "a", "--columns", "theta_ref_deg=ref",
+                  "--controller", spec, "--theta-sensor", "encoder", "--counts-per-rev", CPR,
+                  "--calibration", tmp_path / "cal.json")  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    assert "note: enc.csv: the given controller explains R^2 1.000 of the logged command" in r.stderr
+    assert "warning" not in r.stderr and "Traceback" not in r.stderr
+    e = Manifest.load(tmp_path / "a").experiments[0]
+    assert e.controller == Controller(K=K_SF, cutoff=25.0, u_limit=5.0, source="given").to_dict()
+    assert e.controller["source"] == "given" and "r2" not in e.controller
+    assert (e.loop, e.theta_sensor, e.counts_per_rev) == ("closed", "encoder", 4096.0)
+    assert e.lattice_deg["theta"] == 360.0 / CPR
+    d = read_dataset(tmp_path / "a" / "data" / "enc.parquet")
+    np.testing.assert_allclose(d["theta"], df["theta_deg"], rtol=0, atol=1e-12)
+    assert d["theta"].max() > 195.0 and d["theta_v"].max() == pytest.approx(d["theta"].max() / KP)  # > 5 V: no wrap
+    np.testing.assert_allclose(d["ref"], df["theta_ref_deg"], rtol=0, atol=1e-12)
+    # the same record with a command no controller computed: imported, R^2 recorded, one warning line
+    df.assign(Vm=np.random.default_rng(7).normal(0.0, 2.0, len(df))).to_csv(tmp_path / "rnd.csv", index=False)
+    r = flexjoint("import", tmp_path / "rnd.csv", "--out", tmp_path / "b", "--calibration", tmp_path / "cal.json")
+    assert r.returncode == 0, r.stderr
+    warnings = [x for x in r.stderr.splitlines() if x.startswith("warning: ")]
+    assert len(warnings) == 1, r.stderr
+    assert warnings[0].startswith("warning: rnd.csv: R^2 0.0") and f"< {R2_MIN}" in warnings[0]
+    assert "no closed-loop replay" in warnings[0] and "multiple shooting" in warnings[0]
+    c = Manifest.load(tmp_path / "b").experiments[0].controller
+    assert c["source"] == "identified" and 0.0 <= c["r2"] < 0.05  # the reference found by its name: closed loop
+    # a given controller that does not explain the record (a gain's sign flipped): kept, with a warning
+    wrong = Controller(K=[14.1, 28.1, 1.7, 0.2], cutoff=25.0, u_limit=5.0, source="given")
+    seen: list[str] = []
+    import_records([tmp_path / "enc.csv"], tmp_path / "c", ImportOptions(calibration=CAL, controller=wrong),
+                   seen.append)  # fmt: skip
+    assert Manifest.load(tmp_path / "c").experiments[0].controller == wrong.to_dict()
+    r2 = command_r2(wrong, np.radians(df["theta_ref_deg"]), np.radians(df["theta_deg"]), np.radians(df["alpha_deg"]),
+                    df["Vm"].to_numpy(), 1 / 500)  # fmt: skip
+    assert r2 < R2_MIN
+    assert [s for s in seen if s.startswith("warning: ")] == [
+        f"warning: enc.csv: the given controller explains R^2 {r2:.3f} < {R2_MIN} of the logged command (gains in "
+        "V/rad, V s/rad? their signs?); it is used as given"
+    ]
+
+
+def test_encoder_lattice_and_counts_per_rev_notes(tmp_path):
+    """An encoder theta in counts is an encoder by default; one in degrees off the count lattice is said; a
+    --counts-per-rev that nothing uses is said."""
+    df = _closed_frame(500)
+    counts = np.round(df["theta_deg"] / 360.0 * CPR)
+    df.assign(theta_counts=counts).drop(columns="theta_deg").to_csv(tmp_path / "cnt.csv", index=False)
+    _import([tmp_path / "cnt.csv"], tmp_path / "a", counts_per_rev=CPR)
+    e = Manifest.load(tmp_path / "a").experiments[0]
+    assert (e.theta_sensor, e.counts_per_rev, e.lattice_deg["theta"], e.units["theta"]) == (
+        "encoder", 4096.0, 360.0 / CPR, "counts")  # fmt: skip
+    np.testing.assert_allclose(read_dataset(tmp_path / "a" / "data" / "cnt.parquet")["theta"], df["theta_deg"],
+                               rtol=0, atol=1e-9)  # fmt: skip
+    smooth = df.assign(theta_deg=df["theta_deg"].rolling(5, min_periods=1).mean())
+    smooth.to_csv(tmp_path / "smooth.csv", index=False)
+    seen: list[str] = []
+    import_records([tmp_path / "smooth.csv"], tmp_path / "b",
+                   ImportOptions(calibration=CAL, theta_sensor="encoder", counts_per_rev=CPR), seen.append)  # fmt: skip
+    off = "theta is not on the encoder's 0.0878906 deg steps (up to 0.4 of a step off: filtered or resampled?)"
+    assert any(off in s for s in seen), seen
+    seen.clear()
+    import_records([tmp_path / "smooth.csv"], tmp_path / "c", ImportOptions(calibration=CAL, counts_per_rev=CPR),
+                   seen.append)  # fmt: skip
+    assert any("--counts-per-rev 4096 not used: theta is a pot's (say --theta-sensor encoder)" in s for s in seen)
+    assert Manifest.load(tmp_path / "c").experiments[0].theta_sensor is None
+
+
+def _write_mat(path: Path, df: pd.DataFrame, ref: np.ndarray) -> Path:
+    scipy.io.savemat(path, {**{k: df[k].to_numpy() for k in df.columns if k != "theta_ref_deg"}, "theta_ref": ref})
+    return path
+
+
+@pytest.mark.parametrize(
+    "case, message",
+    [
+        (
+            "short_1khz",
+            r"short.csv: 1500 samples at 1000 Hz \(1.5 s\): too short for two folds; need at least 2000 "
+            r"samples \(2 s and 100 samples: 1 s and 50 samples per fold\)",
+        ),  # fmt: skip
+        ("short_20hz", r"short.csv: 80 samples at 20 Hz \(4 s\): too short for two folds; need at least 100 samples"),
+        (
+            "ref_shorter",
+            r"ref.csv: column 'theta_ref_deg' \(ref\) ends at row 1500: 1500 values for the record's "
+            r"2000 rows \(a column of another length\)",
+        ),  # fmt: skip
+        (
+            "ref_nan",
+            r"ref.csv: column 'theta_ref_deg' \(ref\) has 1 NaN/missing/non-numeric value\(s\), first at row "
+            r"700",
+        ),  # fmt: skip
+        (
+            "ref_mat",
+            r"ref.mat: column 'theta_ref' \(ref\) has 1900 samples, the record's other columns 2000: a column "
+            r"of another length",
+        ),  # fmt: skip
+        ("row_long", r"ref.csv: line 121 has 6 fields, the header 5 \(time, Vm, theta_deg, alpha_deg, theta_ref_deg\)"),
+        (
+            "controller_open",
+            r"open.csv: --controller given, but the record has no reference column: map it with "
+            r"--columns NAME=ref",
+        ),  # fmt: skip
+        ("cpr_zero", r"--counts-per-rev 0: must be a number > 0"),
+        ("cpr_negative", r"--counts-per-rev -4096: must be a number > 0"),
+        ("sensor", r"--theta-sensor 'hall': use pot or encoder"),
+    ],
+)
+def test_bad_closed_loop_input_is_one_line_and_nothing_written(tmp_path, case, message):
+    df = _closed_frame(500, seconds=4.0).iloc[:2000]  # 4 s at 500 Hz, the first 2000 samples
+    good = tmp_path / "good.csv"
+    df.to_csv(good, index=False)
+    opts: dict = {"columns": {"theta_ref_deg": "ref"}}
+    files = [good]
+    if case.startswith("short"):
+        rate = 1000 if case == "short_1khz" else 20
+        n = 1500 if rate == 1000 else 80
+        _closed_frame(rate, seconds=n / rate).to_csv(tmp_path / "short.csv", index=False)
+        files.append(tmp_path / "short.csv")
+    elif case in ("ref_shorter", "ref_nan"):
+        bad = df.copy()
+        if case == "ref_shorter":
+            bad.loc[1500:, "theta_ref_deg"] = np.nan  # written as empty cells: the column ends early
+        else:
+            bad.loc[700, "theta_ref_deg"] = np.nan
+        bad.to_csv(tmp_path / "ref.csv", index=False)
+        files.append(tmp_path / "ref.csv")
+    elif case == "ref_mat":
+        files.append(_write_mat(tmp_path / "ref.mat", df, df["theta_ref_deg"].to_numpy()[:1900]))
+        opts = {"columns": {"theta_ref": "ref"}, "units": {"ref": "deg", "theta": "deg", "alpha": "deg"}}
+    elif case == "row_long":
+        lines = df.to_csv(index=False).splitlines()
+        lines[120] += ",0.5"  # past the 50 lines the separator is sniffed on
+        (tmp_path / "ref.csv").write_text("\n".join(lines) + "\n")
+        files.append(tmp_path / "ref.csv")
+    elif case == "controller_open":
+        df.drop(columns="theta_ref_deg").to_csv(tmp_path / "open.csv", index=False)
+        files, opts = [tmp_path / "open.csv"], {"controller": SF}
+    elif case.startswith("cpr"):
+        opts["counts_per_rev"] = 0.0 if case == "cpr_zero" else -4096.0
+    else:
+        opts["theta_sensor"] = "hall"
+    with pytest.raises(DataError, match=message) as exc:
+        _import(files, tmp_path / "run", **opts)
+    assert "\n" not in str(exc.value)
+    assert not (tmp_path / "run").exists()
+
+
+def test_bad_closed_loop_options_on_the_command_line(tmp_path):
+    """Each a single `error:` line, exit 2, nothing written."""
+    _closed_frame(500).to_csv(tmp_path / "sq.csv", index=False)
+    _closed_frame(1000, seconds=1.5).to_csv(tmp_path / "short.csv", index=False)
+    cases = [
+        (("--controller", "lqr:K=1,2,3,4"), "expected KIND:NAME=VALUE;... with KIND one of state_feedback, pid"),
+        (("--controller", "pid:kp=8;kq=2"), "'kq' is not a pid setting; valid: kp, ki, kd, cutoff, u_limit"),
+        (("--counts-per-rev", "-4096"), "--counts-per-rev -4096: must be a number > 0"),
+        (("--columns", "theta_ref_deg=ref", "short.csv"), "short.csv: 1500 samples at 1000 Hz (1.5 s): too short"),
+    ]
+    for args, text in cases:
+        files = [tmp_path / a for a in args if a.endswith(".csv")] or [tmp_path / "sq.csv"]
+        opts = [a for a in args if not a.endswith(".csv")]
+        line = _error_line(flexjoint("import", *files, "--out", tmp_path / "run", *opts))
+        assert text in line, line
+        assert not (tmp_path / "run").exists()
+    assert MIN_RECORD_SECONDS == 2.0

@@ -126,20 +126,39 @@ def joint_refit(
         for x, b in eff.extra.items():
             bounds[x], nominal[x] = b, setup.nominal(x)
     fixed = {k: v for k, v in base.items() if k not in bounds}
-    f = recal.fit(
-        lambda prm: _residual_vector(prm, fit),
-        bounds,
-        nominal,
-        start={k: float(v) for k, v in base.items() if k in bounds},
-        fixed=fixed,
-        max_nfev=max_nfev,
-    )
+
+    def refit(fixed: dict[str, Any], start: dict[str, Any]) -> recal.Fit:
+        return recal.fit(
+            lambda prm: _residual_vector(prm, fit),
+            bounds,
+            nominal,
+            start={k: float(v) for k, v in start.items() if k in bounds},
+            fixed=fixed,
+            max_nfev=max_nfev,
+        )
+
+    f = refit(fixed, base)
+    nfev = f.nfev
+    for prm in [p for p in fixed if p in BY_PARAM and BY_PARAM[p].kind == "int"]:
+        # an integer effect parameter (a delay) was chosen on the rig before this refit, whose linear parameters
+        # had compensated it: its neighbours get a look on the refitted rig, and a refit where one is better
+        eff, cur = BY_PARAM[prm], int(fixed[prm])
+        near = [v for v in eff.values if abs(int(v) - cur) == 1]
+        here = {**fixed, **f.values}
+        costs = {v: float(np.sum(_residual_vector({**here, prm: v}, fit) ** 2)) for v in near}
+        nfev += len(near)
+        best = min(costs, key=lambda v: costs[v], default=None)
+        if best is not None and costs[best] < f.cost:
+            g = refit({**fixed, prm: best}, here)
+            nfev += g.nfev
+            if g.cost < f.cost:
+                f, fixed = g, {**fixed, prm: best}
     params = {**fixed, **f.values}
     return {
         "params": params,
         "ci95": f.ci95,
         "fit_msg": f.cost,
-        "evaluations": f.nfev,
+        "evaluations": nfev,
         "sse": squared_errors(params, every) if every else {},
     }
 

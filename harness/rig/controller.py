@@ -35,6 +35,7 @@ __all__ = [
     "MAX_REF_DELAY_S",
     "R2_MIN",
     "Controller",
+    "command_r2",
     "delayed",
     "filtered_rate",
     "identify_controller",
@@ -177,55 +178,6 @@ def output_limit(u: np.ndarray) -> float:
     return top if top > 0 and np.count_nonzero(at) >= 3 else 0.0
 
 
-def identify_controller(
-    ref: np.ndarray,
-    theta: np.ndarray,
-    alpha: np.ndarray,
-    u: np.ndarray,
-    Ts: float,
-    kind: str = "state_feedback",
-    cutoff: float | None = None,
-    ref_delay: int | None = None,
-) -> Controller:
-    """The controller that computed a record's command: least squares of ``u`` [V] on the regressors of ``kind``
-    from ``ref``, ``theta``, ``alpha`` [rad] at ``Ts`` [s], over the samples where u is not at its clamp (see
-    :func:`output_limit`); the velocity-filter ``cutoff`` [Hz] and the reference's delay ``ref_delay``
-    [samples] given, or those of :data:`CUTOFFS` (below Nyquist) and 0..MAX_REF_DELAY_S with the best R^2. Returns
-    it with ``source="identified"`` and that ``r2``."""
-    if kind not in KINDS:
-        raise ValueError(f"controller kind {kind!r} unknown; valid: {', '.join(KINDS)}")
-    ref, theta, alpha, u = (np.asarray(v, dtype=float) for v in (ref, theta, alpha, u))
-    if not ref.size == theta.size == alpha.size == u.size:
-        raise ValueError("ref, theta, alpha and u must have the same length")
-    lim = output_limit(u)
-    free = np.abs(u) < lim if lim > 0 else np.ones(u.size, dtype=bool)
-    sst = float(np.sum((u[free] - np.mean(u[free])) ** 2))
-    if free.sum() < 10 or sst == 0.0:
-        raise ValueError("the command does not move: no controller can be identified from it")
-    nyquist = 0.5 / Ts
-    tried = [cutoff] if cutoff is not None else [c for c in CUTOFFS if c < nyquist] or [0.5 * nyquist]
-    delays = range(0, int(round(MAX_REF_DELAY_S / Ts)) + 1) if ref_delay is None else [ref_delay]
-    best: tuple[float, float, int, np.ndarray] | None = None
-    for c in tried:
-        X0 = _regressors(kind, ref, theta, alpha, Ts, c)  # the states' columns do not depend on the delay
-        for dly in delays:
-            X = X0.copy()
-            X[:, 0] = e = delayed(ref, dly) - theta
-            if kind == "pid":
-                X[:, 1] = np.concatenate([[0.0], np.cumsum(e[:-1]) * Ts])
-            X = X[free]
-            k, *_ = np.linalg.lstsq(X, u[free], rcond=None)
-            r2 = 1.0 - float(np.sum((u[free] - X @ k) ** 2)) / sst
-            if best is None or r2 > best[0]:
-                best = (r2, c, dly, k)
-    r2, c, dly, k = best  # type: ignore[misc]
-    gains = [float(v) for v in k]
-    common = {"cutoff": c, "u_limit": lim, "ref_delay": dly, "source": "identified", "r2": r2}
-    if kind == "state_feedback":
-        return Controller(K=gains, **common)
-    return Controller(kind="pid", kp=gains[0], ki=gains[1], kd=gains[2], **common)
-
-
 def parse_controller(text: str) -> Controller:
     """A controller from its command-line form ``KIND:NAME=VALUE;...``: ``state_feedback:K=9.2,-18.8,1.2,0;cutoff=15;
     u_limit=10`` or ``pid:kp=12;ki=40;kd=0.8;cutoff=30``; ``source="given"``."""
@@ -263,3 +215,83 @@ def command_r2(c: Controller, ref: np.ndarray, theta: np.ndarray, alpha: np.ndar
         return math.nan
     resid = u[free] - law(c, ref, theta, alpha, Ts)[free]
     return 1.0 - float(np.sum(resid**2)) / sst
+
+
+def identify_controller(
+    ref: np.ndarray,
+    theta: np.ndarray,
+    alpha: np.ndarray,
+    u: np.ndarray,
+    Ts: float,
+    kind: str = "state_feedback",
+    cutoff: float | None = None,
+    ref_delay: int | None = None,
+    rounds: int = 5,
+) -> Controller:
+    """The controller that computed a record's command: least squares of ``u`` on the regressors of ``kind`` (state
+    feedback: ref - theta, -alpha and the filtered rates; PID: e, its integral, -theta_dot), the velocity filter's
+    cutoff and the reference's logging delay chosen by R^2 over :data:`CUTOFFS` and 0..MAX_REF_DELAY_S. It holds
+    where the logged command's clamp is not exact (an amplifier's measured output, noise on the log): a sample
+    enters the least squares only while the fit's own unclamped
+    command there stays inside the largest logged |u| (and, for an exact clamp, u is not at it), refitted ``rounds``
+    times; censoring on the regressors, not on u, leaves the gains unbiased. A PID's integral is the law's, held
+    over the samples at the clamp (anti-windup). ``ref``, ``theta``, ``alpha`` [rad],
+    ``u`` [V], ``Ts`` [s]; ``cutoff`` [Hz] and ``ref_delay`` [samples] given or chosen by R^2 as there.
+    ``u_limit``: the exact clamp (:func:`output_limit`), else the median |u| where the fit's command passes the
+    largest logged one (when at least 3 samples and 0.2 % of them do), else 0. ``r2`` over the samples fitted."""
+    if kind not in KINDS:
+        raise ValueError(f"controller kind {kind!r} unknown; valid: {', '.join(KINDS)}")
+    ref, theta, alpha, u = (np.asarray(v, dtype=float) for v in (ref, theta, alpha, u))
+    if not ref.size == theta.size == alpha.size == u.size:
+        raise ValueError("ref, theta, alpha and u must have the same length")
+    lim = output_limit(u)
+    top = lim if lim > 0 else float(np.max(np.abs(u)))
+    if lim > 0:
+        base = np.abs(u) < lim
+    else:  # a clamp blurred by noise: start without the samples within 3 sigma of the peak (sigma: of u's noise)
+        d2 = np.diff(u, 2)
+        sigma = 1.4826 * float(np.median(np.abs(d2 - np.median(d2)))) / math.sqrt(6.0) if u.size > 2 else 0.0
+        base = np.abs(u) < top - 3.0 * sigma if sigma > 0 else np.ones(u.size, dtype=bool)
+    if base.sum() < 10 or float(np.ptp(u[base])) == 0.0:
+        raise ValueError("the command does not move: no controller can be identified from it")
+    nyquist = 0.5 / Ts
+    tried = [cutoff] if cutoff is not None else [c for c in CUTOFFS if c < nyquist] or [0.5 * nyquist]
+    delays = range(0, int(round(MAX_REF_DELAY_S / Ts)) + 1) if ref_delay is None else [ref_delay]
+    best: tuple[float, float, int, np.ndarray, np.ndarray] | None = None
+    for c in tried:
+        X0 = _regressors(kind, ref, theta, alpha, Ts, c)
+        for dly in delays:
+            X = X0.copy()
+            X[:, 0] = e = delayed(ref, dly) - theta
+            keep, clamped = base, ~base
+            for _ in range(max(1, rounds)):
+                if kind == "pid":  # the law's integral: held while the output is limited (anti-windup)
+                    X[:, 1] = np.concatenate([[0.0], np.cumsum(np.where(clamped, 0.0, e)[:-1]) * Ts])
+                k, *_ = np.linalg.lstsq(X[keep], u[keep], rcond=None)
+                p = X @ k
+                was, clamped = clamped, (np.abs(u) >= lim if lim > 0 else np.abs(p) >= top)
+                new = ~clamped & (np.abs(p) < top)
+                if new.sum() < 10 or (np.array_equal(new, keep) and np.array_equal(was, clamped)):
+                    break
+                keep = new
+            if kind == "pid":
+                X[:, 1] = np.concatenate([[0.0], np.cumsum(np.where(clamped, 0.0, e)[:-1]) * Ts])
+            k, *_ = np.linalg.lstsq(X[keep], u[keep], rcond=None)
+            sst = float(np.sum((u[keep] - np.mean(u[keep])) ** 2))
+            if sst == 0.0:
+                continue
+            r2 = 1.0 - float(np.sum((u[keep] - X[keep] @ k) ** 2)) / sst
+            if best is None or r2 > best[0]:
+                best = (r2, c, dly, k, X @ k)
+    if best is None:
+        raise ValueError("the command does not move: no controller can be identified from it")
+    r2, c, dly, k, p = best
+    if lim == 0.0:
+        beyond = np.abs(p) >= top
+        if beyond.sum() >= max(3, 0.002 * u.size):
+            lim = float(np.median(np.abs(u[beyond])))
+    gains = [float(v) for v in k]
+    common = {"cutoff": c, "u_limit": lim, "ref_delay": dly, "source": "identified", "r2": r2}
+    if kind == "state_feedback":
+        return Controller(K=gains, **common)
+    return Controller(kind="pid", kp=gains[0], ki=gains[1], kd=gains[2], **common)

@@ -5,27 +5,41 @@ optional units row under it; ``#``/``%`` comment lines), MATLAB .mat v5 (scipy) 
 vector per channel or one N x k matrix, and Parquet. Channels: time ``t``, command ``u`` [V], shaft angle
 ``theta`` and link deflection ``alpha``, found by name (``t``/``time``, ``u``/``Vm``, ``theta_deg``, ``alpha_v``,
 ``theta [rad]`` ...) or given with a map (``{"time": "t", "Vm": "u", "hub": "theta", "tip": "alpha"}``;
-positions ``{"0": "t", ...}`` for a headerless file). Units: t in s, ms or us; u in V; theta in V, deg, rad or
-encoder counts; alpha in V, deg, rad, counts or m (mm) of tip deflection, alpha = atan(d / link_length).
+positions ``{"0": "t", ...}`` for a headerless file; ``-alpha`` for a channel recorded with the opposite sign: alpha
+is the link's deflection behind the hub, positive when the hub accelerates negatively). Units: t in s, ms or us;
+u in V; theta in V, deg, rad or encoder counts; alpha in V, deg, rad, counts or m (mm) of tip deflection,
+alpha = atan(d / link_length).
 
 Rules, no silent guesses:
 
-- time without a unit: a median sample interval <= 0.1 is seconds (>= 10 Hz); 1 < interval <= 100 is
+- time without a unit: a median sample interval <= 0.1 is seconds (>= 10 Hz); 1 <= interval <= 100 is
   milliseconds (10 Hz - 1 kHz), converted with a note; anything else is refused (0.1-1 could be 1-10 Hz in s
   or 1-10 kHz in ms; > 100 would be < 10 Hz in ms) and ``units={"t": ...}`` decides;
-- whatever the time unit, the sample rate must be >= ``MIN_RATE`` (10 Hz);
+- whatever the time unit, the sample rate must be >= ``MIN_RATE`` (10 Hz), and nothing assumes 50 Hz: the rate is
+  read off ``t`` (50 Hz, 500 Hz, 1 kHz records alike);
+- a record must be long enough for two folds (the diagnosis splits a lone record in time): at least
+  ``MIN_RECORD_SECONDS`` (2 s: each half >= 1 s, one multiple-shooting window, >= 3 periods of the link's first
+  mode) and ``2 * MIN_FOLD_SAMPLES`` (100) samples;
 - host-clock jitter: time stamps within ``JITTER_LIMIT`` (10 %) of a sample interval of the least-squares
   uniform grid are resampled onto it by linear interpolation (the pot's wrap jumps are not interpolated
   across: the nearer sample is taken) and the largest correction is reported; beyond that: refused;
-- no calibration given: lab 1's Kp and Ke are assumed and a note says so.
+- no calibration given: lab 1's Kp and Ke are assumed and a note says so;
+- ``zero_alpha``: the deflection is zeroed on the record's first ``ZERO_SECONDS`` (the shaft must be at rest
+  there), as labs zero their gauge, with a note; a closed-loop record's controller keeps the zero error it acted
+  with (``alpha_bias``).
 
 Closed-loop records (every public record of a flexible link is one: the logged ``u`` is a controller's output):
 a reference column given the role ``ref`` (``{"theta_ref_deg": "ref"}``, in deg, rad, counts or the pot's volts)
 becomes the dataset's ``ref`` [deg] and makes the experiment closed loop. Its controller is the one given
-(``ImportOptions.controller``) or identified from the record (:func:`harness.rig.controller.identify_controller`,
-both kinds tried, the better R^2 kept); below ``R2_MIN`` it is recorded but said not to be trusted, and the
-diagnosis then replays the record open loop by multiple shooting. ``theta_sensor="encoder"`` (or theta in encoder
-counts) with ``counts_per_rev``: theta has no pot wrap or dead band to mask.
+(``ImportOptions.controller``) or identified from the record
+(:func:`harness.rig.controller.identify_controller`, both kinds tried, the better R^2 kept); below
+``R2_MIN`` it is recorded with its R^2 and a warning, and the diagnosis then replays the record open loop by
+multiple shooting. A given controller is checked against the logged command (its R^2 said, a warning below
+``R2_MIN``) and kept as given; given for a record without a reference: refused. A reference of another length than
+the record or with NaN: refused, one line naming the file and the column. ``theta_sensor="encoder"`` (or theta in
+encoder counts) with ``counts_per_rev`` > 0: theta has no pot wrap or dead band (resampling does not treat its
+jumps as wraps) and its step is the count, 360 / counts_per_rev deg (``lattice_deg``), whatever unit it was
+written in.
 
 The dataset written (``data/<name>.parquet``) is the same whatever the format: ``t`` [s], ``u`` [V],
 ``theta_v``, ``alpha_v`` [V] as the lab's DAQ reads them (angles converted with the calibration: theta_v =
@@ -39,7 +53,7 @@ import hashlib
 import math
 import re
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -49,14 +63,18 @@ import pandas as pd
 import pyarrow.parquet as pq
 import scipy.io
 
+from ..diagnosis.noise import decimal_resolution
 from ..ident.calibration import LAB1_CALIBRATION, Calibration, alpha_deg, theta_deg
 from ..rundir import DataError, ExperimentEntry, Manifest, RunDir, validate, write_dataset
-from .controller import KINDS, R2_MIN, Controller, identify_controller
+from .controller import KINDS, R2_MIN, Controller, command_r2, identify_controller
 
 __all__ = [
     "CHANNELS",
     "JITTER_LIMIT",
+    "MIN_FOLD_SAMPLES",
+    "MIN_FOLD_SECONDS",
     "MIN_RATE",
+    "MIN_RECORD_SECONDS",
     "ImportOptions",
     "RawTable",
     "calibration_option",
@@ -70,7 +88,12 @@ CHANNELS = ("t", "u", "theta", "alpha")
 OPTIONAL = ("ref",)  # channels a record may have: the closed loop's reference of theta
 THETA_SENSORS = ("pot", "encoder")
 MIN_RATE = 10.0  # Hz: slower records cannot show the link's first mode (~3-4.5 Hz)
+MIN_FOLD_SECONDS = 1.0  # s: each of a lone record's two folds (halves) holds one multiple-shooting window
+MIN_FOLD_SAMPLES = 50  # samples per fold, whatever the rate
+MIN_RECORD_SECONDS = 2 * MIN_FOLD_SECONDS  # s: the shortest record imported (n Ts, n samples at interval Ts)
 JITTER_LIMIT = 0.1  # largest time-stamp correction resampled, as a share of the sample interval
+ZERO_SECONDS = 0.1  # s: a deflection recorded as an angle or a length is zeroed on its first ZERO_SECONDS at rest
+AT_REST_DEG = 0.5  # deg: the shaft moves less than this over those samples: at rest
 UNITS = {
     "t": ("s", "ms", "us"),
     "u": ("V",),
@@ -104,7 +127,7 @@ class ImportOptions:
     theta_v, alpha_v or with a unit suffix, theta_deg); ``units`` channel or column -> unit; ``link_length``
     [m] for tip deflections; ``counts_per_rev`` of an encoder; ``calibration`` to carry (None: assume lab 1's);
     ``controller`` of a closed-loop record (None: identified from it); ``theta_sensor`` "pot" or "encoder" (None:
-    an encoder when theta is in counts, else a pot)."""
+    an encoder when theta is in counts, else a pot); ``zero_alpha``: zero the deflection on the record's start."""
 
     columns: dict[str, str] = field(default_factory=dict)
     units: dict[str, str] = field(default_factory=dict)
@@ -113,6 +136,7 @@ class ImportOptions:
     calibration: Calibration | None = None
     controller: Controller | None = None
     theta_sensor: str | None = None
+    zero_alpha: bool = False
 
 
 @dataclass
@@ -130,6 +154,7 @@ class RawTable:
     bad: dict[str, tuple[int, int, str]] = field(default_factory=dict)
     header: bool = True
     notes: list[str] = field(default_factory=list)
+    others: dict[str, int] = field(default_factory=dict)  # vectors left out for their length: name -> samples
 
     def found(self) -> str:
         """What was found, for messages: the columns and the form."""
@@ -259,6 +284,11 @@ def _read_csv(path: Path) -> RawTable:
                 f"known units: s, ms, us, V, deg, rad, counts, m, mm"
             )
     body = rows[start:]
+    long = next((k for k, r in enumerate(body) if len(r) > len(names)), None)
+    if long is not None:
+        raise DataError(f"{path.name}: line {lines[start + long][0]} has {len(body[long])} fields, the header "
+                        f"{len(names)} ({', '.join(names)}); {form}")  # fmt: skip
+    body = [r + [""] * (len(names) - len(r)) for r in body]  # a short row: its last columns are missing
     table = pd.DataFrame(body, columns=names, dtype=str) if body else pd.DataFrame(columns=names)
     values, bad = [], {}
     for name in names:
@@ -286,7 +316,8 @@ def _mat_columns(items: dict[str, np.ndarray], path: Path, form: str, variables:
         names = [k for k, v in vectors.items() if v.size == n]
         other = [k for k in vectors if k not in names]
         notes = [f"ignored vectors of another length: {', '.join(other)}"] if other else []
-        return RawTable(path.name, form, names, [vectors[k] for k in names], notes=notes)
+        return RawTable(path.name, form, names, [vectors[k] for k in names], notes=notes,
+                        others={k: vectors[k].size for k in other})  # fmt: skip
     mats = {k: v for k, v in items.items() if v.ndim == 2 and min(v.shape) >= 2}
     if len(mats) == 1:
         ((name, m),) = mats.items()
@@ -402,16 +433,22 @@ def resolve(table: RawTable, opts: ImportOptions) -> dict[str, Channel]:
     """The t, u, theta, alpha channels of ``table`` with their units (map, then names; volts preferred)."""
     picked: dict[str, list[tuple[int, str | None, bool]]] = {c: [] for c in (*CHANNELS, *OPTIONAL)}
     mapped: set[int] = set()
+    negated: set[int] = set()  # columns mapped as -ROLE: recorded with the opposite sign convention
     for key, target in opts.columns.items():
-        ch, unit = _channel(target)
+        ch, unit = _channel(target.removeprefix("-"))
         if ch is None:
             raise DataError(f"--columns {key}={target}: unknown channel {target!r}; use t, u, theta, alpha, ref, "
                             f"theta_v, alpha_v (or a unit suffix: theta_deg)")  # fmt: skip
         j = _lookup(table, key)
+        if j is None and key in table.others:
+            raise DataError(f"{table.file}: column {key!r} ({ch}) has {table.others[key]} samples, the record's other "
+                            f"columns {table.values[0].size}: a column of another length")  # fmt: skip
         if j is None:
             raise DataError(f"{table.file}: --columns names {key!r}, not in the file: {table.found()}")
         picked[ch].append((j, unit, True))
         mapped.add(j)
+        if target.startswith("-"):
+            negated.add(j)
     for j, name in enumerate(table.names):
         ch, unit = _channel(name) if table.header else (None, None)
         if j not in mapped and ch is not None and not any(m for *_, m in picked[ch]):
@@ -440,7 +477,8 @@ def resolve(table: RawTable, opts: ImportOptions) -> dict[str, Channel]:
             )
             cands = volts
         j, _, _ = cands[0]
-        out[ch] = Channel(table.names[j], table.values[j], _unit_of(table, ch, cands[0], opts))
+        values = -table.values[j] if j in negated else table.values[j]
+        out[ch] = Channel(table.names[j], values, _unit_of(table, ch, cands[0], opts))
     return out
 
 
@@ -461,6 +499,13 @@ def _unit_of(table: RawTable, ch: str, cand: tuple[int, str | None, bool], opts:
 def _bad_cells(table: RawTable, chans: dict[str, Channel]) -> None:
     for ch, c in chans.items():
         nan = np.flatnonzero(~np.isfinite(c.values))
+        n = c.values.size
+        bad = table.bad.get(c.column)
+        if nan.size and nan.size < n and nan[0] == n - nan.size and (bad is None or not bad[2].strip()):
+            raise DataError(
+                f"{table.file}: column {c.column!r} ({ch}) ends at row {nan[0]}: {n - nan.size} values for the "
+                f"record's {n} rows (a column of another length); {table.form}"
+            )
         if nan.size:
             row, line, text = table.bad.get(c.column, (int(nan[0]), 0, "nan"))
             row = min(row, int(nan[0]))
@@ -481,7 +526,7 @@ def time_seconds(t: np.ndarray, unit: str | None, table: RawTable, column: str, 
     dt = float(np.median(np.diff(t))) if t.size > 1 else math.nan
     if 0 < dt <= 0.1:
         return t, "s"
-    if 1 < dt <= 100:
+    if 1 - 1e-6 <= dt <= 100:  # 1 kHz in ms: 1 Hz in s would be below MIN_RATE anyway
         note(f"time column {column!r} has a sample interval of {dt:g}: taken as milliseconds ({1000 / dt:g} Hz); "
              f"--units t=s refuses this, t=ms silences it")  # fmt: skip
         return t * 1e-3, "ms"
@@ -573,12 +618,16 @@ def _angle(ch: str, c: Channel, opts: ImportOptions, file: str) -> np.ndarray:
 def normalise(table: RawTable, opts: ImportOptions, cal: Calibration, note: Note) -> tuple[dict, dict]:
     """(dataset columns, {"entry": manifest entry, "form", "notes"}) of one record: channels resolved, units
     converted, time checked and made uniform, angles turned into the DAQ's volts with ``cal``. ``note``
-    receives each remark, prefixed with the file name."""
+    receives each remark, prefixed with the file name (a warning as ``warning: <file>: ...``)."""
     notes: list[str] = []
 
     def remark(msg: str) -> None:
         notes.append(msg)
         note(f"{table.file}: {msg}")
+
+    def warn(msg: str) -> None:
+        notes.append(f"warning: {msg}")
+        note(f"warning: {table.file}: {msg}")
 
     for msg in table.notes:
         remark(msg)
@@ -586,6 +635,10 @@ def normalise(table: RawTable, opts: ImportOptions, cal: Calibration, note: Note
     chans = resolve(table, opts)
     for msg in table.notes:
         remark(msg)
+    if opts.controller is not None and "ref" not in chans:
+        raise DataError(f"{table.file}: --controller given, but the record has no reference column: map it with "
+                        f"--columns NAME=ref (a closed-loop record's reference of theta)")  # fmt: skip
+    sensor = _theta_sensor(chans["theta"], opts, table.file)
     if "ref" in chans and chans["ref"].unit is None:
         chans["ref"].unit = chans["theta"].unit
         remark(f"reference {chans['ref'].column!r}: no unit given, taken as theta's ({chans['theta'].unit})")
@@ -608,6 +661,13 @@ def normalise(table: RawTable, opts: ImportOptions, cal: Calibration, note: Note
             f"{Ts:g} s ({1 / Ts:.3g} Hz): below {MIN_RATE:g} Hz, too slow for the link's ~3 Hz mode; "
             f"is it in ms (--units t=ms)?"
         )
+    need = max(2 * MIN_FOLD_SAMPLES, math.ceil(MIN_RECORD_SECONDS / Ts - 1e-6))
+    if t.size < need:
+        raise DataError(
+            f"{table.file}: {t.size} samples at {1 / Ts:.6g} Hz ({t.size * Ts:.4g} s): too short for two folds; "
+            f"need at least {need} samples ({MIN_RECORD_SECONDS:g} s and {2 * MIN_FOLD_SAMPLES} samples: "
+            f"{MIN_FOLD_SECONDS:g} s and {MIN_FOLD_SAMPLES} samples per fold)"
+        )
     cols: dict[str, np.ndarray] = {}
     for ch in ("theta", "alpha"):
         c = chans[ch]
@@ -618,12 +678,17 @@ def normalise(table: RawTable, opts: ImportOptions, cal: Calibration, note: Note
             deg = _angle(ch, c, opts, table.file)
             off, gain = (cal.pot_offset_v, cal.Kp) if ch == "theta" else (cal.gauge_offset_v, cal.Ke)
             cols[f"{ch}_v"], cols[ch] = deg / gain + off, deg
+    zero = _gauge_zero(cols, Ts, table.file) if opts.zero_alpha else 0.0
+    if zero:
+        cols["alpha"] = cols["alpha"] - zero
+        cols["alpha_v"] = cols["alpha"] / cal.Ke + cal.gauge_offset_v
+        remark(f"alpha zeroed: it read {zero:.4g} deg over the first {ZERO_SECONDS:g} s at rest (the gauge's zero)")
     if "ref" in chans:
         c = chans["ref"]
         cols["ref"] = theta_deg(c.values, cal) if c.unit == "V" else _angle("ref", c, opts, table.file)
     cols = {"t": t, "u": chans["u"].values, **cols}
     if grid is not None:
-        wrapped = chans["theta"].unit == "V"
+        wrapped = chans["theta"].unit == "V" and not sensor  # a pot's volts wrap; an encoder's angle does not
         cols = {k: _resample(t, grid, v, wrapped and k == "theta_v") for k, v in cols.items() if k != "t"}
         cols = {"t": grid, **cols}
         if wrapped:
@@ -645,13 +710,40 @@ def normalise(table: RawTable, opts: ImportOptions, cal: Calibration, note: Note
         "jitter_corrected_s": worst,
     }
     for ch in ("theta", "alpha"):
-        if chans[ch].unit == "counts":
-            entry.setdefault("lattice_deg", {})[ch] = 360.0 / float(opts.counts_per_rev or 1)
-    entry.update(_theta_sensor(chans["theta"], opts, table.file))
+        step = _step_deg(chans[ch], opts)
+        if step:
+            entry.setdefault("lattice_deg", {})[ch] = step
+    if sensor:  # an encoder's count is theta's step (its angle printed finer or not)
+        step = 360.0 / sensor["counts_per_rev"]
+        lattice = entry.setdefault("lattice_deg", {})
+        lattice["theta"] = max(step, lattice.get("theta", 0.0))
+        off = _off_lattice(cols["theta"], step)
+        printed = _step_deg(chans["theta"], opts) if chans["theta"].unit in ("deg", "rad") else 0.0
+        if off > 0.01 + 0.5 * printed / step:  # an angle printed to few decimals is that far off by its rounding
+            remark(f"theta is not on the encoder's {step:.6g} deg steps (up to {off:.2g} of a step off: filtered or "
+                   f"resampled?); its step is recorded as {step:.6g} deg all the same")  # fmt: skip
+    elif opts.counts_per_rev and "counts" not in (chans["theta"].unit, chans["alpha"].unit):
+        remark(f"--counts-per-rev {opts.counts_per_rev:g} not used: theta is a pot's (say --theta-sensor encoder)")
+    entry.update(sensor)
     if "ref" in cols:
         entry["loop"] = "closed"
-        entry["controller"] = _controller(cols, Ts, opts, remark).to_dict()
+        entry["controller"] = _controller(cols, Ts, opts, remark, zero, warn, table.file).to_dict()
     return cols, {"entry": entry, "form": table.form, "notes": notes}
+
+
+def _step_deg(c: Channel, opts: ImportOptions) -> float:
+    """The angle step [deg] an angle channel is recorded on: an encoder's count, or the last decimal written of a
+    value in deg, rad or a tip deflection (0 for volts, whose ADC lattice the diagnosis finds itself, or none)."""
+    if c.unit == "counts":
+        return 360.0 / float(opts.counts_per_rev or 1)
+    if c.unit == "V":
+        return 0.0
+    res = decimal_resolution(c.values)
+    if not res:
+        return 0.0
+    if c.unit in ("m", "mm"):
+        return math.degrees(math.atan(res * (1e-3 if c.unit == "mm" else 1.0) / float(opts.link_length or 1.0)))
+    return math.degrees(res) if c.unit == "rad" else res
 
 
 def _theta_sensor(theta: Channel, opts: ImportOptions, file: str) -> dict[str, Any]:
@@ -662,28 +754,73 @@ def _theta_sensor(theta: Channel, opts: ImportOptions, file: str) -> dict[str, A
         raise DataError(f"--theta-sensor {sensor!r}: use {' or '.join(THETA_SENSORS)}")
     if sensor == "pot":
         return {}
+    if not opts.counts_per_rev and theta.unit == "counts":
+        raise DataError(f"{file}: theta column {theta.column!r} is in encoder counts: give --counts-per-rev "
+                        "(e.g. 4096)")  # fmt: skip
     if not opts.counts_per_rev:
         raise DataError(f"{file}: an encoder theta needs --counts-per-rev (e.g. 4096)")
     return {"theta_sensor": "encoder", "counts_per_rev": float(opts.counts_per_rev)}
 
 
-def _controller(cols: dict[str, np.ndarray], Ts: float, opts: ImportOptions, remark: Note) -> Controller:
-    """A closed-loop record's controller: the one given, or identified from it (both kinds, the better R^2)."""
+def _off_lattice(theta: np.ndarray, step: float) -> float:
+    """Largest distance of ``theta`` [deg] from the lattice of ``step`` [deg] through its first sample, in steps."""
+    k = (np.asarray(theta, dtype=float) - float(theta[0])) / step
+    return float(np.max(np.abs(k - np.round(k)))) if k.size else 0.0
+
+
+def _gauge_zero(cols: dict[str, np.ndarray], Ts: float, file: str) -> float:
+    """The deflection's zero [deg]: its median over the record's first ZERO_SECONDS, where the shaft must be at
+    rest (it moves less than AT_REST_DEG)."""
+    n = max(2, int(round(ZERO_SECONDS / Ts)))
+    moved = float(np.ptp(cols["theta"][:n]))
+    if cols["theta"].size < 2 * n or moved > AT_REST_DEG:
+        raise DataError(f"{file}: cannot zero alpha: the shaft moves {moved:.3g} deg over the first {ZERO_SECONDS:g} s "
+                        f"(not at rest)")  # fmt: skip
+    return float(np.median(cols["alpha"][:n]))
+
+
+def _controller(
+    cols: dict[str, np.ndarray],
+    Ts: float,
+    opts: ImportOptions,
+    remark: Note,
+    zero: float = 0.0,
+    warn: Note | None = None,
+    file: str = "",
+) -> Controller:
+    """A closed-loop record's controller: the one given (with how much of the logged command its law explains), or
+    identified from it (both kinds, the better R^2; below ``R2_MIN`` kept with a warning: the diagnosis then replays
+    the record by multiple shooting), on the deflection as the controller read it (``zero`` [deg] removed from the
+    data: its ``alpha_bias``). Angles of ``cols`` in deg, ``Ts`` [s]."""
+    warn = warn or remark
+    ref, th = np.radians(cols["ref"]), np.radians(cols["theta"])
     if opts.controller is not None:
-        return opts.controller
-    ref, th, al = (np.radians(cols[k]) for k in ("ref", "theta", "alpha"))
+        given = opts.controller if opts.controller.alpha_bias or not zero else replace(opts.controller, alpha_bias=zero)
+        if given.sample_rate and abs(given.sample_rate * Ts - 1.0) > 1e-6:
+            remark(f"the given controller runs at {given.sample_rate:g} Hz, the record at {1 / Ts:.6g} Hz: its law is "
+                   "not checked against the logged command")  # fmt: skip
+            return given
+        r2 = command_r2(given, ref, th, np.radians(cols["alpha"]), cols["u"], Ts)
+        if math.isfinite(r2) and r2 < R2_MIN:
+            warn(f"the given controller explains R^2 {r2:.3f} < {R2_MIN} of the logged command (gains in V/rad, "
+                 "V s/rad? their signs?); it is used as given")  # fmt: skip
+        else:
+            remark(f"the given controller explains R^2 {r2:.3f} of the logged command")
+        return given
+    al = np.radians(cols["alpha"] + zero)
     try:
         found = [identify_controller(ref, th, al, cols["u"], Ts, kind) for kind in KINDS]
     except ValueError as e:
-        raise DataError(f"closed-loop record: {e}") from None
-    best = max(found, key=lambda c: c.r2 or -math.inf)
+        raise DataError(f"{file}: closed-loop record: {e}") from None
+    best = replace(max(found, key=lambda c: c.r2 or -math.inf), alpha_bias=zero)
     gains = ", ".join(f"{v:.4g}" for v in best.K) if best.kind == "state_feedback" else (
         f"kp {best.kp:.4g}, ki {best.ki:.4g}, kd {best.kd:.4g}")  # fmt: skip
+    limit = f", output limit {best.u_limit:g} V" if best.u_limit else ""
     remark(f"controller identified from the record: {best.kind} ({gains}), velocity filter {best.cutoff:g} Hz, "
-           f"reference delay {best.ref_delay} sample(s), R^2 {best.r2:.3f}")  # fmt: skip
+           f"reference delay {best.ref_delay} sample(s){limit}, R^2 {best.r2:.3f}")  # fmt: skip
     if (best.r2 or 0.0) < R2_MIN:
-        remark(f"R^2 {best.r2:.3f} < {R2_MIN}: this controller does not explain the logged command; the diagnosis "
-               "replays the record open loop by multiple shooting, not in closed loop")  # fmt: skip
+        warn(f"R^2 {best.r2:.3f} < {R2_MIN}: this controller does not explain the logged command; no closed-loop "
+             "replay: the diagnosis replays the record open loop by multiple shooting")  # fmt: skip
     return best
 
 
@@ -732,6 +869,7 @@ def import_records(paths: list[Path], out: Path, opts: ImportOptions | None = No
     for q in (out, *out.parents):
         if q.exists() and not q.is_dir():
             raise DataError(f"--out {out}: {q} is a file, not a directory")
+    _check_options(opts)
     cal = _calibration(opts)
     done = {p.stem: (p, *normalise(read_table(p), opts, cal, say)) for p in paths}
     if opts.calibration is None:
@@ -757,6 +895,16 @@ def import_records(paths: list[Path], out: Path, opts: ImportOptions | None = No
         experiments=[ExperimentEntry(name=name, **info["entry"]) for name, (_, _, info) in done.items()],
     ).write(out)
     return written
+
+
+def _check_options(opts: ImportOptions) -> None:
+    """Refuse options that cannot describe a record, before any file is read: ``counts_per_rev`` and
+    ``link_length`` [m] finite and > 0, ``theta_sensor`` pot or encoder."""
+    for name, value in (("--counts-per-rev", opts.counts_per_rev), ("--link-length", opts.link_length)):
+        if value is not None and not (math.isfinite(float(value)) and float(value) > 0):
+            raise DataError(f"{name} {value:g}: must be a number > 0")
+    if opts.theta_sensor is not None and opts.theta_sensor not in THETA_SENSORS:
+        raise DataError(f"--theta-sensor {opts.theta_sensor!r}: use {' or '.join(THETA_SENSORS)}")
 
 
 def _sha256(path: Path) -> str:
