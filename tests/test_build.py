@@ -19,7 +19,7 @@ from harness.fmu.build import BuildError, build_fmu, fmu_sha256, source_hash
 
 
 def test_fmus_validate_with_zero_problems(fmus):
-    assert set(fmus) == {"flexjoint", "daq"}
+    assert set(fmus) == {"flexjoint", "daq", "controller"}
     for path in fmus.values():
         assert validate_fmu(str(path)) == []
 
@@ -28,8 +28,8 @@ def test_built_fmu_carries_the_source_xml_and_hash_in_name(fmus):
     for name, path in fmus.items():
         built, source = modeldesc.read(path), modeldesc.source_model(name)
         assert built.variables == source.variables and built.guid == source.guid
-        assert built.variables["u"].value_reference == 30
-        assert len(built.parameters()) == {"flexjoint": 21, "daq": 16}[name]
+        assert built.variables["u"].value_reference == (40 if name == "controller" else 30)  # its output, their input
+        assert len(built.parameters()) == {"flexjoint": 25, "daq": 18, "controller": 15}[name]
         assert path.name == f"{name}-{source_hash(name)[:12]}.fmu"
         assert fmu_sha256(path) == hashlib.sha256(path.read_bytes()).hexdigest()
 
@@ -173,7 +173,7 @@ def test_packaged_fmu_tree_lists_every_model_directory():
 def test_source_tree_is_the_bundled_one_unless_overridden(monkeypatch, tmp_path):
     monkeypatch.delenv("FLEXJOINT_FMU_SRC", raising=False)
     assert build.fmu_source_dir() == build.bundled_dir("fmus")
-    assert build.available_models() == ["armax", "daq", "flexjoint"]
+    assert build.available_models() == ["armax", "controller", "daq", "flexjoint"]
     monkeypatch.setenv("FLEXJOINT_FMU_SRC", str(tmp_path))
     assert build.fmu_source_dir() == tmp_path and build.available_models() == []
     with pytest.raises(ValueError, match=r"unknown FMU 'daq': expected one of \(none\)"):

@@ -143,7 +143,7 @@ def test_specs_lists_the_bundled_specs_and_init_copies_one(tmp_path):
     assert copied.read_text() == (SPEC_DIR / "nominal.toml").read_text()
     assert "exists; pass --force" in _one_line_error(flexjoint("init", tmp_path / "mine", "--spec", "nominal"))
     assert flexjoint("init", tmp_path / "mine", "--spec", "nominal", "--force").returncode == 0
-    bundled = "bundled: blind, blind_closed, closed_loop, lab, nominal"
+    bundled = "bundled: blind, blind_closed, closed_loop, cu_flexible_arm, lab, nominal"
     assert bundled in _one_line_error(flexjoint("init", tmp_path, "--spec", "nope"))
 
 

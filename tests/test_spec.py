@@ -84,7 +84,7 @@ def test_bundled_specs_have_names_and_descriptions():
 
 
 def test_missing_spec_names_the_bundled_ones(tmp_path):
-    bundled = "blind, blind_closed, closed_loop, lab, nominal"
+    bundled = "blind, blind_closed, closed_loop, cu_flexible_arm, lab, nominal"
     with pytest.raises(specmod.SpecError, match=rf"spec nope not found .*bundled: {bundled}"):
         specmod.load("nope")
     with pytest.raises(specmod.SpecError, match="is a directory"):

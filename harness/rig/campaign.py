@@ -159,7 +159,8 @@ def run_campaign(
     """Run a spec's campaign into run directory ``out`` (simulated by :func:`simulate_spec`, written here, by
     the client only); returns the manifest."""
 
-    fmus = fmus or build_all()
+    closed = any(e.loop == "closed" for e in spec.all_experiments())
+    fmus = {k: v for k, v in (fmus or build_all()).items() if k != "controller" or closed}  # the FMUs it runs
     out = Path(out)
     data = simulate_spec(spec, fmus, workers=workers, progress=progress, scheduler=scheduler)
     for name, cols in data.items():
