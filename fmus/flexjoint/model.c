@@ -96,6 +96,9 @@ bool validate(ModelInstance *comp, char *msg, size_t len) {
     CHECK(d->hub_locked == 0 || d->hub_locked == 1, "invalid parameter hub_locked = %d: must be 0 or 1",
           d->hub_locked);
     CHECK(d->m_tip >= 0, "invalid parameter m_tip = %g: tip mass must be >= 0", d->m_tip);
+    CHECK(!d->hub_locked || d->theta_dot_start == 0.0,
+          "invalid parameter theta_dot_start = %g: must be 0 with hub_locked = 1 (the hub is clamped)",
+          d->theta_dot_start);
     return true;
 }
 
@@ -146,7 +149,10 @@ static void massInverse(const ModelData *d, double a, double Minv[MAX_DOF][MAX_D
         return;
     }
     for (i = 0; i < d->N; i++)
-        for (j = 0; j < d->N; j++) M[i][j] = mt + (i == 0 ? (j == 0 ? a : d->b[j]) : (j == 0 ? d->b[i] : (i == j ? d->Jmode : 0.0)));
+        for (j = 0; j < d->N; j++) {
+            const double arrow = i == 0 ? (j == 0 ? a : d->b[j]) : (j == 0 ? d->b[i] : (i == j ? d->Jmode : 0.0));
+            M[i][j] = mt + arrow;
+        }
     fullInverse(M, 0, d->N, Minv);
 }
 

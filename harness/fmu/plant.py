@@ -43,7 +43,8 @@ def _bounds(name: str, lo: float | None, hi: float | None) -> str:
 
 def _validate(self: Any) -> None:
     """Raise ValueError (one line naming the parameter) for values the FMU would reject: not finite, an Integer
-    that is not one, outside the range of modelDescription.xml (min excluded for :data:`MIN_EXCLUSIVE`)."""
+    that is not one, outside the range of modelDescription.xml (min excluded for :data:`MIN_EXCLUSIVE`), an initial
+    hub speed on a clamped hub."""
     for name, v in FLEXJOINT.parameters().items():
         value = getattr(self, name)
         if not math.isfinite(value):
@@ -54,6 +55,11 @@ def _validate(self: Any) -> None:
         hi = math.inf if v.max is None else v.max
         if not lo <= value <= hi or (name in MIN_EXCLUSIVE and value == lo):
             raise ValueError(f"invalid parameter {name} = {value}: must be {_bounds(name, v.min, v.max)}")
+    if self.hub_locked and self.theta_dot_start != 0.0:
+        raise ValueError(
+            f"invalid parameter theta_dot_start = {self.theta_dot_start}: must be 0 with hub_locked = 1 "
+            "(the hub is clamped)"
+        )
 
 
 def _to_dict(self: Any) -> dict[str, float | int]:
@@ -129,12 +135,19 @@ def motor_constants(p: PlantParams) -> tuple[float, float]:
 
 
 def link_inertia(p: PlantParams) -> float:
-    """Rigid link inertia about the hub Jl = m L^2 / 3 [kg.m2] (by quadrature of rho x^2)."""
+    """Rigid inertia of the bare link about the hub Jl = m L^2 / 3 [kg.m2] (by quadrature of rho x^2).
+
+    Without the tip mass: Jl defines the link's stiffness through Ks (w_1 = sqrt(Ks / Jl)); the tip mass's
+    m_tip L^2 enters the mass matrix (:func:`mass_stiffness`), not this number."""
     return p.m_link / p.L_link * quad(lambda x: x * x, 0.0, p.L_link)[0]
 
 
 def clamped_frequencies_rad(p: PlantParams) -> np.ndarray:
-    """Clamped (hub fixed) natural frequencies w_i = w_1 (beta_i / beta_1)^2 [rad/s], w_1 = sqrt(Ks / Jl)."""
+    """Clamped (hub fixed) natural frequencies of the bare link, w_i = w_1 (beta_i / beta_1)^2 [rad/s],
+    w_1 = sqrt(Ks / Jl).
+
+    These fix the modal stiffnesses k_i = J_i w_i^2 (the beam's EI, independent of the tip mass); the clamped
+    frequencies with a tip mass are row 1 of :func:`mode_frequencies` (equal to these when m_tip = 0)."""
     bls = np.array(beam_roots(int(p.n_modes)))
     return math.sqrt(p.Ks / link_inertia(p)) * (bls / bls[0]) ** 2
 
@@ -219,7 +232,9 @@ def state_space(p: PlantParams) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.
 def mode_frequencies(p: PlantParams) -> np.ndarray:
     """Undamped flexible-mode frequencies [Hz], shape (2, n_modes): row 0 free hub, row 1 clamped hub.
 
-    Free hub: generalised eigenvalues of (K, M) without the rigid-body zero; clamped: w_i / (2 pi).
+    Free hub: generalised eigenvalues of (K, M) without the rigid-body zero (damping, back-EMF included, ignored);
+    clamped: those of the link block (hub row and column removed), w_i / (2 pi) when m_tip = 0 and below them
+    otherwise (the tip mass couples and lowers the modes).
     """
     M, K, _ = mass_stiffness(p)
 
