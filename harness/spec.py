@@ -30,8 +30,8 @@ from typing import Any
 
 import tomllib
 
-from .fmu.build import bundled_dir
 from .fmu.modeldesc import source_model
+from .fmu.sources import bundled_dir
 from .rig.controller import Controller
 from .rig.signals import SIGNAL_KINDS, check_params
 

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from fmpy.validation import validate_fmu
 
-from harness.fmu import build, modeldesc
+from harness.fmu import build, modeldesc, sources
 from harness.fmu.build import BuildError, build_fmu, fmu_sha256, source_hash
 
 
@@ -63,7 +63,7 @@ def test_fmu_contains_sources_and_rebuilds_from_them(fmus, tmp_path):
 def src_copy(tmp_path, monkeypatch):
     """A private copy of fmus/ and an empty cache."""
     src = tmp_path / "fmus"
-    shutil.copytree(build.fmu_source_dir(), src, ignore=shutil.ignore_patterns("build", "*.fmu"))
+    shutil.copytree(sources.fmu_source_dir(), src, ignore=shutil.ignore_patterns("build", "*.fmu"))
     monkeypatch.setenv("FLEXJOINT_FMU_SRC", str(src))
     monkeypatch.setenv("FLEXJOINT_CACHE", str(tmp_path / "cache"))
     return src
@@ -158,12 +158,12 @@ def test_packaged_fmu_tree_lists_every_model_directory():
 
     cfg = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())["tool"]["setuptools"]
     assert cfg["package-dir"] == {"harness._fmus": "fmus", "harness._specs": "specs"}
-    dirs = sorted(p.name for p in build.bundled_dir("fmus").iterdir() if p.is_dir() and p.name != "__pycache__")
+    dirs = sorted(p.name for p in sources.bundled_dir("fmus").iterdir() if p.is_dir() and p.name != "__pycache__")
     shipped = sorted(n.removeprefix("harness._fmus.") for n in cfg["packages"] if n.startswith("harness._fmus."))
     assert shipped == dirs
     for d in dirs:
         patterns = cfg["package-data"][f"harness._fmus.{d}"]
-        files = [p for p in (build.bundled_dir("fmus") / d).iterdir() if p.is_file()]
+        files = [p for p in (sources.bundled_dir("fmus") / d).iterdir() if p.is_file()]
         exts = {p.suffix for p in files if p.suffix in (".c", ".h") or p.name == "modelDescription.xml"}
         assert ".c" in exts
         assert exts <= {Path(x).suffix for x in patterns}, (d, exts, patterns)
@@ -172,10 +172,10 @@ def test_packaged_fmu_tree_lists_every_model_directory():
 
 def test_source_tree_is_the_bundled_one_unless_overridden(monkeypatch, tmp_path):
     monkeypatch.delenv("FLEXJOINT_FMU_SRC", raising=False)
-    assert build.fmu_source_dir() == build.bundled_dir("fmus")
-    assert build.available_models() == ["armax", "controller", "daq", "flexjoint"]
+    assert sources.fmu_source_dir() == sources.bundled_dir("fmus")
+    assert sources.available_models() == ["armax", "controller", "daq", "flexjoint"]
     monkeypatch.setenv("FLEXJOINT_FMU_SRC", str(tmp_path))
-    assert build.fmu_source_dir() == tmp_path and build.available_models() == []
+    assert sources.fmu_source_dir() == tmp_path and sources.available_models() == []
     with pytest.raises(ValueError, match=r"unknown FMU 'daq': expected one of \(none\)"):
         build_fmu("daq")
     monkeypatch.setenv("FLEXJOINT_FMU_SRC", str(tmp_path / "nowhere"))

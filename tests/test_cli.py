@@ -148,7 +148,7 @@ def test_specs_lists_the_bundled_specs_and_init_copies_one(tmp_path):
 
 
 def test_build_failure_exits_non_zero(tmp_path):
-    from harness.fmu.build import bundled_dir
+    from harness.fmu.sources import bundled_dir
 
     src = tmp_path / "fmus"
     shutil.copytree(bundled_dir("fmus"), src)

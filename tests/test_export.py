@@ -14,7 +14,8 @@ from fmpy.validation import validate_fmu
 
 from benchmarks.problems import demo_problem
 from harness.fmu.binding import FMUError
-from harness.fmu.build import build_fmu, fmu_source_dir
+from harness.fmu.build import build_fmu
+from harness.fmu.sources import fmu_source_dir
 from harness.ident import armax as ax
 from harness.ident import export, lti
 

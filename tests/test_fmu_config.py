@@ -8,7 +8,7 @@ import re
 import pytest
 
 from harness.fmu import modeldesc
-from harness.fmu.build import fmu_source_dir
+from harness.fmu.sources import fmu_source_dir
 
 LISTS = {"REAL_PARAMETERS": ("parameter", "Real"), "INTEGER_PARAMETERS": ("parameter", "Integer")}
 LISTS |= {"INPUTS": ("input", "Real"), "OUTPUTS": ("output", "Real")}

@@ -95,7 +95,7 @@ def test_spec_loader_honours_flexjoint_fmu_src(tmp_path, monkeypatch):
     """The parameter names a spec may set come from the FMU source tree the build uses, $FLEXJOINT_FMU_SRC too."""
     import shutil
 
-    from harness.fmu.build import bundled_dir
+    from harness.fmu.sources import bundled_dir
 
     src = tmp_path / "fmus"
     shutil.copytree(bundled_dir("fmus"), src)

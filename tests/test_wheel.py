@@ -94,7 +94,7 @@ def test_wheel_in_a_fresh_venv_builds_runs_a_campaign_and_diagnoses(tmp_path):
 
     where = json.loads(
         _run(
-            [py, "-c", "import json, harness, harness.fmu.build as b, harness.spec as s; print(json.dumps("
+            [py, "-c", "import json, harness, harness.fmu.sources as b, harness.spec as s; print(json.dumps("
              "[harness.__file__, str(b.fmu_source_dir()), str(s.SPEC_DIR)]))"],
             cwd=work, env=env,
         )

@@ -21,16 +21,17 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import xml.etree.ElementTree as ET
 import zipfile
 from contextlib import contextmanager
-from importlib import resources
 from pathlib import Path
 
 import cmake
 import fmpy
 from fmpy.build import build_platform_binary
 
-from .. import clone
+from . import modeldesc
+from .sources import available_models, fmu_source_dir
 
 try:
     import fcntl
@@ -46,40 +47,10 @@ class BuildError(RuntimeError):
     """An FMU could not be staged, compiled or packed."""
 
 
-def bundled_dir(kind: str) -> Path:
-    """Where the package's data tree ``kind`` ('fmus' or 'specs') lives.
-
-    An installed wheel ships it as package data (``harness/_fmus``, ``harness/_specs``); an editable install or a
-    plain checkout reads the clone's top-level ``fmus/`` and ``specs/``. Returns the first that exists (the
-    packaged path when neither does, so that error messages name where it was looked for).
-    """
-    if kind not in ("fmus", "specs"):
-        raise ValueError(f"unknown data tree {kind!r}")
-    packaged = Path(str(resources.files("harness").joinpath(f"_{kind}")))
-    if packaged.is_dir():
-        return packaged
-    in_clone = clone.ROOT / kind
-    return in_clone if in_clone.is_dir() else packaged
-
-
-def fmu_source_dir() -> Path:
-    """The FMU source tree: ``$FLEXJOINT_FMU_SRC``, else the bundled sources (see :func:`bundled_dir`)."""
-    env = os.environ.get("FLEXJOINT_FMU_SRC")
-    return Path(env) if env else bundled_dir("fmus")
-
-
 def cache_dir() -> Path:
     """The FMU cache: ``$FLEXJOINT_CACHE`` or ``~/.cache/flexjoint-harness``."""
     env = os.environ.get("FLEXJOINT_CACHE")
     return Path(env) if env else Path.home() / ".cache" / "flexjoint-harness"
-
-
-def available_models() -> list[str]:
-    """Model directories under the source tree (those with a modelDescription.xml)."""
-    root = fmu_source_dir()
-    if not root.is_dir():
-        return []
-    return sorted(p.name for p in root.iterdir() if (p / "modelDescription.xml").is_file() and p.name != "common")
 
 
 def _fmpy_headers() -> dict[str, bytes]:
@@ -87,11 +58,23 @@ def _fmpy_headers() -> dict[str, bytes]:
     return {h: (cdir / h).read_bytes() for h in FMI_HEADERS}
 
 
-def _with_source_files(xml: str, sources: list[str]) -> str:
-    """Add the FMI 2.0 ``<SourceFiles>`` list (what fmpy's build reads) to the CoSimulation element."""
+def _read_description(name: str, xml: str) -> tuple[modeldesc.ModelDescription, bool]:
+    """The model description (:func:`harness.fmu.modeldesc.parse`, the one reader) and whether its CoSimulation
+    element already lists SourceFiles; an unreadable XML is a :class:`BuildError`."""
+    try:
+        root = ET.fromstring(xml)
+        md = modeldesc.parse(xml)
+    except (ET.ParseError, StopIteration, ValueError) as exc:
+        raise BuildError(f"{name}: modelDescription.xml cannot be read: {exc or type(exc).__name__}") from None
+    return md, root.find("CoSimulation/SourceFiles") is not None
+
+
+def _with_source_files(xml: str, sources: list[str], listed: bool = False) -> str:
+    """Add the FMI 2.0 ``<SourceFiles>`` list (what fmpy's build reads) to the CoSimulation element (the text is
+    edited, so that the rest of the file stays byte for byte); ``listed``: the source already has a list."""
     files = "".join(f'\n      <File name="{s}"/>' for s in sources)
     block = f"\n    <SourceFiles>{files}\n    </SourceFiles>\n  "
-    if re.search(r"<SourceFiles\b", xml):
+    if listed:
         raise BuildError("modelDescription.xml must not list SourceFiles: the build adds them")
     new, n = re.subn(r"(<CoSimulation\b[^>]*?)\s*/>", lambda m: m.group(1) + ">" + block + "</CoSimulation>", xml)
     if n == 0:
@@ -122,20 +105,21 @@ def _staged_files(name: str) -> dict[str, bytes]:
     for h, content in _fmpy_headers().items():
         files.setdefault(f"sources/{h}", content)
     xml = (model_dir / "modelDescription.xml").read_text(encoding="utf-8")
-    _check_guid(name, xml, files)
+    md, listed = _read_description(name, xml)
+    _check_guid(name, md, files)
     c_sources = sorted(k.removeprefix("sources/") for k in files if k.endswith(".c"))
-    files["modelDescription.xml"] = _with_source_files(xml, c_sources).encode("utf-8")
+    files["modelDescription.xml"] = _with_source_files(xml, c_sources, listed).encode("utf-8")
     return files
 
 
-def _check_guid(name: str, xml: str, files: dict[str, bytes]) -> None:
-    m_xml = re.search(r'\bguid="([^"]+)"', xml)
-    m_id = re.search(r'modelIdentifier="([^"]+)"', xml)
+def _check_guid(name: str, md: modeldesc.ModelDescription, files: dict[str, bytes]) -> None:
+    """The XML's guid equals config.h's MODEL_GUID (the C side, a preprocessor line), and the CoSimulation
+    modelIdentifier the directory name."""
     cfg = files.get("sources/config.h", b"").decode("utf-8", "replace")
     m_c = re.search(r'#define\s+MODEL_GUID\s+"([^"]+)"', cfg)
-    if not (m_xml and m_c and m_xml.group(1) == m_c.group(1)):
+    if not (md.guid and m_c and md.guid == m_c.group(1)):
         raise BuildError(f"{name}: guid in modelDescription.xml and MODEL_GUID in config.h differ")
-    if not m_id or m_id.group(1) != name:
+    if md.model_identifier != name:
         raise BuildError(f"{name}: modelIdentifier must equal the directory name {name!r}")
 
 

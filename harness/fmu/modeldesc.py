@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
 
-from .build import bundled_dir, fmu_source_dir
+from .sources import bundled_dir, fmu_source_dir
 
 TYPES = ("Real", "Integer", "Boolean")
 
