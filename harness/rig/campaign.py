@@ -23,7 +23,7 @@ import scipy
 
 from .._version import __version__
 from ..executor import Executor, FmuBytes, fmu_bytes, worker_rig
-from ..fmu.build import build_all, fmu_sha256
+from ..fmu.build import build_all
 from ..fmu.plant import PlantParams, mass_stiffness
 from ..rundir import ExperimentEntry, Manifest, RunDir, write_dataset
 from ..spec import Experiment, Spec
@@ -161,8 +161,9 @@ def run_campaign(
 
     closed = any(e.loop == "closed" for e in spec.all_experiments())
     fmus = {k: v for k, v in (fmus or build_all()).items() if k != "controller" or closed}  # the FMUs it runs
+    shipped = {k: fmu_bytes(v) for k, v in fmus.items()}  # read and hashed once: the tasks' bytes, the manifest's sha
     out = Path(out)
-    data = simulate_spec(spec, fmus, workers=workers, progress=progress, scheduler=scheduler)
+    data = simulate_spec(spec, shipped, workers=workers, progress=progress, scheduler=scheduler)
     for name, cols in data.items():
         write_dataset(RunDir(out).dataset(name), cols)
     manifest = Manifest(
@@ -172,7 +173,7 @@ def run_campaign(
         spec_sha256=spec.sha256(),
         seed=spec.seed,
         sample_rate=spec.sample_rate,
-        fmus={k: {"file": Path(v).name, "sha256": fmu_sha256(v)} for k, v in fmus.items()},
+        fmus={k: {"file": Path(v).name, "sha256": shipped[k].sha256} for k, v in fmus.items()},
         versions=versions(),
         experiments=[
             ExperimentEntry(
