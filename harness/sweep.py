@@ -46,12 +46,10 @@ recording ``sweep.rrd``.
 
 from __future__ import annotations
 
-import contextlib
 import copy
 import hashlib
 import json
 import math
-import os
 import re
 import tempfile
 import time
@@ -75,10 +73,11 @@ from . import spec as specmod
 from .executor import Executor, FmuBytes, fmu_bytes
 from .fmu.build import build_all
 from .ident import armax
+from .ident.accept import judge
 from .ident.calibration import calibrate_run
 from .ident.identify import load_model, prepare, run_grid
 from .render.figures import new_figure, save_figure
-from .render.viewer import APPLICATION_ID
+from .render.viewer import write_recording
 from .rig.campaign import simulate_spec, versions
 from .rundir import ExperimentEntry, Manifest, RunDir, atomic_write_bytes, atomic_write_text, write_dataset, write_json
 
@@ -292,12 +291,6 @@ def run_rig(item: tuple[int, dict[str, float], int], plan: Plan) -> dict[str, An
 
 
 # ----------------------------------------------------------------------------------------------- statistics
-def passes(fits: Sequence[float], min_fit: float, min_average_fit: float) -> bool:
-    """``harness.ident.accept``'s rule: every fit >= min_fit and their mean >= min_average_fit (NaN fails)."""
-    f = np.asarray(fits, dtype=float)
-    return bool(f.size and np.all(f >= min_fit) and f.mean() >= min_average_fit)
-
-
 def pass_interval(k: int, n: int, confidence: float = 0.95) -> tuple[float, float]:
     """Wilson score interval of a pass rate k/n."""
 
@@ -515,15 +508,11 @@ def report_markdown(doc: dict[str, Any], figures: Sequence[str]) -> str:
 
 
 def write_rrd(out: Path, table: pd.DataFrame, doc: dict[str, Any], markdown: str) -> Path:
-    """``sweep.rrd``: per-rig series on the ``rig`` timeline, mean fit against each parameter on that
-    parameter's own timeline, the sensitivity bars and the report; written atomically with its blueprint."""
+    """``sweep.rrd`` (by the viewer's writer, :func:`harness.render.viewer.write_recording`): per-rig series on the
+    ``rig`` timeline, mean fit against each parameter on that parameter's own timeline, the sensitivity bars and
+    the report, with its blueprint."""
 
-    path = out / "sweep.rrd"
     key = hashlib.sha256(json.dumps({k: doc[k] for k in ("spec", "vary", "n", "seed")}, sort_keys=True).encode())
-    rec = rr.RecordingStream(APPLICATION_ID, recording_id=str(uuid.UUID(hex=key.hexdigest()[:32])))
-    fd, tmp_name = tempfile.mkstemp(dir=out, prefix=".sweep.rrd.", suffix=".tmp")
-    os.close(fd)
-    tmp = Path(tmp_name)
     rig = rr.TimeColumn("rig", sequence=table["rig"].to_numpy(np.int64))
     ok = table["passed"].to_numpy(bool)
     fm = table["fit_mean"].to_numpy(float)
@@ -544,8 +533,8 @@ def write_rrd(out: Path, table: pd.DataFrame, doc: dict[str, Any], markdown: str
         ),
         rrb.TimePanel(timeline="rig"),
     )
-    try:
-        rec.set_sinks(rr.FileSink(str(tmp)), default_blueprint=blueprint)
+
+    def log(rec: rr.RecordingStream) -> None:
         rec.send_recording_name(f"flexjoint sweep {doc['spec']['name']}")
         rec.log("report", rr.TextDocument(markdown, media_type=rr.MediaType.MARKDOWN), static=True)
         series = (("mean", fm, [40, 90, 220]), ("min", table["fit_min"].to_numpy(float), [230, 120, 20]))
@@ -572,16 +561,9 @@ def write_rrd(out: Path, table: pd.DataFrame, doc: dict[str, Any], markdown: str
         rank = doc["summary"]["sensitivity"]["ranking"]
         bars = np.array([r["s1"] if math.isfinite(r["s1"]) else 0.0 for r in rank])
         rec.log("sensitivity", rr.BarChart(bars, abscissa=np.arange(len(rank), dtype=float)), static=True)
-        rec.flush()
-        rec.disconnect()
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(Exception):
-            rec.disconnect()
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
+
+    rec_id = str(uuid.UUID(hex=key.hexdigest()[:32]))
+    return write_recording(out / "sweep.rrd", rec_id, log, blueprint=blueprint)
 
 
 # ----------------------------------------------------------------------------------------------- the sweep
@@ -651,7 +633,7 @@ def run_sweep(
     with np.errstate(invalid="ignore"):
         table["fit_mean"] = fits.mean(axis=1)
         table["fit_min"] = fits.min(axis=1)
-    table["passed"] = [passes(f, th["min_fit"], th["min_average_fit"]) for f in fits]
+    table["passed"] = [judge(dict(zip(fit_cols, map(float, f), strict=True)), th).passed for f in fits]
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -56,10 +57,11 @@ def selected_fits(run: Path) -> tuple[dict[str, float], str]:
     raise DataError(f"{run}: no selected model (run `flexjoint identify {run}` first)")
 
 
-def accept(run: Path, override: dict[str, Any] | None = None) -> Verdict:
-    """Gate the selected model of a run. Unstable (NaN) fits fail."""
-    th = thresholds_of(run, override)
-    fits, source = selected_fits(run)
+def judge(fits: Mapping[str, float], thresholds: Mapping[str, float], source: str = "") -> Verdict:
+    """The rule, on per-dataset fits [%]: every fit >= ``min_fit`` and their mean >= ``min_average_fit``.
+    Unstable (NaN) fits fail, and so does an empty set of fits."""
+    th = {k: float(v) for k, v in thresholds.items()}
+    fits = dict(fits)
     failures = [
         f"{name}: {'unstable' if math.isnan(v) else f'{v:.2f} %'} < {th['min_fit']:g} %"
         for name, v in fits.items()
@@ -69,3 +71,10 @@ def accept(run: Path, override: dict[str, Any] | None = None) -> Verdict:
     if not avg >= th["min_average_fit"]:
         failures.append(f"average: {avg:.2f} % < {th['min_average_fit']:g} %")
     return Verdict(not failures, fits, avg, th, source, failures)
+
+
+def accept(run: Path, override: dict[str, Any] | None = None) -> Verdict:
+    """Gate the selected model of a run (:func:`judge` on its fits and its spec's thresholds)."""
+    thresholds = thresholds_of(run, override)  # first: a malformed manifest is said before a missing model
+    fits, source = selected_fits(run)
+    return judge(fits, thresholds, source)

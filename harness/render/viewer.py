@@ -33,6 +33,7 @@ import math
 import os
 import tempfile
 import uuid
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -48,7 +49,7 @@ from .gap_text import diagnosis_markdown, gap_rows
 from .load import RunResults, load_results
 from .tables import crossfit_table
 
-__all__ = ["APPLICATION_ID", "log_run", "recording_id"]
+__all__ = ["APPLICATION_ID", "log_run", "recording_id", "write_recording"]
 
 APPLICATION_ID = "flexjoint"
 N_BODE = 400
@@ -475,17 +476,22 @@ def _log_with_blueprint(rec: rr.RecordingStream, res: RunResults) -> None:
     rec.send_blueprint(_blueprint(res, bounds), make_active=True, make_default=True)
 
 
-def _write_rrd(res: RunResults, rrd: Path) -> None:
-    """Log everything into a temp file next to ``rrd`` and rename it into place; no half file on error."""
+def write_recording(
+    rrd: Path, rec_id: str, log: Callable[[rr.RecordingStream], None], blueprint: rrb.Blueprint | None = None
+) -> Path:
+    """The one ``.rrd`` writer: a recording (application id :data:`APPLICATION_ID`, recording id ``rec_id``, the
+    default ``blueprint`` when given) filled by ``log(rec)`` into a temp file next to ``rrd`` and renamed into
+    place; no half file on error. Returns ``rrd``."""
+    rrd = Path(rrd)
     rrd.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp_name = tempfile.mkstemp(dir=rrd.parent, prefix=f".{rrd.name}.", suffix=".tmp")
     os.close(fd)
     tmp = Path(tmp_name)
     rec = None
     try:
-        rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id(res.manifest))
-        rec.set_sinks(rr.FileSink(str(tmp)))
-        _log_with_blueprint(rec, res)
+        rec = rr.RecordingStream(APPLICATION_ID, recording_id=rec_id)
+        rec.set_sinks(rr.FileSink(str(tmp)), default_blueprint=blueprint)
+        log(rec)
         rec.flush()
         rec.disconnect()  # closes the file sink and writes the RRD footer
         rec = None
@@ -497,6 +503,12 @@ def _write_rrd(res: RunResults, rrd: Path) -> None:
                 rec.disconnect()
         tmp.unlink(missing_ok=True)
         raise
+    return rrd
+
+
+def _write_rrd(res: RunResults, rrd: Path) -> None:
+    """Log everything into ``rrd`` (atomically, :func:`write_recording`), the blueprint after the data."""
+    write_recording(rrd, recording_id(res.manifest), lambda rec: _log_with_blueprint(rec, res))
 
 
 def _stream_live(res: RunResults, spawn: bool, connect: str | None) -> None:
