@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from harness.executor import Executor, FmuBytes, fmu_bytes, fmu_file, in_worker, worker_cache
+from harness.executor import Executor, FmuBytes, fmu_bytes, fmu_file, in_worker, session, worker_cache
 
 # a campaign of a few seconds: short calibration (pot ramp, 3-hold comb) and two 12 s identification experiments
 TINY_SPEC = """
@@ -147,6 +147,65 @@ def test_serial_path_keeps_order_reports_progress_and_raises_the_original_error(
     assert seen == ["mul a [1/3]", "mul b [2/3]", "mul c [3/3]", "0 [1/1]", "0 [1/2]"]
     with pytest.raises(ValueError, match="positive integer"):
         Executor(workers=0)
+
+
+def _nested_kind(_: object) -> str:
+    """A task that asks for an executor of its own: inside a worker it must be serial (no cluster in a cluster)."""
+    with Executor() as ex:
+        return ex.kind
+
+
+def test_processes_backend_is_the_serial_result_on_plain_processes():
+    seen: list[str] = []
+    with pytest.raises(ValueError, match="backend"):
+        Executor(workers=2, backend="threads")
+    with pytest.raises(ValueError, match="no scheduler"):
+        Executor(scheduler="tcp://127.0.0.1:1", backend="processes")
+    with session(2, progress=seen.append, backend="processes") as ex:
+        assert ex.kind == "processes" and ex.n_workers == 2 and Executor().kind == "processes"
+        assert ex.map(operator.mul, [3, 1, 2], 10, desc="mul", labels=["a", "b", "c"]) == [30, 10, 20]
+        assert ex.map(operator.call, [in_worker] * 3) == [True] * 3 and not in_worker()
+        assert ex.map(_nested_kind, [0, 1]) == ["serial", "serial"]
+        with pytest.raises(ValueError, match="math domain error"):
+            ex.map(math.sqrt, [4.0, -1.0])
+    # one progress line per finished task, in completion order: every label once, the count rising
+    assert sorted(x.split()[1] for x in seen[:3]) == ["a", "b", "c"]
+    assert [x.split()[2] for x in seen[:3]] == ["[1/3]", "[2/3]", "[3/3]"]
+    assert ex.pool is None and Executor(workers=1, backend="processes").kind == "serial"
+
+
+def _alloc_faults(n: int) -> tuple[str | None, int]:
+    """Minor page faults of this thread while ``n`` 1 MiB arrays are allocated, written and freed in turn (after
+    one untimed), and the MALLOC_TRIM_THRESHOLD_ this process was started with."""
+    import resource
+
+    import numpy as np
+
+    np.ones(1 << 17)
+    r0 = resource.getrusage(resource.RUSAGE_THREAD).ru_minflt
+    for _ in range(n):
+        np.ones(1 << 17)
+    return os.environ.get("MALLOC_TRIM_THRESHOLD_"), resource.getrusage(resource.RUSAGE_THREAD).ru_minflt - r0
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc malloc and RUSAGE_THREAD")
+def test_workers_allocate_as_a_plain_process():
+    """The nanny's MALLOC_TRIM_THRESHOLD_=65536 froze glibc's mmap threshold: every array above 128 KiB was a
+    fresh mmap, its pages faulted in again (a grid task 1.8x slower in a worker). The local cluster's workers
+    start without it; a worker that has it anyway (a remote nanny) resets the thresholds before its first task."""
+    with Executor(workers=2) as ex:
+        assert ex.kind == "local"
+        for env, faults in ex.map(_alloc_faults, [100, 100]):
+            assert env is None and faults < 2000, (env, faults)
+    code = (
+        "import sys; sys.path.insert(0, sys.argv[1]); import test_executor as t; from harness import executor as e;"
+        "print(*t._alloc_faults(100)[1:], *e._worker_call(t._alloc_faults, 100)[1:], e._MALLOC_TUNED)"
+    )
+    env = {**os.environ, "MALLOC_TRIM_THRESHOLD_": "65536"}
+    out = subprocess.run([sys.executable, "-c", code, str(Path(__file__).parent)], env=env, capture_output=True,
+                         text=True, timeout=120, check=True).stdout.split()  # fmt: skip
+    before, after = int(out[0]), int(out[1])
+    assert before > 20000 and after < 2000 and out[2] == "[True]", out
 
 
 def test_fmu_bytes_are_written_once_per_process_and_worker_cache_memoises(fmus):
