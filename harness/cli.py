@@ -2,25 +2,27 @@
 
 from __future__ import annotations
 
+import atexit
 import os
 import signal
 import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from types import FrameType
+from typing import TYPE_CHECKING, Annotated, Any, cast
 
 import typer
-from rich.console import Console
 
-from . import clone
 from ._version import __version__
 
 if TYPE_CHECKING:
+    from rich.console import Console
+
     from .diagnosis.result import Diagnosis
 
 # A command imports what it runs when it runs (here, and only here, imports sit inside functions): ``--help`` and
-# ``--version`` then answer without loading numpy, fmpy, Dask or the pipeline.
+# ``--version`` then answer without loading numpy, fmpy, Dask or the pipeline (tests/test_cli_startup.py).
 
 app = typer.Typer(
     add_completion=False,
@@ -28,8 +30,31 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
     help="Flexible-joint rig twin, ARMAX identification, cross-fit and sim-to-real diagnosis.",
 )
-err = Console(stderr=True, highlight=False)
-out = Console(highlight=False, width=None if sys.stdout.isatty() else 140)
+
+
+class _LazyConsole:
+    """A rich ``Console`` made on first use: importing rich costs ``--version`` a quarter of its time."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        object.__setattr__(self, "_kwargs", kwargs)
+        object.__setattr__(self, "_console", None)
+
+    def _get(self) -> Console:
+        if self._console is None:
+            from rich.console import Console
+
+            object.__setattr__(self, "_console", Console(**self._kwargs))
+        return self._console
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._get(), name)
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        setattr(self._get(), name, value)
+
+
+err = cast("Console", _LazyConsole(stderr=True, highlight=False))
+out = cast("Console", _LazyConsole(highlight=False, width=None if sys.stdout.isatty() else 140))
 
 SpecArg = Annotated[str, typer.Argument(help="campaign spec: a path or a name in specs/ (lab, nominal)")]
 SetOpt = Annotated[list[str] | None, typer.Option("--set", help="override one parameter: table.name=value")]
@@ -138,7 +163,7 @@ def _stop_status() -> None:
 
 def _version(value: bool) -> None:
     if value:
-        out.print(f"flexjoint-harness {__version__}")
+        print(f"flexjoint-harness {__version__}")  # plain: the version does not wait for rich
         raise typer.Exit()
 
 
@@ -573,7 +598,7 @@ def bench(
     ] = 0,
 ) -> None:
     """Measure speed against the named peers (fmpy simulate_fmu, sippy-unipi) and write JSON."""
-
+    from . import clone
     from .rundir import write_json
 
     bench = clone.load_package("benchmarks.bench")
@@ -587,18 +612,46 @@ def bench(
     out.print_json(data=result)
 
 
+# Ctrl-C: the first raises KeyboardInterrupt in the command (typer turns it into exit code 130, main into one line);
+# another while that one is being handled (a cluster shutting down), or one while the process ends, ends it at once
+# with the same line and code. ``_raised``: the first was raised; ``_said``: the line is printed; ``_ending``: at exit.
+_raised = _said = _ending = False
+
+
+def _say_interrupted() -> None:
+    """The one line of an interrupt, printed once."""
+    global _said
+    if not _said:
+        _said = True
+        print("error: interrupted", file=sys.stderr, flush=True)
+
+
+def _now_ending() -> None:
+    global _ending
+    _ending = True
+
+
 def _quiet_workers_on_interrupt() -> None:
-    """Ctrl-C reaches every process of the terminal's group: the command itself raises KeyboardInterrupt (typer
-    turns it into exit code 130) while a forked child (the bench's machine-baseline processes) ends at once, by
-    the signal, instead of printing its own traceback. Dask's workers are spawned, not forked: they get the
-    signal too, and print a traceback only when it lands while they are still importing (cluster start-up)."""
+    """Ctrl-C reaches every process of the terminal's group: the command itself raises KeyboardInterrupt once, then
+    ends at once on the next, while a forked child (the bench's machine-baseline processes) ends at once, by the
+    signal, instead of printing its own traceback. Dask's workers are spawned, not forked, and do not run this: they
+    get the signal too and, as of now, a worker's process prints its own KeyboardInterrupt traceback."""
     main_pid = os.getpid()
 
-    def on_sigint(signum: int, frame: object) -> None:
+    def on_sigint(signum: int, frame: FrameType | None) -> None:
+        global _raised
         if os.getpid() != main_pid:
             signal.signal(signal.SIGINT, signal.SIG_DFL)
             os.kill(os.getpid(), signal.SIGINT)
-        raise KeyboardInterrupt
+        if not (_raised or _ending):
+            _raised = True
+            raise KeyboardInterrupt
+        try:
+            if _status is not None and err.is_terminal:
+                sys.stderr.write("\r\x1b[2K\x1b[?25h")  # end the live status line and show the cursor it hid
+            _say_interrupted()
+        finally:
+            os._exit(130)
 
     if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
         signal.signal(signal.SIGINT, on_sigint)
@@ -607,24 +660,34 @@ def _quiet_workers_on_interrupt() -> None:
 def main() -> None:
     """Console entry point. Typer handles usage errors, --help and exit codes itself (standalone mode); a user
     error raised by the library (bad spec, bad data, a failing FMU) becomes one line on stderr and exit code 2;
-    Ctrl-C one line and exit code 130."""
+    Ctrl-C one line and exit code 130, whenever it comes (``harness.__main__`` answers one while this module
+    loads)."""
+    global _raised, _said
+    _raised = _said = False
     _quiet_workers_on_interrupt()
     try:
-        app()
-    except SystemExit as e:  # first: an interrupt may have left a module half-imported, which _user_errors imports
+        try:
+            app()
+        except KeyboardInterrupt:  # outside typer's own handling (while it builds the command line)
+            raise SystemExit(130) from None
+        except Exception as e:
+            if _raised:  # the library's clean-up turned the interrupt into an error of its own
+                raise SystemExit(130) from None
+            if not isinstance(e, _user_errors()):
+                raise
+            _stop_status()
+            msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+            print(f"error: {msg}", file=sys.stderr)
+            sys.exit(2)
+    except SystemExit as e:
         if e.code == 130:
             _stop_status()
-            print("error: interrupted", file=sys.stderr)
+            _say_interrupted()
         raise
-    except Exception as e:
-        if not isinstance(e, _user_errors()):
-            raise
-        _stop_status()
-        msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        print(f"error: {msg}", file=sys.stderr)
-        sys.exit(2)
     finally:
         _stop_status()
+        atexit.unregister(_now_ending)
+        atexit.register(_now_ending)  # registered last, run first: a Ctrl-C in the exit's clean-up ends it at once
 
 
 if __name__ == "__main__":

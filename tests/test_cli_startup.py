@@ -1,9 +1,10 @@
 """The command line starts at once and a Ctrl-C at any moment is one line and exit code 130. No test here waits a
-set time: an interrupt during loading is raised by an import hook at a chosen module, one during the work is sent
-when the command has reported progress."""
+set time: an interrupt during loading comes from an import hook at a chosen module, one during the work is sent
+once the command has reported progress, one during the exit from an exit handler."""
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -11,26 +12,48 @@ import sys
 
 import pytest
 
-# a child that raises KeyboardInterrupt (what Ctrl-C raises) when module argv[1] is first imported, then runs the
-# console script's entry point with the remaining arguments
-INTERRUPT_AT_IMPORT = """
-import sys
-AT = sys.argv[1]
-class Interrupt:
+HEAVY = ("numpy", "pandas", "fmpy", "dask", "distributed", "rerun", "matplotlib", "scipy", "control", "pyarrow")
+
+# The console script's entry point run with argv[3:] as its arguments, Ctrl-C coming at a chosen moment:
+# argv[2] "raise": KeyboardInterrupt (what Ctrl-C raises) when module argv[1] is first imported;
+# "signal": a real SIGINT to the process at that import (through the signal handler in force then);
+# "twice": a SIGINT there and another while the first is being handled (the library cleaning up after it);
+# "exit": a SIGINT while the process runs its exit handlers, the command done (argv[1] unused).
+CTRL_C_AT = """
+import atexit, os, signal, sys, time
+at, how, args = sys.argv[1], sys.argv[2], sys.argv[3:]
+
+def ctrl_c():
+    os.kill(os.getpid(), signal.SIGINT)
+    time.sleep(30)  # the handler runs at the latest when the signal interrupts the sleep
+
+class CtrlC:
     def find_spec(self, name, path=None, target=None):
-        if name == AT:
+        if name != at:
+            return None
+        sys.meta_path.remove(self)
+        if how == "raise":
             raise KeyboardInterrupt
-        return None
-sys.meta_path.insert(0, Interrupt())
-sys.argv = ["flexjoint", *sys.argv[2:]]
+        if how == "signal":
+            ctrl_c()
+        try:
+            ctrl_c()
+        except KeyboardInterrupt:
+            ctrl_c()
+
+if how == "exit":
+    atexit.register(ctrl_c)
+else:
+    sys.meta_path.insert(0, CtrlC())
+sys.argv = ["flexjoint", *args]
 from harness.__main__ import main
 main()
 """
 
 
-def _interrupted_at(module: str, *args: str, tmp_path) -> subprocess.CompletedProcess:
+def _ctrl_c_at(module: str, how: str, *args: str, tmp_path) -> subprocess.CompletedProcess:
     return subprocess.run(
-        [sys.executable, "-c", INTERRUPT_AT_IMPORT, module, *args],
+        [sys.executable, "-c", CTRL_C_AT, module, how, *args],
         capture_output=True,
         text=True,
         cwd=tmp_path,
@@ -39,30 +62,43 @@ def _interrupted_at(module: str, *args: str, tmp_path) -> subprocess.CompletedPr
     )
 
 
-def test_the_command_line_loads_without_the_numerical_stack():
-    code = (
-        "import sys, harness.cli; print(sorted(m for m in ('numpy', 'pandas', 'fmpy', 'distributed', 'rerun', "
-        "'matplotlib', 'scipy', 'control') if m in sys.modules))"
-    )
+def _loaded(args: list[str] | None) -> list[str]:
+    """The heavy modules (and rich) loaded by a child that imports the command line and, unless ``args`` is None,
+    runs it with ``args`` (exit code 2 for none: usage shown)."""
+    run = "" if args is None else f"sys.argv = ['flexjoint', *{args!r}]; from harness.__main__ import main; main()"
+    loaded = f"json.dumps([m for m in {(*HEAVY, 'rich')!r} if m in sys.modules])"
+    code = f"import atexit, json, sys; atexit.register(lambda: print({loaded}))\nimport harness.cli\n{run}"
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert r.returncode == 0 and r.stdout.strip() == "[]", r.stdout + r.stderr
+    assert r.returncode in (0, 2) and "Traceback" not in r.stderr, r.stdout + r.stderr
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def test_the_command_line_loads_without_the_numerical_stack():
+    assert _loaded(None) == []
+    assert _loaded(["--version"]) == []  # rich (~40 ms) too is loaded only to print through it
+    for args in (["--help"], ["campaign", "--help"], []):
+        assert _loaded(args) in ([], ["rich"]), args  # typer's help is drawn by rich
     r = subprocess.run([sys.executable, "-m", "harness", "--version"], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0 and r.stdout.startswith("flexjoint-harness "), r.stderr
 
 
 @pytest.mark.parametrize(
-    "module, args",
+    "module, how, args",
     [
-        ("typer", ["--version"]),  # the command line itself still loading
-        ("harness.rig.campaign", ["campaign", "lab", "--out", "r"]),  # a command loading what it runs
-        ("pyarrow", ["campaign", "lab", "--out", "r"]),  # ... deeper, inside the library's imports
-        ("harness.diagnosis.diagnose", ["diagnose", "--real", "r"]),
+        ("typer", "raise", ["--version"]),  # the command line itself still loading
+        ("typer", "signal", ["--version"]),
+        ("harness.rig.campaign", "raise", ["campaign", "lab", "--out", "r"]),  # a command loading what it runs
+        ("harness.rig.campaign", "signal", ["campaign", "lab", "--out", "r"]),
+        ("pyarrow", "signal", ["campaign", "lab", "--out", "r"]),  # ... deeper, inside the library's imports
+        ("harness.diagnosis.diagnose", "raise", ["diagnose", "--real", "r"]),
+        ("harness.rig.campaign", "twice", ["campaign", "lab", "--out", "r"]),  # twice: the second ends it at once
+        ("", "exit", ["specs"]),  # while the process ends, the command done
     ],
 )
-def test_ctrl_c_while_loading_is_one_line_and_exit_130(tmp_path, module, args):
-    r = _interrupted_at(module, *args, tmp_path=tmp_path)
+def test_ctrl_c_at_any_moment_is_one_line_and_exit_130(tmp_path, module, how, args):
+    r = _ctrl_c_at(module, how, *args, tmp_path=tmp_path)
     assert r.returncode == 130, r.stderr
-    assert r.stderr.strip() == "error: interrupted", r.stderr
+    assert r.stderr == "error: interrupted\n", r.stderr
     assert not (tmp_path / "r").exists()
 
 
@@ -86,4 +122,5 @@ def test_ctrl_c_during_the_work_is_one_line_and_exit_130(tmp_path):
     stderr = "".join(seen) + rest
     assert p.returncode == 130, stderr
     assert "Traceback" not in stderr and stderr.strip().splitlines()[-1] == "error: interrupted", stderr
+    assert all(x.startswith("simulated") for x in stderr.strip().splitlines()[:-1]), stderr
     assert not (tmp_path / "r" / "manifest.json").exists()
