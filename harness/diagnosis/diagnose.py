@@ -4,7 +4,8 @@ The data flow, one module per step:
 
 1. :mod:`harness.diagnosis.experiments`: every non-calibration experiment of the REAL run, converted to degrees
    with the real run's calibration, its invalid samples masked (pot dead band, ADC clipping), split into two
-   folds for 2-fold cross-fitting (stratified by signal kind and command level);
+   folds for 2-fold cross-fitting (stratified by signal kind and command level; a lone record is cut in time into
+   two halves, at its quietest point near the middle, so that what is reported as held out is held out);
 2. :mod:`harness.diagnosis.noise`: the noise floor of the data and the ADC lattice it sits on;
 3. :mod:`harness.diagnosis.simulation`: each experiment re-simulated on the SIM spec's rig with the real command,
    both sides calibrated alike; the gap g = sqrt(E), E the mean squared gap (per experiment and channel
@@ -17,7 +18,9 @@ The data flow, one module per step:
    finding, ``parameters``, not an effect), then greedy forward selection of the effects on top of it, backward
    elimination and drop-one importance, every score on held-out data;
 6. :mod:`harness.diagnosis.where`: where the gap of the simulation as given, and recalibrated, lies;
-7. :mod:`harness.diagnosis.result`: ``diagnosis.json``.
+7. :mod:`harness.diagnosis.result`: ``diagnosis.json``, with per experiment its replay and why, and the caveats of
+   the verdict: a recalibrated parameter at its search bound (the spec may not describe the rig), one the data do
+   not determine (95 % interval wider than a factor 100).
 
 Verdict: ``none`` when the held-out gap after recalibration is within NONE_RATIO (2) x the floor and no lattice
 (``quantization`` with one); otherwise the effect found whose removal reopens most of the gap (drop-one), if the
@@ -51,9 +54,9 @@ from ..ident.calibration import load_calibration
 from ..rundir import RunDir, write_json
 from . import recalibrate as recal
 from .effects import CandidateContext, candidates
-from .experiments import REPLAYS, RigExperiment, load_experiments, masked_share, split_folds
+from .experiments import REPLAYS, RigExperiment, fold_experiments, load_experiments, masked_share
 from .noise import noise_floor, noise_mean_squared_gap
-from .result import Diagnosis, FittedParameter, Folds, NoiseFloor, SensorCalibration, Thresholds
+from .result import Diagnosis, FittedParameter, NoiseFloor, SensorCalibration, Thresholds
 from .search import EXPLAINED, GAP_RESOLUTION, MIN_CLOSURE, NONE_RATIO, search
 from .simulation import Setup, fit_pct, fmu_value, loop_noise_gap, sim_rig
 from .tasks import Pool
@@ -94,10 +97,8 @@ def _with_loop_noise(setup: Setup, noise: NoiseFloor, e_noise: float) -> tuple[N
     return replace(noise, gap=math.sqrt(e), fit_pct=fit_pct(e), method=method), e
 
 
-def _replays(experiments: dict[str, RigExperiment]) -> dict[str, dict[str, str]] | None:
-    """Per experiment its replay and why, when any experiment was not replayed open loop as logged."""
-    if all(x.replay == "open" for x in experiments.values()):
-        return None
+def _replays(experiments: dict[str, RigExperiment]) -> dict[str, dict[str, str]]:
+    """Per experiment how it was re-simulated (:data:`harness.diagnosis.experiments.REPLAYS`) and why."""
     return {n: {"replay": x.replay, "reason": x.replay_reason} for n, x in experiments.items()}
 
 
@@ -105,7 +106,7 @@ def _caveats(parameters: dict[str, FittedParameter], verdict: str) -> list[str] 
     """What limits the verdict: each recalibrated parameter that ended at its bound (the spec may not describe the
     rig, so an effect's share of the gap may be a wrong linear part's), each one the data do not determine."""
     out = [f"verdict {verdict!r} reached with {p.finding}" for p in parameters.values() if p.at_bound]
-    out += [f"{p.finding}" for p in parameters.values() if p.identifiable is False and p.finding]
+    out += [f"{p.finding}" for p in parameters.values() if p.identifiable is False and p.finding and not p.at_bound]
     return out or None
 
 
@@ -122,10 +123,12 @@ def diagnose_run(
     """Diagnose the gap between run directory ``real`` and the simulation spec ``sim`` (a path, a name in
     specs/ or a loaded Spec); the candidates are fitted as tasks of a :class:`harness.executor.Executor`
     (``workers`` processes of the default local cluster, 1 = serial, or the Dask cluster at ``scheduler``); ``fmus``:
-    the built plant and DAQ FMUs (default: built or taken from the cache); ``replay``: how each experiment is
-    re-simulated (:func:`harness.diagnosis.experiments.load_experiments`). Writes ``out/diagnosis.json`` (default
-    out = real) and returns it as a :class:`harness.diagnosis.result.Diagnosis`; the wall-clock seconds go to
-    ``diagnosis.timing.json``, so that diagnosis.json is byte-stable."""
+    the built plant, DAQ and controller FMUs (default: built or taken from the cache); ``replay``: how each experiment
+    is re-simulated (:func:`harness.diagnosis.experiments.load_experiments`); a lone record is cut in time into two
+    halves, one per fold (:func:`harness.diagnosis.experiments.fold_experiments`; too short for that: a one-line
+    DataError, nothing written). Writes
+    ``out/diagnosis.json`` (default out = real) and returns it as a :class:`harness.diagnosis.result.Diagnosis`;
+    the wall-clock seconds go to ``diagnosis.timing.json``, so that diagnosis.json is byte-stable."""
 
     t0 = time.perf_counter()
     say = progress or (lambda _m: None)
@@ -138,18 +141,18 @@ def diagnose_run(
     adc_range = fmu_value(daq, "daq", "adc_range")
     if replay != "auto" and replay not in REPLAYS:
         raise ValueError(f"replay {replay!r} unknown; valid: auto, {', '.join(REPLAYS)}")
-    experiments = load_experiments(real, cal, sim_spec, adc_range, replay)
+    records = load_experiments(real, cal, sim_spec, adc_range, replay)
+    experiments, folds = fold_experiments(records)
     fmus = fmus or build_all()
     shipped = {k: fmu_bytes(fmus[k]) for k in ("flexjoint", "daq", "controller") if k in fmus}
     setup = Setup(plant, daq, cal.comb_angles, experiments, shipped)
-    folds = split_folds(experiments)
-    noise, e_noise = noise_floor(experiments, adc_range, cal)
+    noise, e_noise = noise_floor(records, adc_range, cal, experiments)
     noise, e_noise = _with_loop_noise(setup, noise, e_noise)
     top = max(x.peak_command_v for x in experiments.values())
     cands = candidates(CandidateContext(plant, daq, top, noise.adc_lattice_bits))
     pool = Pool(setup, workers, scheduler, progress)
     try:
-        found = search(pool, experiments, folds, cands, e_noise, say)
+        found = search(pool, experiments, (folds.A, folds.B), cands, e_noise, say)
     finally:
         pool.close()
     recal_over = {k: v for k, v in found.final.items() if k in recal.LINEAR}
@@ -164,7 +167,7 @@ def diagnose_run(
         sim_spec=sim_spec.name if isinstance(sim, specmod.Spec) else str(sim),
         sim_spec_file=Path(sim_spec.path).name,
         calibration=SensorCalibration(Kp=cal.Kp, Ke=cal.Ke, gauge_offset_v=cal.gauge_offset_v),
-        folds=Folds(A=folds[0], B=folds[1], scheme="2-fold cross-fit: fit on A score on B, and back"),
+        folds=folds,
         verdict=found.verdict,
         parameters=found.parameters,
         recalibration_applied=found.recalibration_applied,

@@ -9,31 +9,40 @@ end) or the ADC clips, a sample says nothing about the shaft: such samples carry
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import math
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy.signal import savgol_filter
 
 from .. import spec as specmod
 from ..ident.calibration import Calibration, alpha_deg, theta_deg
 from ..rig.controller import R2_MIN
 from ..rig.signals import MultisineLines, multisine_lines
 from ..rundir import DataError, ExperimentEntry, Manifest, RunDir, read_dataset, sample_time
+from .result import Folds
 
 __all__ = [
     "CHANNELS",
     "DEADBAND_GUARD",
     "FIT_SECONDS",
+    "MIN_FOLD_SAMPLES",
+    "MIN_FOLD_SECONDS",
     "REPLAYS",
     "SHOOTING_SECONDS",
     "SCREEN_SECONDS",
     "RigExperiment",
     "command_period",
+    "fold_experiments",
+    "halves",
     "load_experiments",
     "masked_share",
+    "measured_state",
     "pot_track_ends",
     "split_folds",
+    "split_point",
     "valid_samples",
 ]
 
@@ -47,6 +56,7 @@ SHOOTING_SECONDS = 1.0  # s: window of the multiple-shooting replay
 FIT_SECONDS = 20.0  # s: parameters are fitted on the first 20 s of each experiment (scored on all of it)
 SCREEN_SECONDS = 12.0  # s: candidates are screened on the first 12 s of each experiment
 DEADBAND_GUARD = 1.5  # deg: samples this close to a pot track end (its dead band) are not compared
+SMOOTH_SECONDS = 0.02  # s: window of the smoothed rates of the measured state (a multiple-shooting start)
 
 
 @dataclass
@@ -254,7 +264,8 @@ def split_folds(experiments: dict[str, RigExperiment]) -> tuple[list[str], list[
     """Two folds A, B of experiment names for 2-fold cross-fitting (fit on A, score on B, and back): within each
     signal kind (sorted by peak |u|, then name) the experiments alternate between the folds, the first of
     every other kind going to B, so both folds span the kinds and the command levels. One experiment: it is
-    both folds (nothing can be held out)."""
+    both folds (nothing can be held out; the diagnosis cuts a lone record in time into two halves before, one per
+    fold: :func:`fold_experiments`)."""
     names = list(experiments)
     if len(names) == 1:
         return names, names
@@ -270,3 +281,99 @@ def split_folds(experiments: dict[str, RigExperiment]) -> tuple[list[str], list[
         b.append(a.pop())
     order = {n: i for i, n in enumerate(names)}
     return sorted(a, key=order.get), sorted(b, key=order.get)
+
+
+def measured_state(exp: RigExperiment) -> np.ndarray:
+    """The measured state per sample, (n, 4): theta, alpha [rad] and their rates [rad/s] (Savitzky-Golay, cubic,
+    over SMOOTH_SECONDS: differences of quantized angles are steps)."""
+    w = max(5, int(round(SMOOTH_SECONDS / exp.Ts)) | 1)
+    th, al = np.radians(exp.theta), np.radians(exp.alpha)
+    if th.size <= w:
+        return np.column_stack([th, al, np.gradient(th, exp.Ts), np.gradient(al, exp.Ts)])
+    rates = [savgol_filter(x, w, 3, deriv=1, delta=exp.Ts) for x in (th, al)]
+    return np.column_stack([th, al, *rates])
+
+
+MIN_FOLD_SECONDS = 1.0  # s: each half of a lone record, one multiple-shooting window (import refuses shorter records)
+MIN_FOLD_SAMPLES = 50  # samples in each half of a lone record, whatever the rate
+SPLIT_ZONE = (0.4, 0.6)  # a lone record is split in this share of its length, at its quietest point
+QUIET_SECONDS = 0.1  # s: the motion measure that picks the split point is averaged over this window
+
+
+def split_point(x: RigExperiment) -> int:
+    """Where a lone record is cut in two (the first sample of its second half): a whole number of periods of a
+    periodic command near the middle, else the quietest sample of the middle (SPLIT_ZONE) where the rates of
+    theta and alpha and the deflection alpha are smallest (each in units of its RMS, averaged over QUIET_SECONDS),
+    so the second half's replay, started from the measured angle, starts near rest; each half keeps at least
+    MIN_FOLD_SECONDS and MIN_FOLD_SAMPLES. A record too short for that raises a one-line DataError."""
+    n = x.u.size
+    n_min = max(MIN_FOLD_SAMPLES, math.ceil(MIN_FOLD_SECONDS / x.Ts - 1e-6))
+    if n < 2 * n_min:
+        raise DataError(
+            f"experiment {x.name!r}: one record of {n} samples ({n * x.Ts:.4g} s) is too short for two folds; the "
+            f"diagnosis splits a lone record in time and needs >= {MIN_FOLD_SECONDS:g} s and {MIN_FOLD_SAMPLES} "
+            f"samples in each half ({2 * n_min} samples)"
+        )
+    lo, hi = max(math.ceil(SPLIT_ZONE[0] * n), n_min), min(math.floor(SPLIT_ZONE[1] * n), n - n_min)
+    if lo > hi:
+        return n // 2 if n_min <= n // 2 <= n - n_min else n_min
+    if x.period:
+        whole = [m for m in range(x.period, n, x.period) if lo <= m <= hi]
+        if whole:
+            return min(whole, key=lambda m: (abs(2 * m - n), m))
+    state = measured_state(x)
+    alpha = state[:, 1] - np.median(state[:, 1])
+    score = np.zeros(n)
+    for z in (state[:, 2], alpha, state[:, 3]):
+        rms = float(np.sqrt(np.mean(z**2)))
+        if rms > 0:
+            score += (z / rms) ** 2
+    w = max(1, int(round(QUIET_SECONDS / x.Ts)))
+    smooth = np.convolve(score, np.ones(w) / w, mode="same")
+    return lo + int(np.argmin(smooth[lo : hi + 1]))
+
+
+def halves(x: RigExperiment) -> tuple[dict[str, RigExperiment], int]:
+    """A lone record as two pseudo-experiments, its halves in time cut at :func:`split_point`, named
+    "<name> (0-4.87 s)" and "<name> (4.87-10 s)": every array sliced alike (command, angles, volts, valid
+    samples, reference), the replay, controller and sensor kept; a periodic command keeps its multisine lines when
+    each half holds >= 3 whole periods (its BLA), else only its period. Returns (halves, split sample)."""
+    m = split_point(x)
+    n = x.u.size
+    bla = x.lines is not None and x.period > 0 and min(m, n - m) // x.period >= 3
+    out = {}
+    for a, b in ((0, m), (m, n)):
+        s = slice(a, b)
+        name = f"{x.name} ({a * x.Ts:.4g}-{b * x.Ts:.4g} s)"
+        periodic = x.period > 0 and a % x.period == 0 and (b - a) // x.period >= 2
+        out[name] = replace(
+            x,
+            name=name,
+            t=x.t[s],
+            u=x.u[s],
+            theta=x.theta[s],
+            alpha=x.alpha[s],
+            theta_v=x.theta_v[s],
+            alpha_v=x.alpha_v[s],
+            plant=dict(x.plant),
+            daq=dict(x.daq),
+            period=x.period if periodic else 0,
+            lines=x.lines if periodic and bla else None,
+            valid={c: v[s] for c, v in x.valid.items()},
+            ref=None if x.ref is None else x.ref[s],
+        )
+    return out, m
+
+
+def fold_experiments(experiments: dict[str, RigExperiment]) -> tuple[dict[str, RigExperiment], Folds]:
+    """The experiments the diagnosis scores and its 2-fold cross-fit (:func:`split_folds`); a lone record is
+    split in time (:func:`halves`), one half per fold, so that its held-out figures are held out."""
+    scheme = "2-fold cross-fit: fit on A score on B, and back"
+    if len(experiments) != 1:
+        a, b = split_folds(experiments)
+        return experiments, Folds(A=a, B=b, scheme=scheme)
+    (x,) = experiments.values()
+    parts, m = halves(x)
+    first, second = parts
+    scheme += f"; the lone record {x.name!r} split in time at {m * x.Ts:.4g} s into two halves, one per fold"
+    return parts, Folds(A=[first], B=[second], scheme=scheme)

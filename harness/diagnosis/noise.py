@@ -135,11 +135,17 @@ def noise_mean_squared_gap(experiments: dict[str, RigExperiment], sigma: dict[st
     return float(np.mean(qs)) if qs else 0.0
 
 
-def noise_floor(experiments: dict[str, RigExperiment], adc_range: float, cal: Calibration) -> tuple[NoiseFloor, float]:
+def noise_floor(
+    experiments: dict[str, RigExperiment],
+    adc_range: float,
+    cal: Calibration,
+    scored: dict[str, RigExperiment] | None = None,
+) -> tuple[NoiseFloor, float]:
     """The noise floor of the data (:func:`noise_sigma`, plus the ADC's LSB^2 / 12 through Kp and Ke when the
     volts sit on a lattice of an ADC of ``adc_range`` [V], plus step^2 / 12 of a record written on an angle
     lattice, its encoder's counts or its last decimal: ``RigExperiment.lattice_deg``) and its mean squared gap
-    over every experiment."""
+    over every experiment of ``scored`` (default ``experiments``: the noise is estimated on whole records, the
+    gap taken over what the diagnosis scores, e.g. a lone record's two halves)."""
     sigma = noise_sigma(experiments)
     bits = adc_lattice(experiments, adc_range)
     estimated = None
@@ -156,7 +162,8 @@ def noise_floor(experiments: dict[str, RigExperiment], adc_range: float, cal: Ca
             sigma[f"{c}_deg"] = math.sqrt(sigma[f"{c}_deg"] ** 2 + steps[c] ** 2 / 12.0)
         sigma["method"] += " + the record's angle step^2 / 12"
     rms = {"theta": sigma["theta_deg"], "alpha": sigma["alpha_deg"]}
-    e_noise = noise_mean_squared_gap(experiments, rms, list(experiments))
+    scored = experiments if scored is None else scored
+    e_noise = noise_mean_squared_gap(scored, rms, list(scored))
     floor = NoiseFloor(
         theta_deg=sigma["theta_deg"],
         alpha_deg=sigma["alpha_deg"],

@@ -25,6 +25,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from ..rundir import DataError, RunDir, from_plain, to_plain, write_json
+from .recalibrate import LINEAR, at_bound
 
 __all__ = [
     "Candidate",
@@ -82,8 +83,10 @@ class FittedParameter:
     ``fitted`` on every experiment's fit window, ``ci95`` its 95 % interval, ``change_pct`` = 100 (fitted /
     nominal - 1) for the linear parameters (NaN otherwise), ``unit``, ``finding``: one sentence (linear and
     secondary parameters; None for an effect's own parameter); for the linear ones ``at_bound`` ("lower", "upper"
-    or None: the fit ended at its search bound) and ``identifiable`` (False: the 95 % interval spans more than a
-    factor 100; left out otherwise)."""
+    or None: the fit ended at its search bound), ``identifiable`` (False: the 95 % interval spans more than a
+    factor 100; left out otherwise) and ``recalibrated``: what recalibration alone fitted, before any effect (the
+    geometric mean of the two folds' fits, the model the waterfall's "recalibration" stage scores; ``fitted`` is
+    refitted jointly with the effects found, so the two differ where the recalibration compensated an effect)."""
 
     nominal: float
     fitted: float
@@ -93,6 +96,7 @@ class FittedParameter:
     finding: str | None = None
     at_bound: str | None = None
     identifiable: bool | None = None
+    recalibrated: float | None = None
 
     @property
     def off_spec(self) -> bool:
@@ -267,7 +271,7 @@ class Diagnosis:
     found, the candidates, the parameter table, the gap and its decomposition, the noise floor, the folds, the
     thresholds, where the gap lies (``where``, plain JSON) and every round of the selection (``rounds``); ``real``:
     the run directory of the data relative to the file's directory; ``sim_spec`` and its file name; ``replays``:
-    per experiment how it was re-simulated and why (when any was not an open-loop replay of its command);
+    per experiment how it was re-simulated ("open", "closed", "shooting") and why (None in older files);
     ``caveats``: what limits the verdict (a recalibrated parameter at its bound: the spec may not describe the rig),
     left out when there is none."""
 
@@ -349,6 +353,22 @@ class Diagnosis:
     def off_spec_findings(self) -> list[str]:
         """The parameter findings that say the rig differs from the spec (those that match are left out)."""
         return [p.finding for p in self.parameters.values() if p.off_spec and p.finding is not None]
+
+    def recalibration_moves(self, tolerance_pct: float = 3.0) -> list[str]:
+        """Per linear parameter that recalibration alone moved off its final value by more than ``tolerance_pct``
+        (the joint refit with the effects moved it), one phrase: "viscous damping 0.0065 (1.6x the spec) by
+        recalibration alone, 0.0041 (1x) with the effects"; a value at its search bound says so."""
+        out = []
+        for name, p in self.parameters.items():
+            r = p.recalibrated
+            if r is None or not (p.fitted and p.nominal) or abs(100.0 * (r / p.fitted - 1.0)) <= tolerance_pct:
+                continue
+            label = LINEAR[name].label if name in LINEAR else name
+            side, side_final = at_bound(name, p.nominal, r), at_bound(name, p.nominal, p.fitted)
+            alone = f"{r / p.nominal:.2g}x the spec" + (f", at its {side} bound" if side else "")
+            final = f"{p.fitted / p.nominal:.2g}x" + (f", at its {side_final} bound" if side_final else "")
+            out.append(f"{label} {r:.4g} ({alone}) by recalibration alone, {p.fitted:.4g} ({final}) with the effects")
+        return out
 
 
 def round_floats(x: Any, digits: int = 10) -> Any:

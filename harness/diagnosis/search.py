@@ -45,6 +45,7 @@ __all__ = [
     "SearchResult",
     "eliminate",
     "importance",
+    "recalibrated_alone",
     "search",
 ]
 
@@ -348,6 +349,16 @@ def final_params(
     return final, table
 
 
+def recalibrated_alone(rec: list[dict[str, Any]]) -> dict[str, float]:
+    """What recalibration alone fitted, before any effect: each linear parameter's geometric mean over the two
+    folds' fits ``rec`` (the model the waterfall's "recalibration" stage scores on held-out data)."""
+    return {
+        prm: float(math.exp(np.mean([math.log(float(r["params"][prm])) for r in rec])))
+        for prm in recal.LINEAR
+        if all(float(r["params"].get(prm, 0.0)) > 0 for r in rec)
+    }
+
+
 GAP_DEFINITION = (
     "gap = sqrt(mean over experiments and channels (theta, alpha) of ||y_real - y_sim||^2 / ||y_real - mean||^2) "
     "over valid samples (pot dead band and ADC clipping masked); fit % = 100 (1 - gap); shrink % = 100 (1 - "
@@ -401,6 +412,8 @@ def search(
     ]
     explained = min(closure(e_start, e_expl, cf.floor), 1.0) if not no_gap else math.nan
     final, table = final_params(cf, fw.bases, order)
+    for prm, value in recalibrated_alone(rec).items():
+        table[prm].recalibrated = value
     (sse_final,) = pool.map([("sse", final, names)])
     effects = _found_effects(cf, fw.bases, order, steps, e0 if not recal_paid else e_recal, final, shares)
     if no_gap:

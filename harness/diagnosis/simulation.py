@@ -32,13 +32,12 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.signal import savgol_filter
 
 from .. import spec as specmod
 from ..executor import FmuBytes
 from ..ident.calibration import Calibration, alpha_deg, daq_calibration, theta_deg
 from ..rig.controller import Controller, delayed
-from .experiments import CHANNELS, DEADBAND_GUARD, SHOOTING_SECONDS, RigExperiment
+from .experiments import CHANNELS, DEADBAND_GUARD, SHOOTING_SECONDS, RigExperiment, measured_state
 from .result import ExperimentGap, GapSummary
 
 __all__ = [
@@ -49,7 +48,6 @@ __all__ = [
     "gap_summary",
     "loop_noise_gap",
     "mean_squared_gap",
-    "measured_state",
     "residuals",
     "sim_calibration",
     "sim_rig",
@@ -58,7 +56,6 @@ __all__ = [
 
 SSE = dict[str, dict[str, float]]  # experiment -> channel -> sum of squared residuals [deg^2]
 MODELS = {"plant": "flexjoint", "daq": "daq"}  # the FMU behind each rig table
-SMOOTH_SECONDS = 0.02  # s: window of the smoothed rates that start a multiple-shooting window
 LOOP_NOISE_SEEDS = (1, 2)  # noise seeds of the simulated closed loops that measure the noise fed back
 
 
@@ -143,17 +140,6 @@ def simulate(
     else:  # started at the measured angle: only whole turns of the pot's wrap to restore
         th += 360.0 * np.round((exp.theta[0] - th[0]) / 360.0)
     return th, alpha_deg(res["alpha_v"], cal), on_track
-
-
-def measured_state(exp: RigExperiment) -> np.ndarray:
-    """The measured state per sample, (n, 4): theta, alpha [rad] and their rates [rad/s] (Savitzky-Golay, cubic,
-    over SMOOTH_SECONDS: differences of quantized angles are steps)."""
-    w = max(5, int(round(SMOOTH_SECONDS / exp.Ts)) | 1)
-    th, al = np.radians(exp.theta), np.radians(exp.alpha)
-    if th.size <= w:
-        return np.column_stack([th, al, np.gradient(th, exp.Ts), np.gradient(al, exp.Ts)])
-    rates = [savgol_filter(x, w, 3, deriv=1, delta=exp.Ts) for x in (th, al)]
-    return np.column_stack([th, al, *rates])
 
 
 def _shooting(rig: Any, exp: RigExperiment, plant: dict[str, Any], daq: dict[str, Any], n: int | None) -> dict:

@@ -81,8 +81,11 @@ def _verdict_lines(diag: Diagnosis) -> list[str]:
     if diag.caveats:
         lines += ["Caveats:", "", *[f"- {c}" for c in diag.caveats], ""]
     if diag.replays:
+        groups: dict[tuple[str, str], list[str]] = {}
+        for n, r in diag.replays.items():
+            groups.setdefault((r["replay"], r["reason"]), []).append(f"`{n}`")
         lines += ["How each experiment was re-simulated:", ""]
-        lines += [f"- `{n}`: {r['replay']} ({r['reason']})" for n, r in diag.replays.items()]
+        lines += [f"- {kind} ({why}): {', '.join(names)}" for (kind, why), names in groups.items()]
         lines += [""]
     return lines
 
@@ -133,6 +136,7 @@ def _ci_halfwidth(ci95: list[float], fitted: float) -> str:
 def _parameters_lines(diag: Diagnosis) -> list[str]:
     if not diag.parameters:
         return []
+    alone = any(p.recalibrated is not None for p in diag.parameters.values())
     rows = [
         [
             name,
@@ -142,18 +146,34 @@ def _parameters_lines(diag: Diagnosis) -> list[str]:
             _ci_halfwidth(p.ci95, p.fitted),
             fmt(p.change_pct, 1),
             p.finding or "—",
+            *([fmt_any(p.recalibrated) if p.recalibrated is not None else "—"] if alone else []),
         ]
         for name, p in diag.parameters.items()
     ]
     note = " It was applied." if diag.recalibration_applied else " It closed too little to be kept."
     header = ["parameter", "unit", "nominal", "fitted", "95 % interval", "change [%]", "finding"]
-    return [
+    header += ["recalibration alone"] if alone else []
+    lines = [
         "Linear parameters of the simulation recalibrated against the data (within physical bounds): a linear "
         f"mismatch is a finding about the rig, not an unmodelled effect.{note}",
         "",
         *table(header, rows),
         "",
     ]
+    if alone:
+        text = (
+            "Fitted: with the effects found, jointly, on every experiment (the interval, change and finding are this "
+            "fit's). Recalibration alone: before any effect (geometric mean of the two folds' fits), what the "
+            "waterfall's recalibration stage scores."
+        )
+        moves = diag.recalibration_moves()
+        if moves:
+            text += (
+                " Where they differ the linear parameters traded off against the effects (bent to mimic an effect "
+                "not yet modelled, or moved to make room for one): " + "; ".join(moves) + "."
+            )
+        lines += [text, ""]
+    return lines
 
 
 def _decomposition_lines(diag: Diagnosis, figure: str | None) -> list[str]:
@@ -179,7 +199,7 @@ def _overall_lines(diag: Diagnosis) -> list[str]:
     held, b, a = gap.held_out, gap.before, gap.after
     rows = [
         [
-            "held out (fitted on the other fold)",
+            "in sample (one experiment in both folds)" if _in_sample(diag) else "held out (fitted on the other fold)",
             fmt(held.gap_before, 4),
             fmt(held.gap_after, 4),
             fmt(held.fit_pct_before),
@@ -217,13 +237,22 @@ def _experiments_lines(diag: Diagnosis) -> list[str]:
             ]
         )
     header = ["experiment", "fold", "fit before [%]", "fit after [%]", "gap before", "gap after"]
-    return [
+    split = diag.folds.scheme.split(";", 1)[1].strip() + "; " if ";" in diag.folds.scheme else ""  # a lone record
+    intro = (
         "Per experiment (2-fold cross-fit: what is fitted on one fold is scored on the other, so every experiment "
-        "is held out once; 'after' here uses the final parameters):",
-        "",
-        *table(header, rows),
-        "",
-    ]
+        f"is held out once; {split}'after' here uses the final parameters):"
+    )
+    if _in_sample(diag):
+        intro = (
+            "Per experiment: one experiment, in both folds, so the 'held-out' figures of this file are in-sample "
+            "('after' uses the final parameters):"
+        )
+    return [intro, "", *table(header, rows), ""]
+
+
+def _in_sample(diag: Diagnosis) -> bool:
+    """A diagnosis whose lone experiment was both folds (older files): its held-out figures are in-sample."""
+    return bool(diag.folds.A) and diag.folds.A == diag.folds.B
 
 
 def _candidates_lines(diag: Diagnosis) -> list[str]:

@@ -63,6 +63,7 @@ import pandas as pd
 import pyarrow.parquet as pq
 import scipy.io
 
+from ..diagnosis.experiments import MIN_FOLD_SAMPLES, MIN_FOLD_SECONDS
 from ..diagnosis.noise import decimal_resolution
 from ..ident.calibration import LAB1_CALIBRATION, Calibration, alpha_deg, theta_deg
 from ..rundir import DataError, ExperimentEntry, Manifest, RunDir, validate, write_dataset
@@ -71,8 +72,6 @@ from .controller import KINDS, R2_MIN, Controller, command_r2, identify_controll
 __all__ = [
     "CHANNELS",
     "JITTER_LIMIT",
-    "MIN_FOLD_SAMPLES",
-    "MIN_FOLD_SECONDS",
     "MIN_RATE",
     "MIN_RECORD_SECONDS",
     "ImportOptions",
@@ -88,8 +87,6 @@ CHANNELS = ("t", "u", "theta", "alpha")
 OPTIONAL = ("ref",)  # channels a record may have: the closed loop's reference of theta
 THETA_SENSORS = ("pot", "encoder")
 MIN_RATE = 10.0  # Hz: slower records cannot show the link's first mode (~3-4.5 Hz)
-MIN_FOLD_SECONDS = 1.0  # s: each of a lone record's two folds (halves) holds one multiple-shooting window
-MIN_FOLD_SAMPLES = 50  # samples per fold, whatever the rate
 MIN_RECORD_SECONDS = 2 * MIN_FOLD_SECONDS  # s: the shortest record imported (n Ts, n samples at interval Ts)
 JITTER_LIMIT = 0.1  # largest time-stamp correction resampled, as a share of the sample interval
 ZERO_SECONDS = 0.1  # s: a deflection recorded as an angle or a length is zeroed on its first ZERO_SECONDS at rest

@@ -1,0 +1,289 @@
+"""Honest output on real data (issue 16, item 6): a parameter at its search bound or not identifiable is said so
+and caveats the verdict; a lone record is split in time so that its held-out figures are held out; a record's own
+quantization step is in the noise floor; what recalibration alone fitted is shown beside the joint fit; how each
+experiment was replayed is in diagnosis.json and the report."""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+from test_diagnosis_result import minimal_doc
+
+from harness import spec as specmod
+from harness.diagnosis import diagnose as dg
+from harness.diagnosis import experiments as ex
+from harness.diagnosis import recalibrate as recal
+from harness.diagnosis.experiments import RigExperiment, load_experiments
+from harness.diagnosis.noise import noise_floor
+from harness.diagnosis.result import Diagnosis, FittedParameter
+from harness.diagnosis.search import recalibrated_alone
+from harness.ident.calibration import load_calibration
+from harness.render.gap_text import diagnosis_markdown
+from harness.rig import records
+from harness.rig.records import ImportOptions, import_records
+from harness.rundir import DataError, write_json
+
+JEQ = 2.087e-3  # a hub inertia [kg m^2] to scale from
+
+
+# ----------------------------------------------------------------------------------------------- bounds, intervals
+
+
+def test_a_parameter_at_its_bound_is_flagged_and_said_in_words():
+    assert recal.at_bound("plant.Jeq", JEQ, 1.6 * JEQ) == "upper"
+    assert recal.at_bound("plant.Jeq", JEQ, 1.59 * JEQ) == "upper"  # within 2 % (in log) of the bound
+    assert recal.at_bound("plant.Jeq", JEQ, 1.5 * JEQ) is None
+    assert recal.at_bound("plant.kt", 0.00768, 0.6 * 0.00768) == "lower"
+    assert recal.at_bound("plant.backlash", 0.0, 0.006) is None  # not a linear parameter
+    text = recal.finding("plant.Jeq", JEQ, 1.6 * JEQ, (1.5 * JEQ, 1.7 * JEQ))
+    assert text == (
+        "hub inertia at its upper bound (1.6x the spec: 0.002087 -> 0.003339 kg m^2): "
+        "the spec may not describe this rig"
+    )
+
+
+def test_an_interval_over_orders_of_magnitude_is_not_identifiable():
+    """Today's `link damping ratio matches the spec (0.01, fitted 0.002) (95 % interval 1.854e-08..215.7)`."""
+    ci = (1.854e-08, 215.7)
+    assert not recal.identifiable(ci) and not recal.identifiable((0.0, 0.1))
+    assert recal.identifiable((0.009, 0.011)) and recal.identifiable((0.001, 0.0999))
+    text = recal.finding("plant.zeta_link", 0.01, 0.012, ci)
+    assert "matches" not in text
+    assert text == (
+        "link damping ratio is not identifiable from these data (fitted 0.012, 95 % interval 1.85e-08..216; spec 0.01)"
+    )
+    # the issue's own case ended at the lower bound (0.2x): said as a bound, and still flagged unidentifiable
+    assert recal.finding("plant.zeta_link", 0.01, 0.002, ci).startswith("link damping ratio at its lower bound (0.2x")
+    row = FittedParameter(0.01, 0.012, list(ci), 20.0, "1", text, identifiable=False)
+    assert not row.off_spec  # not a finding that the rig differs from the spec
+
+
+def test_a_verdict_reached_at_a_bound_carries_caveats():
+    words = recal.finding("plant.Jeq", JEQ, 1.6 * JEQ, (1.5 * JEQ, 1.7 * JEQ))
+    jeq = FittedParameter(JEQ, 1.6 * JEQ, [1.5 * JEQ, 1.7 * JEQ], 60.0, "kg m^2", words, at_bound="upper")
+    words = recal.finding("plant.zeta_link", 0.01, 0.012, (1e-6, 1.0))
+    zeta = FittedParameter(0.01, 0.012, [1e-6, 1.0], 20.0, "1", words, identifiable=False)
+    ks = FittedParameter(1.3, 1.31, [1.28, 1.34], 0.8, "N m/rad", recal.finding("plant.Ks", 1.3, 1.31, (1.28, 1.34)))
+    caveats = dg._caveats({"plant.Jeq": jeq, "plant.zeta_link": zeta, "plant.Ks": ks}, "coulomb_friction")
+    assert caveats == [
+        "verdict 'coulomb_friction' reached with hub inertia at its upper bound (1.6x the spec: 0.002087 -> 0.003339 "
+        "kg m^2): the spec may not describe this rig",
+        "link damping ratio is not identifiable from these data (fitted 0.012, 95 % interval 1e-06..1; spec 0.01)",
+    ]
+    assert dg._caveats({"plant.Ks": ks}, "none") is None  # nothing limits it: the key is left out
+
+
+# ----------------------------------------------------------------------------------------------- a lone record
+
+
+def _record(seconds: float, rate: float = 1000.0, quiet: tuple[float, float] | None = None) -> RigExperiment:
+    """A closed-loop-like record: theta and alpha move everywhere but in ``quiet`` [s] (held still there)."""
+    Ts = 1.0 / rate
+    t = np.arange(int(round(seconds * rate))) * Ts
+    theta = 20.0 * np.sin(2 * np.pi * 0.7 * t) + 3.0 * np.sin(2 * np.pi * 3.1 * t)
+    alpha = 2.0 * np.sin(2 * np.pi * 3.1 * t + 0.4)
+    if quiet is not None:
+        i, j = np.searchsorted(t, quiet)
+        theta[i:j], alpha[i:j] = theta[i], 0.0
+    ref = np.where(np.sin(2 * np.pi * 0.2 * t) >= 0, 30.0, -30.0)
+    x = RigExperiment(name="square", kind="imported", Ts=Ts, t=t, u=0.1 * theta, theta=theta, alpha=alpha,
+                      theta_v=theta / 35.5, alpha_v=alpha / -3.36, ref=ref, controller={"kind": "state_feedback"},
+                      replay="closed", replay_reason="a closed-loop record with its controller (identified, R^2 0.98)",
+                      encoder=True, lattice_deg={"theta": 0.0573})  # fmt: skip
+    x.valid["theta"][100:120] = False
+    return x
+
+
+def test_a_lone_record_is_split_in_time_at_a_quiet_point():
+    x = _record(10.0, quiet=(5.45, 5.55))
+    m = ex.split_point(x)
+    assert 5450 <= m <= 5550  # inside the only still stretch of the middle fifth
+    experiments, folds = ex.fold_experiments({"square": x})
+    names = [f"square (0-{m / 1000:.4g} s)", f"square ({m / 1000:.4g}-10 s)"]
+    assert list(experiments) == names
+    assert (folds.A, folds.B) == ([names[0]], [names[1]])  # each half held out by a fit on the other
+    assert folds.scheme.endswith(
+        f"the lone record 'square' split in time at {m / 1000:.4g} s into two halves, one per fold"
+    )
+    first, second = experiments.values()
+    assert (first.u.size, second.u.size) == (m, 10000 - m)
+    for k in ("t", "u", "theta", "alpha", "theta_v", "alpha_v", "ref"):  # every array sliced alike
+        np.testing.assert_array_equal(np.r_[getattr(first, k), getattr(second, k)], getattr(x, k))
+    np.testing.assert_array_equal(np.r_[first.valid["theta"], second.valid["theta"]], x.valid["theta"])
+    assert int(np.sum(~first.valid["theta"])) == 20 and second.valid["alpha"].all()
+    for h in (first, second):
+        assert (h.replay, h.controller, h.encoder, h.lattice_deg) == ("closed", x.controller, True, x.lattice_deg)
+        assert h.sst["theta"] == pytest.approx(float(np.sum((h.theta - h.theta.mean()) ** 2)))
+        assert h.n_fit == h.u.size  # shorter than FIT_SECONDS: the whole half is fitted
+    assert second.theta[0] == x.theta[m] and second.t[0] == pytest.approx(m / 1000)
+    assert dg._replays(experiments) == {n: {"replay": "closed", "reason": x.replay_reason} for n in names}
+    plain = RigExperiment(name="prbs", kind="prbs", Ts=0.02, t=x.t[:500], u=x.u[:500], theta=x.theta[:500],
+                          alpha=x.alpha[:500], theta_v=x.theta_v[:500], alpha_v=x.alpha_v[:500])  # fmt: skip
+    assert dg._replays({"prbs": plain}) == {
+        "prbs": {"replay": "open", "reason": "an open-loop experiment: its command replayed as logged"}
+    }
+
+
+def test_the_split_point_stays_in_the_middle_and_keeps_whole_periods():
+    moving = _record(10.0)
+    assert 4000 <= ex.split_point(moving) <= 6000
+    assert ex.split_point(_record(10.0, quiet=(1.0, 2.0))) != 1500  # not outside the middle fifth
+    periodic = _record(10.0)
+    periodic.period = 800  # 12.5 periods: the whole number nearest the middle is 6 x 800
+    halves, m = ex.halves(periodic)
+    assert m == 4800 and [h.period for h in halves.values()] == [800, 800]
+    assert ex.split_point(_record(2.0)) == 1000  # the shortest record import allows: cut in the middle
+
+
+def test_a_record_too_short_for_two_folds_is_one_line():
+    assert records.MIN_RECORD_SECONDS == 2 * ex.MIN_FOLD_SECONDS  # import refuses what cannot be split
+    with pytest.raises(DataError, match="too short for two folds") as err:
+        ex.fold_experiments({"square": _record(1.5)})
+    assert "\n" not in str(err.value) and "1500 samples (1.5 s)" in str(err.value)
+    with pytest.raises(DataError, match="2000 samples"):
+        ex.split_point(_record(1.999))
+    many = {"a": _record(1.5), "b": _record(1.5)}  # two experiments: the folds are the experiments, none is cut
+    experiments, folds = ex.fold_experiments(many)
+    assert experiments is many and (folds.A, folds.B) == (["a"], ["b"])
+
+
+# ----------------------------------------------------------------------------------------------- quantized record
+
+
+def test_a_record_on_0_001_rad_steps_has_its_step_in_the_noise_floor(tmp_path):
+    """Third differences of a slow angle printed to 0.001 rad are mostly zero (its MAD is 0): its floor is the
+    step's, step / sqrt(12)."""
+    t = np.arange(5000) * 1e-3
+    theta = 0.3 * np.sin(2 * np.pi * 0.05 * t)  # a step every >= 10 samples: most third differences are 0
+    alpha = 1.5 * np.sin(2 * np.pi * 0.2 * t + 0.3)
+    rec = pd.DataFrame({"t": t, "u": np.sin(2 * np.pi * 0.2 * t), "theta": theta, "alpha": alpha})
+    path = tmp_path / "slow.csv"
+    rec.assign(theta=rec["theta"].map(lambda v: f"{v:.3f}")).to_csv(path, index=False)
+    import_records([path], tmp_path / "run", ImportOptions(units={"theta": "rad", "alpha": "deg"}))
+    run = tmp_path / "run"
+    cal = load_calibration(run)
+    exps = load_experiments(run, cal, specmod.load("nominal"), 10.0)
+    step = math.degrees(0.001)
+    assert exps["slow"].lattice_deg["theta"] == pytest.approx(step)
+    floor, e_noise = noise_floor(exps, 10.0, cal)
+    assert floor.estimated_deg["theta"] == 0.0  # the estimate alone: nothing, a fit of 100 %
+    assert floor.theta_deg == pytest.approx(step / math.sqrt(12.0), rel=0.10)
+    assert e_noise > 0 and floor.fit_pct < 100.0 and "step^2 / 12" in floor.method
+    # gap scored on the halves the diagnosis fits, the noise estimated on the whole record
+    halves, _ = ex.halves(exps["slow"])
+    same, e_halves = noise_floor(exps, 10.0, cal, halves)
+    assert same.theta_deg == floor.theta_deg and same.sources == ["slow"]
+    sigma = {"theta": floor.theta_deg, "alpha": floor.alpha_deg}
+    q = [h.u.size * sigma[c] ** 2 / float(np.sum((y - y.mean()) ** 2))
+         for h in halves.values() for c, y in (("theta", h.theta), ("alpha", h.alpha))]  # fmt: skip
+    assert e_halves == pytest.approx(float(np.mean(q)), rel=1e-12)
+
+
+# ----------------------------------------------------------------------------------------------- recalibration alone
+
+
+def test_recalibration_alone_is_the_folds_geometric_mean():
+    rec = [{"params": {"plant.Ks": 1.2, "plant.Beq": 0.006}}, {"params": {"plant.Ks": 1.5, "plant.Beq": 0.0096}}]
+    alone = recalibrated_alone(rec)
+    assert alone == {"plant.Ks": pytest.approx(math.sqrt(1.2 * 1.5)), "plant.Beq": pytest.approx(0.00758947)}
+
+
+def _honest_doc() -> dict:
+    doc = copy.deepcopy(minimal_doc())
+    ks = doc["parameters"]["plant.Ks"]
+    ks.update(recalibrated=1.8)  # recalibration alone pushed Ks far, the joint refit brought it to 1.5
+    beq = doc["parameters"]["plant.Beq"]
+    beq.update(recalibrated=0.0041)  # within 3 % of the joint fit: not a move worth a word
+    jeq = {"change_pct": 60.0, "ci95": [0.0032, 0.0034], "fitted": 0.003339, "nominal": 0.002087, "unit": "kg m^2",
+           "at_bound": "upper", "recalibrated": 0.003339,
+           "finding": "hub inertia at its upper bound (1.6x the spec: 0.002087 -> 0.003339 kg m^2): the spec may not "
+           "describe this rig"}  # fmt: skip
+    zeta = {"change_pct": 20.0, "ci95": [1.854e-08, 215.7], "fitted": 0.012, "nominal": 0.01, "unit": "1",
+            "identifiable": False, "finding": "link damping ratio is not identifiable from these data"}  # fmt: skip
+    doc["parameters"].update({"plant.Jeq": jeq, "plant.zeta_link": zeta})
+    doc["caveats"] = ["verdict 'backlash' reached with " + jeq["finding"]]
+    doc["replays"] = {
+        "square (0-5.5 s)": {"replay": "closed", "reason": "a closed-loop record with its controller (spec)"},
+        "square (5.5-10 s)": {"replay": "closed", "reason": "a closed-loop record with its controller (spec)"},
+    }
+    doc["folds"] = {"A": ["square (0-5.5 s)"], "B": ["square (5.5-10 s)"],
+                    "scheme": "2-fold cross-fit: fit on A score on B, and back; the lone record 'square' split in "
+                    "time at 5.5 s into two halves, one per fold"}  # fmt: skip
+    return doc
+
+
+def test_new_fields_round_trip_and_old_files_still_load(tmp_path):
+    write_json(tmp_path / "old.json", minimal_doc())  # a diagnosis.json written before these fields
+    old = Diagnosis.load(tmp_path / "old.json")
+    assert old.caveats is None and old.replays is None
+    assert all(
+        p.at_bound is None and p.identifiable is None and p.recalibrated is None for p in old.parameters.values()
+    )
+    old.write(tmp_path / "old_again.json")
+    assert (tmp_path / "old_again.json").read_bytes() == (tmp_path / "old.json").read_bytes()
+    write_json(tmp_path / "new.json", _honest_doc())
+    d = Diagnosis.load(tmp_path / "new.json")
+    d.write(tmp_path / "new_again.json")
+    assert (tmp_path / "new_again.json").read_bytes() == (tmp_path / "new.json").read_bytes()
+    assert d.parameters["plant.Jeq"].at_bound == "upper" and d.parameters["plant.zeta_link"].identifiable is False
+    assert d.parameters["plant.Ks"].recalibrated == 1.8
+    # the unidentifiable one is not an off-spec finding; the one at its bound is
+    assert d.off_spec_findings() == [d.parameters["plant.Jeq"].finding, d.parameters["plant.Ks"].finding]
+    assert d.recalibration_moves() == [
+        "link stiffness 1.8 (1.4x the spec) by recalibration alone, 1.5 (1.2x) with the effects"
+    ]
+
+
+def test_the_report_says_caveats_replays_and_recalibration_alone():
+    d = Diagnosis.from_dict(_honest_doc())
+    text = "\n".join(diagnosis_markdown(d))
+    assert "Caveats:\n\n- verdict 'backlash' reached with hub inertia at its upper bound (1.6x the spec" in text
+    assert "- closed (a closed-loop record with its controller (spec)): `square (0-5.5 s)`, `square (5.5-10 s)`" in text
+    header = "| parameter | unit | nominal | fitted | 95 % interval | change [%] | finding | recalibration alone |"
+    assert header in text
+    ks = "| plant.Ks | N m/rad | 1.3 | 1.5 | ± 1.3 % | 15.0 | link stiffness is 15 % higher than the spec (1.3 -> 1.5 "
+    ks += "N m/rad) | 1.8 |"
+    assert ks in text
+    assert "| plant.zeta_link | 1 | 0.01 | 0.012 |" in text and text.count(" | — |\n") >= 2  # none for these
+    assert "link stiffness 1.8 (1.4x the spec) by recalibration alone, 1.5 (1.2x) with the effects." in text
+    assert "the lone record 'square' split in time at 5.5 s into two halves, one per fold" in text
+    assert "in sample (one experiment" not in text and "are in-sample" not in text
+    # an older file whose lone experiment was both folds: its held-out figures are called in-sample
+    old = copy.deepcopy(minimal_doc())
+    old["folds"] = {"A": ["a"], "B": ["a"], "scheme": "2-fold cross-fit: fit on A score on B, and back"}
+    lines = "\n".join(diagnosis_markdown(Diagnosis.from_dict(old)))
+    assert "| in sample (one experiment in both folds) |" in lines and "figures of this file are in-sample" in lines
+    assert "recalibration alone" not in lines  # an old file has no such values: the table keeps its columns
+
+
+# ----------------------------------------------------------------------------------------------- a real lone record
+
+
+def test_a_lone_real_record_is_diagnosed_on_its_halves(tmp_path):
+    """One of the lab's closed-loop records alone (10 s at 1 kHz, theta printed to 0.001 rad): cut in time, fitted
+    on one half and scored on the other, the record's step in the floor, the parameters at their bounds flagged and
+    carried into the caveats, and what recalibration alone fitted beside the joint fit."""
+    from test_real_records import CU, CU_IMPORT
+
+    run = tmp_path / "run"
+    import_records([CU[0]], run, CU_IMPORT)
+    d = dg.diagnose_run(run, "cu_flexible_arm", workers=2)
+    a, b = d.folds.A, d.folds.B
+    assert len(a) == len(b) == 1 and a != b and a[0].startswith("flexibleArm_test_3 (0-")
+    assert "split in time" in d.folds.scheme and set(d.replays) == {a[0], b[0]}
+    assert {r["replay"] for r in d.replays.values()} == {"closed"}
+    dec = d.gap.decomposition
+    assert 100 * (1 - dec.before) < 50.0 < 100 * (1 - dec.after_recalibration) < 100 * (1 - dec.after_effects)
+    assert 100 * (1 - dec.after_effects) >= 70.0  # measured 75.4 % held out (35.9 % as given)
+    assert d.noise_floor.theta_deg == pytest.approx(math.degrees(0.001) / math.sqrt(12.0), rel=0.10)
+    assert d.noise_floor.fit_pct < 99.5
+    bound = {k for k, p in d.parameters.items() if p.at_bound}
+    assert bound and all(f"at its {d.parameters[k].at_bound} bound" in d.parameters[k].finding for k in bound)
+    assert len(d.caveats) >= len(bound)
+    assert all(d.parameters[k].recalibrated is not None for k in recal.LINEAR)
+    d.write(tmp_path / "returned.json")  # what diagnose_run returns is what the file holds
+    assert (tmp_path / "returned.json").read_bytes() == (run / "diagnosis.json").read_bytes()
