@@ -51,7 +51,6 @@ import hashlib
 import json
 import math
 import re
-import tempfile
 import time
 import uuid
 import warnings
@@ -74,12 +73,12 @@ from .executor import Executor, FmuBytes, fmu_bytes
 from .fmu.build import build_all
 from .ident import armax
 from .ident.accept import judge
-from .ident.calibration import calibrate_run
+from .ident.calibration import calibrate
 from .ident.identify import load_model, prepare, run_grid
 from .render.figures import new_figure, save_figure
 from .render.viewer import write_recording
 from .rig.campaign import simulate_spec, versions
-from .rundir import ExperimentEntry, Manifest, RunDir, atomic_write_bytes, atomic_write_text, write_dataset, write_json
+from .rundir import ExperimentEntry, RunDir, atomic_write_bytes, atomic_write_text, write_json
 
 __all__ = ["DISTRIBUTIONS", "Vary", "draw", "first_order", "parse_vary", "pass_interval", "run_sweep", "sensitivity"]
 
@@ -242,19 +241,6 @@ def rig_spec(base: specmod.Spec, params: Mapping[str, float], seed: int) -> spec
     return specmod.from_dict(raw, base.path)
 
 
-def _calibrate(spec: specmod.Spec, data: Mapping[str, Mapping[str, np.ndarray]]) -> Any:
-    """The rig's calibration from its calibration experiments, by :func:`harness.ident.calibration.calibrate_run` on a
-    scratch run directory private to this task (removed at once; nothing is shared or kept)."""
-
-    with tempfile.TemporaryDirectory(prefix="flexjoint-sweep-") as tmp:
-        run = Path(tmp)
-        for e in spec.calibration:
-            write_dataset(RunDir(run).dataset(e.name), data[e.name])
-        exps = [ExperimentEntry(name=e.name, role=e.role, signal=e.signal) for e in spec.calibration]
-        Manifest(kind="campaign", experiments=exps, sample_rate=spec.sample_rate).write(run)
-        return calibrate_run(run)
-
-
 def run_rig(item: tuple[int, dict[str, float], int], plan: Plan) -> dict[str, Any]:
     """One rig, start to finish, as one task: campaign (serially, on this worker's rig), calibration,
     identification or scoring of the given model; returns numbers only (the client writes every file)."""
@@ -262,7 +248,8 @@ def run_rig(item: tuple[int, dict[str, float], int], plan: Plan) -> dict[str, An
     i, params, seed = item
     spec = rig_spec(plan.spec, params, seed)
     data = simulate_spec(spec, plan.fmus, workers=1)
-    cal = _calibrate(spec, data)
+    # calibrated from the simulated columns in memory, as calibrate_run would from this campaign's run directory
+    cal = calibrate([ExperimentEntry(name=e.name, role=e.role, signal=e.signal) for e in spec.calibration], data)
     ident = {e.name: pd.DataFrame(data[e.name]) for e in spec.experiments}
     row: dict[str, Any] = {"rig": i, "noise_seed": seed, **params}
     row.update(Kp=cal.Kp, Ke=cal.Ke, dead_zone_v=cal.dead_zone_v)

@@ -153,3 +153,59 @@ def test_calibration_json_round_trip_and_conversions(tmp_path):
     np.testing.assert_allclose(cal.alpha_deg(np.array([0.25, 1.25]), c), [0.0, 1.5])
     tip = cal.tip_deg(v, np.full(v.size, 1.25), c)
     np.testing.assert_allclose(tip, cal.theta_deg(v, c) + 1.5)
+
+
+def test_calibrate_in_memory_gives_calibrate_run_to_the_last_bit(tmp_path):
+    """``calibrate`` on a campaign's columns in memory (arrays or DataFrames) gives what ``calibrate_run`` gives on
+    the same data written to a run directory: the same numbers to the last bit, the same calibration.json bytes."""
+    from harness.rundir import ExperimentEntry, Manifest, RunDir, write_dataset
+
+    rng = np.random.default_rng(7)
+    Kp, Ke, off, Vth, Ts = 35.5, -3.3636, 0.05, 0.34, 0.02
+    t = np.arange(1500) * Ts  # pot ramp: a 1 V step turning the shaft through 5 wraps
+    s = np.maximum(t - Ts, 0.0)
+    theta = 37.0 + 67.0 * (s - 0.03 * (1 - np.exp(-s / 0.03)))
+    quiet = 0.002 * rng.standard_normal(t.size)
+    cols = {"pot_ramp": {"t": t, "u": np.ones(t.size), "theta_v": _pot_volts(theta, Kp, 8.0, rng), "alpha_v": quiet}}
+    angles = np.array([5.28, 2.58, 0.0, -2.86, -5.57])  # comb: 2.5 s holds, 1 s moves between (comb_angle NaN)
+    tc = np.arange(int(3.5 * angles.size / Ts)) * Ts
+    comb_angle = np.where(np.mod(tc, 3.5) >= 1.0, angles[np.minimum((tc // 3.5).astype(int), angles.size - 1)], np.nan)
+    alpha = np.nan_to_num(comb_angle)
+    alpha_v = alpha / Ke + off + 0.002 * rng.standard_normal(tc.size)
+    cols["comb"] = {"t": tc, "u": np.zeros(tc.size), "theta_v": np.zeros(tc.size), "alpha_v": alpha_v}
+    cols["comb"]["comb_angle"] = comb_angle
+    for name, slope in (("deadzone_up", 0.05), ("deadzone_down", -0.05)):
+        tr, u, th = _ramp_onset_record(Vth, slope, Ts, rng=rng)
+        cols[name] = {"t": tr, "u": u, "theta_v": th / Kp, "alpha_v": np.zeros(tr.size)}
+    signals = {"pot_ramp": "constant", "comb": "comb", "deadzone_up": "ramp", "deadzone_down": "ramp"}
+    entries = [ExperimentEntry(name=n, role="calibration", signal=s) for n, s in signals.items()]
+    run = tmp_path / "run"
+    for name, c in cols.items():
+        write_dataset(RunDir(run).dataset(name), c)
+    Manifest(kind="campaign", experiments=entries, sample_rate=1 / Ts).write(run)
+    kept = {n: {k: v.copy() for k, v in c.items()} for n, c in cols.items()}
+
+    on_disk = cal.calibrate_run(run)
+    in_memory = cal.calibrate(entries, cols)
+    as_frames = cal.calibrate(entries, {n: pd.DataFrame(c) for n, c in cols.items()})
+
+    def numbers(c: cal.Calibration) -> tuple[float, ...]:
+        return c.Kp, c.Ke, c.gauge_offset_v, c.dead_zone_v
+
+    for c in (in_memory, as_frames):
+        assert numbers(c) == numbers(on_disk)  # ==, not approx: the same bits
+        c.to_json(tmp_path / "calibration.json")
+        assert (tmp_path / "calibration.json").read_bytes() == RunDir(run).calibration.read_bytes()
+    # the numbers are measured, not lab 1's stand-ins
+    assert in_memory.Kp == pytest.approx(Kp, rel=0.005) and in_memory.Ke == pytest.approx(Ke, rel=2e-3)
+    assert in_memory.gauge_offset_v == pytest.approx(off, abs=2e-3)
+    assert in_memory.dead_zone_v == pytest.approx(Vth, rel=0.01)
+    assert in_memory.source["dead_zone_v"]["experiments"] == ["deadzone_up", "deadzone_down"]
+    for name, c in cols.items():  # the caller's arrays are left as they were (a sweep goes on using them)
+        for k, v in c.items():
+            np.testing.assert_array_equal(v, kept[name][k])
+    # only the experiments used need data; without any, lab 1's numbers and a source that says so
+    assert cal.calibrate(entries[:1], {"pot_ramp": cols["pot_ramp"]}).Kp == on_disk.Kp
+    none = cal.calibrate([], {})
+    assert (none.Kp, none.Ke) == (cal.LAB1_CALIBRATION["Kp"], cal.LAB1_CALIBRATION["Ke"])
+    assert math.isnan(none.dead_zone_v) and "no pot ramp" in none.source["Kp"]["method"]

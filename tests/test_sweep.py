@@ -8,12 +8,14 @@ import math
 import os
 import signal
 import sys
+import tempfile
 
 import numpy as np
 import pandas as pd
 import pytest
+import tomllib
 from scipy import stats
-from test_executor import DaskCluster, tiny_spec
+from test_executor import TINY_SPEC, DaskCluster, tiny_spec
 
 from harness import spec as specmod
 from harness.sweep import draw, parse_vary, pass_interval, sensitivity
@@ -83,6 +85,40 @@ def test_pass_interval_and_sensitivity_numbers():
     y = 90 - 40 * (x["b"].to_numpy() - 0.5) ** 2 - 0.5 * x["a"].to_numpy()
     b, a = sensitivity(x, y)["ranking"]
     assert b["param"] == "b" and b["s1"] > 0.8 and abs(b["srrc"]) < 0.2 and a["s1"] < 0.2
+
+
+def test_a_rig_is_calibrated_in_memory_as_calibrate_run_calibrates_its_campaign(tmp_path, fmus, monkeypatch):
+    """A sweep task calibrates its rig from the columns it simulated, writing no file (no scratch run directory, no
+    temporary file), and gets to the last bit what calibrate_run gets from that rig's campaign on disk."""
+    from harness import sweep
+    from harness.executor import fmu_bytes, worker_rig
+    from harness.ident.calibration import calibrate_run
+    from harness.rig.campaign import run_campaign
+
+    raw = tomllib.loads(TINY_SPEC)  # + slow up/down ramps through a Coulomb dead zone: all three calibrations
+    raw["plant"]["coulomb_torque"] = 0.044
+    raw["calibration"] += [
+        {"name": f"deadzone_{d}", "signal": "ramp", "slope": k * 0.05, "duration": 12.0}
+        for d, k in (("up", 1), ("down", -1))
+    ]
+    base = specmod.from_dict(raw, str(tmp_path / "tiny.toml"))
+    shipped = {k: fmu_bytes(v) for k, v in fmus.items()}
+    plan = sweep.Plan(base, {**base.identify, "na": 3, "nb": 1, "nc": 1}, None, shipped)  # one model: a short grid
+    params, seed = {"plant.Ks": 1.4}, sweep.rig_seed(5, 0)
+    worker_rig(shipped)  # this process's rig loaded (its FMUs unpacked) before temporary files are watched
+    made: list[str] = []
+    for name in ("mkdtemp", "mkstemp", "TemporaryDirectory", "NamedTemporaryFile", "TemporaryFile"):
+        real = getattr(tempfile, name)
+        monkeypatch.setattr(tempfile, name, lambda *a, _f=real, _n=name, **k: made.append(_n) or _f(*a, **k))
+    row = sweep.run_rig((0, params, seed), plan)
+    monkeypatch.undo()
+    assert made == [] and not hasattr(sweep, "tempfile")
+
+    run_campaign(sweep.rig_spec(base, params, seed), tmp_path / "rig", fmus=fmus, workers=1)
+    cal = calibrate_run(tmp_path / "rig")
+    assert (row["Kp"], row["Ke"], row["dead_zone_v"]) == (cal.Kp, cal.Ke, cal.dead_zone_v)  # the same bits
+    assert cal.source["dead_zone_v"]["experiments"] == ["deadzone_up", "deadzone_down"]
+    assert 30 < cal.Kp < 40 and -4 < cal.Ke < -3 and 0.2 < cal.dead_zone_v < 0.5  # measured, not lab 1's stand-ins
 
 
 def _selected_model(run, spec_path, fmus):

@@ -11,14 +11,16 @@ from __future__ import annotations
 import json
 import math
 import os
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pandas as pd
 from scipy.optimize import minimize_scalar
 
-from ..rundir import Manifest, RunDir, read_dataset, write_json
+from ..rundir import ExperimentEntry, Manifest, RunDir, read_dataset, write_json
 from .preprocess import as_signal, time_axis
 
 __all__ = [
@@ -27,6 +29,7 @@ __all__ = [
     "GaugeCalibration",
     "PotCalibration",
     "alpha_deg",
+    "calibrate",
     "comb_table",
     "daq_calibration",
     "dead_zone_estimate",
@@ -511,25 +514,38 @@ def _holds(comb_angle: np.ndarray, t: np.ndarray) -> tuple[list[tuple[float, flo
     return holds, np.array(angles)
 
 
-def calibrate_run(run: Path) -> Calibration:
-    """Calibrate the sensors from a run's calibration experiments and write ``calibration.json``.
+def _by_signal(experiments: Sequence[ExperimentEntry]) -> tuple[list[str], list[str], list[str]]:
+    """Names of the calibration experiments :func:`calibrate` uses: the pot ramp (the first "constant" one), the comb
+    (the first "comb" one) and every dead-zone ramp ("ramp"), in the order given (a name given twice counts once,
+    with its last entry's signal)."""
+    signal = {e.name: e.signal for e in experiments}
+    pot = [n for n, s in signal.items() if s == "constant"][:1]
+    comb = [n for n, s in signal.items() if s == "comb"][:1]
+    ramps = [n for n, s in signal.items() if s == "ramp"]
+    return pot, comb, ramps
+
+
+def calibrate(
+    experiments: Sequence[ExperimentEntry], data: Mapping[str, pd.DataFrame | Mapping[str, np.ndarray]]
+) -> Calibration:
+    """Calibrate the sensors from a run's calibration experiments (their manifest entries) and their data in memory
+    (``data[name]``: a dataset as read from a run directory, or a campaign's columns as simulated: t [s], u [V],
+    theta_v [V], alpha_v [V], and the comb's comb_angle [deg, NaN between holds]); only the experiments it uses need
+    data. Nothing is read or written.
 
     Kp from the pot ramp through its wraps, Ke by least squares over the comb holds, the dead zone from the slow
     up/down ramps. Missing experiments fall back to lab 1's numbers, and ``source`` says so.
     """
-    run = Path(run)
-    cal_exps = {e.name: e for e in Manifest.load(run).entries("calibration")}
+
+    def col(name: str, column: str) -> np.ndarray:
+        return np.asarray(data[name][column], dtype=float)
+
+    pot, comb, ramps = _by_signal(experiments)
     source: dict[str, Any] = {}
     # lab 1's own Kp and Ke stand in when a run has no calibration experiments (imported measurements)
     Kp, Ke, offset, dz, lag = LAB1_CALIBRATION["Kp"], LAB1_CALIBRATION["Ke"], 0.0, math.nan, 0.0
-
-    def data(name: str):
-        return read_dataset(RunDir(run).dataset(name))
-
-    pot = [n for n, e in cal_exps.items() if e.signal == "constant"]
     if pot:
-        df = data(pot[0])
-        pc = kp_from_ramp(df["t"].to_numpy(), df["theta_v"].to_numpy())
+        pc = kp_from_ramp(col(pot[0], "t"), col(pot[0], "theta_v"))
         Kp = pc.Kp
         lag = pc.lag_s if math.isfinite(pc.lag_s) else 0.0
         source["Kp"] = {
@@ -543,11 +559,10 @@ def calibrate_run(run: Path) -> Calibration:
         }
     else:
         source["Kp"] = {"method": "lab 1's value (no pot ramp in this run)"}
-    comb = [n for n, e in cal_exps.items() if e.signal == "comb"]
     if comb:
-        df = data(comb[0])
-        holds, angles = _holds(df["comb_angle"].to_numpy(), df["t"].to_numpy())
-        ang, volts = comb_table(df["t"].to_numpy(), df["alpha_v"].to_numpy(), angles, holds)
+        t = col(comb[0], "t")
+        holds, angles = _holds(col(comb[0], "comb_angle"), t)
+        ang, volts = comb_table(t, col(comb[0], "alpha_v"), angles, holds)
         gc = ke_from_comb(ang, volts)
         Ke, offset = gc.Ke, gc.offset_v
         source["Ke"] = {
@@ -559,13 +574,11 @@ def calibrate_run(run: Path) -> Calibration:
         }
     else:
         source["Ke"] = {"method": "lab 1's value (no comb in this run)"}
-    ramps = [n for n, e in cal_exps.items() if e.signal == "ramp"]
     if ramps:
         ests = []
         for n in ramps:
-            df = data(n)
-            th = np.unwrap(Kp * df["theta_v"].to_numpy(), period=360.0)
-            ests.append(dead_zone_estimate(df["t"].to_numpy(), df["u"].to_numpy(), th, lag_s=lag))
+            th = np.unwrap(Kp * col(n, "theta_v"), period=360.0)
+            ests.append(dead_zone_estimate(col(n, "t"), col(n, "u"), th, lag_s=lag))
         est = dead_zone_merge(*ests)
         dz = est.v_th
         source["dead_zone_v"] = {
@@ -575,8 +588,18 @@ def calibrate_run(run: Path) -> Calibration:
             "v_down": est.v_down,
             "lag_s": lag,
         }
-    cal = Calibration(Kp=Kp, Ke=Ke, gauge_offset_v=offset, dead_zone_v=dz, source=source)
-    cal.to_json(run / "calibration.json")
+    return Calibration(Kp=Kp, Ke=Ke, gauge_offset_v=offset, dead_zone_v=dz, source=source)
+
+
+def calibrate_run(run: Path) -> Calibration:
+    """Calibrate the sensors from a run's calibration experiments (:func:`calibrate` on the datasets it uses, read
+    from ``data/``) and write ``calibration.json``."""
+    run = Path(run)
+    exps = Manifest.load(run).entries("calibration")
+    pot, comb, ramps = _by_signal(exps)
+    data = {n: read_dataset(RunDir(run).dataset(n)) for n in (*pot, *comb, *ramps)}
+    cal = calibrate(exps, data)
+    cal.to_json(RunDir(run).calibration)
     return cal
 
 
