@@ -9,8 +9,9 @@
 - inside :func:`session` (or :func:`use`) with ``workers`` and ``scheduler`` left at None: the session's
   backend, shared;
 - ``scheduler`` (or env ``FLEXJOINT_SCHEDULER``), e.g. ``tcp://10.0.0.5:8786``: ``distributed.Client`` to it;
-- else an embedded ``LocalCluster``: ``workers`` (default min(2, cpu count)) processes of one thread each, no
-  dashboard unless ``dashboard`` gives an address, logs silenced below ERROR;
+- else an embedded ``LocalCluster``: ``workers`` (default :func:`default_workers`: ``FLEXJOINT_WORKERS``, else
+  min(2, cpu count)) processes of one thread each, no dashboard unless ``dashboard`` gives an address, logs
+  silenced below ERROR;
 - ``backend="processes"``: a plain ``multiprocessing`` pool of ``workers`` spawned processes, no Dask: the
   machine's own reference for the Dask backends (``flexjoint bench`` measures both on the same stage).
 
@@ -73,6 +74,7 @@ from .fmu.cosim import Rig
 __all__ = [
     "Executor",
     "FmuBytes",
+    "default_workers",
     "fmu_bytes",
     "fmu_file",
     "in_worker",
@@ -100,6 +102,27 @@ _MALLOC_ENV = ("MALLOC_TRIM_THRESHOLD_", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TOP_P
 CLUSTER_CONFIG = {"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}
 
 _SESSION: contextvars.ContextVar[Executor | None] = contextvars.ContextVar("flexjoint_executor", default=None)
+
+
+def _env_workers() -> int | None:
+    """``FLEXJOINT_WORKERS`` as a positive integer, None when unset or blank."""
+    text = os.environ.get(WORKERS_ENV, "").strip()
+    if not text:
+        return None
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise ValueError(f"{WORKERS_ENV} must be a positive integer, got {os.environ[WORKERS_ENV]!r}")
+    return n
+
+
+def default_workers() -> int:
+    """Worker processes an :class:`Executor` given no ``workers`` starts on this machine (outside a session, without
+    a scheduler): ``FLEXJOINT_WORKERS`` when set, else min(2, cpu count); 1 runs serially, in the calling process."""
+    env = _env_workers()
+    return env if env is not None else min(2, os.cpu_count() or 1)
 
 
 # ----------------------------------------------------------------------------------------------- FMUs as bytes
@@ -299,11 +322,8 @@ class Executor:
         dashboard: str | None = None,
         backend: str = "dask",
     ) -> None:
-        if workers is None and os.environ.get(WORKERS_ENV, "").strip():
-            try:
-                workers = int(os.environ[WORKERS_ENV])
-            except ValueError:
-                raise ValueError(f"{WORKERS_ENV} must be an integer, got {os.environ[WORKERS_ENV]!r}") from None
+        if workers is None:
+            workers = _env_workers()
         if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
             raise ValueError(f"workers must be a positive integer, got {workers!r}")
         if backend not in BACKENDS:
@@ -318,14 +338,14 @@ class Executor:
         self._owns_client = False
         self._scattered: dict[int, tuple[Any, Any]] = {}
         active = _SESSION.get()
-        single = workers is None and scheduler is None and (os.cpu_count() or 1) == 1
+        single = workers is None and scheduler is None and default_workers() == 1
         if workers == 1 or (scheduler is None and in_worker()):
             self.kind = "serial"
         elif active is not None and workers is None and scheduler is None:
             self.kind, self.client = active.kind, active.client
             self.pool, self._pool_size = active.pool, active._pool_size
         elif backend == "processes":
-            n = workers or min(2, os.cpu_count() or 1)
+            n = workers or default_workers()
             if n == 1:
                 self.kind = "serial"
             else:
@@ -348,7 +368,7 @@ class Executor:
                 raise RuntimeError(f"cannot connect to the Dask scheduler at {scheduler}: {first}") from None
             self.kind = "remote"
         else:
-            self._cluster = local_cluster(workers or min(2, os.cpu_count() or 1), dashboard)
+            self._cluster = local_cluster(workers or default_workers(), dashboard)
             self.client = Client(self._cluster, set_as_default=False)
             self.kind = "local"
         self._owns_client = True

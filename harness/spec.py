@@ -30,6 +30,7 @@ from typing import Any
 
 import tomllib
 
+from .executor import default_workers
 from .fmu.modeldesc import source_model
 from .fmu.sources import bundled_dir
 from .rig.controller import Controller
@@ -329,13 +330,14 @@ RK4_WORK_ARRAYS = 24  # float64 arrays of n samples alive per running experiment
 
 def memory_estimate(spec: Spec, workers: int | None = None) -> dict[str, Any]:
     """Bytes a campaign of ``spec`` needs: every dataset held until it is written (samples x columns x 8 bytes
-    over all experiments) plus the co-simulation work of the experiments running at once (``workers``, default
-    as :func:`harness.rig.campaign.simulate_spec`: at most 4 processes)."""
+    over all experiments) plus the co-simulation work of the experiments running at once: the longest ``workers``
+    of them, by default as many as the executor starts on this machine (:func:`harness.executor.default_workers`:
+    ``FLEXJOINT_WORKERS``, else min(2, cpu count)), at most one per experiment; ``workers`` in the result."""
     exps = spec.all_experiments()
     ns = [int(round(e.duration * spec.sample_rate)) for e in exps]
     cols = [8 if e.signal == "comb" else 6 for e in exps]
     if workers is None:
-        workers = min(len(exps), os.cpu_count() or 1, 4)
+        workers = min(len(exps), default_workers())
     running = sorted(ns, reverse=True)[: max(1, workers)]
     data = sum(n * c * 8 for n, c in zip(ns, cols, strict=True))
     work = sum(running) * RK4_WORK_ARRAYS * 8
@@ -346,6 +348,7 @@ def memory_estimate(spec: Spec, workers: int | None = None) -> dict[str, Any]:
         "samples": sum(ns),
         "columns": sorted(set(cols)),
         "experiments": len(exps),
+        "workers": workers,
     }
 
 

@@ -3,6 +3,7 @@
 import pytest
 
 from harness import spec as specmod
+from harness.executor import WORKERS_ENV, Executor, default_workers
 
 
 def test_lab_spec_reproduces_the_first_lab():
@@ -125,6 +126,26 @@ def test_memory_estimate_counts_samples_columns_and_work():
     with pytest.raises(specmod.SpecError, match=r"needs ~[\d.]+ MiB of memory .* this machine has 1 MiB") as e:
         specmod.check_memory(s, workers=2, available=2**20)
     assert "this machine has" in str(e.value) and "\n" not in str(e.value)
+
+
+def test_memory_estimate_runs_as_many_experiments_at_once_as_the_executor_starts(monkeypatch):
+    """By default the estimate counts the experiments the executor runs at once: its own default worker count
+    (FLEXJOINT_WORKERS when set), at most one per experiment."""
+    s = specmod.load("lab")
+    n = len(s.all_experiments())
+    for env in (None, "3", "1"):
+        if env is None:
+            monkeypatch.delenv(WORKERS_ENV, raising=False)
+        else:
+            monkeypatch.setenv(WORKERS_ENV, env)
+        with Executor(backend="processes") as ex:  # the pool's size, known before any process starts
+            started = ex.n_workers
+        assert started == default_workers() and (env is None or started == int(env))
+        est = specmod.memory_estimate(s)
+        assert est["workers"] == min(n, started) and est == specmod.memory_estimate(s, workers=started)
+    monkeypatch.setenv(WORKERS_ENV, "3")
+    one = specmod.from_dict({**s.raw, "experiment": s.raw["experiment"][:1], "calibration": []}, s.path)
+    assert specmod.memory_estimate(one)["workers"] == 1  # simulate_spec runs a lone experiment serially
 
 
 def test_a_campaign_larger_than_the_machine_is_refused_before_any_allocation():
