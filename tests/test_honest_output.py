@@ -70,11 +70,31 @@ def test_a_verdict_reached_at_a_bound_carries_caveats():
     ks = FittedParameter(1.3, 1.31, [1.28, 1.34], 0.8, "N m/rad", recal.finding("plant.Ks", 1.3, 1.31, (1.28, 1.34)))
     caveats = dg._caveats({"plant.Jeq": jeq, "plant.zeta_link": zeta, "plant.Ks": ks}, "coulomb_friction")
     assert caveats == [
+        f"the spec's {recal.DRIVE} does not describe this rig: hub inertia (1.6x the spec, upper) ends at its search "
+        "bound; measure it before trusting an effect's share of the gap",
         "verdict 'coulomb_friction' reached with hub inertia at its upper bound (1.6x the spec: 0.002087 -> 0.003339 "
         "kg m^2): the spec may not describe this rig",
         "link damping ratio is not identifiable from these data (fitted 0.012, 95 % interval 1e-06..1; spec 0.01)",
     ]
     assert dg._caveats({"plant.Ks": ks}, "none") is None  # nothing limits it: the key is left out
+
+
+def test_which_part_of_the_spec_is_wrong_is_said_once_per_part():
+    """Another lab's rig whose drive the sheet gets wrong (three drive parameters at their bounds, the link fine): one
+    sentence names the drive and its three parameters; a link at its bound gets its own."""
+    rows = {"plant.Beq": (0.004, 0.02), "plant.Jeq": (0.002, 0.0032), "plant.kt": (0.0107, 0.01605),
+            "plant.Ks": (2.2448, 2.3), "plant.zeta_link": (0.01, 0.05)}  # fmt: skip
+    assert recal.parts_at_bound(rows) == [
+        f"the spec's {recal.DRIVE} does not describe this rig: viscous damping (5x the spec, upper), hub inertia (1.6x "
+        "the spec, upper) and motor gain (kt eta_g eta_m) (1.5x the spec, upper) end at their search bounds; measure "
+        "them before trusting an effect's share of the gap"
+    ]
+    rows["plant.Ks"] = (1.3, 0.65)
+    assert recal.parts_at_bound(rows)[1] == (
+        f"the spec's {recal.LINK} does not describe this rig: link stiffness (0.5x the spec, lower) ends at its search "
+        "bound; measure it before trusting an effect's share of the gap"
+    )
+    assert recal.parts_at_bound({"plant.Ks": (1.3, 1.5)}) == []
 
 
 # ----------------------------------------------------------------------------------------------- a lone record

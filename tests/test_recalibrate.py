@@ -46,3 +46,67 @@ def test_bounds_hold_and_findings_read_as_a_lab_report():
         "link stiffness is 15 % higher than the spec (1.3 -> 1.5 N m/rad)"
     )
     assert recal.finding("plant.Beq", 0.004, 0.0041, (0.0035, 0.0047)).startswith("viscous damping matches the spec")
+
+
+def test_a_parameter_the_data_do_not_determine_keeps_the_spec_value():
+    """A gain that multiplies a signal the data never excite (here a term that is zero until after the record ends)
+    cannot be fitted: left free it drifts wherever the optimiser leaves it and its interval spans orders of
+    magnitude; held, it keeps the spec's value and the others are fitted as before."""
+    t = np.linspace(0, 4, 800)
+    y = _second_order(2.0, 6.0, 0.15, t) + 0.01 * np.random.default_rng(3).standard_normal(t.size)
+    late = np.where(t > 10.0, 1.0, 0.0)  # never non-zero within the record
+
+    def resid(p):
+        return y - _second_order(p["k"], p["wn"], 0.15, t) - (p["g"] - 0.5) * late
+
+    bounds = {
+        "k": recal.Bound(0.5, 2.0, "1", "gain"),
+        "wn": recal.Bound(0.5, 2.0, "rad/s", "natural frequency"),
+        "g": recal.Bound(0.2, 5.0, "1", "unexcited gain"),
+    }
+    nominal = {"k": 1.6, "wn": 5.0, "g": 0.5}
+    free = recal.fit(resid, bounds, nominal, start={"g": 2.0})  # started off the spec: nothing moves it back
+    assert not recal.identifiable(free.ci95["g"]) and free.values["g"] == pytest.approx(2.0) and free.held == ()
+    held = recal.fit(resid, bounds, nominal, start={"g": 2.0}, hold={"g"})
+    assert held.held == ("g",) and held.values["g"] == 0.5 and held.ci95["g"] == free.ci95["g"]
+    assert held.values["k"] == pytest.approx(2.0, rel=0.01) and held.values["wn"] == pytest.approx(6.0, rel=0.01)
+    assert held.cost == pytest.approx(free.cost, rel=1e-3) and held.nfev > free.nfev
+    # a parameter the data determine is never held, whatever ``hold`` says
+    assert recal.fit(resid, bounds, nominal, hold={"k", "wn"}).held == ()
+    text = recal.finding("plant.zeta_link", 0.01, 0.01, (1e-6, 0.5))
+    assert (
+        text
+        == "link damping ratio is not identifiable from these data: kept at the spec's 0.01 (95 % interval 1e-06..0.5)"
+    )
+
+
+def test_a_held_parameter_that_fits_clearly_worse_at_the_spec_stays_free():
+    """An interval can be wide where the cost is not flat (a kink, a plateau ending): when holding the parameter at
+    the spec's value costs more than HOLD_TOLERANCE, the free fit stands."""
+    t = np.linspace(0, 4, 800)
+    y = _second_order(2.0, 6.0, 0.15, t)
+
+    def resid(p):  # the gain enters only through a saturation: flat beyond 1.5, steep below
+        return y - _second_order(min(p["k"], 1.5) + 0.5, 6.0, 0.15, t)
+
+    bounds = {"k": recal.Bound(0.2, 5.0, "1", "gain"), "wn": recal.Bound(0.5, 2.0, "1", "unused")}
+    f = recal.fit(lambda p: np.r_[resid(p), 0.0 * p["wn"]], bounds, {"k": 0.8, "wn": 1.0}, hold={"k", "wn"})
+    assert not recal.identifiable(f.ci95["k"]) and not recal.identifiable(f.ci95["wn"])  # both on a plateau
+    assert f.values["k"] >= 1.5 and f.held == ()  # held at the spec (k 0.8) the fit is clearly worse: free fit stands
+    assert f.cost == pytest.approx(0.0, abs=1e-20)
+
+
+def test_a_simulation_on_a_lattice_still_gets_an_interval():
+    """A quantized simulation (an ADC's lattice in the model) feels no 0.1 % step of a gain it depends on: the zero
+    Jacobian column is taken again with a 5 % step, so the gain gets a finite interval covering the truth, not a
+    zero-width one (what pinv made of it) nor none."""
+    t = np.linspace(0, 4, 800)
+    lsb = 0.05
+    y = _second_order(2.0, 6.0, 0.15, t) + 0.02 * np.random.default_rng(1).standard_normal(t.size)
+
+    def resid(p):
+        return y - lsb * np.round(_second_order(p["k"], 6.0, 0.15, t) / lsb)
+
+    f = recal.fit(resid, {"k": recal.Bound(0.5, 2.0, "1", "gain")}, {"k": 1.9}, start={"k": 2.0})
+    lo, hi = f.ci95["k"]
+    assert recal.identifiable((lo, hi)) and lo < 2.0 < hi and hi / lo < 1.1, (lo, hi)

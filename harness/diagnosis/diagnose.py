@@ -103,9 +103,11 @@ def _replays(experiments: dict[str, RigExperiment]) -> dict[str, dict[str, str]]
 
 
 def _caveats(parameters: dict[str, FittedParameter], verdict: str) -> list[str] | None:
-    """What limits the verdict: each recalibrated parameter that ended at its bound (the spec may not describe the
-    rig, so an effect's share of the gap may be a wrong linear part's), each one the data do not determine."""
-    out = [f"verdict {verdict!r} reached with {p.finding}" for p in parameters.values() if p.at_bound]
+    """What limits the verdict: which part of the spec does not describe the rig (:func:`recal.parts_at_bound`), each
+    recalibrated parameter that ended at its bound (an effect's share of the gap may be a wrong linear part's), each
+    one the data do not determine."""
+    out = recal.parts_at_bound({n: (p.nominal, p.fitted) for n, p in parameters.items() if n in recal.LINEAR})
+    out += [f"verdict {verdict!r} reached with {p.finding}" for p in parameters.values() if p.at_bound]
     out += [f"{p.finding}" for p in parameters.values() if p.identifiable is False and p.finding and not p.at_bound]
     return out or None
 

@@ -8,6 +8,12 @@ to the spec's value (so bounds are factors and steps are relative). Standard err
 the solution, cov = s^2 (J^T J)^-1 with s^2 = SSE / (N - p): the usual output-error intervals, which assume
 white residuals and are therefore optimistic when model error, not noise, dominates (said in the report).
 
+A parameter the data do not determine (its 95 % interval wider than a factor :data:`UNIDENTIFIABLE`) drifts along a
+flat valley of the cost, on real records often to a search bound, where it would read as "the spec may not
+describe this rig" although the spec's value fits as well. Such a parameter (of those the caller names ``hold``)
+keeps the spec's value: the fit is made again with it held there, and kept when its cost is within
+:data:`HOLD_TOLERANCE` of the free fit's (:attr:`Fit.held` names it; its interval is the free fit's).
+
 :data:`LINEAR` is the table of what is recalibrated and within which physical bounds. The motor gain is one
 factor on kt * eta_g * eta_m: kt carries it (drive torque and back-EMF damping both scale with it, as they do
 with the efficiencies, and kt has no upper bound of 1).
@@ -16,8 +22,8 @@ with the efficiencies, and kt has no upper bound of 1).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from collections.abc import Callable, Collection, Mapping
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -26,37 +32,48 @@ from scipy.optimize import least_squares
 @dataclass(frozen=True)
 class Bound:
     """A parameter's search range as factors ``lo``..``hi`` of its nominal value (``log``) or as absolute
-    values (``log`` False: a parameter that may be zero or negative), with its unit and a plain name."""
+    values (``log`` False: a parameter that may be zero or negative), with its unit, a plain name and the part of the
+    rig (and of its spec) it belongs to."""
 
     lo: float
     hi: float
     unit: str
     label: str
     log: bool = True
+    part: str = ""
 
 
 # linear physical parameters of the plant, recalibrated before any effect is tried
+DRIVE = "hub and drive (motor, gear and amplifier: Kg, kt, km, Rm, efficiencies, Jeq, Beq)"
+LINK = "link (Ks, zeta_link, its length, mass and tip mass)"
 LINEAR: dict[str, Bound] = {
-    "plant.Beq": Bound(0.2, 5.0, "N m s/rad", "viscous damping"),
-    "plant.Ks": Bound(0.5, 2.0, "N m/rad", "link stiffness"),
-    "plant.zeta_link": Bound(0.2, 10.0, "1", "link damping ratio"),
-    "plant.Jeq": Bound(0.6, 1.6, "kg m^2", "hub inertia"),
-    "plant.kt": Bound(0.6, 1.5, "N m/A", "motor gain (kt eta_g eta_m)"),
+    "plant.Beq": Bound(0.2, 5.0, "N m s/rad", "viscous damping", part=DRIVE),
+    "plant.Ks": Bound(0.5, 2.0, "N m/rad", "link stiffness", part=LINK),
+    "plant.zeta_link": Bound(0.2, 10.0, "1", "link damping ratio", part=LINK),
+    "plant.Jeq": Bound(0.6, 1.6, "kg m^2", "hub inertia", part=DRIVE),
+    "plant.kt": Bound(0.6, 1.5, "N m/A", "motor gain (kt eta_g eta_m)", part=DRIVE),
 }
 
 Residuals = Callable[[dict[str, float]], np.ndarray]
+AT_BOUND = 0.02  # a fitted factor within 2 % (in log) of a bound sits at it
+UNIDENTIFIABLE = 100.0  # a 95 % interval wider than this factor (hi / lo) says the data do not determine it
+HOLD_TOLERANCE = 0.02  # an undetermined parameter keeps the spec's value when that costs < 2 % more squared error
+SE_CAP = 50.0  # standard error [log of the factor] of a parameter the residuals do not determine: no interval
+STAIRCASE_STEP = 0.05  # a Jacobian column that a 0.1 % step left at zero is taken again with a 5 % step (log)
 
 
 @dataclass
 class Fit:
     """Least-squares result: ``values`` (parameter -> fitted value), ``ci95`` (parameter -> (lo, hi)), ``cost``
-    = sum of squared residuals at the solution, ``nfev`` simulations used, ``n`` residuals that count."""
+    = sum of squared residuals at the solution, ``nfev`` simulations used, ``n`` residuals that count, ``held``
+    the parameters the data did not determine, kept at their nominal value."""
 
     values: dict[str, float]
     ci95: dict[str, tuple[float, float]]
     cost: float
     nfev: int
     n: int
+    held: tuple[str, ...] = ()
 
 
 def _to_x(value: float, nominal: float, b: Bound) -> float:
@@ -78,10 +95,40 @@ def fit(
     start: Mapping[str, float] | None = None,
     fixed: Mapping[str, float] | None = None,
     max_nfev: int = 30,
+    hold: Collection[str] = (),
 ) -> Fit:
     """Fit the parameters of ``bounds`` (FMU names, "plant.Ks") by bounded least squares on ``residuals``
     (parameter dict -> residual vector; ``fixed`` overrides are added to every call), from ``start`` (default
-    ``nominal``), bounds relative to ``nominal``. Returns the fit with 95 % intervals from the Jacobian."""
+    ``nominal``), bounds relative to ``nominal``. Returns the fit with 95 % intervals from the Jacobian; those of
+    ``hold`` that the data do not determine are kept at ``nominal`` (see the module)."""
+    f = _fit(residuals, bounds, nominal, start, fixed, max_nfev)
+    loose = [n for n in bounds if n in hold and not identifiable(f.ci95[n])]
+    if not loose:
+        return f
+    at_spec = {n: float(nominal[n]) for n in loose}
+    rest = {n: b for n, b in bounds.items() if n not in at_spec}
+    if rest:
+        start_rest = {n: v for n, v in f.values.items() if n in rest}
+        g = _fit(residuals, rest, nominal, start_rest, {**(fixed or {}), **at_spec}, max_nfev)
+    else:  # nothing left to fit: the cost at the spec's values
+        r = residuals({**(fixed or {}), **at_spec})
+        g = Fit({}, {}, float(np.sum(r**2)), 1, int(np.count_nonzero(r)))
+    if g.cost > (1.0 + HOLD_TOLERANCE) * f.cost:
+        return replace(f, nfev=f.nfev + g.nfev)  # the spec's value fits clearly worse: the free fit stands
+    values = {n: g.values.get(n, at_spec.get(n)) for n in bounds}
+    ci = {n: g.ci95.get(n, f.ci95[n]) for n in bounds}
+    return Fit(values, ci, g.cost, f.nfev + g.nfev, g.n, tuple(loose))
+
+
+def _fit(
+    residuals: Residuals,
+    bounds: Mapping[str, Bound],
+    nominal: Mapping[str, float],
+    start: Mapping[str, float] | None,
+    fixed: Mapping[str, float] | None,
+    max_nfev: int,
+) -> Fit:
+    """:func:`fit`'s one bounded least squares."""
     names = list(bounds)
     fixed = dict(fixed or {})
     start = {**nominal, **(start or {})}
@@ -111,8 +158,10 @@ def fit(
     n_eff = int(np.count_nonzero(r))
     dof = max(n_eff - len(names), 1)
     s2 = 2.0 * float(res.cost) / dof
-    cov = s2 * np.linalg.pinv(res.jac.T @ res.jac)
-    se = np.minimum(np.sqrt(np.clip(np.diag(cov), 0.0, None)), 50.0)  # an unidentifiable direction: no bound
+    jac = _felt(lambda x: residuals(params(x)), res.x, r, np.array(res.jac, dtype=float), lo_hi)
+    cov = s2 * np.linalg.pinv(jac.T @ jac)
+    se = np.minimum(np.sqrt(np.clip(np.diag(cov), 0.0, None)), SE_CAP)  # an unidentifiable direction: no bound
+    se[_in_null_space(jac)] = SE_CAP  # pinv gives a direction the residuals do not feel zero variance, not infinite
     values = params(res.x)
     ci = {}
     for i, n in enumerate(names):
@@ -122,8 +171,34 @@ def fit(
     return Fit({n: values[n] for n in names}, ci, float(2.0 * res.cost), int(res.nfev), n_eff)
 
 
-AT_BOUND = 0.02  # a fitted factor within 2 % (in log) of a bound sits at it
-UNIDENTIFIABLE = 100.0  # a 95 % interval wider than this factor (hi / lo) says the data do not determine it
+def _felt(
+    resid: Callable[[np.ndarray], np.ndarray],
+    x: np.ndarray,
+    r: np.ndarray,
+    jac: np.ndarray,
+    lo_hi: list[tuple[float, float]],
+) -> np.ndarray:
+    """The Jacobian ``jac`` at ``x`` (residuals ``r``) with each column that is zero taken again by a step of
+    STAIRCASE_STEP: a simulation on a lattice (the ADC's, an encoder's) feels no 0.1 % step of a parameter it does
+    depend on, and a zero column would read as a parameter determined to the last digit (or, once seen, as one the
+    data do not determine). A column still zero after the step is a parameter the residuals do not feel."""
+    norms = np.linalg.norm(jac, axis=0)
+    for i in np.flatnonzero(norms <= 1e-12 * max(float(norms.max(initial=0.0)), 1e-300)):
+        h = STAIRCASE_STEP if x[i] + STAIRCASE_STEP <= lo_hi[i][1] else -STAIRCASE_STEP
+        step = x.copy()
+        step[i] += h
+        jac[:, i] = (resid(step) - r) / h
+    return jac
+
+
+def _in_null_space(jac: np.ndarray) -> np.ndarray:
+    """Per parameter (column of the Jacobian ``jac``, residuals x parameters): does it take part in a direction the
+    residuals do not feel (a singular value below 1e-9 of the largest, or every one zero)? From the eigenvectors of
+    the small J^T J (parameters x parameters), never an SVD of the tall J."""
+    w, v = np.linalg.eigh(jac.T @ jac)
+    top = float(w.max(initial=0.0))
+    null = w <= 1e-18 * top if top > 0 else np.ones(w.size, dtype=bool)
+    return np.sum(v[:, null] ** 2, axis=1) > 1e-6
 
 
 def at_bound(name: str, nominal: float, fitted: float) -> str | None:
@@ -140,6 +215,25 @@ def at_bound(name: str, nominal: float, fitted: float) -> str | None:
     return None
 
 
+def parts_at_bound(fitted: Mapping[str, tuple[float, float]]) -> list[str]:
+    """Which part of the spec does not describe the rig, in words, from the linear parameters that end at their
+    search bounds (``fitted``: parameter -> (nominal, fitted)): one sentence per part of :data:`LINEAR` ("the spec's
+    link ... does not describe this rig: link stiffness (2x the spec) ends at its search bound"), [] when none does."""
+    by_part: dict[str, list[str]] = {}
+    for name, (nominal, value) in fitted.items():
+        side = at_bound(name, nominal, value)
+        if side is not None:
+            b = LINEAR[name]
+            by_part.setdefault(b.part, []).append(f"{b.label} ({value / nominal:.2g}x the spec, {side})")
+    out = []
+    for part, items in by_part.items():
+        listed = items[0] if len(items) == 1 else ", ".join(items[:-1]) + " and " + items[-1]
+        ends = "ends at its search bound" if len(items) == 1 else "end at their search bounds"
+        out.append(f"the spec's {part} does not describe this rig: {listed} {ends}; measure "
+                   f"{'it' if len(items) == 1 else 'them'} before trusting an effect's share of the gap")  # fmt: skip
+    return out
+
+
 def identifiable(ci95: tuple[float, float]) -> bool:
     """False when the 95 % interval of a positive parameter spans more than UNIDENTIFIABLE (or reaches 0)."""
     lo, hi = ci95
@@ -150,7 +244,8 @@ def finding(name: str, nominal: float, fitted: float, ci95: tuple[float, float])
     """One sentence a lab report would print: "the link stiffness is 15 % higher than the spec (1.3 -> 1.5 N
     m/rad)", or "matches the spec" when the spec's value lies inside the 95 % interval or within 3 %; "at its upper
     bound (1.6x the spec): the spec may not describe this rig" when the fit ended at a bound of :data:`LINEAR`;
-    "not identifiable from these data" when its interval spans more than UNIDENTIFIABLE."""
+    "not identifiable from these data" when its interval spans more than UNIDENTIFIABLE (", kept at the spec's value"
+    when the fit held it there)."""
     b = LINEAR.get(name)
     label = b.label if b else name
     unit = f" {b.unit}" if b and b.unit != "1" else ""
@@ -159,8 +254,12 @@ def finding(name: str, nominal: float, fitted: float, ci95: tuple[float, float])
         return (f"{label} at its {side} bound ({fitted / nominal:.2g}x the spec: {nominal:.4g} -> {fitted:.4g}{unit}): "
                 "the spec may not describe this rig")  # fmt: skip
     if not identifiable(ci95):
-        return (f"{label} is not identifiable from these data (fitted {fitted:.4g}{unit}, 95 % interval "
-                f"{ci95[0]:.3g}..{ci95[1]:.3g}; spec {nominal:.4g})")  # fmt: skip
+        interval = f"95 % interval {ci95[0]:.3g}..{ci95[1]:.3g}"
+        if fitted == nominal:  # held at the spec's value: the data fit as well there (see the module)
+            return f"{label} is not identifiable from these data: kept at the spec's {nominal:.4g}{unit} ({interval})"
+        return (
+            f"{label} is not identifiable from these data (fitted {fitted:.4g}{unit}, {interval}; spec {nominal:.4g})"
+        )
     change = 100.0 * (fitted / nominal - 1.0) if nominal else math.nan
     if (ci95[0] <= nominal <= ci95[1]) or abs(change) < 3.0:
         return f"{label} matches the spec ({nominal:.4g}{unit}, fitted {fitted:.4g})"

@@ -113,7 +113,8 @@ def joint_refit(
 ) -> dict[str, Any]:
     """Output-error least squares of the linear parameters (:data:`harness.diagnosis.recalibrate.LINEAR`) and the
     continuous effect parameters named in ``free`` (with their secondary parameters), from their values in
-    ``base`` (linear ones default to the sim's), on the fit windows of ``fit``; squared errors on ``every``.
+    ``base`` (linear ones default to the sim's), on the fit windows of ``fit`` (a linear parameter the data do not
+    determine keeps the sim's value: :func:`harness.diagnosis.recalibrate.fit`); squared errors on ``every``.
     Returns params, ci95, fit_msg (the mean squared gap at the solution), evaluations, sse."""
     setup: Setup = _CTX["setup"]
     bounds: dict[str, recal.Bound] = {}
@@ -135,6 +136,7 @@ def joint_refit(
             start={k: float(v) for k, v in start.items() if k in bounds},
             fixed=fixed,
             max_nfev=max_nfev,
+            hold=recal.LINEAR,
         )
 
     f = refit(fixed, base)
