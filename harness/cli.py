@@ -243,7 +243,14 @@ def campaign(
 
 @app.command("import")
 def import_(
-    files: Annotated[list[Path], typer.Argument(help="records: .csv/.txt/.tsv, .mat (v5, v7.3), .parquet")],
+    files: Annotated[
+        list[str],
+        typer.Argument(
+            help="records: .csv/.txt/.tsv, .mat (v5, v7.3), .parquet; one record in several files sharing its time "
+            "base (a QUARC or Simulink To File per scope): [NAME=]FILE+FILE+..., a headerless file's columns as "
+            "STEM:POSITION in --columns"
+        ),
+    ],
     out_dir: Annotated[Path, typer.Option("--out", help="run directory to write")],
     columns: Annotated[
         str | None, typer.Option(help="column map, e.g. time=t,Vm=u,hub=theta,tip=alpha (tip=-alpha: opposite sign)")

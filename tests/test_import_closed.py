@@ -3,9 +3,15 @@ R^2), an encoder theta; and each kind of bad input as one line."""
 
 from __future__ import annotations
 
+import hashlib
+import subprocess
+import sys
+from dataclasses import replace
+
 import numpy as np
 import pandas as pd
 import pytest
+import scipy.io
 
 from harness.diagnosis.blindtest import campaign_spec
 from harness.diagnosis.experiments import load_experiments
@@ -13,7 +19,7 @@ from harness.fmu.build import build_all
 from harness.ident.calibration import load_calibration
 from harness.rig.campaign import simulate_spec
 from harness.rig.controller import R2_MIN, Controller, identify_controller, law, parse_controller
-from harness.rig.records import ImportOptions, import_records
+from harness.rig.records import ImportOptions, import_records, record_files
 from harness.rundir import DataError, Manifest, RunDir, read_dataset
 
 K = [9.231, -18.769, 1.203, -0.041]  # specs/blind_closed.toml
@@ -142,3 +148,86 @@ def test_bad_reference_is_one_line(closed_csv, tmp_path):
     assert not (tmp_path / "x").exists()
     with pytest.raises(DataError, match=r"--columns names 'setpoint_deg', not in the file"):
         import_records([path], tmp_path / "x", ImportOptions(columns={"setpoint_deg": "ref"}))
+
+
+def _to_file_blocks(rec: pd.DataFrame, d, counts_per_rev: int = 4096) -> dict[str, np.ndarray]:
+    """The record as a QUARC model saves it: one To File block per scope, each a .mat matrix of its own time column
+    then its signals (here N x k, as a lab's script leaves them after loading: data_vm = [t, Vm], data_theta = [t,
+    theta_ref, theta] with theta on the encoder's counts, data_alpha = [t, alpha], angles in degrees)."""
+    step = 360.0 / counts_per_rev
+    blocks = {
+        "data_vm": np.column_stack([rec["time"], rec["Vm"]]),
+        "data_theta": np.column_stack([rec["time"], rec["theta_ref_deg"], step * np.round(rec["theta_deg"] / step)]),
+        "data_alpha": np.column_stack([rec["time"], rec["alpha_deg"]]),
+    }
+    for name, m in blocks.items():
+        scipy.io.savemat(d / f"{name}.mat", {name: m})
+    return blocks
+
+
+QUARC_COLUMNS = {"data_vm:0": "t", "data_vm:1": "u", "data_theta:1": "ref", "data_theta:2": "theta",
+                 "data_alpha:1": "alpha"}  # fmt: skip
+QUARC_OPTS = ImportOptions(columns=QUARC_COLUMNS, units={"theta": "deg", "alpha": "deg", "ref": "deg"},
+                           theta_sensor="encoder", counts_per_rev=4096)  # fmt: skip
+
+
+def test_a_record_in_several_files_is_one_record(closed_csv, tmp_path):
+    """A QUARC capture (three .mat files, each with its own time column) imports as the one record it is: the same
+    dataset as the same columns in one CSV, its files and their sha256 in the manifest, named as asked."""
+    _, rec = closed_csv
+    blocks = _to_file_blocks(rec, tmp_path)
+    parts = "+".join(str(tmp_path / f"{n}.mat") for n in blocks)
+    notes: list[str] = []
+    import_records([f"square={parts}"], tmp_path / "q", QUARC_OPTS, note=notes.append)
+    one = pd.DataFrame({"t": blocks["data_vm"][:, 0], "u": blocks["data_vm"][:, 1], "ref": blocks["data_theta"][:, 1],
+                        "theta": blocks["data_theta"][:, 2], "alpha": blocks["data_alpha"][:, 1]})  # fmt: skip
+    one.to_csv(tmp_path / "square.csv", index=False)
+    csv_opts = replace(QUARC_OPTS, columns={"ref": "ref"})
+    import_records([tmp_path / "square.csv"], tmp_path / "c", csv_opts)
+    joined, single = (read_dataset(RunDir(tmp_path / r).dataset("square")) for r in ("q", "c"))
+    pd.testing.assert_frame_equal(joined, single, check_exact=True)
+    m = Manifest.load(tmp_path / "q")
+    src = m.sources["square"]
+    assert src["file"] == "data_vm.mat+data_theta.mat+data_alpha.mat"
+    assert src["sha256"].split("+") == [
+        hashlib.sha256((tmp_path / f"{n}.mat").read_bytes()).hexdigest() for n in blocks
+    ]
+    e = m.experiments[0]
+    assert e.loop == "closed" and e.controller["r2"] > 0.99 and e.theta_sensor == "encoder"
+    # unnamed, the record takes the files' common stem; the command line says it the same way
+    columns = ",".join(f"{k}={v}" for k, v in QUARC_COLUMNS.items())
+    cmd = ["--columns", columns, "--units", "theta=deg,alpha=deg,ref=deg", "--theta-sensor", "encoder",
+           "--counts-per-rev", "4096"]  # fmt: skip
+    r = subprocess.run([sys.executable, "-m", "harness", "import", parts, "--out", str(tmp_path / "u"), *cmd],
+                       capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert r.returncode == 0 and "imported 1 dataset(s)" in r.stdout, r.stderr
+    assert [x.name for x in Manifest.load(tmp_path / "u").experiments] == ["data"]
+    assert record_files(parts)[0] == "data" and record_files(tmp_path / "square.csv") == (
+        "square",
+        [tmp_path / "square.csv"],
+    )
+
+
+def test_files_that_are_not_one_record_are_one_line(closed_csv, tmp_path):
+    _, rec = closed_csv
+    blocks = _to_file_blocks(rec, tmp_path)
+    parts = [tmp_path / f"{n}.mat" for n in blocks]
+    short = blocks["data_alpha"][:-5]
+    scipy.io.savemat(tmp_path / "short_alpha.mat", {"data_alpha": short})
+    late = blocks["data_alpha"].copy()
+    late[300:, 0] += 0.001  # another clock from row 300 on
+    scipy.io.savemat(tmp_path / "late_alpha.mat", {"data_alpha": late})
+    cases = [
+        (f"{parts[0]}+{parts[1]}+{tmp_path / 'short_alpha.mat'}", r"must have as many rows \(data_vm.mat 2000, "
+         r"data_theta.mat 2000, short_alpha.mat 1995\)"),
+        (f"{parts[0]}+{parts[1]}+{tmp_path / 'late_alpha.mat'}", r"data_vm.mat and late_alpha.mat: their time "
+         r"columns differ from row 300 on"),
+        (f"{parts[0]}+{tmp_path / 'missing.mat'}", r"missing.mat: no such file \(in the record"),
+        (f"{parts[0]}+{parts[0]}", "the same file name twice in one record"),
+    ]  # fmt: skip
+    for arg, msg in cases:
+        with pytest.raises(DataError, match=msg) as err:
+            import_records([arg], tmp_path / "x", QUARC_OPTS)
+        assert "\n" not in str(err.value) and not (tmp_path / "x").exists()
+    with pytest.raises(DataError, match=r"no header: 7 numeric columns .* e.g. --columns data_vm:0=t,data_vm:1=u"):
+        import_records(["+".join(map(str, parts))], tmp_path / "x", ImportOptions())

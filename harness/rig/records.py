@@ -2,7 +2,11 @@
 
 Formats: CSV (separator ``,`` ``;`` tab or spaces and the decimal comma detected; an optional header, an
 optional units row under it; ``#``/``%`` comment lines), MATLAB .mat v5 (scipy) and v7.3 (HDF5, h5py) with one
-vector per channel or one N x k matrix, and Parquet. Channels: time ``t``, command ``u`` [V], shaft angle
+vector per channel or one N x k matrix, and Parquet. One record may be spread over several files that share its
+time base, ``[NAME=]FILE+FILE+...`` (what a QUARC or Simulink model writes: a To File block per scope, each its own
+time column then its signals): their columns are joined, a headerless file's addressed as ``STEM:POSITION``
+(``data_theta:2``), the files' time columns checked to be one clock, the dataset named NAME (default: the files'
+common stem, else the first's). Channels: time ``t``, command ``u`` [V], shaft angle
 ``theta`` and link deflection ``alpha``, found by name (``t``/``time``, ``u``/``Vm``, ``theta_deg``, ``alpha_v``,
 ``theta [rad]`` ...) or given with a map (``{"time": "t", "Vm": "u", "hub": "theta", "tip": "alpha"}``;
 positions ``{"0": "t", ...}`` for a headerless file; ``-alpha`` for a channel recorded with the opposite sign: alpha
@@ -79,7 +83,9 @@ __all__ = [
     "calibration_option",
     "import_records",
     "parse_map",
+    "read_record",
     "read_table",
+    "record_files",
 ]
 
 Note = Callable[[str], None]
@@ -211,6 +217,93 @@ def read_table(path: Path) -> RawTable:
     if suffix in (".parquet", ".pq"):
         return _read_parquet(path)
     raise DataError(f"{path.name}: unknown record format {path.suffix!r}; use .csv, .txt, .tsv, .mat or .parquet")
+
+
+def record_files(arg: str | Path) -> tuple[str, list[Path]]:
+    """(dataset name, files) of a record argument: an existing file (named by its stem), or ``[NAME=]FILE+FILE+...``,
+    one record spread over several files (named NAME, else the files' common stem, else the first file's)."""
+    text = str(arg)
+    if Path(text).is_file() or "+" not in text:
+        return Path(text).stem, [Path(text)]
+    name, eq, rest = text.partition("=")
+    if not eq or "+" in name or "/" in name:
+        name, rest = "", text
+    files = [Path(f) for f in rest.split("+")]
+    if any(not f.name for f in files):
+        raise DataError(f"{text}: a record of several files is FILE+FILE+... (an empty name between the '+')")
+    missing = [f for f in files if not f.is_file()]
+    if missing:
+        raise DataError(f"{missing[0]}: no such file (in the record {text})")
+    if len({f.stem for f in files}) < len(files):
+        raise DataError(f"{text}: the same file name twice in one record")
+    common = _common_stem([f.stem for f in files])
+    return name.strip() or common or files[0].stem, files
+
+
+def _common_stem(stems: list[str]) -> str:
+    """The stems' common prefix up to its last separator: data_vm, data_theta -> data."""
+    prefix = stems[0]
+    for s in stems[1:]:
+        while not s.startswith(prefix):
+            prefix = prefix[:-1]
+    return re.sub(r"[_\-. ]+[^_\-. ]*$", "", prefix) if prefix and prefix not in stems else prefix.rstrip("_-. ")
+
+
+def read_record(files: list[Path]) -> RawTable:
+    """The columns of one record: :func:`read_table` of its file, or of each of its files joined (see the module):
+    a column named like the same column of another file, and every column of a headerless file, takes the
+    file's stem as a prefix (``data_theta:2``); the files must have as many rows, and their time columns (named t or
+    time, or the first column of a headerless file when it increases) must agree to a millionth of a sample."""
+    tables = [read_table(f) for f in files]
+    if len(tables) == 1:
+        return tables[0]
+    rows = {t.file: t.values[0].size if t.values else 0 for t in tables}
+    if len(set(rows.values())) > 1:
+        listed = ", ".join(f"{f} {n}" for f, n in rows.items())
+        raise DataError(f"{' + '.join(rows)}: one record's files must have as many rows ({listed}): a column of "
+                        "another length")  # fmt: skip
+    _same_clock(tables)
+    seen = [n for t in tables if t.header for n in t.names]
+    out = RawTable(" + ".join(t.file for t in tables), " + ".join(f"{t.file}: {t.form}" for t in tables), [], [])
+    out.header = any(t.header for t in tables)
+    for t in tables:
+        stem = Path(t.file).stem
+        for name, values in zip(t.names, t.values, strict=True):
+            key = name if t.header and seen.count(name) == 1 else f"{stem}:{name}"
+            out.names.append(key)
+            out.values.append(values)
+            if name in t.units:
+                out.units[key] = t.units[name]
+            if name in t.bad:
+                out.bad[key] = t.bad[name]
+        out.notes += [f"{t.file}: {n}" for n in t.notes]
+        out.others.update({f"{stem}:{k}": v for k, v in t.others.items()})
+    return out
+
+
+def _clock(t: RawTable) -> np.ndarray | None:
+    """A file's time column: named t or time, else the first column of a headerless file when it increases."""
+    for name, values in zip(t.names, t.values, strict=True):
+        if t.header and _channel(name)[0] == "t":
+            return values
+    if not t.header and t.values and t.values[0].size > 1 and bool(np.all(np.diff(t.values[0]) > 0)):
+        return t.values[0]
+    return None
+
+
+def _same_clock(tables: list[RawTable]) -> None:
+    """Refuse files of one record whose time columns differ by more than a millionth of a sample."""
+    clocks = [(t.file, c) for t in tables if (c := _clock(t)) is not None]
+    if len(clocks) < 2:
+        return
+    (f0, c0), rest = clocks[0], clocks[1:]
+    dt = float(np.median(np.diff(c0)))
+    for f, c in rest:
+        off = np.flatnonzero(np.abs(c - c0) > 1e-6 * abs(dt))
+        if off.size:
+            k = int(off[0])
+            raise DataError(f"{f0} and {f}: their time columns differ from row {k} on ({c0[k]:g} and {c[k]:g}): not "
+                            "one record's files (give them as separate records)")  # fmt: skip
 
 
 def _lines(path: Path) -> list[tuple[int, str]]:
@@ -457,10 +550,13 @@ def resolve(table: RawTable, opts: ImportOptions) -> dict[str, Channel]:
             continue
         if not cands:
             if not table.header:
+                first = ", ".join(f"{n} {v[0]:g}" if ":" in n else f"{v[0]:g}" for n, v in zip(table.names[:6],
+                                  table.values[:6], strict=True))  # fmt: skip
+                example = (f"{table.names[0]}=t,{table.names[1]}=u,..." if ":" in table.names[0] else
+                           "0=t,1=u,2=theta_v,3=alpha_v")  # fmt: skip
                 raise DataError(
-                    f"{table.file}: no header: {len(table.names)} numeric columns found "
-                    f"(first row {', '.join(f'{v[0]:g}' for v in table.values[:6])}); name them by position, "
-                    f"e.g. --columns 0=t,1=u,2=theta_v,3=alpha_v"
+                    f"{table.file}: no header: {len(table.names)} numeric columns found (first row {first}); name "
+                    f"them by position, e.g. --columns {example}"
                 )
             raise DataError(f"{table.file}: no column for {ch}; {table.found()}; name it with --columns NAME={ch}")
         if len(cands) > 1:
@@ -849,26 +945,31 @@ def _calibration(opts: ImportOptions) -> Calibration:
     return Calibration(Kp=s["Kp"], Ke=s["Ke"], source={"Kp": why, "Ke": why, "assumed": True})
 
 
-def import_records(paths: list[Path], out: Path, opts: ImportOptions | None = None, note: Note | None = None):
-    """Import record files into run directory ``out``: ``data/<stem>.parquet``, ``calibration.json`` and a
-    ``manifest.json`` of kind "import". Every file is read and checked before anything is written; returns the
-    dataset paths. ``note`` receives one-line remarks (units taken, resampling, the calibration assumed)."""
+def import_records(
+    paths: list[Path | str], out: Path, opts: ImportOptions | None = None, note: Note | None = None
+) -> list[Path]:
+    """Import records into run directory ``out``: ``data/<name>.parquet``, ``calibration.json`` and a
+    ``manifest.json`` of kind "import". A record is a file, or ``[NAME=]FILE+FILE+...`` (:func:`record_files`);
+    its ``sources`` entry names its files and their sha256 joined by "+". Every file is read and checked before
+    anything is written; returns the dataset paths. ``note`` receives one-line remarks (units taken, resampling,
+    the calibration assumed)."""
     opts = opts or ImportOptions()
     say = note or (lambda _m: None)
-    paths = [Path(p) for p in paths]
     if not paths:
         raise DataError("no record files given")
-    stems = [p.stem for p in paths]
+    records = [record_files(p) for p in paths]
+    stems = [name for name, _ in records]
     dup = sorted({s for s in stems if stems.count(s) > 1})
     if dup:
-        raise DataError(f"two records named {dup[0]!r}: dataset names come from the file names, rename one")
+        raise DataError(f"two records named {dup[0]!r}: dataset names come from the file names, rename one "
+                        "(or name a record of several files: NAME=FILE+FILE)")  # fmt: skip
     out = Path(out)
     for q in (out, *out.parents):
         if q.exists() and not q.is_dir():
             raise DataError(f"--out {out}: {q} is a file, not a directory")
     _check_options(opts)
     cal = _calibration(opts)
-    done = {p.stem: (p, *normalise(read_table(p), opts, cal, say)) for p in paths}
+    done = {name: (files, *normalise(read_record(files), opts, cal, say)) for name, files in records}
     if opts.calibration is None:
         say(f"calibration: none given; assumed lab 1's Kp {cal.Kp:g} deg/V, Ke {cal.Ke:g} deg/V, gauge offset 0 V "
             f"(give --kp/--ke or --calibration FILE)")  # fmt: skip
@@ -885,8 +986,13 @@ def import_records(paths: list[Path], out: Path, opts: ImportOptions | None = No
         kind="import",
         sample_rate=rates[0] if len(rates) == 1 else None,
         sources={
-            name: {"file": p.name, "sha256": _sha256(p), "format": info["form"], "notes": info["notes"]}
-            for name, (p, _, info) in done.items()
+            name: {
+                "file": "+".join(f.name for f in files),
+                "sha256": "+".join(_sha256(f) for f in files),
+                "format": info["form"],
+                "notes": info["notes"],
+            }
+            for name, (files, _, info) in done.items()
         },
         calibration="assumed" if opts.calibration is None else "given",
         experiments=[ExperimentEntry(name=name, **info["entry"]) for name, (_, _, info) in done.items()],
