@@ -513,7 +513,12 @@ def blindtest(
     seed: Annotated[int, typer.Option("--seed", help="seed of the draws")] = 0,
     out_dir: Annotated[Path, typer.Option("--out", help="directory for blindtest.json")] = Path("."),
     family: Annotated[
-        list[str] | None, typer.Option("--family", help="twin, nuisance, independent (repeat; default all three)")
+        list[str] | None,
+        typer.Option(
+            "--family",
+            help="twin, nuisance, independent, closed (the nuisance rigs under state feedback, 500 Hz and 1 kHz "
+            "records replayed in closed loop); repeat; default all four",
+        ),
     ] = None,
     quick: Annotated[bool, typer.Option("--quick", help="the shortened blind campaign (12 s experiments)")] = False,
     keep: Annotated[bool, typer.Option("--keep", help="keep the case run directories in OUT/blind_cases")] = False,
@@ -521,7 +526,8 @@ def blindtest(
     workers: WorkersOpt = None,
 ) -> None:
     """Score the diagnoser on rigs with hidden effects (none, one, two, outside the library), on our twin, on the
-    twin with its linear parameters off the datasheet and on an independent simulator: blindtest.json."""
+    twin with its linear parameters off the datasheet, on an independent simulator and on the off-datasheet twin in
+    closed loop: blindtest.json."""
     from .diagnosis.blindtest import FAMILIES
     from .diagnosis.blindtest import blindtest as run_blind
 

@@ -9,9 +9,9 @@
 - inside :func:`session` (or :func:`use`) with ``workers`` and ``scheduler`` left at None: the session's
   backend, shared;
 - ``scheduler`` (or env ``FLEXJOINT_SCHEDULER``), e.g. ``tcp://10.0.0.5:8786``: ``distributed.Client`` to it;
-- else an embedded ``LocalCluster``: ``workers`` (default :func:`default_workers`: ``FLEXJOINT_WORKERS``, else
-  min(2, cpu count)) processes of one thread each, no dashboard unless ``dashboard`` gives an address, logs
-  silenced below ERROR;
+- else an embedded ``LocalCluster``: ``workers`` (default :func:`harness.machine.default_workers`:
+  ``FLEXJOINT_WORKERS``, else min(2, cpu count)) processes of one thread each, no dashboard unless ``dashboard``
+  gives an address, logs silenced below ERROR;
 - ``backend="processes"``: a plain ``multiprocessing`` pool of ``workers`` spawned processes, no Dask: the
   machine's own reference for the Dask backends (``flexjoint bench`` measures both on the same stage).
 
@@ -70,11 +70,11 @@ from distributed.scheduler import KilledWorker
 from threadpoolctl import ThreadpoolController
 
 from .fmu.cosim import Rig
+from .machine import default_workers, env_workers
 
 __all__ = [
     "Executor",
     "FmuBytes",
-    "default_workers",
     "fmu_bytes",
     "fmu_file",
     "in_worker",
@@ -89,7 +89,6 @@ T = TypeVar("T")
 Progress = Callable[[str], None]
 
 SCHEDULER_ENV = "FLEXJOINT_SCHEDULER"
-WORKERS_ENV = "FLEXJOINT_WORKERS"
 CONNECT_TIMEOUT_S = 10.0
 CACHE_SIZE = 8  # worker_cache entries kept per process (least recently used dropped, and closed, first)
 BACKENDS = ("dask", "processes")
@@ -102,27 +101,6 @@ _MALLOC_ENV = ("MALLOC_TRIM_THRESHOLD_", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TOP_P
 CLUSTER_CONFIG = {"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}
 
 _SESSION: contextvars.ContextVar[Executor | None] = contextvars.ContextVar("flexjoint_executor", default=None)
-
-
-def _env_workers() -> int | None:
-    """``FLEXJOINT_WORKERS`` as a positive integer, None when unset or blank."""
-    text = os.environ.get(WORKERS_ENV, "").strip()
-    if not text:
-        return None
-    try:
-        n = int(text)
-    except ValueError:
-        n = 0
-    if n < 1:
-        raise ValueError(f"{WORKERS_ENV} must be a positive integer, got {os.environ[WORKERS_ENV]!r}")
-    return n
-
-
-def default_workers() -> int:
-    """Worker processes an :class:`Executor` given no ``workers`` starts on this machine (outside a session, without
-    a scheduler): ``FLEXJOINT_WORKERS`` when set, else min(2, cpu count); 1 runs serially, in the calling process."""
-    env = _env_workers()
-    return env if env is not None else min(2, os.cpu_count() or 1)
 
 
 # ----------------------------------------------------------------------------------------------- FMUs as bytes
@@ -323,7 +301,7 @@ class Executor:
         backend: str = "dask",
     ) -> None:
         if workers is None:
-            workers = _env_workers()
+            workers = env_workers()
         if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
             raise ValueError(f"workers must be a positive integer, got {workers!r}")
         if backend not in BACKENDS:

@@ -23,16 +23,15 @@ import copy
 import hashlib
 import json
 import math
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import tomllib
 
-from .executor import default_workers
 from .fmu.modeldesc import source_model
 from .fmu.sources import bundled_dir
+from .machine import default_workers, machine_memory
 from .rig.controller import Controller
 from .rig.signals import SIGNAL_KINDS, check_params
 
@@ -331,7 +330,7 @@ RK4_WORK_ARRAYS = 24  # float64 arrays of n samples alive per running experiment
 def memory_estimate(spec: Spec, workers: int | None = None) -> dict[str, Any]:
     """Bytes a campaign of ``spec`` needs: every dataset held until it is written (samples x columns x 8 bytes
     over all experiments) plus the co-simulation work of the experiments running at once: the longest ``workers``
-    of them, by default as many as the executor starts on this machine (:func:`harness.executor.default_workers`:
+    of them, by default as many as the executor starts on this machine (:func:`harness.machine.default_workers`:
     ``FLEXJOINT_WORKERS``, else min(2, cpu count)), at most one per experiment; ``workers`` in the result."""
     exps = spec.all_experiments()
     ns = [int(round(e.duration * spec.sample_rate)) for e in exps]
@@ -350,23 +349,6 @@ def memory_estimate(spec: Spec, workers: int | None = None) -> dict[str, Any]:
         "experiments": len(exps),
         "workers": workers,
     }
-
-
-def machine_memory() -> int | None:
-    """Physical memory of this machine in bytes (``os.sysconf``), lowered to a cgroup memory limit when one is
-    set; ``None`` when the platform does not say."""
-    try:
-        total = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (ValueError, OSError, AttributeError):
-        return None
-    for limit_file in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
-        try:
-            text = Path(limit_file).read_text().strip()
-        except OSError:
-            continue
-        if text.isdigit() and 0 < int(text) < total:
-            total = int(text)
-    return total if total > 0 else None
 
 
 def _gib(n: float) -> str:

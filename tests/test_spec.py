@@ -3,7 +3,8 @@
 import pytest
 
 from harness import spec as specmod
-from harness.executor import WORKERS_ENV, Executor, default_workers
+from harness.executor import Executor
+from harness.machine import WORKERS_ENV, default_workers, machine_memory
 
 
 def test_lab_spec_reproduces_the_first_lab():
@@ -150,6 +151,6 @@ def test_memory_estimate_runs_as_many_experiments_at_once_as_the_executor_starts
 
 def test_a_campaign_larger_than_the_machine_is_refused_before_any_allocation():
     """sample_rate = 1e9 would need tens of TiB; refused with the estimate, before a signal is generated."""
-    assert specmod.machine_memory() > 2**28
+    assert machine_memory() > 2**28
     with pytest.raises(specmod.SpecError, match=r"needs ~[\d.]+ TiB of memory .* this machine has [\d.]+ GiB"):
         specmod.load("lab", ["campaign.sample_rate=1e9"])
