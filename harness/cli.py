@@ -595,10 +595,11 @@ def run(
     specmod.load(spec, set_ or [])  # a bad spec, or one too large for this machine, fails before any work
 
     with session(workers, scheduler):  # one cluster for every parallel step of the pipeline
-        summary = run_pipeline(
+        result = run_pipeline(
             spec, out_dir, set_ or [], sim=sim, rrd=rrd, spawn=spawn, connect=connect, progress=_progress("run")
         )
-    out.print(summary)
+    out.print(result.summary)
+    out.print("stages: " + ", ".join(f"{k} {v:.1f} s" for k, v in result.stages.items()))
 
 
 @app.command()

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +21,7 @@ from .render.load import load_results
 from .render.report import write_report
 from .render.viewer import log_run
 from .rig.campaign import run_campaign
-from .rundir import load_run, recorded_spec
+from .rundir import RunDir, load_run, recorded_spec, write_json
 
 Progress = Callable[[str], None]
 
@@ -40,6 +41,19 @@ def identify_run(run: Path, identify: dict[str, Any] | None = None, progress: Pr
     return res, prepared, cal, ident
 
 
+@dataclass
+class PipelineResult:
+    """What ``flexjoint run`` did: a one-line ``summary`` and the wall time [s] of each ``stage`` in order (also in
+    ``run.timing.json`` of the run directory)."""
+
+    summary: str
+    stages: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def total_s(self) -> float:
+        return sum(self.stages.values())
+
+
 def run_pipeline(
     spec_name: str | Path,
     out: Path,
@@ -50,37 +64,50 @@ def run_pipeline(
     spawn: bool = False,
     connect: str | None = None,
     progress: Progress | None = None,
-) -> str:
-    """``flexjoint run``: every step on one spec into run directory ``out``; returns a short summary."""
+) -> PipelineResult:
+    """``flexjoint run``: every step on one spec into run directory ``out``; returns its summary and the wall time
+    of each stage (written to ``run.timing.json`` too)."""
 
     say = progress or (lambda _msg: None)
-    t0 = time.perf_counter()
+    stages: dict[str, float] = {}
+    clock = [time.perf_counter()]
+
+    def done(stage: str, message: str) -> None:
+        now = time.perf_counter()
+        stages[stage] = now - clock[0]
+        clock[0] = now
+        say(message)
+
     spec = specmod.load(spec_name, overrides or [])
     out = Path(out)
     fmus = build_all()
-    say("FMUs built")
+    done("build", "FMUs built")
     run_campaign(spec, out, fmus=fmus)
-    say(f"campaign: {len(spec.all_experiments())} experiments")
+    done("campaign", f"campaign: {len(spec.all_experiments())} experiments")
     cal = calibrate_run(out)
-    say(f"calibration: Kp {cal.Kp:.4f} deg/V, Ke {cal.Ke:.4f} deg/V, dead zone {cal.dead_zone_v:.4f} V")
+    done("calibration", f"calibration: Kp {cal.Kp:.4f} deg/V, Ke {cal.Ke:.4f} deg/V, dead zone {cal.dead_zone_v:.4f} V")
     res, _, cal, ident = identify_run(out)
     sel = res.grid.loc[res.selected]
-    say(f"identified: ARMAX({sel.na},{sel.nb},{sel.nc},{sel.nk}), mean cross-validation {sel.cv_mean:.2f} %")
+    done("identification", f"identified: ARMAX({sel.na},{sel.nb},{sel.nc},{sel.nk}), mean cross-validation "
+         f"{sel.cv_mean:.2f} %")  # fmt: skip
     if ident.get("doubled_rate", True):
         doubled_rate_check(out, res.models[res.selected], ident, cal, fmus=fmus)
-        say("doubled-rate check")
+        done("doubled_rate", "doubled-rate check")
     cf = crossfit_run(out)
-    say(f"cross-fit through FMUs: selected average {cf.loc['selected', 'average']:.2f} %")
+    done("crossfit", f"cross-fit through FMUs: selected average {cf.loc['selected', 'average']:.2f} %")
     d = diagnose_run(out, sim, out, fmus=fmus)
     found = " + ".join(d.effect_names) or d.verdict
-    say(f"diagnosis against {sim}: {found} (verdict {d.verdict}, held-out shrink {d.gap.shrink_pct:.1f} %)")
-    res = load_results(out)
-    write_report(out, res)
-    log_run(out, rrd=rrd, spawn=spawn, connect=connect, results=res)
+    done("diagnosis", f"diagnosis against {sim}: {found} (verdict {d.verdict}, held-out shrink "
+         f"{d.gap.shrink_pct:.1f} %)")  # fmt: skip
+    results = load_results(out)
+    write_report(out, results)
+    log_run(out, rrd=rrd, spawn=spawn, connect=connect, results=results)
     verdict = accept(out)
-    say("report.md and run.rrd written")
-    return (
+    done("report", "report.md and run.rrd written")
+    write_json(RunDir(out).run_timing, {"stages_s": stages, "total_s": sum(stages.values())})
+    summary = (
         f"{out}: selected ARMAX({sel.na},{sel.nb},{sel.nc},{sel.nk}); cross-fit average "
         f"{cf.loc['selected', 'average']:.2f} %; acceptance {'passed' if verdict.passed else 'FAILED'}; "
-        f"diagnosis {found}; {time.perf_counter() - t0:.0f} s"
+        f"diagnosis {found}; {sum(stages.values()):.0f} s"
     )
+    return PipelineResult(summary, stages)

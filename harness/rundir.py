@@ -13,6 +13,7 @@ Layout::
     doubled_rate.json       the selected orders re-identified at twice the sample rate
     diagnosis.json          the diagnosis (harness.diagnosis.result.Diagnosis); diagnosis.timing.json its wall times
     report.md, figures/     the report;   run.rrd  the Rerun recording
+    run.timing.json         flexjoint run's wall time per stage (timings apart: every other file is byte-stable)
 """
 
 from __future__ import annotations
@@ -94,6 +95,10 @@ class RunDir:
     @property
     def diagnosis_timing(self) -> Path:
         return self.root / "diagnosis.timing.json"
+
+    @property
+    def run_timing(self) -> Path:
+        return self.root / "run.timing.json"
 
     @property
     def report(self) -> Path:
