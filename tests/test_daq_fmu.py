@@ -35,6 +35,27 @@ def test_pot_wrap_and_dead_band(fmu_runner):
     np.testing.assert_allclose(res["theta_v"], pot_volts(deg2, offset=0.1), atol=1e-12)
 
 
+def test_pot_linearity_error_and_gauge_gain_drift(fmu_runner):
+    """The out-of-library sensor errors, inside the DAQ so that a controller reads them: the pot's bow is
+    pot_bow x 180 deg sin(pi w / 180) on the track (0 at the centre and the ends, largest at +-90 deg); the gauge's
+    reading about its offset grows by gauge_drift x t. Off (0) they leave the readings bit for bit."""
+    n, Ts = 200, 0.02
+    deg = np.linspace(-170.0, 170.0, n)
+    alpha = 2.0 * np.sin(np.linspace(0.0, 6.0, n))
+    t = np.arange(n) * Ts
+    inputs = {"theta": np.radians(deg), "alpha_gauge": np.radians(alpha)}
+    off = fmu_runner["daq"].run({"gauge_offset": 0.2}, inputs, OUT, Ts, n)
+    on = fmu_runner["daq"].run({"gauge_offset": 0.2, "pot_bow": 0.015, "gauge_drift": 0.05}, inputs, OUT, Ts, n)
+    bowed = deg + 0.015 * 180.0 * np.sin(np.pi * deg / 180.0)
+    np.testing.assert_allclose(on["theta_v"], bowed / KP, rtol=0, atol=1e-12)
+    assert np.max(np.abs(on["theta_v"] - off["theta_v"])) * KP == pytest.approx(2.7, abs=0.01)  # 1.5 % of 180 deg
+    np.testing.assert_allclose(on["alpha_v"], 0.2 + (off["alpha_v"] - 0.2) * (1.0 + 0.05 * t), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(off["theta_v"], pot_volts(deg), rtol=0, atol=1e-12)  # off: the pot as it was
+    zero = fmu_runner["daq"].run({"gauge_offset": 0.2, "pot_bow": 0.0, "gauge_drift": 0.0}, inputs, OUT, Ts, n)
+    for c in OUT:
+        np.testing.assert_array_equal(zero[c], off[c])
+
+
 def test_adc_and_dac_quantisation_steps_equal_the_lsb(fmu_runner):
     n = 400
     deg = np.linspace(-20.0, 20.0, n)

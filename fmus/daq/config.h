@@ -27,7 +27,9 @@
     X(adc_range, 12, 10.0)       \
     X(noise_theta, 13, 0.0)      \
     X(noise_alpha, 14, 0.0)      \
-    X(encoder_counts, 17, 4096.0)
+    X(encoder_counts, 17, 4096.0) \
+    X(pot_bow, 18, 0.0)          \
+    X(gauge_drift, 19, 0.0)
 #define INTEGER_PARAMETERS(X)    \
     X(dac_bits, 1, 0)            \
     X(delay_samples, 4, 0)       \

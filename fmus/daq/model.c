@@ -18,7 +18,9 @@
  * Encoder (theta_sensor = 1): theta in degrees rounded to whole counts of 360 / encoder_counts, no wrap, no
  *                dead band, no noise, no ADC; reported on the pot's scale, v = counted / pot_gain + pot_offset,
  *                so that one calibration reads both.
- * Strain gauge:  v_lin = alpha_deg / gauge_gain + gauge_offset, v = v_lin (1 + gauge_cubic (alpha_deg/10)^2).
+ *                A linearity error (pot_bow) bows the track: wrapped + pot_bow 180 sin(pi wrapped / 180) degrees.
+ * Strain gauge:  v_lin = alpha_deg / gauge_gain + gauge_offset, v = v_lin (1 + gauge_cubic (alpha_deg/10)^2);
+ *                a gain drift (gauge_drift [1/s]) scales it about the offset: offset + (v - offset)(1 + drift t_k).
  * Then white Gaussian noise (noise_theta, noise_alpha V rms), then ADC quantisation (round to
  * LSB = 2 adc_range / 2^adc_bits and clamp to +-adc_range; 0 bits = ideal, no clamp).
  * Noise: counter-based generator, splitmix64 of (seed, stream, sample index) + Box-Muller, so the noise
@@ -32,6 +34,7 @@
 
 #define RAD2DEG 57.29577951308232
 #define TWO_PI 6.283185307179586
+#define PI 3.141592653589793
 
 void setStartValues(ModelInstance *comp) {
     ModelData *d = &comp->data;
@@ -110,13 +113,17 @@ static double potVoltage(const ModelData *d, double theta) {
     if (w < 0) w += 360.0;
     w -= 180.0; /* [-180, 180) */
     if (fabs(w) > edge) w = (w > 0 ? edge : -edge);
+    if (d->pot_bow != 0) w += d->pot_bow * 180.0 * sin(PI * w / 180.0); /* linearity error */
     return w / d->pot_gain + d->pot_offset;
 }
 
-static double gaugeVoltage(const ModelData *d, double alpha) {
+/* the gauge's reading of deflection alpha [rad] at time t [s] */
+static double gaugeVoltage(const ModelData *d, double alpha, double t) {
     const double a = alpha * RAD2DEG;
     const double r = a / 10.0;
-    return (a / d->gauge_gain + d->gauge_offset) * (1.0 + d->gauge_cubic * r * r);
+    const double v = (a / d->gauge_gain + d->gauge_offset) * (1.0 + d->gauge_cubic * r * r);
+    if (d->gauge_drift == 0) return v;
+    return d->gauge_offset + (v - d->gauge_offset) * (1.0 + d->gauge_drift * t); /* gain drift about the offset */
 }
 
 static double command(const ModelData *d, double u) {
@@ -131,7 +138,7 @@ static double encoderVoltage(const ModelData *d, double theta) {
 
 /* the readings theta_v, alpha_v of sample number k of the inputs */
 static void sampleSensors(ModelData *d, int64_t k) {
-    double va = gaugeVoltage(d, d->alpha_gauge);
+    double va = gaugeVoltage(d, d->alpha_gauge, (double)k / d->sample_rate);
     if (d->noise_alpha > 0) va += d->noise_alpha * gauss(d->key_alpha, k);
     d->alpha_v = quantize(va, d->adc_bits, d->adc_range);
     if (d->theta_sensor == 1) {
