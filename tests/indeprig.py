@@ -200,6 +200,8 @@ class IndepRig:
     gauge_Ke: float = -3.36  # gauge calibration [deg/V]
     gauge_offset: float = 0.01  # [V]
     gauge_cubic: float = 0.0  # relative cubic term at 10 deg [-]
+    pot_bow: float = 0.0  # pot linearity error: the track reads theta + pot_bow 180 sin(pi theta / 180) [-]
+    gauge_drift: float = 0.0  # gauge gain drift about its offset: x (1 + gauge_drift t) [1/s]
     adc_bits: int = 0  # 0 = ideal
     adc_range: float = 10.0  # [V]
     noise_theta: float = 0.002  # pot noise [V rms]
@@ -506,17 +508,21 @@ def integrate(
 
 
 def pot_volts(theta_deg: np.ndarray, rig: IndepRig) -> np.ndarray:
-    """Potentiometer voltage [V] for shaft angles [deg]: wrap to [-180, 180), track ends in the dead band."""
+    """Potentiometer voltage [V] for shaft angles [deg]: wrap to [-180, 180), track ends in the dead band, the
+    track's linearity error (a sine bow of ``pot_bow`` x 180 deg)."""
     wrapped = np.mod(np.asarray(theta_deg, dtype=float) + 180.0, 360.0) - 180.0
     end = 180.0 - 0.5 * rig.pot_deadband
     wrapped = np.clip(wrapped, -end, end)
+    wrapped = wrapped + rig.pot_bow * 180.0 * np.sin(np.radians(wrapped))
     return wrapped / rig.pot_gain + rig.pot_offset
 
 
-def gauge_volts(alpha_deg: np.ndarray, rig: IndepRig) -> np.ndarray:
-    """Strain-gauge bridge voltage [V] for a gauge-equivalent deflection [deg]."""
+def gauge_volts(alpha_deg: np.ndarray, rig: IndepRig, t: np.ndarray | float = 0.0) -> np.ndarray:
+    """Strain-gauge bridge voltage [V] for a gauge-equivalent deflection [deg] at time ``t`` [s] (its gain drifts
+    about the offset by ``gauge_drift`` per second)."""
     a = np.asarray(alpha_deg, dtype=float)
-    return a / rig.gauge_Ke * (1.0 + rig.gauge_cubic * (a / 10.0) ** 2) + rig.gauge_offset
+    bridge = a / rig.gauge_Ke * (1.0 + rig.gauge_cubic * (a / 10.0) ** 2)
+    return bridge * (1.0 + rig.gauge_drift * np.asarray(t, dtype=float)) + rig.gauge_offset
 
 
 def adc(v: np.ndarray, bits: int, full_scale: float) -> np.ndarray:
@@ -564,7 +570,7 @@ def simulate(
     out = _outputs(rig, plant, S)
     noise_theta, noise_alpha = _noise(rig, seed, n)
     theta_v = pot_volts(out["theta"], rig) + noise_theta
-    alpha_v = gauge_volts(out["alpha_gauge"], rig) + noise_alpha
+    alpha_v = gauge_volts(out["alpha_gauge"], rig, np.arange(n) * Ts) + noise_alpha
     return {
         "t": np.arange(n) * Ts,
         "u": u,
@@ -812,7 +818,7 @@ def simulate_closed(
                 f"{ref[k] * DEG:.1f} deg, alpha {q_tip @ s * DEG:.1f} deg): the controller destabilises the rig"
             )
         theta_v[k] = adc(pot_volts(s[ih] * DEG, rig) + noise_theta[k], bits, fs)
-        alpha_v[k] = adc(gauge_volts(curv @ s[plant.nh : plant.N], rig) + noise_alpha[k], bits, fs)
+        alpha_v[k] = adc(gauge_volts(curv @ s[plant.nh : plant.N], rig, k * Ts) + noise_alpha[k], bits, fs)
         u[k] = ctl.step(float(ref[k]), float(theta_v[k]), float(alpha_v[k]))
         if k >= d:
             u_amp[k] = min(max(min(max(u[k - d], -rig.dac_limit), rig.dac_limit), -amp), amp)

@@ -151,7 +151,7 @@ def test_default_tolerance_is_converged_on_a_nonsmooth_rig():
 def test_pot_wraps_with_a_10_degree_dead_band():
     rig = IndepRig(**QUIET)
     r = simulate(rig, np.full(400, 2.0), TS)
-    w = np.mod(r["theta"] + 180.0, 360.0) - 180.0
+    w = np.clip(np.mod(r["theta"] + 180.0, 360.0) - 180.0, -175.0, 175.0)  # wrapped, held in the 10 deg dead band
     dead = np.abs(w) > 175.0
     assert dead.sum() > 5 and (~dead).sum() > 300
     assert np.allclose(r["theta_v"][~dead], w[~dead] / 35.5, atol=1e-12, rtol=0)
@@ -208,6 +208,19 @@ def test_gauge_cubic_and_offset():
     r = simulate(rig, np.zeros(tau.size), TS, tau_tip=tau, hub_locked=True)
     a = r["alpha_gauge"]
     assert np.allclose(r["alpha_v"], a / -3.36 * (1 + 0.05 * (a / 10) ** 2) + 0.01, atol=1e-12, rtol=0)
+
+
+def test_pot_bow_and_gauge_drift_are_the_sensor_errors_named():
+    """The out-of-library sensor errors, in this simulator's own DAQ: the pot's track bowed by pot_bow x 180 deg
+    sin(theta), the gauge's bridge voltage about its offset scaled by 1 + gauge_drift t, in open and closed loop."""
+    rig = IndepRig(pot_bow=0.02, gauge_drift=0.01, **QUIET)
+    u = 1.5 * np.sign(np.sin(np.arange(500) * TS * 2.0))
+    r, plain = simulate(rig, u, TS), simulate(replace(rig, pot_bow=0.0, gauge_drift=0.0), u, TS)
+    np.testing.assert_allclose(r["theta"], plain["theta"], rtol=0, atol=0)  # a sensor error: the rig moves alike
+    w = np.clip(np.mod(r["theta"] + 180.0, 360.0) - 180.0, -175.0, 175.0)  # wrapped, held in the 10 deg dead band
+    np.testing.assert_allclose(r["theta_v"], (w + 0.02 * 180.0 * np.sin(np.radians(w))) / 35.5, rtol=0, atol=1e-12)
+    t = np.arange(500) * TS
+    np.testing.assert_allclose(r["alpha_v"], (plain["alpha_v"] - 0.01) * (1.0 + 0.01 * t) + 0.01, rtol=0, atol=1e-12)
 
 
 # ------------------------------------------------------------------ run directories and calibration
