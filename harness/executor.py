@@ -18,7 +18,8 @@
 ``ex.map(fn, items, *shared)`` returns ``[fn(item, *shared) for item in items]`` in item order. ``fn`` must be
 importable on the workers (a module-level function of an installed package: Dask pickles it by reference);
 ``shared`` objects are sent to every worker once per executor (``scatter(broadcast=True)``), not once per task
-(the ``processes`` backend: pickled once per map into a scratch file each process reads once).
+(the ``processes`` backend: pickled once per executor into a scratch file each process reads once); both know
+them by identity, so a shared object must not change between the maps of one executor.
 Every call runs with BLAS limited to one thread (threadpoolctl), on the workers and on the serial path alike:
 the project's numerical work is small matrices, where BLAS threads only oversubscribe the cores (the lab's
 identification grid: 26.7 s with them, 9.5 s without, 2 cores), and one thread everywhere keeps the results
@@ -65,6 +66,7 @@ import sys
 import tempfile
 import threading
 import uuid
+import weakref
 from collections import OrderedDict
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
@@ -87,6 +89,7 @@ __all__ = [
     "fmu_file",
     "in_worker",
     "local_cluster",
+    "one_blas_thread",
     "session",
     "use",
     "worker_cache",
@@ -209,8 +212,9 @@ def worker_rig(fmus: Mapping[str, FmuBytes | Path | str]) -> Any:
 _BLAS: list[Any] = []
 
 
-def _one_blas_thread() -> contextlib.AbstractContextManager:
-    """Limit BLAS to one thread for the duration (the controller is built once per process: ~0.01 ms a call)."""
+def one_blas_thread() -> contextlib.AbstractContextManager:
+    """Limit BLAS to one thread for the duration, as every task runs (the controller is built once per process:
+    ~0.01 ms a call); for numerical work the client does between maps that must give the tasks' numbers."""
     if not _BLAS:
         _BLAS.append(ThreadpoolController())
     return _BLAS[0].limit(limits=1, user_api="blas")
@@ -240,7 +244,7 @@ def _malloc_as_plain_process() -> bool:
 
 
 def _call(fn: Callable[..., T], item: Any, *shared: Any) -> T:
-    with _one_blas_thread():
+    with one_blas_thread():
         return fn(item, *shared)
 
 
@@ -333,6 +337,8 @@ class Executor:
         self._cluster: Any = None
         self._owns_client = False
         self._scattered: dict[int, tuple[Any, Any]] = {}
+        self._blobs: dict[tuple[int, ...], tuple[tuple, str, Path | None]] = {}
+        self._scratch: Path | None = None
         active = _SESSION.get()
         single = workers is None and scheduler is None and default_workers() == 1
         if workers == 1 or (scheduler is None and in_worker()):
@@ -385,8 +391,13 @@ class Executor:
         return max(len(self.client.nthreads()), 1)
 
     def close(self) -> None:
-        """Release the scattered data, and close the client and the local cluster if this executor started them."""
+        """Release the scattered data (and the processes backend's scratch files), and close the client, the process
+        pool and the local cluster if this executor started them."""
         self._scattered.clear()
+        self._blobs.clear()
+        if self._scratch is not None:
+            shutil.rmtree(self._scratch, ignore_errors=True)
+            self._scratch = None
         if self._owns_client:
             if self.pool is not None:
                 self.pool.shutdown(wait=True, cancel_futures=True)
@@ -406,8 +417,26 @@ class Executor:
         self._scattered[id(obj)] = (obj, fut)  # holding obj keeps its id from being reused
         return fut
 
-    def _report(self, desc: str, label: str, done: int, n: int) -> None:
-        if self.progress is not None:
+    def _shared_file(self, shared: tuple) -> tuple[str, Path | None]:
+        """The ``processes`` backend's copy of a map's shared objects: (token, file), pickled once per executor
+        (keyed by the objects' identity, as :meth:`_scatter`) into a scratch file each process reads once. Pickled
+        once per map, the diagnosis's setup (1.8 MB) was written ~50 times and read as often by every process."""
+        key = tuple(id(x) for x in shared)
+        hit = self._blobs.get(key)
+        if hit is not None and all(a is b for a, b in zip(hit[0], shared, strict=True)):
+            return hit[1], hit[2]
+        token, blob = uuid.uuid4().hex, None
+        if shared:
+            if self._scratch is None:
+                self._scratch = Path(tempfile.mkdtemp(prefix="flexjoint-shared-"))
+                weakref.finalize(self, shutil.rmtree, str(self._scratch), ignore_errors=True)
+            blob = self._scratch / f"{token}.pickle"
+            blob.write_bytes(pickle.dumps(shared, protocol=pickle.HIGHEST_PROTOCOL))
+        self._blobs[key] = (shared, token, blob)  # holding the objects keeps their ids from being reused
+        return token, blob
+
+    def _report(self, desc: str, label: str, done: int, n: int, quiet: bool) -> None:
+        if self.progress is not None and not quiet:
             self.progress(" ".join(s for s in (desc, label, f"[{done}/{n}]") if s))
 
     def map(
@@ -417,27 +446,31 @@ class Executor:
         *shared: Any,
         desc: str = "",
         labels: Sequence[str] | None = None,
+        quiet: bool = False,
     ) -> list[T]:
         """``[fn(item, *shared) for item in items]``, computed in parallel, in item order. Progress: one call
-        per finished task, ``"<desc> <label> [done/n]"`` (label: ``labels[i]``, default the item's index)."""
+        per finished task, ``"<desc> <label> [done/n]"`` (label: ``labels[i]``, default the item's index); none
+        when ``quiet`` (many short maps of one computation whose caller reports it)."""
         items = list(items)
         n = len(items)
         names = [str(x) for x in labels] if labels is not None else [str(i) for i in range(n)]
         if len(names) != n:
             raise ValueError(f"{len(names)} labels for {n} items")
         if self.pool is not None:
-            return self._map_pool(fn, items, shared, desc, names)
+            return self._map_pool(fn, items, shared, desc, names, quiet)
         if self.client is None:
             if self.kind != "serial":
                 raise RuntimeError("executor is closed")
             out = []
             for i, item in enumerate(items):
                 out.append(_call(fn, item, *shared))
-                self._report(desc, names[i], i + 1, n)
+                self._report(desc, names[i], i + 1, n, quiet)
             return out
-        return self._map_dask(fn, items, shared, desc, names)
+        return self._map_dask(fn, items, shared, desc, names, quiet)
 
-    def _map_dask(self, fn: Callable[..., T], items: list[Any], shared: tuple, desc: str, names: list[str]) -> list:
+    def _map_dask(
+        self, fn: Callable[..., T], items: list[Any], shared: tuple, desc: str, names: list[str], quiet: bool
+    ) -> list:
         if not items:
             return []
         refs = [self._scatter(s) for s in shared]
@@ -457,7 +490,7 @@ class Executor:
                 except KilledWorker as exc:
                     raise RuntimeError(f"{desc or 'task'} {names[i]}: {exc}") from None
                 done += 1
-                self._report(desc, names[i], done, len(items))
+                self._report(desc, names[i], done, len(items), quiet)
         except BaseException:
             self.client.cancel(futures)
             raise
@@ -465,30 +498,27 @@ class Executor:
             del futures
         return results
 
-    def _map_pool(self, fn: Callable[..., T], items: list[Any], shared: tuple, desc: str, names: list[str]) -> list:
-        """The ``processes`` backend: the shared objects pickled once per map into a scratch file that each
-        process reads once, the tasks on the pool, results taken in completion order for the progress."""
+    def _map_pool(
+        self, fn: Callable[..., T], items: list[Any], shared: tuple, desc: str, names: list[str], quiet: bool
+    ) -> list:
+        """The ``processes`` backend: the shared objects in a scratch file (:meth:`_shared_file`), the tasks on the
+        pool, results taken in completion order for the progress."""
         if not items:
             return []
         assert self.pool is not None
-        token = uuid.uuid4().hex
-        with tempfile.TemporaryDirectory(prefix="flexjoint-shared-") as tmp:
-            blob = None
-            if shared:
-                blob = Path(tmp) / "shared.pickle"
-                blob.write_bytes(pickle.dumps(shared, protocol=pickle.HIGHEST_PROTOCOL))
-            futures = {self.pool.submit(_pool_call, fn, item, token, blob): i for i, item in enumerate(items)}
-            results: list[Any] = [None] * len(items)
-            try:
-                for done, fut in enumerate(concurrent.futures.as_completed(futures), 1):
-                    i = futures[fut]
-                    results[i] = fut.result()
-                    self._report(desc, names[i], done, len(items))
-            except BaseException:
-                for f in futures:
-                    f.cancel()
-                concurrent.futures.wait(futures)  # nothing still reads the scratch file when it goes
-                raise
+        token, blob = self._shared_file(shared)
+        futures = {self.pool.submit(_pool_call, fn, item, token, blob): i for i, item in enumerate(items)}
+        results: list[Any] = [None] * len(items)
+        try:
+            for done, fut in enumerate(concurrent.futures.as_completed(futures), 1):
+                i = futures[fut]
+                results[i] = fut.result()
+                self._report(desc, names[i], done, len(items), quiet)
+        except BaseException:
+            for f in futures:
+                f.cancel()
+            concurrent.futures.wait(futures)  # no task of this map runs on after it
+            raise
         return results
 
 
