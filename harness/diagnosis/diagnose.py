@@ -17,7 +17,7 @@ The data flow, one module per step:
    recalibration of the linear parameters first (a real rig's are never the datasheet's; the mismatch is a
    finding, ``parameters``, not an effect), then greedy forward selection of the effects on top of it, backward
    elimination and drop-one importance, every score on held-out data;
-6. :mod:`harness.diagnosis.where`: where the gap of the simulation as given, and recalibrated, lies;
+6. :mod:`harness.diagnosis.where`: where the gap of the simulation as given, and recalibrated, lies (two tasks);
 7. :mod:`harness.diagnosis.result`: ``diagnosis.json``, with per experiment its replay and why, and the caveats of
    the verdict: a recalibrated parameter at its search bound (the spec may not describe the rig), one the data do
    not determine (95 % interval wider than a factor 100).
@@ -60,7 +60,6 @@ from .result import Diagnosis, FittedParameter, NoiseFloor, SensorCalibration, T
 from .search import EXPLAINED, GAP_RESOLUTION, MIN_CLOSURE, NONE_RATIO, search
 from .simulation import Setup, fit_pct, fmu_value, loop_noise_gap, sim_rig
 from .tasks import Pool
-from .where import where_gap
 
 __all__ = ["EXPLAINED", "GAP_RESOLUTION", "MIN_CLOSURE", "NONE_RATIO", "THRESHOLDS", "diagnose_run"]
 
@@ -155,14 +154,11 @@ def diagnose_run(
     pool = Pool(setup, workers, scheduler, progress)
     try:
         found = search(pool, experiments, (folds.A, folds.B), cands, e_noise, say)
+        recal_over = {k: v for k, v in found.final.items() if k in recal.LINEAR}
+        before, after = pool.map([("where", {}), ("where", recal_over)])  # as tasks: side by side
     finally:
         pool.close()
-    recal_over = {k: v for k, v in found.final.items() if k in recal.LINEAR}
-    where = {
-        "before": where_gap(setup),
-        "after_recalibration": where_gap(setup, recal_over),
-        "masked": masked_share(experiments),
-    }
+    where = {"before": before, "after_recalibration": after, "masked": masked_share(experiments)}
     dest = Path(out) if out is not None else real
     diagnosis = Diagnosis(
         real=os.path.relpath(real, dest),  # relative to diagnosis.json, so a moved run dir stays the same bytes

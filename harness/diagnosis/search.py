@@ -99,11 +99,6 @@ class CrossFit:
         on it)."""
         return self.msg({**pair[0]["sse"], **pair[1]["sse"]})
 
-    def score(self, overrides: list[Overrides]) -> float:
-        """Held-out mean squared gap of per-fold overrides."""
-        s1, s2 = self.pool.map([("sse", overrides[k], self.helds[k]) for k in (0, 1)])
-        return self.msg({**s1, **s2})
-
 
 @dataclass
 class Forward:
@@ -133,21 +128,28 @@ class SearchResult:
 
 
 def screen(
-    cf: CrossFit, remaining: list[Effect], rigs: list[list[Overrides]], refs: list[float]
+    cf: CrossFit, remaining: list[Effect], rigs: list[list[Overrides]], refs: list[float | None]
 ) -> list[dict[str, Any]]:
     """Each candidate's parameter fitted alone on each fold on top of each rig in ``rigs`` (per-fold overrides;
-    the current one first, held-out E ``refs``); ranked by the best screening closure. Each entry: effect, the
-    folds' parameters on the current rig, the starts for a joint refit, screen_score, params, and on the current
-    rig held_out_share_pct, shrink_pct, gap_after."""
-    e_base = refs[0]
-    res = cf.pool.map([("fit", c, b[k], cf.fits[k], cf.helds[k]) for b in rigs for c in remaining for k in (0, 1)])
+    the current one first, held-out E ``refs``, None: scored in the same map); ranked by the best screening
+    closure. Each entry: effect, the folds' parameters on the current rig, the starts for a joint refit,
+    screen_score, params, and on the current rig held_out_share_pct, shrink_pct, gap_after."""
+    calls = [("fit", c, b[k], cf.fits[k], cf.helds[k]) for b in rigs for c in remaining for k in (0, 1)]
+    unscored = [j for j, r in enumerate(refs) if r is None]
+    res = cf.pool.map(calls + [("sse", rigs[j][k], cf.helds[k]) for j in unscored for k in (0, 1)])
+    extra = res[len(calls) :]
+    scored = iter([cf.msg({**extra[2 * i], **extra[2 * i + 1]}) for i in range(len(unscored))])
+    e_refs = [r if r is not None else next(scored) for r in refs]
+    e_base = e_refs[0]
     ranked = []
     for i, c in enumerate(remaining):
         opts = []
         for j, b in enumerate(rigs):
             pair = res[2 * (j * len(remaining) + i) : 2 * (j * len(remaining) + i) + 2]
             e_cv = cf.held_out(pair)
-            opts.append((closure(refs[j], e_cv, cf.floor), e_cv, [{**b[k], **r["params"]} for k, r in enumerate(pair)]))
+            opts.append(
+                (closure(e_refs[j], e_cv, cf.floor), e_cv, [{**b[k], **r["params"]} for k, r in enumerate(pair)])
+            )
         e_cv = opts[0][1]  # the honest share is on the current rig
         ranked.append(
             {
@@ -233,7 +235,7 @@ def forward_selection(
         if recal_paid:
             spec_lin = [{q: v for q, v in b.items() if q not in recal.LINEAR} for b in fw.bases]
             rigs.append(spec_lin)
-            refs.append(cf.score(spec_lin) if fw.rounds else e0)
+            refs.append(None if fw.rounds else e0)  # scored with the screening
         ranked = screen(cf, remaining, rigs, refs)
         fw.rounds.append(ranked)
         if not beyond:
@@ -327,7 +329,7 @@ def final_params(
             sse = cf.pool.map([("sse", {**start, eff.param: v}, cf.names) for v in opts])
             start[eff.param] = min(zip(opts, sse, strict=True), key=lambda o: cf.msg(o[1]))[0]
     free = [EFFECTS[e].param for e in order if EFFECTS[e].continuous]
-    (res,) = cf.pool.map([("refit", start, free, cf.names, [], 20)])
+    res = cf.pool.refit(start, free, cf.names, 20)
     final = res["params"]
     table = {}
     extras = [x for p in free for x in BY_PARAM[p].extra]
@@ -385,11 +387,10 @@ def search(
     cross-fitting; verdict, effects, candidates, the parameter table and the gap decomposition (see the module)."""
     names = list(experiments)
     cf = CrossFit(pool, experiments, names, [folds[0], folds[1]], [folds[1], folds[0]], e_noise)
-    # the simulation as given, and recalibrated
-    (sse0,) = pool.map([("sse", {}, names)])
+    # the simulation recalibrated, and as given (in one map, the long tasks first)
+    *rec, sse0 = pool.map([*(("refit", {}, [], cf.fits[k], cf.helds[k]) for k in (0, 1)), ("sse", {}, names)])
     e0 = cf.msg(sse0)
     say(f"gap before: fit {fit_pct(e0):.2f} %, noise floor {fit_pct(e_noise):.3f} %")
-    rec = pool.map([("refit", {}, [], cf.fits[k], cf.helds[k]) for k in (0, 1)])
     e_recal = cf.held_out(rec)
     recal_paid = e_recal < e0
     bases: list[Overrides] = [dict(r["params"]) for r in rec] if recal_paid else [{}, {}]
@@ -414,7 +415,9 @@ def search(
     final, table = final_params(cf, fw.bases, order)
     for prm, value in recalibrated_alone(rec).items():
         table[prm].recalibrated = value
-    (sse_final,) = pool.map([("sse", final, names)])
+    sse_final, *sse_signature = pool.map(
+        [("sse", final, names), *(("sse", {**fw.bases[0], c.param: c.values[0]}, names) for c in signature)]
+    )
     effects = _found_effects(cf, fw.bases, order, steps, e0 if not recal_paid else e_recal, final, shares)
     if no_gap:
         verdict = signature[0].name if signature else "none"
@@ -448,7 +451,7 @@ def search(
     return SearchResult(
         verdict=verdict,
         effects=effects,
-        candidates=_candidate_table(cf, fw, signature, {c.name for c in cands}, e_base),
+        candidates=_candidate_table(cf, fw, signature, sse_signature, {c.name for c in cands}, e_base),
         rounds=[
             [{k: v for k, v in r.items() if k not in ("fold_params", "start", "starts")} for r in rnd]
             for rnd in fw.rounds
@@ -497,16 +500,16 @@ def _found_effects(
 
 
 def _candidate_table(
-    cf: CrossFit, fw: Forward, signature: list[Effect], tried: set[str], e_base: float
+    cf: CrossFit, fw: Forward, signature: list[Effect], sse: list[SSE], tried: set[str], e_base: float
 ) -> list[Candidate]:
     """The first round's candidates, best held-out share first, with the effects found by their signature scored
-    on every experiment on top of fold A's model; then the effects not tried, with the reason."""
+    on every experiment on top of fold A's model (their squared errors ``sse``); then the effects not tried, with
+    the reason."""
     out = [
         Candidate(r["effect"], r["params"], r["held_out_share_pct"], r["shrink_pct"], r["gap_after"], r.get("refit"))
         for r in (fw.rounds[0] if fw.rounds else [])
     ]
-    for c in signature:
-        (sq,) = cf.pool.map([("sse", {**fw.bases[0], c.param: c.values[0]}, cf.names)])
+    for c, sq in zip(signature, sse, strict=True):
         e_q = cf.msg(sq)
         out.append(
             Candidate(
