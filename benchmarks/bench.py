@@ -299,11 +299,12 @@ def _stages(tmp: Path, blind_n: int, quick: bool) -> dict[str, tuple[str, Any, A
 
     n_grid = len(prepared)
     return {
-        "grid": (f"ARMAX order grid of specs/lab.toml, one task per dataset ({n_grid} tasks), then cross-validation "
-                 "and selection on the client (harness.ident.identify.run_grid)", grid,
+        "grid": (f"ARMAX order grid of specs/lab.toml on {n_grid} datasets, a task per dataset and slice of the orders "
+                 "(2 slices each on 2 workers: harness.ident.identify.slices_per_dataset), then cross-validation and "
+                 "selection on the client (harness.ident.identify.run_grid)", grid,
                  lambda g: g.grid.to_csv(index=False)),
         "diagnosis": ("lab rig against nominal: screening, joint refits, selection (harness.diagnosis."
-                      "diagnose_run; its maps of 1 to 24 simulation tasks)", diagnosis, operator.itemgetter(1)),
+                      "diagnose_run; its maps of 2 to 24 simulation tasks)", diagnosis, operator.itemgetter(1)),
         "blindtest": (f"blind test, {blind_n} cases of the families {', '.join(families)} (quick campaigns), one "
                       "task per case (campaign + serial diagnosis + score)", blind, operator.itemgetter(1)),
     }  # fmt: skip
@@ -332,6 +333,7 @@ def bench_parallel(rounds: int = 2, blind_n: int = 8, quick: bool = False) -> di
             executors[mode], starts[mode] = ex, time.perf_counter() - t0
         with tempfile.TemporaryDirectory() as tmp:
             for name, (what, fn, key) in _stages(Path(tmp), blind_n, quick).items():
+                load = os.getloadavg()[0]
                 walls: dict[str, list[float]] = {m: [] for m in PARALLEL_MODES}
                 cpus: dict[str, list[float]] = {m: [] for m in PARALLEL_MODES}
                 results: dict[str, Any] = {}
@@ -361,6 +363,7 @@ def bench_parallel(rounds: int = 2, blind_n: int = 8, quick: bool = False) -> di
                     "cpu_dask_over_serial": cpu["dask"] / cpu["serial"],
                     "walls_s": walls,
                     "same_result": len({results[m] for m in PARALLEL_MODES}) == 1,
+                    "load_average_1min": {"before": load, "after": os.getloadavg()[0]},
                 }
                 on_dask[name] = kept["dask"]
     finally:
