@@ -33,7 +33,7 @@ def test_plan_is_deterministic_and_covers_every_kind():
         if c["kind"] == "two":
             assert len(set(c["truth_effects"])) == 2
         if c["kind"] == "none":
-            assert c["truth_params"] == {} and c["post"] == {}
+            assert c["truth_params"] == {} and c["sensor"] == {}
     with pytest.raises(ValueError, match="positive"):
         bt.plan(0, 1)
 
@@ -109,16 +109,31 @@ def test_families_draw_nuisance_within_a_real_rigs_spread():
 
 
 def test_out_of_library_sensor_effects_change_the_data(tmp_path, fmus):
+    """The sensor errors sit in the DAQ: the pot's bow changes every reading by the bow's formula (the shaft moves as
+    without it, in open loop), the gauge's drift grows over each identification experiment and leaves the comb as it
+    was; the manifest keeps the truth hidden."""
     case = {"case": 0, "family": "twin", "kind": "out", "truth_effects": ["pot_nonlinearity"], "truth_params": {},
-            "nuisance": {}, "post": {"pot_nonlinearity": 0.02}, "campaign_seed": 3}  # fmt: skip
+            "nuisance": {}, "sensor": {"pot_nonlinearity": 0.02}, "campaign_seed": 3}  # fmt: skip
     bent = bt.make_rig_run(case, tmp_path / "bent", quick=True)
-    plain = bt.make_rig_run({**case, "post": {}}, tmp_path / "plain", quick=True)
-    a = pd.read_parquet(bent / "data" / "prbs_large.parquet")["theta_v"].to_numpy()
-    b = pd.read_parquet(plain / "data" / "prbs_large.parquet")["theta_v"].to_numpy()
-    half = 180.0 / 35.5145
-    assert a - b == pytest.approx(0.02 * half * np.sin(np.pi * b / half), abs=1e-12)
+    plain = bt.make_rig_run({**case, "sensor": {}}, tmp_path / "plain", quick=True)
+    drift = bt.make_rig_run({**case, "sensor": {"gauge_drift": 0.2}}, tmp_path / "drift", quick=True)
+
+    def col(run, name, c):
+        return pd.read_parquet(run / "data" / f"{name}.parquet")[c].to_numpy()
+
+    b = col(plain, "prbs_large", "theta")  # the true shaft angle [deg], the same on both rigs
+    np.testing.assert_array_equal(col(bent, "prbs_large", "theta"), b)
+    w = np.clip(np.mod(b + 180.0, 360.0) - 180.0, -176.0, 176.0)  # wrapped, held in the 8 deg dead band
+    a_v, b_v = col(bent, "prbs_large", "theta_v"), col(plain, "prbs_large", "theta_v")
+    np.testing.assert_allclose(a_v - b_v, 0.02 * 180.0 * np.sin(np.radians(w)) / 35.5145, rtol=0, atol=1e-3)
+    t = col(plain, "prbs_large", "t")
+    gain = 1.0 + 0.2 * t / 12.0  # +20 % over the 12 s experiment, the noise (2 mV rms) added after it
+    np.testing.assert_allclose(col(drift, "prbs_large", "alpha_v"), col(plain, "prbs_large", "alpha_v") * gain,
+                               rtol=0, atol=0.003)  # fmt: skip
+    np.testing.assert_array_equal(col(drift, "comb", "alpha_v"), col(plain, "comb", "alpha_v"))  # the comb intact
     m = json.loads((bent / "manifest.json").read_text())
     assert m["spec_sha256"] == "hidden" and "generator" not in m
+    assert "pot_bow" not in json.dumps(m["spec"]) and "gauge_drift" not in json.dumps(m["spec"])
 
 
 def test_small_blind_run_scores(tmp_path, fmus):

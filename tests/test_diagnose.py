@@ -295,12 +295,12 @@ def test_pot_dead_band_samples_are_masked():
 
 
 @pytest.mark.parametrize(
-    ("post", "nuisance"),
+    ("sensor", "nuisance"),
     [({"pot_nonlinearity": 0.015}, {"plant.Ks": 1.15, "plant.Beq": 0.006}), ({"gauge_drift": 0.2}, {})],
 )
-def test_out_of_library_sensor_errors_are_unexplained(tmp_path, fmus, post, nuisance):
-    case = {"case": 0, "family": "nuisance" if nuisance else "twin", "kind": "out", "truth_effects": list(post),
-            "truth_params": {}, "nuisance": nuisance, "post": post, "campaign_seed": 17}  # fmt: skip
+def test_out_of_library_sensor_errors_are_unexplained(tmp_path, fmus, sensor, nuisance):
+    case = {"case": 0, "family": "nuisance" if nuisance else "twin", "kind": "out", "truth_effects": list(sensor),
+            "truth_params": {}, "nuisance": nuisance, "sensor": sensor, "campaign_seed": 17}  # fmt: skip
     run = bt.make_rig_run(case, tmp_path / "rig", quick=True)
     d = dg.diagnose_run(run, campaign_spec(quick=True), tmp_path / "out", workers=1)
     assert d.verdict == "unexplained"

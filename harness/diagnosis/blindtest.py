@@ -21,10 +21,12 @@ and of one kind:
 - ``single``: one in-library effect at a physically meaningful magnitude for this campaign (the effect table's
   ``blind`` range, :data:`harness.diagnosis.effects.EFFECTS`; continuous magnitudes log-uniform);
 - ``two``: two different in-library effects at once;
-- ``out``: an effect outside the candidate library: ``gauge_drift`` (the strain-gauge gain drifting linearly in
-  time by +10..+30 % over every non-calibration experiment, applied to alpha_v after the campaign, about the
-  gauge offset; the comb calibration is left intact), ``pot_nonlinearity`` (the potentiometer's linearity error,
-  a bow of 1..2 % of its span across the track, applied to theta_v after the campaign). Viscous damping off the
+- ``out``: an effect outside the candidate library, a sensor error inside the DAQ (the twin's ``daq`` FMU, or the
+  independent simulator's own), so that a closed loop's controller reads it as it would on a real rig:
+  ``gauge_drift`` (the strain-gauge gain drifting linearly in time about its offset, by +10..+30 % over every
+  non-calibration experiment: ``daq.gauge_drift`` = that share / the experiment's duration; the comb calibration
+  is left intact), ``pot_nonlinearity`` (the potentiometer's linearity error, a bow of 1..2 % of its half span
+  across the track: ``daq.pot_bow``, every experiment). Viscous damping off the
   datasheet, out of library before recalibration, is now a nuisance; a third mode (~53 Hz on this link) lies
   above the 25 Hz Nyquist frequency of the 50 Hz campaign and aliases into what a stiffer two-mode link explains
   (measured: second_mode closes 93 % of its gap), so it is not drawn as out of library here.
@@ -56,7 +58,7 @@ from .. import spec as specmod
 from ..executor import Executor, FmuBytes, fmu_bytes, fmu_file
 from ..fmu.build import build_all
 from ..rig.campaign import run_campaign
-from ..rundir import Manifest, RunDir, read_dataset, write_dataset, write_json
+from ..rundir import Manifest, write_json
 from .diagnose import diagnose_run
 from .effects import EFFECTS
 from .result import Diagnosis
@@ -144,7 +146,7 @@ def plan(n: int, seed: int, families: tuple[str, ...] = ("twin",)) -> list[dict[
                 "truth_effects": effects if kind != "out" else [what],
                 "truth_params": truth,
                 "nuisance": nuisance,
-                "post": extra,
+                "sensor": extra,
                 "campaign_seed": int(rng.integers(1, 2**31 - 1)),
             }
         )
@@ -193,21 +195,22 @@ def _independent_rig(ind: ModuleType, case: dict[str, Any]) -> Any:
     return ind.IndepRig.from_Ks(float(params.get("plant.Ks", _textbook("plant.Ks"))), **kw)
 
 
-def _post(dest: Path, spec: specmod.Spec, post: dict[str, float], gauge_offset: float) -> None:
-    """Apply the out-of-library sensor effects to a written run: gauge gain drift about the rig's gauge offset
-    [V] (identification experiments) and the pot's linearity error (every experiment)."""
-    for e in Manifest.load(dest).experiments:
-        p = RunDir(dest).dataset(e.name)
-        df = read_dataset(p)
-        cols = {c: df[c].to_numpy(float) for c in df.columns}
-        if post.get("gauge_drift") and e.role != "calibration":
-            t = cols["t"]
-            gain = 1.0 + post["gauge_drift"] * (t - t[0]) / max(t[-1] - t[0], 1e-12)
-            cols["alpha_v"] = gauge_offset + (cols["alpha_v"] - gauge_offset) * gain
-        if post.get("pot_nonlinearity"):
-            half = 180.0 / fmu_value(spec.daq, "daq", "pot_gain")  # V at the track end
-            cols["theta_v"] = cols["theta_v"] + post["pot_nonlinearity"] * half * np.sin(np.pi * cols["theta_v"] / half)
-        write_dataset(p, cols)
+def _sensor_errors(spec: specmod.Spec, sensor: dict[str, float]) -> specmod.Spec:
+    """The campaign with a case's out-of-library sensor errors as per-experiment DAQ parameters (what both the twin
+    and the independent simulator read): ``pot_nonlinearity`` -> ``daq.pot_bow`` on every experiment,
+    ``gauge_drift`` (a share of gain over each identification experiment) -> ``daq.gauge_drift`` = share / its
+    duration [1/s], the calibration experiments left as they are."""
+    if not sensor:
+        return spec
+    raw = specmod.apply_overrides(spec.raw, [])  # a deep copy
+    for table in ("calibration", "experiment"):
+        for e in raw.get(table, []):
+            daq = e.setdefault("daq", {})
+            if sensor.get("pot_nonlinearity"):
+                daq["pot_bow"] = float(sensor["pot_nonlinearity"])
+            if sensor.get("gauge_drift") and table == "experiment":
+                daq["gauge_drift"] = float(sensor["gauge_drift"]) / float(e["duration"])
+    return specmod.from_dict(raw, spec.path)
 
 
 def make_rig_run(case: dict[str, Any], dest: Path, fmus: dict[str, Path] | None = None, quick: bool = False) -> Path:
@@ -217,21 +220,17 @@ def make_rig_run(case: dict[str, Any], dest: Path, fmus: dict[str, Path] | None 
     family = case.get("family", "twin")
     base = campaign_spec(quick, family=family)
     seed = _case_sets(case)
+    sensor = case.get("sensor", {})
     if family == "independent":
         ind = independent_simulator()
         if ind is None:
             raise ValueError("the independent family needs tests/indeprig.py of a source checkout")
-        spec = campaign_spec(quick, seed)
-        rig = _independent_rig(ind, case)
-        ind.make_run(dest, spec, rig, seed=case["campaign_seed"])
-        offset = float(rig.gauge_offset)
+        spec = _sensor_errors(campaign_spec(quick, seed), sensor)
+        ind.make_run(dest, spec, _independent_rig(ind, case), seed=case["campaign_seed"])
     else:
         sets = [f"{k}={v}" for k, v in {**case.get("nuisance", {}), **case["truth_params"]}.items()] + seed
-        spec = campaign_spec(quick, sets, family)
+        spec = _sensor_errors(campaign_spec(quick, sets, family), sensor)
         run_campaign(spec, dest, fmus=fmus, workers=1)
-        offset = fmu_value(spec.daq, "daq", "gauge_offset")
-    if case.get("post"):
-        _post(dest, spec, case["post"], offset)
     m = Manifest.load(dest)
     replace(m, spec=specmod.apply_overrides(base.raw, seed), spec_sha256="hidden", generator=None).write(dest)
     return dest
