@@ -45,20 +45,18 @@ from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
-import numpy as np
-
 from .. import spec as specmod
-from ..executor import fmu_bytes, worker_rig
+from ..executor import fmu_bytes
 from ..fmu.build import build_all
 from ..ident.calibration import load_calibration
 from ..rundir import RunDir, write_json
 from . import recalibrate as recal
 from .effects import CandidateContext, candidates
 from .experiments import REPLAYS, RigExperiment, fold_experiments, load_experiments, masked_share
-from .noise import noise_floor, noise_mean_squared_gap
-from .result import Diagnosis, FittedParameter, NoiseFloor, SensorCalibration, Thresholds
+from .noise import noise_floor
+from .result import Diagnosis, FittedParameter, SensorCalibration, Thresholds
 from .search import EXPLAINED, GAP_RESOLUTION, MIN_CLOSURE, NONE_RATIO, search
-from .simulation import Setup, fit_pct, fmu_value, loop_noise_gap, sim_rig
+from .simulation import Setup, fit_pct, fmu_value, sim_rig
 from .tasks import Pool
 
 __all__ = ["EXPLAINED", "GAP_RESOLUTION", "MIN_CLOSURE", "NONE_RATIO", "THRESHOLDS", "diagnose_run"]
@@ -76,24 +74,6 @@ THRESHOLDS = Thresholds(
     "names the effect whose removal reopens most of the gap when the effects together close >= explained "
     "of the excess left after recalibration, else unexplained",
 )
-
-
-def _with_loop_noise(setup: Setup, noise: NoiseFloor, e_noise: float) -> tuple[NoiseFloor, float]:
-    """The noise floor with, for experiments replayed in closed loop, the noise the real controller fed back
-    (:func:`harness.diagnosis.simulation.loop_noise_gap`) in place of the measurement noise alone."""
-    rms = {"theta": noise.theta_deg, "alpha": noise.alpha_deg}
-    loop = (
-        loop_noise_gap(worker_rig(setup.fmus), setup, rms)
-        if any(x.replay == "closed" for x in setup.experiments.values())
-        else {}
-    )
-    if not loop:
-        return noise, e_noise
-    names = list(setup.experiments)
-    per = [loop.get(n, noise_mean_squared_gap(setup.experiments, rms, [n])) for n in names]
-    e = max(e_noise, float(np.mean(per)))
-    method = noise.method + "; closed-loop replays: with the noise their controller fed back, by simulation"
-    return replace(noise, gap=math.sqrt(e), fit_pct=fit_pct(e), method=method), e
 
 
 def _replays(experiments: dict[str, RigExperiment]) -> dict[str, dict[str, str]]:
@@ -148,17 +128,23 @@ def diagnose_run(
     shipped = {k: fmu_bytes(fmus[k]) for k in ("flexjoint", "daq", "controller") if k in fmus}
     setup = Setup(plant, daq, cal.comb_angles, experiments, shipped)
     noise, e_noise = noise_floor(records, adc_range, cal, experiments)
-    noise, e_noise = _with_loop_noise(setup, noise, e_noise)
+    closed = any(x.replay == "closed" for x in experiments.values())
     top = max(x.peak_command_v for x in experiments.values())
     cands = candidates(CandidateContext(plant, daq, top, noise.adc_lattice_bits))
     pool = Pool(setup, workers, scheduler, progress)
     try:
-        found = search(pool, experiments, (folds.A, folds.B), cands, e_noise, say)
+        sigma = {"theta": noise.theta_deg, "alpha": noise.alpha_deg} if closed else None
+        found = search(pool, experiments, (folds.A, folds.B), cands, e_noise, say, sigma)
         recal_over = {k: v for k, v in found.final.items() if k in recal.LINEAR}
         before, after = pool.map([("where", {}), ("where", recal_over)])  # as tasks: side by side
     finally:
         pool.close()
     where = {"before": before, "after_recalibration": after, "masked": masked_share(experiments)}
+    if closed:
+        loop = "closed-loop replays: with the noise their controller fed back, simulated on the recalibrated rig"
+        noise = replace(
+            noise, gap=math.sqrt(found.noise), fit_pct=fit_pct(found.noise), method=f"{noise.method}; {loop}"
+        )
     dest = Path(out) if out is not None else real
     diagnosis = Diagnosis(
         real=os.path.relpath(real, dest),  # relative to diagnosis.json, so a moved run dir stays the same bytes

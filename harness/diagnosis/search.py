@@ -31,6 +31,7 @@ import numpy as np
 from . import recalibrate as recal
 from .effects import BY_PARAM, EFFECTS, SECONDARY, Effect, effect_params
 from .experiments import RigExperiment
+from .noise import noise_mean_squared_gap
 from .result import Candidate, Decomposition, FittedParameter, FoundEffect, Gap, HeldOutGap, Step
 from .simulation import SSE, fit_pct, gap_summary, mean_squared_gap
 from .tasks import Pool
@@ -45,6 +46,7 @@ __all__ = [
     "SearchResult",
     "eliminate",
     "importance",
+    "loop_floor",
     "recalibrated_alone",
     "search",
 ]
@@ -115,7 +117,7 @@ class Forward:
 @dataclass
 class SearchResult:
     """What the search finds: verdict, effects, candidates, rounds, gap, parameter table, whether recalibration
-    was applied, and the final parameters (all experiments)."""
+    was applied, the final parameters (all experiments) and the noise floor it judged against."""
 
     verdict: str
     effects: list[FoundEffect]
@@ -125,6 +127,7 @@ class SearchResult:
     parameters: dict[str, FittedParameter]
     recalibration_applied: bool
     final: Overrides
+    noise: float = 0.0  # the floor's mean squared gap E_noise the search judged against (:func:`loop_floor`)
 
 
 def screen(
@@ -375,6 +378,21 @@ DECOMPOSITION_DEFINITION = (
 )
 
 
+def loop_floor(cf: CrossFit, e_noise: float, sigma_deg: dict[str, float], over: Overrides) -> float:
+    """The noise floor's E with, for the experiments replayed in closed loop, the noise their controller fed back
+    (:func:`harness.diagnosis.simulation.loop_noise_gap`, on the rig with overrides ``over``: as recalibrated, for
+    how much a loop amplifies noise depends on the rig) in place of the measurement noise alone; one task per closed
+    experiment. At least ``e_noise``."""
+    closed = [n for n in cf.names if cf.experiments[n].replay == "closed"]
+    if not closed:
+        return e_noise
+    loop: dict[str, float] = {}
+    for part in cf.pool.map([("loopnoise", over, sigma_deg, [n]) for n in closed]):
+        loop.update(part)
+    per = [loop.get(n, noise_mean_squared_gap(cf.experiments, sigma_deg, [n])) for n in cf.names]
+    return max(e_noise, float(np.mean(per)))
+
+
 def search(
     pool: Pool,
     experiments: dict[str, RigExperiment],
@@ -382,17 +400,23 @@ def search(
     cands: list[Effect],
     e_noise: float,
     say: Progress,
+    loop_sigma: dict[str, float] | None = None,
 ) -> SearchResult:
     """Recalibration, then greedy selection of the candidate effects ``cands`` on top of it, with 2-fold
-    cross-fitting; verdict, effects, candidates, the parameter table and the gap decomposition (see the module)."""
+    cross-fitting; verdict, effects, candidates, the parameter table and the gap decomposition (see the module).
+    ``e_noise``: the floor of the measurement noise; with ``loop_sigma`` (the data's noise RMS [deg] per channel) the
+    floor of the closed-loop replays is measured on the recalibrated rig (:func:`loop_floor`) before anything is
+    judged against it."""
     names = list(experiments)
     cf = CrossFit(pool, experiments, names, [folds[0], folds[1]], [folds[1], folds[0]], e_noise)
     # the simulation recalibrated, and as given (in one map, the long tasks first)
     *rec, sse0 = pool.map([*(("refit", {}, [], cf.fits[k], cf.helds[k]) for k in (0, 1)), ("sse", {}, names)])
     e0 = cf.msg(sse0)
-    say(f"gap before: fit {fit_pct(e0):.2f} %, noise floor {fit_pct(e_noise):.3f} %")
     e_recal = cf.held_out(rec)
     recal_paid = e_recal < e0
+    if loop_sigma is not None:  # the noise a closed loop feeds back, on the rig as recalibrated
+        cf.noise = e_noise = loop_floor(cf, e_noise, loop_sigma, recalibrated_alone(rec) if recal_paid else {})
+    say(f"gap before: fit {fit_pct(e0):.2f} %, noise floor {fit_pct(e_noise):.3f} %")
     bases: list[Overrides] = [dict(r["params"]) for r in rec] if recal_paid else [{}, {}]
     e_start = min(e0, e_recal)
     say(f"recalibrated linear parameters: held-out fit {fit_pct(e_recal):.2f} %")
@@ -460,6 +484,7 @@ def search(
         parameters=table,
         recalibration_applied=recal_paid,
         final=final,
+        noise=e_noise,
     )
 
 

@@ -201,26 +201,36 @@ def gap_summary(sse: SSE, experiments: dict[str, RigExperiment], names: list[str
     )
 
 
-def loop_noise_gap(rig: Any, setup: Setup, sigma_deg: Mapping[str, float]) -> dict[str, float]:
+def loop_noise_gap(
+    rig: Any,
+    setup: Setup,
+    sigma_deg: Mapping[str, float],
+    over: Mapping[str, Any] | None = None,
+    names: list[str] | None = None,
+) -> dict[str, float]:
     """The mean squared gap that measurement noise alone leaves on each closed-loop replay: the controller of the real
     rig acted on noisy samples, so its command, and the motion, carry noise fed back through the loop, which a
-    noise-free closed-loop replay cannot reproduce. Measured on the sim rig as given: the replay with the DAQ's
-    noise set to ``sigma_deg`` (the data's noise RMS [deg] per channel, through the sim DAQ's gains) against the
-    noise-free replay, averaged over LOOP_NOISE_SEEDS; normalised as :func:`mean_squared_gap`. {experiment: E}
-    for the experiments replayed in closed loop (the direct measurement noise is part of it)."""
-    daq = setup.daq
+    noise-free closed-loop replay cannot reproduce. How much depends on the loop (a lightly damped closed-loop mode
+    rings on noise), so it is measured on the rig as recalibrated (``over``, {"plant.Ks": ...}; default the sim as
+    given): the replay with the DAQ's noise set to ``sigma_deg`` (the data's noise RMS [deg] per channel, through the
+    sim DAQ's gains) against the noise-free replay, averaged over LOOP_NOISE_SEEDS; normalised as
+    :func:`mean_squared_gap`. {experiment: E} for the experiments of ``names`` (default all) replayed in closed loop
+    (the direct measurement noise is part of it)."""
+    over = dict(over or {})
+    daq = {**setup.daq, **{k.split(".", 1)[1]: v for k, v in over.items() if k.startswith("daq.")}}
     volts = {
         "daq.noise_theta": sigma_deg["theta"] / abs(fmu_value(daq, "daq", "pot_gain")),
         "daq.noise_alpha": sigma_deg["alpha"] / abs(fmu_value(daq, "daq", "gauge_gain")),
     }
     out = {}
-    for name, x in setup.experiments.items():
+    for name in names if names is not None else list(setup.experiments):
+        x = setup.experiments[name]
         if x.replay != "closed":
             continue
-        th0, al0, on0 = simulate(rig, setup, x, {})
+        th0, al0, on0 = simulate(rig, setup, x, over)
         qs = []
         for seed in LOOP_NOISE_SEEDS:
-            th, al, on = simulate(rig, setup, x, {**volts, "daq.seed": seed})
+            th, al, on = simulate(rig, setup, x, {**over, **volts, "daq.seed": seed})
             ok = on & on0 & x.valid["theta"][: th.size]
             sse = {"theta": float(np.sum((th - th0)[ok] ** 2)), "alpha": float(np.sum((al - al0) ** 2))}
             qs += [sse[c] / x.sst[c] for c in CHANNELS if x.sst[c] > 0]

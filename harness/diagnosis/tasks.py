@@ -9,7 +9,8 @@ once. Five tasks, given as ``(kind, *args)`` calls to :meth:`Pool.map`:
   continuous effect parameters ``free``) by output-error least squares;
 - ``("resid", over, names, k)``: :func:`residual_vector`, a stretch of a residual vector, for a least squares run
   by the client (:meth:`Pool.refit`);
-- ``("where", over)``: :func:`where`, where the gap lies.
+- ``("where", over)``: :func:`where`, where the gap lies;
+- ``("loopnoise", over, sigma_deg, names)``: :func:`loop_noise`, the noise a closed loop feeds back, per experiment.
 """
 
 from __future__ import annotations
@@ -26,13 +27,14 @@ from ..executor import Executor, one_blas_thread, worker_rig
 from . import recalibrate as recal
 from .effects import BY_PARAM, Effect
 from .experiments import CHANNELS
-from .simulation import SSE, Setup, mean_squared_gap, residuals
+from .simulation import SSE, Setup, loop_noise_gap, mean_squared_gap, residuals
 from .where import where_gap
 
 __all__ = [
     "Pool",
     "joint_refit",
     "least_squares_refit",
+    "loop_noise",
     "moving_channels",
     "residual_vector",
     "screen_effect",
@@ -193,12 +195,19 @@ def where(over: dict[str, Any]) -> dict[str, Any]:
     return where_gap(_CTX["setup"], over)
 
 
+def loop_noise(over: dict[str, Any], sigma_deg: dict[str, float], names: list[str]) -> dict[str, float]:
+    """The mean squared gap the noise fed back through each closed loop of ``names`` leaves, on the rig with
+    overrides ``over``: :func:`harness.diagnosis.simulation.loop_noise_gap`."""
+    return loop_noise_gap(_CTX["rig"], _CTX["setup"], sigma_deg, over, names)
+
+
 TASKS: dict[str, Callable[..., Any]] = {
     "sse": squared_errors,
     "fit": screen_effect,
     "refit": joint_refit,
     "resid": residual_vector,
     "where": where,
+    "loopnoise": loop_noise,
 }
 
 
@@ -215,8 +224,8 @@ def _label(call: tuple[Any, ...]) -> str:
         return f"screen {call[1].name}"
     if kind == "refit":
         return "refit linear" + "".join(f" + {p.split('.', 1)[1]}" for p in call[2])
-    if kind == "where":
-        return "where"
+    if kind in ("where", "loopnoise"):
+        return {"where": "where", "loopnoise": "loop noise"}[kind]
     return "score"
 
 
