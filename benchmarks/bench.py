@@ -19,9 +19,12 @@ try:  # the optional peer (extra `bench`)
 except ImportError:
     sippy_unipi = None
 
+import json
 import operator
 import os
 import platform
+import subprocess
+import sys
 import tempfile
 from concurrent.futures import ProcessPoolExecutor
 from importlib.metadata import version
@@ -460,8 +463,34 @@ def bench_blindtest(n: int, workers: int | None = None, seed: int = 0) -> dict[s
     return {"n": n, "seed": seed, "wall_s": doc["timing_s"], "totals": doc["totals"], "skipped": doc["skipped"]}
 
 
+def _wall(args: list[str]) -> float:
+    """Wall time [s] of ``python -m harness ARGS`` in a fresh process, as a user's shell starts it."""
+    t0 = time.perf_counter()
+    subprocess.run([sys.executable, "-m", "harness", *args], check=True, capture_output=True)
+    return time.perf_counter() - t0
+
+
+def bench_run(spec: str = "lab", starts: int = 5) -> dict[str, Any]:
+    """``flexjoint run`` end to end on the default spec as a user starts it (a fresh process: the command line, the
+    local cluster, every stage, the report and the recording) with each stage's wall time (its run.timing.json),
+    and the command line's own start-up (``--version``, ``--help``: best of ``starts``)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        run = Path(tmp) / "run"
+        wall = _wall(["run", "--spec", spec, "--out", str(run)])
+        timing = json.loads((run / "run.timing.json").read_text())
+    return {
+        "wall_s": wall,
+        "stages_s": timing["stages_s"],
+        "outside_stages_s": wall - timing["total_s"],  # interpreter, imports, spec check, cluster start and close
+        "cli_start_s": {arg: min(_wall([arg]) for _ in range(starts)) for arg in ("--version", "--help")},
+        "workers": 2,
+        "target": "flexjoint run < 60 s on 2 cores; --version and --help < 0.5 s",
+    }
+
+
 def run_all(quick: bool = False, progress: Any = None, table: bool = False, blind: int = 0) -> dict[str, Any]:
-    """Every benchmark, each side by side with its peer, as one JSON-able dict; ``parallel`` is every parallel
+    """Every benchmark, each side by side with its peer, as one JSON-able dict; ``run`` is ``flexjoint run`` end to
+    end with its stages' times and the command line's start-up; ``parallel`` is every parallel
     stage serial, on 2 Dask workers and on 2 plain processes (``identify`` and ``diagnose`` are its 2-worker runs);
     ``table`` adds the off-datasheet diagnosis table (~3 min), ``blind`` the full blind test of that many rigs (~20
     min for 45)."""
@@ -470,6 +499,7 @@ def run_all(quick: bool = False, progress: Any = None, table: bool = False, blin
         "machine": {"python": platform.python_version(), "cpus": os.cpu_count(), "platform": platform.platform()},
     }
     steps = [
+        ("run", bench_run),
         ("campaign", lambda: bench_campaign(repeats=1 if quick else 3)),
         ("armax", lambda: bench_armax(5 if quick else 20)),
         ("executor", lambda: bench_executor(20 if quick else 40)),
