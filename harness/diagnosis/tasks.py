@@ -224,9 +224,7 @@ def _label(call: tuple[Any, ...]) -> str:
         return f"screen {call[1].name}"
     if kind == "refit":
         return "refit linear" + "".join(f" + {p.split('.', 1)[1]}" for p in call[2])
-    if kind in ("where", "loopnoise"):
-        return {"where": "where", "loopnoise": "loop noise"}[kind]
-    return "score"
+    return {"where": "where", "loopnoise": "loop noise"}.get(kind, "score")
 
 
 def stretches(setup: Setup, names: list[str], n: int) -> list[list[str]]:
