@@ -186,3 +186,82 @@ def test_a_destabilising_controller_is_one_line(tmp_path):
         run_campaign(flipped, tmp_path / "run", workers=1)
     assert "\n" not in str(e.value)
     assert not (tmp_path / "run" / "manifest.json").exists()
+
+
+def _stepped_one_by_one(fmus: dict, ref: np.ndarray | None, u: np.ndarray | None, Ts: float, plant: dict, daq: dict,
+                        ctrl: dict | None = None):  # fmt: skip
+    """The co-simulation of harness.fmu.cosim's docstring, written again with fmpy's own FMU2Slave calls (an
+    oracle for the C step loops of fmus/master): returns the samples (u, theta_v, alpha_v) and the true theta [deg]."""
+    from harness.fmu.binding import load
+
+    pl, dq = load(fmus["flexjoint"], "plant"), load(fmus["daq"], "daq")
+    ct = load(fmus["controller"], "controller") if ref is not None else None
+    n = ref.size if ref is not None else u.size
+    vr = {(name, x): inst.vr(x) for name, inst in (("p", pl), ("d", dq), ("c", ct)) if inst for x in inst.variables}
+    try:
+        pl.initialize(plant, n * Ts)
+        dq.initialize({"sample_rate": 1 / Ts, **daq}, n * Ts)
+        th, ag = pl.slave.getReal([vr["p", "theta"], vr["p", "alpha_gauge"]])
+        dq.slave.setReal([vr["d", "u"], vr["d", "theta"], vr["d", "alpha_gauge"]], [0.0 if ct else u[0], th, ag])
+        dq.exit_initialization()
+        if ct:
+            cal = dq.get(["pot_gain", "pot_offset", "gauge_gain", "gauge_offset"])
+            reads = {"theta_gain": cal["pot_gain"], "theta_offset": cal["pot_offset"]}
+            reads |= {"alpha_gain": cal["gauge_gain"], "alpha_offset": cal["gauge_offset"]}
+            ct.initialize({"sample_rate": 1 / Ts, **reads, **ctrl}, n * Ts)
+            ct.slave.setReal([vr["c", "ref"], vr["c", "theta_v"], vr["c", "alpha_v"]],
+                             [ref[0], *dq.slave.getReal([vr["d", "theta_v"], vr["d", "alpha_v"]])])  # fmt: skip
+            ct.exit_initialization()
+        pl.slave.setReal([vr["p", "u"], vr["p", "tau_tip"]], [0.0, 0.0])
+        pl.exit_initialization()
+        rows = []
+        for k in range(n):
+            th, al, ag = pl.slave.getReal([vr["p", "theta"], vr["p", "alpha"], vr["p", "alpha_gauge"]])
+            if ct:
+                dq.slave.setReal([vr["d", "theta"], vr["d", "alpha_gauge"]], [th, ag])
+                samples = dq.slave.getReal([vr["d", "theta_v"], vr["d", "alpha_v"]])
+                ct.slave.setReal([vr["c", "ref"], vr["c", "theta_v"], vr["c", "alpha_v"]], [ref[k], *samples])
+                ct.slave.doStep(k * Ts, Ts)
+                cmd = ct.slave.getReal([vr["c", "u"]])[0]
+            else:
+                cmd = u[k]
+            dq.slave.setReal([vr["d", "u"], vr["d", "theta"], vr["d", "alpha_gauge"]], [cmd, th, ag])
+            dq.slave.doStep(k * Ts, Ts)
+            u_plant, theta_v, alpha_v = dq.slave.getReal([vr["d", "u_plant"], vr["d", "theta_v"], vr["d", "alpha_v"]])
+            pl.slave.setReal([vr["p", "u"], vr["p", "tau_tip"]], [u_plant, 0.0])
+            pl.slave.doStep(k * Ts, Ts)
+            rows.append((cmd, theta_v, alpha_v, th * (180.0 / np.pi)))
+        return np.array(rows)
+    finally:
+        for inst in (pl, dq, ct):
+            if inst:
+                inst.free()
+
+
+def test_master_step_loops_equal_the_fmus_stepped_one_by_one():
+    """The C step loops (fmus/master) make the calls of the co-simulation's docstring: the same samples, to the bit,
+    as the three FMUs stepped one call at a time through fmpy, open and closed loop, with friction, a second mode,
+    a DAQ delay and a 12-bit ADC; a doStep the plant refuses stops the run with the plant's own message."""
+    from harness.fmu.binding import FMUError
+
+    fmus = build_all()
+    Ts, n = 2e-3, 600
+    t = np.arange(n) * Ts
+    ref = np.radians(np.where(t % 0.8 < 0.4, 20.0, -20.0))
+    u = 1.2 * np.sin(2 * np.pi * (0.5 + 2.0 * t) * t)
+    plant, daq = {"coulomb_torque": 0.03, "n_modes": 2}, {"delay_samples": 1, "adc_bits": 12}
+    ctrl = Controller(K=[9.231, -18.769, 1.203, -0.041]).fmu_parameters(1 / Ts)
+    ctrl.pop("alpha_bias", None)
+    with Rig(fmus["flexjoint"], fmus["daq"], fmus["controller"]) as rig:
+        closed = rig.run_closed(ref, Ts, ctrl, plant=plant, daq=daq)
+        opened = rig.run(u, Ts, plant=plant, daq=daq)
+        with pytest.raises(
+            FMUError, match=r"^flexjoint-\w+: doStep at t=0\.0100 s failed: input u or tau_tip is not finite"
+        ):
+            rig.run(u, Ts, tau_tip=np.where(np.arange(n) == 5, np.nan, 0.0))
+    for got, want in (
+        (closed, _stepped_one_by_one(fmus, ref, None, Ts, plant, daq, ctrl)),
+        (opened, _stepped_one_by_one(fmus, None, u, Ts, plant, daq)),
+    ):
+        np.testing.assert_array_equal(np.c_[got["u"], got["theta_v"], got["alpha_v"], got["theta"]], want)
+    assert np.ptp(closed["u"]) > 1.0 and np.ptp(opened["theta_v"]) > 0.2  # both loops move the rig

@@ -291,7 +291,7 @@ def test_a_lone_real_record_is_diagnosed_on_its_halves(tmp_path):
 
     run = tmp_path / "run"
     import_records([CU[0]], run, CU_IMPORT)
-    d = dg.diagnose_run(run, "cu_flexible_arm", workers=2)
+    d = dg.diagnose_run(run, "cu_flexible_arm", workers=1)
     a, b = d.folds.A, d.folds.B
     assert len(a) == len(b) == 1 and a != b and a[0].startswith("flexibleArm_test_3 (0-")
     assert "split in time" in d.folds.scheme and set(d.replays) == {a[0], b[0]}

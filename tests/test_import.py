@@ -259,7 +259,7 @@ def fast_rates(twins, tmp_path_factory):
     )
     diag = {}
     for rate, runs in out.items():
-        diag[rate] = [diagnose_run(r, "nominal", workers=2).to_dict() for r in runs]
+        diag[rate] = [diagnose_run(r, "nominal", workers=1).to_dict() for r in runs]
     return out, diag
 
 

@@ -62,7 +62,7 @@ def real_run(tmp_path_factory) -> Path:
     prepared = prepare(load_run(tmp), cal, float(ident["af"]), str(ident["output"]))
     write_grid(run_grid(prepared, ident, workers=1), tmp, ident, cal)
     crossfit_run(tmp)
-    diagnose_run(tmp, campaign_spec(quick=True), workers=2)
+    diagnose_run(tmp, campaign_spec(quick=True), workers=1)
     try:
         os.rename(tmp, base)
     except OSError:  # made meanwhile by another module of this process

@@ -258,6 +258,63 @@ def build_fmu(name: str, out_dir: Path | None = None, force: bool = False) -> Pa
     return target
 
 
+MASTER_CMAKE = """cmake_minimum_required(VERSION 3.10)
+project(flexjoint_master C)
+add_library(master SHARED master.c)
+if(NOT WIN32)
+  target_link_libraries(master m)
+endif()
+"""
+
+
+def master_source() -> bytes:
+    """The C source of the co-simulation master's step loops (``fmus/master/master.c``)."""
+    path = fmu_source_dir() / "master" / "master.c"
+    try:
+        return path.read_bytes()
+    except OSError as e:
+        raise BuildError(f"missing the co-simulation master {path}: {e.strerror or e}") from None
+
+
+def build_master(out_dir: Path | None = None) -> Path:
+    """Build (or reuse) the co-simulation master's shared library (:mod:`harness.fmu.cosim` calls its step loops)
+    and return its path: ``<cache>/master-<sha256 of the source[:12]>.so`` (``.dll``, ``.dylib``), compiled with
+    CMake in Release mode, moved in place atomically under a file lock like the FMUs."""
+    source = master_source()
+    digest = hashlib.sha256(BUILD_TAG.encode() + MASTER_CMAKE.encode() + source).hexdigest()
+    suffix = {"win32": ".dll", "darwin": ".dylib"}.get(sys.platform, ".so")
+    target_dir = Path(out_dir) if out_dir is not None else cache_dir()
+    target = target_dir / f"master-{digest[:12]}{suffix}"
+    if target.is_file():
+        return target
+    try:
+        target_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise BuildError(f"cannot create the FMU cache {target_dir}: {e.strerror or e}") from None
+    with _file_lock(target_dir / ".master.lock"):
+        if target.is_file():
+            return target
+        _ensure_cmake_on_path()
+        with tempfile.TemporaryDirectory(prefix=".master-", dir=target_dir) as tmp:
+            src, build = Path(tmp) / "src", Path(tmp) / "build"
+            src.mkdir()
+            (src / "master.c").write_bytes(source)
+            (src / "CMakeLists.txt").write_text(MASTER_CMAKE)
+            for cmd in (
+                ["cmake", "-S", str(src), "-B", str(build), "-DCMAKE_BUILD_TYPE=Release"],
+                ["cmake", "--build", str(build), "--config", "Release"],
+            ):
+                done = subprocess.run(cmd, capture_output=True, text=True)
+                if done.returncode != 0:
+                    detail = _first_error_line(done.stdout + done.stderr)
+                    raise BuildError(f"building the co-simulation master failed: {detail}")
+            built = [p for p in build.rglob(f"*master{suffix}") if p.is_file()]
+            if not built:
+                raise BuildError("building the co-simulation master failed: no library was produced")
+            os.replace(built[0], target)
+    return target
+
+
 def build_all(out_dir: Path | None = None, force: bool = False) -> dict[str, Path]:
     """Build the rig twin: ``{"flexjoint": Path, "daq": Path, "controller": Path}``."""
     return {name: build_fmu(name, out_dir=out_dir, force=force) for name in MODELS}
