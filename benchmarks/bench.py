@@ -260,7 +260,6 @@ def bench_executor(n_tasks: int = 40, n_trivial: int = 200) -> dict[str, Any]:
 
 
 PARALLEL_MODES = ("serial", "dask", "processes")
-BLIND_OPEN = ("twin", "nuisance", "independent")
 
 
 def _import_stack(_: int) -> None:
@@ -280,11 +279,10 @@ def _tree_cpu_s() -> float:
     return total
 
 
-def _stages(tmp: Path, blind_n: int, quick: bool) -> dict[str, tuple[str, Any, Any]]:
+def _stages(tmp: Path, blind_n: int) -> dict[str, tuple[str, Any, Any]]:
     """The parallel stages on the lab campaign: name -> (what it is, run(out) -> result, result -> comparable). The
-    blind test runs its quick campaigns over every family (``quick``: the open-loop ones, whose cases take ~10 s;
-    a closed-loop case takes ~10x longer and alone would set the wall time of a handful of cases)."""
-    families = BLIND_OPEN if quick else FAMILIES
+    blind test runs its quick campaigns over every family, closed loop included."""
+    families = FAMILIES
     spec = specmod.load("lab")
     run = tmp / "lab"
     run_campaign(spec, run, fmus=build_all(), workers=1)
@@ -313,13 +311,13 @@ def _stages(tmp: Path, blind_n: int, quick: bool) -> dict[str, tuple[str, Any, A
     }  # fmt: skip
 
 
-def bench_parallel(rounds: int = 2, blind_n: int = 8, quick: bool = False) -> dict[str, Any]:
+def bench_parallel(rounds: int = 2, blind_n: int = 24) -> dict[str, Any]:
     """Parallel efficiency of every parallel stage (ARMAX grid, diagnosis, blind test), each measured three ways in
     one run: serially in this process, on the executor's local Dask cluster of 2 workers, and on 2 plain
     ``multiprocessing`` processes (the executor's ``processes`` backend: one BLAS thread, no Dask), the machine's
     own reference on the same stage. All three executors are started and warm (package imported in every worker)
     before the clock; the grid and the diagnosis run ``rounds`` times in alternating order (serial, dask,
-    processes, then backwards) and the best wall time of each counts, the blind test (minutes) once. Efficiency =
+    processes, then backwards) and the best wall time of each counts, the blind test once. Efficiency =
     T(serial) / (2 T(2 workers)); the CPU seconds of the process tree during each best run show the work itself
     (load on the machine lengthens wall times, not CPU); ``same_result`` says the three gave the same grid, the
     same diagnosis.json, the same blindtest.json."""
@@ -335,7 +333,7 @@ def bench_parallel(rounds: int = 2, blind_n: int = 8, quick: bool = False) -> di
             ex.map(_import_stack, range(2 * ex.n_workers))
             executors[mode], starts[mode] = ex, time.perf_counter() - t0
         with tempfile.TemporaryDirectory() as tmp:
-            for name, (what, fn, key) in _stages(Path(tmp), blind_n, quick).items():
+            for name, (what, fn, key) in _stages(Path(tmp), blind_n).items():
                 load = os.getloadavg()[0]
                 walls: dict[str, list[float]] = {m: [] for m in PARALLEL_MODES}
                 cpus: dict[str, list[float]] = {m: [] for m in PARALLEL_MODES}
@@ -503,7 +501,7 @@ def run_all(quick: bool = False, progress: Any = None, table: bool = False, blin
         ("campaign", lambda: bench_campaign(repeats=1 if quick else 3)),
         ("armax", lambda: bench_armax(5 if quick else 20)),
         ("executor", lambda: bench_executor(20 if quick else 40)),
-        ("parallel", lambda: bench_parallel(rounds=1 if quick else 2, blind_n=6 if quick else 8, quick=quick)),
+        ("parallel", lambda: bench_parallel(rounds=1 if quick else 2, blind_n=8 if quick else 24)),
     ]
     if table:
         steps.append(("diagnosis_table", bench_diagnosis_table))

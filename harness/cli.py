@@ -178,13 +178,14 @@ def _main(
 
 @app.command()
 def build(force: Annotated[bool, typer.Option(help="rebuild even if cached")] = False) -> None:
-    """Compile the FMUs in fmus/ (plant, DAQ, controller, generic ARMAX model) into the cache, only when sources
-    changed."""
-    from .fmu.build import MODELS, build_fmu
+    """Compile the FMUs in fmus/ (plant, DAQ, controller, generic ARMAX model) and the co-simulation master's step
+    loops (fmus/master) into the cache, only when sources changed."""
+    from .fmu.build import MODELS, build_fmu, build_master
 
     for name in (*MODELS, "armax"):
         path = build_fmu(name, force=force)
         out.print(f"{name}: {path}", soft_wrap=True)
+    out.print(f"master: {build_master(force=force)}", soft_wrap=True)
 
 
 @app.command()

@@ -157,6 +157,11 @@ def test_build_failure_exits_non_zero(tmp_path):
     env = {"FLEXJOINT_FMU_SRC": str(src), "FLEXJOINT_CACHE": str(tmp_path / "cache")}
     line = _one_line_error(flexjoint("build", env=env))
     assert line.startswith("error: building flexjoint failed: model.c:") and "error" in line[6:]
+    model.write_text(model.read_text().replace("\nint broken( {\n", ""))
+    master = src / "master" / "master.c"
+    master.write_text(master.read_text() + "\nint broken( {\n")
+    line = _one_line_error(flexjoint("build", env=env))
+    assert line.startswith("error: building the co-simulation master failed: ") and "error" in line[6:], line
     env["FLEXJOINT_FMU_SRC"] = str(tmp_path / "empty")
     assert "empty ($FLEXJOINT_FMU_SRC) does not exist" in _one_line_error(flexjoint("build", env=env))
 

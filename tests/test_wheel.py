@@ -107,6 +107,7 @@ def test_wheel_in_a_fresh_venv_builds_runs_a_campaign_and_diagnoses(tmp_path):
     cache = sorted(p.name for p in (tmp_path / "cache").glob("*.fmu"))
     assert [n.split("-")[0] for n in cache] == ["armax", "controller", "daq", "flexjoint"], built
     assert all((tmp_path / "cache" / f"{n}.sha256").is_file() for n in cache)
+    assert len(list((tmp_path / "cache").glob("master-*"))) == 1, built  # the co-simulation's step loops
 
     # campaigns serially (no cluster start-up to pay twice); the diagnosis below runs on Dask's local workers,
     # processes that must import harness from the wheel too

@@ -276,23 +276,23 @@ def master_source() -> bytes:
         raise BuildError(f"missing the co-simulation master {path}: {e.strerror or e}") from None
 
 
-def build_master(out_dir: Path | None = None) -> Path:
+def build_master(out_dir: Path | None = None, force: bool = False) -> Path:
     """Build (or reuse) the co-simulation master's shared library (:mod:`harness.fmu.cosim` calls its step loops)
     and return its path: ``<cache>/master-<sha256 of the source[:12]>.so`` (``.dll``, ``.dylib``), compiled with
-    CMake in Release mode, moved in place atomically under a file lock like the FMUs."""
+    CMake in Release mode, moved in place atomically under a file lock like the FMUs; ``force`` rebuilds it."""
     source = master_source()
     digest = hashlib.sha256(BUILD_TAG.encode() + MASTER_CMAKE.encode() + source).hexdigest()
     suffix = {"win32": ".dll", "darwin": ".dylib"}.get(sys.platform, ".so")
     target_dir = Path(out_dir) if out_dir is not None else cache_dir()
     target = target_dir / f"master-{digest[:12]}{suffix}"
-    if target.is_file():
+    if target.is_file() and not force:
         return target
     try:
         target_dir.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise BuildError(f"cannot create the FMU cache {target_dir}: {e.strerror or e}") from None
     with _file_lock(target_dir / ".master.lock"):
-        if target.is_file():
+        if target.is_file() and not force:
             return target
         _ensure_cmake_on_path()
         with tempfile.TemporaryDirectory(prefix=".master-", dir=target_dir) as tmp:
