@@ -211,6 +211,16 @@ def cached_fmu_ok(fmu: Path) -> bool:
     return fmu.is_file() and fmu_sha256(fmu) == recorded
 
 
+def _target_dir(out_dir: Path | None) -> Path:
+    """``out_dir`` or the cache, created; a directory that cannot be made is a :class:`BuildError`."""
+    target_dir = Path(out_dir) if out_dir is not None else cache_dir()
+    try:
+        target_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise BuildError(f"cannot create the FMU cache {target_dir}: {e.strerror or e}") from None
+    return target_dir
+
+
 def build_fmu(name: str, out_dir: Path | None = None, force: bool = False) -> Path:
     """Build (or reuse) the FMU ``name`` ('flexjoint', 'daq', ...) and return its path.
 
@@ -219,11 +229,7 @@ def build_fmu(name: str, out_dir: Path | None = None, force: bool = False) -> Pa
     """
     files = _staged_files(name)
     digest = source_hash(name)
-    target_dir = Path(out_dir) if out_dir is not None else cache_dir()
-    try:
-        target_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise BuildError(f"cannot create the FMU cache {target_dir}: {e.strerror or e}") from None
+    target_dir = _target_dir(out_dir)
     target = target_dir / f"{name}-{digest[:12]}.fmu"
     if not force and cached_fmu_ok(target):
         return target
@@ -283,14 +289,10 @@ def build_master(out_dir: Path | None = None, force: bool = False) -> Path:
     source = master_source()
     digest = hashlib.sha256(BUILD_TAG.encode() + MASTER_CMAKE.encode() + source).hexdigest()
     suffix = {"win32": ".dll", "darwin": ".dylib"}.get(sys.platform, ".so")
-    target_dir = Path(out_dir) if out_dir is not None else cache_dir()
+    target_dir = _target_dir(out_dir)
     target = target_dir / f"master-{digest[:12]}{suffix}"
     if target.is_file() and not force:
         return target
-    try:
-        target_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise BuildError(f"cannot create the FMU cache {target_dir}: {e.strerror or e}") from None
     with _file_lock(target_dir / ".master.lock"):
         if target.is_file() and not force:
             return target

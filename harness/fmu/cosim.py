@@ -161,9 +161,10 @@ class Rig:
 
         out = np.empty((n, 6))
         at, status = ctypes.c_long(0), ctypes.c_int(0)
+        plant_unit, daq_unit = (ctypes.byref(x) for x in self._units[:2])
         code = self._master.run_open(
-            ctypes.byref(self._units[0]), ctypes.byref(self._units[1]), self._p_in, self._p_out, self._d_in,
-            self._d_out, _doubles(u), _doubles(tau), n, Ts, _doubles(out), ctypes.byref(at), ctypes.byref(status),
+            plant_unit, daq_unit, self._p_in, self._p_out, self._d_in, self._d_out, _doubles(u), _doubles(tau), n,
+            Ts, _doubles(out), ctypes.byref(at), ctypes.byref(status),
         )  # fmt: skip
         self._check_master(code, at.value, status.value, Ts)
         return {
