@@ -2,16 +2,23 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from harness import spec as specmod
+from harness.diagnosis import blindtest as bt
+from harness.diagnosis.diagnose import diagnose_run
 from harness.diagnosis.experiments import load_experiments
-from harness.diagnosis.simulation import Setup, fit_pct, residuals, sim_rig
+from harness.diagnosis.noise import noise_floor
+from harness.diagnosis.search import NONE_RATIO_LOOP
+from harness.diagnosis.simulation import Setup, fit_pct, fmu_value, replay_noise, residuals, sim_rig
+from harness.diagnosis.tasks import Pool
 from harness.executor import fmu_bytes
 from harness.fmu.build import build_all
 from harness.fmu.cosim import Rig
-from harness.ident.calibration import LAB1_CALIBRATION, Calibration, alpha_deg, theta_deg
+from harness.ident.calibration import LAB1_CALIBRATION, Calibration, alpha_deg, load_calibration, theta_deg
 from harness.rig.campaign import run_campaign
 from harness.rig.controller import Controller, law
 from harness.rundir import Manifest, RunDir, read_dataset
@@ -265,3 +272,76 @@ def test_master_step_loops_equal_the_fmus_stepped_one_by_one():
     ):
         np.testing.assert_array_equal(np.c_[got["u"], got["theta_v"], got["alpha_v"], got["theta"]], want)
     assert np.ptp(closed["u"]) > 1.0 and np.ptp(opened["theta_v"]) > 0.2  # both loops move the rig
+
+
+# a closed blind-family rig (blindtest case 25 of --n 60 --seed 0): off the datasheet, with Coulomb friction
+RIG_25 = {"plant.Beq": 0.0022588, "plant.Jeq": 0.0023131, "plant.Ks": 1.446823, "plant.kt": 0.0076375,
+          "plant.zeta_link": 0.0101487}  # fmt: skip
+COULOMB_25 = 0.0218221
+
+
+def _blind_closed_run(tmp_path, truth: dict[str, float], case: int, seed: int) -> tuple[Path, specmod.Spec]:
+    """A closed blind-family rig (quick: four 4 s square references; odd ``case``: 1 kHz) with ``truth``."""
+    c = {"case": case, "family": "closed", "kind": "single", "nuisance": RIG_25, "truth_params": truth,
+         "truth_effects": [], "sensor": {}, "campaign_seed": seed}  # fmt: skip
+    run = tmp_path / f"case_{case}"
+    bt.make_rig_run(c, run, quick=True)
+    return run, bt.campaign_spec(True, bt._case_sets(c)[1:], "closed")
+
+
+def test_a_closed_loop_replay_carries_the_datas_noise_so_friction_is_not_viscous(tmp_path):
+    """The rig's controller acted on noisy samples: the noise fed back dithers the Coulomb friction, which then acts
+    partly as viscous damping. A noise-free replay makes up for it: Beq +54 %, link damping -79 %, friction -13 %. A
+    replay with noise of the data's RMS (another draw) recovers Beq within 10 % (-7 %), the link damping within 15 %
+    (-13 %) and the friction within 2 % (-0.1 %)."""
+    run, sim = _blind_closed_run(tmp_path, {"plant.coulomb_torque": COULOMB_25}, 25, 514041965)
+    cal = load_calibration(run)
+    plant, daq = sim_rig(sim)
+    adc = fmu_value(daq, "daq", "adc_range")
+    exps = load_experiments(run, cal, sim, adc)
+    noise, _ = noise_floor(exps, adc, cal)
+    sigma = {"theta": noise.theta_deg, "alpha": noise.alpha_deg}
+    assert sigma["theta"] == pytest.approx(0.073, rel=0.05)  # 2 mV on the pot, through Kp
+    loop = replay_noise(daq, sigma)
+    assert loop["noise_theta"] == pytest.approx(0.002, rel=0.05) and loop["noise_alpha"] == pytest.approx(
+        0.002, rel=0.05
+    )
+    fmus = build_all()
+    shipped = {k: fmu_bytes(fmus[k]) for k in ("flexjoint", "daq", "controller")}
+    fitted = {}
+    for name, noisy in (("noise-free", {}), ("noisy", loop)):
+        pool = Pool(Setup(plant, daq, cal.comb_angles, exps, shipped, noisy), 1)
+        try:
+            fitted[name] = pool.refit({"plant.coulomb_torque": 0.01}, ["plant.coulomb_torque"], list(exps), 20)[
+                "params"
+            ]
+        finally:
+            pool.close()
+    off = {
+        k: {p: v[p] / RIG_25.get(p, COULOMB_25) - 1.0 for p in (*RIG_25, "plant.coulomb_torque")}
+        for k, v in fitted.items()
+    }
+    assert off["noise-free"]["plant.Beq"] > 0.4 and off["noise-free"]["plant.zeta_link"] < -0.5, off
+    assert off["noise-free"]["plant.coulomb_torque"] < -0.1, off
+    assert abs(off["noisy"]["plant.Beq"]) < 0.10 and abs(off["noisy"]["plant.zeta_link"]) < 0.15, off
+    assert abs(off["noisy"]["plant.coulomb_torque"]) < 0.02 and abs(off["noisy"]["plant.Ks"]) < 0.01, off
+
+
+def test_a_closed_loop_floor_is_simulated_and_judged_within_its_own_ratio(tmp_path):
+    """A closed-loop rig without an effect sits on the floor that another noise draw leaves (the gap after
+    recalibration within 5 % of it) and is answered none, judged within NONE_RATIO_LOOP; one sample of delay, within
+    2x that floor, is found and leaves nothing beyond it (both sides of 1.25x on the closed blind family: none at
+    0.99-1.04x, delays from 1.7x)."""
+    base = {}
+    run, sim = _blind_closed_run(tmp_path, base, 26, 1234)
+    d = diagnose_run(run, sim, tmp_path / "none", workers=1)
+    dec = d.gap.decomposition
+    assert d.verdict == "none" and d.thresholds.none_ratio_loop == NONE_RATIO_LOOP == 1.25
+    assert 0.95 < dec.after_recalibration / dec.noise_floor < 1.05, dec
+    assert "none within 1.25x it" in d.noise_floor.method
+    run, sim = _blind_closed_run(tmp_path, {"daq.delay_samples": 1}, 38, 1234)
+    d = diagnose_run(run, sim, tmp_path / "delay", workers=1)
+    dec = d.gap.decomposition
+    assert d.verdict == "delay" and d.fitted_effect_params() == {"daq.delay_samples": 1}
+    assert NONE_RATIO_LOOP < dec.after_recalibration / dec.noise_floor < 2.0, dec
+    assert dec.after_effects / dec.noise_floor < NONE_RATIO_LOOP  # nothing left beyond noise

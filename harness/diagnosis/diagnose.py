@@ -23,8 +23,10 @@ The data flow, one module per step:
    not determine (95 % interval wider than a factor 100).
 
 Verdict: ``none`` when the held-out gap after recalibration is within NONE_RATIO (2) x the floor and no lattice
-(``quantization`` with one); otherwise the effect found whose removal reopens most of the gap (drop-one), if the
-effects found close >= EXPLAINED (50 %) of the excess squared gap left after recalibration on held-out data;
+(``quantization`` with one; NONE_RATIO_LOOP, 1.25, where every experiment is a closed-loop replay and the floor
+is therefore simulated: a replay runs with the data's noise, and the floor is what another noise draw leaves);
+otherwise the effect found whose removal reopens most of the gap (drop-one), if the effects found close >=
+EXPLAINED (50 %) of the excess squared gap left after recalibration on held-out data;
 else ``unexplained`` (no candidate closes a meaningful part of the gap; they stay listed with their honest
 shrink). A candidate enters when its screening or joint closure reaches MIN_CLOSURE (0.3; effects that only pay
 together, like the lab's delay, friction and second mode once the linear parameters compensate each alone, enter
@@ -55,11 +57,11 @@ from .effects import CandidateContext, candidates
 from .experiments import REPLAYS, RigExperiment, fold_experiments, load_experiments, masked_share
 from .noise import noise_floor
 from .result import Diagnosis, FittedParameter, SensorCalibration, Thresholds
-from .search import EXPLAINED, GAP_RESOLUTION, MIN_CLOSURE, NONE_RATIO, search
-from .simulation import Setup, fit_pct, fmu_value, sim_rig
+from .search import EXPLAINED, GAP_RESOLUTION, MIN_CLOSURE, NONE_RATIO, NONE_RATIO_LOOP, search
+from .simulation import Setup, fit_pct, fmu_value, replay_noise, sim_rig
 from .tasks import Pool
 
-__all__ = ["EXPLAINED", "GAP_RESOLUTION", "MIN_CLOSURE", "NONE_RATIO", "THRESHOLDS", "diagnose_run"]
+__all__ = ["EXPLAINED", "GAP_RESOLUTION", "MIN_CLOSURE", "NONE_RATIO", "NONE_RATIO_LOOP", "THRESHOLDS", "diagnose_run"]
 
 Progress = Callable[[str], None]
 
@@ -72,7 +74,10 @@ THRESHOLDS = Thresholds(
     "parameters <= none_ratio x floor (and no ADC lattice); an effect is added when, fitted on top of the "
     "recalibrated rig, it closes >= min_closure of the excess squared gap left on held-out data; the verdict "
     "names the effect whose removal reopens most of the gap when the effects together close >= explained "
-    "of the excess left after recalibration, else unexplained",
+    "of the excess left after recalibration, else unexplained; none_ratio_loop in place of none_ratio when every "
+    "experiment is a closed-loop replay on no ADC lattice (the floor then simulated: the replay with the data's "
+    "noise against the same with another noise draw)",
+    none_ratio_loop=NONE_RATIO_LOOP,
 )
 
 
@@ -126,22 +131,25 @@ def diagnose_run(
     experiments, folds = fold_experiments(records)
     fmus = fmus or build_all()
     shipped = {k: fmu_bytes(fmus[k]) for k in ("flexjoint", "daq", "controller") if k in fmus}
-    setup = Setup(plant, daq, cal.comb_angles, experiments, shipped)
     noise, e_noise = noise_floor(records, adc_range, cal, experiments)
     closed = any(x.replay == "closed" for x in experiments.values())
+    sigma = {"theta": noise.theta_deg, "alpha": noise.alpha_deg}  # [deg], an ADC's quantisation included
+    setup = Setup(plant, daq, cal.comb_angles, experiments, shipped, replay_noise(daq, sigma) if closed else {})
     top = max(x.peak_command_v for x in experiments.values())
     cands = candidates(CandidateContext(plant, daq, top, noise.adc_lattice_bits))
     pool = Pool(setup, workers, scheduler, progress)
     try:
-        sigma = {"theta": noise.theta_deg, "alpha": noise.alpha_deg} if closed else None
-        found = search(pool, experiments, (folds.A, folds.B), cands, e_noise, say, sigma)
+        found = search(pool, experiments, (folds.A, folds.B), cands, e_noise, say, sigma if closed else None)
         recal_over = {k: v for k, v in found.final.items() if k in recal.LINEAR}
         before, after = pool.map([("where", {}), ("where", recal_over)])  # as tasks: side by side
     finally:
         pool.close()
     where = {"before": before, "after_recalibration": after, "masked": masked_share(experiments)}
     if closed:
-        loop = "closed-loop replays: with the noise their controller fed back, simulated on the recalibrated rig"
+        loop = (
+            "closed-loop replays: each simulated with the data's noise fed back through its controller, the floor what "
+            f"another noise draw leaves on the recalibrated rig; none within {found.none_ratio:g}x it"
+        )
         noise = replace(
             noise, gap=math.sqrt(found.noise), fit_pct=fit_pct(found.noise), method=f"{noise.method}; {loop}"
         )

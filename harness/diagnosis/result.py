@@ -260,6 +260,7 @@ class Thresholds:
     explained: float
     resolution: float
     meaning: str
+    none_ratio_loop: float | None = None  # in place of none_ratio where the floor is simulated, not estimated
 
 
 # ----------------------------------------------------------------------------------------------- the file

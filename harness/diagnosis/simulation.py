@@ -48,6 +48,7 @@ __all__ = [
     "gap_summary",
     "loop_noise_gap",
     "mean_squared_gap",
+    "replay_noise",
     "residuals",
     "sim_calibration",
     "sim_rig",
@@ -56,7 +57,8 @@ __all__ = [
 
 SSE = dict[str, dict[str, float]]  # experiment -> channel -> sum of squared residuals [deg^2]
 MODELS = {"plant": "flexjoint", "daq": "daq"}  # the FMU behind each rig table
-LOOP_NOISE_SEEDS = (1, 2)  # noise seeds of the simulated closed loops that measure the noise fed back
+REPLAY_NOISE_SEED = 7  # noise seed of every closed-loop replay (:attr:`Setup.loop_noise`)
+LOOP_NOISE_SEEDS = (1, 2)  # other seeds, whose replays against it measure what noise fed back leaves
 
 
 def fmu_value(table: Mapping[str, Any], model: str, name: str) -> float:
@@ -67,14 +69,16 @@ def fmu_value(table: Mapping[str, Any], model: str, name: str) -> float:
 @dataclass
 class Setup:
     """The simulation being judged: its rig parameters (noise off), the real run's comb angles [deg] for the
-    sim-side gauge calibration (None: use the sim's gauge gain), the real experiments, and the plant and DAQ
-    FMUs as bytes ({"flexjoint": ..., "daq": ...})."""
+    sim-side gauge calibration (None: use the sim's gauge gain), the real experiments, the plant and DAQ
+    FMUs as bytes ({"flexjoint": ..., "daq": ...}) and the DAQ noise of the closed-loop replays (``loop_noise``:
+    {"noise_theta": V rms, "noise_alpha": V rms}, the data's own, :func:`replay_noise`; {} none)."""
 
     plant: dict[str, Any]
     daq: dict[str, Any]
     comb_angles: np.ndarray | None
     experiments: dict[str, RigExperiment]
     fmus: dict[str, FmuBytes] = field(default_factory=dict)
+    loop_noise: dict[str, float] = field(default_factory=dict)
 
     def nominal(self, param: str) -> float:
         """The simulation's own value of an FMU parameter ("plant.Ks"): the sim spec's, else the FMU default."""
@@ -114,7 +118,8 @@ def simulate(
     ({"plant.x": v, ...}), and the mask of the theta samples where the simulated pot is on its track."""
     p_over, d_over = _split_overrides(over)
     plant = {**setup.plant, **exp.plant, **p_over}
-    daq = {**setup.daq, **exp.daq, **d_over}
+    loop = {**setup.loop_noise, "seed": REPLAY_NOISE_SEED} if exp.replay == "closed" and setup.loop_noise else {}
+    daq = {**setup.daq, **exp.daq, **loop, **d_over}
     plant.setdefault("theta_start", math.radians(float(exp.theta[0])))
     if exp.replay == "closed":
         c = Controller(**exp.controller)  # type: ignore[arg-type]
@@ -201,36 +206,36 @@ def gap_summary(sse: SSE, experiments: dict[str, RigExperiment], names: list[str
     )
 
 
-def loop_noise_gap(
-    rig: Any,
-    setup: Setup,
-    sigma_deg: Mapping[str, float],
-    over: Mapping[str, Any] | None = None,
-    names: list[str] | None = None,
-) -> dict[str, float]:
-    """The mean squared gap that measurement noise alone leaves on each closed-loop replay: the controller of the real
-    rig acted on noisy samples, so its command, and the motion, carry noise fed back through the loop, which a
-    noise-free closed-loop replay cannot reproduce. How much depends on the loop (a lightly damped closed-loop mode
-    rings on noise), so it is measured on the rig as recalibrated (``over``, {"plant.Ks": ...}; default the sim as
-    given): the replay with the DAQ's noise set to ``sigma_deg`` (the data's noise RMS [deg] per channel, through the
-    sim DAQ's gains) against the noise-free replay, averaged over LOOP_NOISE_SEEDS; normalised as
-    :func:`mean_squared_gap`. {experiment: E} for the experiments of ``names`` (default all) replayed in closed loop
-    (the direct measurement noise is part of it)."""
-    over = dict(over or {})
-    daq = {**setup.daq, **{k.split(".", 1)[1]: v for k, v in over.items() if k.startswith("daq.")}}
-    volts = {
-        "daq.noise_theta": sigma_deg["theta"] / abs(fmu_value(daq, "daq", "pot_gain")),
-        "daq.noise_alpha": sigma_deg["alpha"] / abs(fmu_value(daq, "daq", "gauge_gain")),
+def replay_noise(daq: Mapping[str, Any], sigma_deg: Mapping[str, float]) -> dict[str, float]:
+    """The DAQ noise [V rms] of a closed-loop replay: the data's noise RMS ``sigma_deg`` [deg] per channel through
+    the sim DAQ's gains (``daq``: its parameters, FMU defaults for the rest)."""
+    return {
+        "noise_theta": sigma_deg["theta"] / abs(fmu_value(daq, "daq", "pot_gain")),
+        "noise_alpha": sigma_deg["alpha"] / abs(fmu_value(daq, "daq", "gauge_gain")),
     }
-    out = {}
+
+
+def loop_noise_gap(
+    rig: Any, setup: Setup, over: Mapping[str, Any] | None = None, names: list[str] | None = None
+) -> dict[str, float]:
+    """The mean squared gap that measurement noise alone leaves on each closed-loop replay. The real rig's controller
+    acted on noisy samples, so its command, and the motion, carry noise fed back through the loop; a replay is
+    simulated with noise of the data's RMS (:attr:`Setup.loop_noise`, seed REPLAY_NOISE_SEED), which reproduces what
+    noise does on average (a dither that smooths Coulomb friction) but not its realisation. What remains is measured
+    as the gap between the replay and the same replay with the other LOOP_NOISE_SEEDS, on the rig as recalibrated
+    (``over``, {"plant.Ks": ...}; default the sim as given: how much a loop amplifies noise depends on the rig),
+    normalised as :func:`mean_squared_gap`. {experiment: E} for the experiments of ``names`` (default all) replayed
+    in closed loop (the measurement noise of both sides is part of it); none without :attr:`Setup.loop_noise`."""
+    over = dict(over or {})
+    out: dict[str, float] = {}
     for name in names if names is not None else list(setup.experiments):
         x = setup.experiments[name]
-        if x.replay != "closed":
+        if x.replay != "closed" or not setup.loop_noise:
             continue
         th0, al0, on0 = simulate(rig, setup, x, over)
         qs = []
         for seed in LOOP_NOISE_SEEDS:
-            th, al, on = simulate(rig, setup, x, {**over, **volts, "daq.seed": seed})
+            th, al, on = simulate(rig, setup, x, {**over, "daq.seed": seed})
             ok = on & on0 & x.valid["theta"][: th.size]
             sse = {"theta": float(np.sum((th - th0)[ok] ** 2)), "alpha": float(np.sum((al - al0) ** 2))}
             qs += [sse[c] / x.sst[c] for c in CHANNELS if x.sst[c] > 0]

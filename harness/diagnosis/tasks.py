@@ -10,7 +10,7 @@ once. Five tasks, given as ``(kind, *args)`` calls to :meth:`Pool.map`:
 - ``("resid", over, names, k)``: :func:`residual_vector`, a stretch of a residual vector, for a least squares run
   by the client (:meth:`Pool.refit`);
 - ``("where", over)``: :func:`where`, where the gap lies;
-- ``("loopnoise", over, sigma_deg, names)``: :func:`loop_noise`, the noise a closed loop feeds back, per experiment.
+- ``("loopnoise", over, names)``: :func:`loop_noise`, what the noise a closed loop feeds back leaves, per experiment.
 """
 
 from __future__ import annotations
@@ -195,10 +195,10 @@ def where(over: dict[str, Any]) -> dict[str, Any]:
     return where_gap(_CTX["setup"], over)
 
 
-def loop_noise(over: dict[str, Any], sigma_deg: dict[str, float], names: list[str]) -> dict[str, float]:
+def loop_noise(over: dict[str, Any], names: list[str]) -> dict[str, float]:
     """The mean squared gap the noise fed back through each closed loop of ``names`` leaves, on the rig with
     overrides ``over``: :func:`harness.diagnosis.simulation.loop_noise_gap`."""
-    return loop_noise_gap(_CTX["rig"], _CTX["setup"], sigma_deg, over, names)
+    return loop_noise_gap(_CTX["rig"], _CTX["setup"], over, names)
 
 
 TASKS: dict[str, Callable[..., Any]] = {
