@@ -15,7 +15,8 @@ Recalibration first: the linear parameters (:data:`harness.diagnosis.recalibrate
 
 Score: closure = (E_before - E_after) / (E_before - E_floor), E the mean squared gap, E_floor = max(E_noise,
 GAP_RESOLUTION^2). Backward elimination (:func:`eliminate`) then drops an effect whose removal reopens less than
-DROP_MIN of the excess gap left after recalibration; the importance (:func:`importance`) is each effect's share of
+DROP_MIN of the excess gap left after recalibration, unless it still closes MIN_CLOSURE of the gap left without it
+(a small second effect beside a large one); the importance (:func:`importance`) is each effect's share of
 what the removals reopen. An effect found by its signature (the ADC lattice) is added last with its honest shrink.
 """
 
@@ -276,7 +277,8 @@ def eliminate(cf: CrossFit, fw: Forward, e_start: float) -> tuple[dict[str, floa
     """Drop-one on held-out data: each chosen effect removed from the final model (the others and the jointly
     refitted linear parameters kept); the effect whose removal reopens least is dropped (from ``fw.chosen`` and
     ``fw.bases``, in place) while that is less than DROP_MIN of the excess gap left after recalibration
-    (``e_start``). Returns ({effect: held-out E without it}, held-out E of the effects kept)."""
+    (``e_start``) and it closes less than MIN_CLOSURE of the excess gap left without it (what let it in).
+    Returns ({effect: held-out E without it}, held-out E of the effects kept)."""
     e_expl = fw.msg
     excess = e_start - cf.floor
     chosen, bases = fw.chosen, fw.bases
