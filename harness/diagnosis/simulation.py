@@ -4,7 +4,8 @@ Every experiment is re-simulated on the sim spec's rig (plant and DAQ FMUs, the 
 its per-experiment overrides, measurement noise off, DAQ sample rate 1/Ts of the data) as it was run
 (:attr:`RigExperiment.replay`): an open-loop experiment with the real command ``u`` from the data; a closed-loop
 record from its reference through the controller FMU (reference -> controller -> DAQ -> plant -> DAQ ->
-controller), started at the measured shaft angle (trial parameters whose loop diverges hold its last sample: a
+controller), with the data's own noise in its DAQ (:attr:`Setup.loop_noise`: the controller acted on noisy samples),
+started at the measured shaft angle (trial parameters whose loop diverges hold its last sample: a
 large gap, not an error); a closed-loop record whose controller is not known by multiple
 shooting: the real command replayed open loop in windows of SHOOTING_SECONDS, each started again from the measured
 state (theta, alpha and their rates, smoothed), so that the drift an open-loop replay of a feedback-controlled
