@@ -135,12 +135,12 @@ def diagnose_run(
     noise, e_noise = noise_floor(records, adc_range, cal, experiments)
     closed = any(x.replay == "closed" for x in experiments.values())
     sigma = {"theta": noise.theta_deg, "alpha": noise.alpha_deg}  # [deg], an ADC's quantisation included
-    setup = Setup(plant, daq, cal.comb_angles, experiments, shipped, replay_noise(daq, sigma) if closed else {})
+    setup = Setup(plant, daq, cal.comb_angles, experiments, shipped, replay_noise(daq, sigma))  # closed replays
     top = max(x.peak_command_v for x in experiments.values())
     cands = candidates(CandidateContext(plant, daq, top, noise.adc_lattice_bits))
     pool = Pool(setup, workers, scheduler, progress)
     try:
-        found = search(pool, experiments, (folds.A, folds.B), cands, e_noise, say, sigma if closed else None)
+        found = search(pool, experiments, (folds.A, folds.B), cands, e_noise, say, sigma)
         recal_over = {k: v for k, v in found.final.items() if k in recal.LINEAR}
         before, after = pool.map([("where", {}), ("where", recal_over)])  # as tasks: side by side
     finally:

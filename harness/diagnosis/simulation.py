@@ -229,9 +229,11 @@ def loop_noise_gap(
     in closed loop (the measurement noise of both sides is part of it); none without :attr:`Setup.loop_noise`."""
     over = dict(over or {})
     out: dict[str, float] = {}
+    if not setup.loop_noise:
+        return out
     for name in names if names is not None else list(setup.experiments):
         x = setup.experiments[name]
-        if x.replay != "closed" or not setup.loop_noise:
+        if x.replay != "closed":
             continue
         th0, al0, on0 = simulate(rig, setup, x, over)
         qs = []
