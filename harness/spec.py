@@ -289,15 +289,16 @@ def from_dict(raw: dict[str, Any], path: str = "") -> Spec:
 
 
 def resolve_path(spec: str | Path) -> Path:
-    """A spec path, or a bare name looked up in the bundled specs (``lab`` -> specs/lab.toml)."""
+    """A spec path, or a bare name looked up in the bundled specs (``lab`` -> specs/lab.toml; a bundled name wins
+    over a directory of that name here, such as the ``blind`` a blind test wrote)."""
     p = Path(spec)
     if p.is_file():
         return p
-    if p.is_dir():
-        raise SpecError(f"spec {spec} is a directory, not a TOML file")
     for cand in (SPEC_DIR / p, SPEC_DIR / f"{p}.toml"):
         if cand.is_file():
             return cand
+    if p.is_dir():
+        raise SpecError(f"spec {spec} is a directory, not a TOML file")
     have = ", ".join(bundled_specs()) or "none"
     raise SpecError(f"spec {spec} not found (looked in . and {SPEC_DIR}; bundled: {have})")
 

@@ -93,6 +93,13 @@ def test_missing_spec_names_the_bundled_ones(tmp_path):
         specmod.load(tmp_path)
 
 
+def test_a_bundled_name_wins_over_a_directory_of_that_name(tmp_path, monkeypatch):
+    """``flexjoint bench`` run where a blind test left ./blind used to fail: "spec blind is a directory"."""
+    (tmp_path / "blind").mkdir()
+    monkeypatch.chdir(tmp_path)
+    assert specmod.resolve_path("blind") == specmod.SPEC_DIR / "blind.toml"
+
+
 def test_spec_loader_honours_flexjoint_fmu_src(tmp_path, monkeypatch):
     """The parameter names a spec may set come from the FMU source tree the build uses, $FLEXJOINT_FMU_SRC too."""
     import shutil
