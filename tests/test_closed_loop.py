@@ -10,9 +10,10 @@ import pytest
 from harness import spec as specmod
 from harness.diagnosis import blindtest as bt
 from harness.diagnosis.diagnose import diagnose_run
+from harness.diagnosis.effects import SELECTED_BY_SPREAD
 from harness.diagnosis.experiments import load_experiments
 from harness.diagnosis.noise import noise_floor
-from harness.diagnosis.search import NONE_RATIO_LOOP
+from harness.diagnosis.search import NONE_RATIO_LOOP, SPREAD_DIVERGENCE, SPREAD_GAIN, spread_divergence
 from harness.diagnosis.simulation import Setup, fit_pct, fmu_value, replay_noise, residuals, sim_rig
 from harness.diagnosis.tasks import Pool
 from harness.executor import fmu_bytes
@@ -280,10 +281,13 @@ RIG_25 = {"plant.Beq": 0.0022588, "plant.Jeq": 0.0023131, "plant.Ks": 1.446823, 
 COULOMB_25 = 0.0218221
 
 
-def _blind_closed_run(tmp_path, truth: dict[str, float], case: int, seed: int) -> tuple[Path, specmod.Spec]:
-    """A closed blind-family rig (quick: four 4 s square references; odd ``case``: 1 kHz) with ``truth``."""
+def _blind_closed_run(
+    tmp_path, truth: dict[str, float], case: int, seed: int, sensor: dict[str, float] | None = None
+) -> tuple[Path, specmod.Spec]:
+    """A closed blind-family rig (quick: four 4 s square references; odd ``case``: 1 kHz) with ``truth`` (and an
+    out-of-library ``sensor`` fault)."""
     c = {"case": case, "family": "closed", "kind": "single", "nuisance": RIG_25, "truth_params": truth,
-         "truth_effects": [], "sensor": {}, "campaign_seed": seed}  # fmt: skip
+         "truth_effects": [], "sensor": sensor or {}, "campaign_seed": seed}  # fmt: skip
     run = tmp_path / f"case_{case}"
     bt.make_rig_run(c, run, quick=True)
     return run, bt.campaign_spec(True, bt._case_sets(c)[1:], "closed")
@@ -345,3 +349,49 @@ def test_a_closed_loop_floor_is_simulated_and_judged_within_its_own_ratio(tmp_pa
     assert d.verdict == "delay" and d.fitted_effect_params() == {"daq.delay_samples": 1}
     assert NONE_RATIO_LOOP < dec.after_recalibration / dec.noise_floor < 2.0, dec
     assert dec.after_effects / dec.noise_floor < NONE_RATIO_LOOP  # nothing left beyond noise
+
+
+def test_spread_divergence_is_zero_where_the_gap_is_the_replays_spread():
+    """The divergence r - log r - 1 per window: 0 when every window's gap equals the spread; a misfit twice the spread
+    in half the windows gives 0.5 (2 - log 2 - 1 = 0.307 per window, plus the noise floor's share)."""
+    x = type("X", (), {"sst": {"theta": 1.0, "alpha": 0.0}})()
+    same = {"e": {"gap": {"theta": np.full(8, 4.0)}, "spread": {"theta": np.full(8, 4.0)}, "samples": 4}}
+    assert spread_divergence([same], {"e": x}, {"theta": 0.0, "alpha": 0.0}) == 0.0
+    half = {"e": {"gap": {"theta": np.r_[np.full(4, 8.0), np.full(4, 4.0)]}, "spread": {"theta": np.full(8, 4.0)},
+                  "samples": 4}}  # fmt: skip
+    assert spread_divergence([half], {"e": x}, {"theta": 0.0, "alpha": 0.0}) == pytest.approx(
+        0.5 * (2.0 - np.log(2.0) - 1.0)
+    )
+    # a window where both sit below the data's noise counts as agreeing
+    assert spread_divergence([half], {"e": x}, {"theta": 100.0, "alpha": 0.0}) < 1e-4
+
+
+def test_backlash_in_a_closed_loop_is_found_by_its_spread(tmp_path):
+    """A gear's play under state feedback rattles in a phase the noise sets: the replay with the true play scores a
+    larger gap than one without it, so closing the gap never finds it (the closed blind family lost all 5 of its
+    backlash rigs that way). By its spread it is found and sized: with it the replays' gap is their own spread window
+    by window, without it not."""
+    b = 0.006
+    run, sim = _blind_closed_run(tmp_path, {"plant.backlash": b}, 32, 4321)
+    d = diagnose_run(run, sim, tmp_path / "out", workers=1)
+    assert d.verdict == "backlash", d.verdict
+    (eff,) = d.effects
+    assert eff.selected_by == SELECTED_BY_SPREAD and abs(eff.params["plant.backlash"] / b - 1.0) < 0.25, eff
+    assert eff.gap_after > eff.gap_before  # the sample-by-sample gap grew: it is not what found the play
+    (test,) = d.rounds[-1]
+    assert test["kept"] and test["divergence_with"] <= SPREAD_DIVERGENCE, test
+    assert test["divergence_with"] <= SPREAD_GAIN * test["divergence_without"], test
+    assert 0.8 < test["gap_after"] / test["spread_gap"] < 1.25, test
+    assert d.gap.explained_pct >= 50.0 and d.thresholds.spread_divergence == SPREAD_DIVERGENCE
+
+
+def test_a_drifting_gauge_is_not_explained_by_a_rattle(tmp_path):
+    """A systematic misfit outside the library (the strain gauge's gain drifting 25 % over a record): a large play
+    spreads the replays as wide as the gap, but not where the gap lies, so backlash is tested and not kept and the
+    verdict stays unexplained (on the closed blind family: divergence 5-10 with the best play, 0.46-0.6x without)."""
+    run, sim = _blind_closed_run(tmp_path, {}, 36, 4321, {"gauge_drift": 0.25})
+    d = diagnose_run(run, sim, tmp_path / "out", workers=1)
+    assert d.verdict == "unexplained" and not d.effects, (d.verdict, d.effects)
+    (test,) = d.rounds[-1]
+    assert test["test"] == "spread" and not test["kept"], test
+    assert test["divergence_with"] > SPREAD_DIVERGENCE, test

@@ -58,7 +58,16 @@ from .effects import CandidateContext, candidates
 from .experiments import REPLAYS, RigExperiment, fold_experiments, load_experiments, masked_share
 from .noise import noise_floor
 from .result import Diagnosis, FittedParameter, SensorCalibration, Thresholds
-from .search import EXPLAINED, GAP_RESOLUTION, MIN_CLOSURE, NONE_RATIO, NONE_RATIO_LOOP, search
+from .search import (
+    EXPLAINED,
+    GAP_RESOLUTION,
+    MIN_CLOSURE,
+    NONE_RATIO,
+    NONE_RATIO_LOOP,
+    SPREAD_DIVERGENCE,
+    SPREAD_GAIN,
+    search,
+)
 from .simulation import Setup, fit_pct, fmu_value, replay_noise, sim_rig
 from .tasks import Pool
 
@@ -77,8 +86,13 @@ THRESHOLDS = Thresholds(
     "names the effect whose removal reopens most of the gap when the effects together close >= explained "
     "of the excess left after recalibration, else unexplained; none_ratio_loop in place of none_ratio when every "
     "experiment is a closed-loop replay on no ADC lattice (the floor then simulated: the replay with the data's "
-    "noise against the same with another noise draw)",
+    "noise against the same with another noise draw); where every experiment is a closed-loop replay and a gap "
+    "beyond the floor is left, an effect the loop does not reproduce sample by sample (backlash) is tested by its "
+    "spread: kept when, with it, the replays' gap is their own spread between noise draws window by window "
+    "(held-out divergence <= spread_divergence and <= spread_gain x that without it)",
     none_ratio_loop=NONE_RATIO_LOOP,
+    spread_divergence=SPREAD_DIVERGENCE,
+    spread_gain=SPREAD_GAIN,
 )
 
 

@@ -23,6 +23,7 @@ __all__ = [
     "BY_PARAM",
     "EFFECTS",
     "SECONDARY",
+    "SELECTED_BY_SPREAD",
     "VERDICTS",
     "CandidateContext",
     "Effect",
@@ -44,6 +45,7 @@ class CandidateContext:
 
 
 Rule = Callable[["Effect", CandidateContext], "Effect | None"]
+SELECTED_BY_SPREAD = "closed-loop spread"  # how an effect kept by its spread entered (FoundEffect.selected_by)
 
 
 def always(eff: Effect, _ctx: CandidateContext) -> Effect | None:
@@ -84,7 +86,11 @@ class Effect:
     absolute bounds; ``blind``: the magnitudes the blind test hides in its rigs (log-uniform, or integers);
     ``rule``: the candidate rule (the effect with the range to search against a simulation and data, or None
     when it is not worth fitting, for the reason ``skipped``); ``signature``: found by its signature in the data
-    (the ADC lattice), not by closing the gap: it is added last with its honest shrink, never searched.
+    (the ADC lattice), not by closing the gap: it is added last with its honest shrink, never searched;
+    ``spread``: in a closed loop the effect makes the motion depend on the noise the controller feeds back (a gear's
+    play rattles in a phase the noise sets), so no replay reproduces the record sample by sample and a fit of its
+    gap takes it to zero: it is tested by its spread (:func:`harness.diagnosis.search.by_spread`) when closing the gap
+    left it out.
     """
 
     name: str
@@ -101,6 +107,7 @@ class Effect:
     rule: Rule = always
     skipped: str = "already in the simulation"
     signature: bool = False
+    spread: bool = False
 
     @property
     def params(self) -> set[str]:
@@ -158,6 +165,7 @@ EFFECTS: dict[str, Effect] = {
             )
         },
         blind=(0.002, 0.01),
+        spread=True,
     ),
     # the blind campaign's 2.5 V square and 3 V PRBS reach beyond these limits
     "saturation": Effect(

@@ -261,6 +261,8 @@ class Thresholds:
     resolution: float
     meaning: str
     none_ratio_loop: float | None = None  # in place of none_ratio where the floor is simulated, not estimated
+    spread_divergence: float | None = None  # an effect tested by its spread: held-out divergence at most this
+    spread_gain: float | None = None  # ... and at most this share of the divergence without it
 
 
 # ----------------------------------------------------------------------------------------------- the file

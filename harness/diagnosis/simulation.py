@@ -48,6 +48,7 @@ __all__ = [
     "fmu_value",
     "gap_summary",
     "loop_noise_gap",
+    "loop_spread",
     "mean_squared_gap",
     "replay_noise",
     "residuals",
@@ -60,6 +61,7 @@ SSE = dict[str, dict[str, float]]  # experiment -> channel -> sum of squared res
 MODELS = {"plant": "flexjoint", "daq": "daq"}  # the FMU behind each rig table
 REPLAY_NOISE_SEED = 7  # noise seed of every closed-loop replay (:attr:`Setup.loop_noise`)
 LOOP_NOISE_SEEDS = (1, 2)  # other seeds, whose replays against it measure what noise fed back leaves
+SPREAD_SECONDS = 0.25  # s: the windows in which a closed-loop replay's gap is set beside its spread (loop_spread)
 
 
 def fmu_value(table: Mapping[str, Any], model: str, name: str) -> float:
@@ -216,6 +218,12 @@ def replay_noise(daq: Mapping[str, Any], sigma_deg: Mapping[str, float]) -> dict
     }
 
 
+def _loop_replays(rig: Any, setup: Setup, x: RigExperiment, over: Mapping[str, Any]) -> list[tuple[np.ndarray, ...]]:
+    """A closed-loop experiment's replay with the noise seed REPLAY_NOISE_SEED, then with each of LOOP_NOISE_SEEDS:
+    (theta, alpha, on_track) each (:func:`simulate`)."""
+    return [simulate(rig, setup, x, {**over, **({"daq.seed": s} if s else {})}) for s in (None, *LOOP_NOISE_SEEDS)]
+
+
 def loop_noise_gap(
     rig: Any, setup: Setup, over: Mapping[str, Any] | None = None, names: list[str] | None = None
 ) -> dict[str, float]:
@@ -235,12 +243,48 @@ def loop_noise_gap(
         x = setup.experiments[name]
         if x.replay != "closed":
             continue
-        th0, al0, on0 = simulate(rig, setup, x, over)
+        (th0, al0, on0), *others = _loop_replays(rig, setup, x, over)
         qs = []
-        for seed in LOOP_NOISE_SEEDS:
-            th, al, on = simulate(rig, setup, x, {**over, "daq.seed": seed})
+        for th, al, on in others:
             ok = on & on0 & x.valid["theta"][: th.size]
             sse = {"theta": float(np.sum((th - th0)[ok] ** 2)), "alpha": float(np.sum((al - al0) ** 2))}
             qs += [sse[c] / x.sst[c] for c in CHANNELS if x.sst[c] > 0]
         out[name] = float(np.mean(qs)) if qs else 0.0
+    return out
+
+
+def _window_sums(v: np.ndarray, w: int) -> np.ndarray:
+    """Sums of ``v`` over its consecutive whole windows of ``w`` samples (a last partial window left out)."""
+    n = v.size // w
+    return v[: n * w].reshape(n, w).sum(axis=1)
+
+
+def loop_spread(rig: Any, setup: Setup, over: Mapping[str, Any], names: list[str]) -> dict[str, dict[str, Any]]:
+    """A closed-loop replay's gap beside its own spread, window by window (SPREAD_SECONDS). Per experiment of
+    ``names`` replayed in closed loop and per channel: ``gap``, the squared residual of the data to the replay
+    [deg^2] summed over each window, and ``spread``, the same between the replay and its replays with the other
+    LOOP_NOISE_SEEDS (their mean), on the rig with overrides ``over``; ``samples``: a window's length. Where the
+    replay is right but the loop does not reproduce itself (a gear's play rattling in a phase the noise sets), the
+    two agree in every window; a systematic misfit shows where it lies. Samples not valid on either side count 0;
+    none without :attr:`Setup.loop_noise`."""
+    out: dict[str, dict[str, Any]] = {}
+    if not setup.loop_noise:
+        return out
+    for name in names:
+        x = setup.experiments[name]
+        if x.replay != "closed":
+            continue
+        (th0, al0, on0), *others = _loop_replays(rig, setup, x, over)
+        m = th0.size
+        w = max(1, int(round(SPREAD_SECONDS / x.Ts)))
+        ok0 = {"theta": on0 & x.valid["theta"][:m], "alpha": x.valid["alpha"][:m]}
+        sim0 = {"theta": th0, "alpha": al0}
+        data = {"theta": x.theta[:m], "alpha": x.alpha[:m]}
+        gap = {c: _window_sums(np.where(ok0[c], data[c] - sim0[c], 0.0) ** 2, w) for c in CHANNELS}
+        spread = {c: np.zeros(m // w) for c in CHANNELS}
+        for th, al, on in others:
+            ok = {"theta": ok0["theta"] & on, "alpha": ok0["alpha"]}
+            for c, y in (("theta", th), ("alpha", al)):
+                spread[c] += _window_sums(np.where(ok[c], y - sim0[c], 0.0) ** 2, w) / len(others)
+        out[name] = {"gap": gap, "spread": spread, "samples": w}
     return out

@@ -1,7 +1,7 @@
 """The diagnosis's simulations as tasks of a :class:`harness.executor.Executor`.
 
 The setup (simulation, real experiments, FMU bytes) is sent to every worker once and each worker loads the rig
-once. Five tasks, given as ``(kind, *args)`` calls to :meth:`Pool.map`:
+once. Seven tasks, given as ``(kind, *args)`` calls to :meth:`Pool.map`:
 
 - ``("sse", over, names[, window])``: squared errors per experiment and channel with overrides ``over``;
 - ``("fit", effect, base, fit, every)``: :func:`screen_effect`, one effect's parameter alone on top of ``base``;
@@ -10,7 +10,8 @@ once. Five tasks, given as ``(kind, *args)`` calls to :meth:`Pool.map`:
 - ``("resid", over, names, k)``: :func:`residual_vector`, a stretch of a residual vector, for a least squares run
   by the client (:meth:`Pool.refit`);
 - ``("where", over)``: :func:`where`, where the gap lies;
-- ``("loopnoise", over, names)``: :func:`loop_noise`, what the noise a closed loop feeds back leaves, per experiment.
+- ``("loopnoise", over, names)``: :func:`loop_noise`, what the noise a closed loop feeds back leaves, per experiment;
+- ``("spread", over, names)``: :func:`spread`, a closed-loop replay's gap beside its own spread, window by window.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ from ..executor import Executor, one_blas_thread, worker_rig
 from . import recalibrate as recal
 from .effects import BY_PARAM, Effect
 from .experiments import CHANNELS
-from .simulation import SSE, Setup, loop_noise_gap, mean_squared_gap, residuals
+from .simulation import SSE, Setup, loop_noise_gap, loop_spread, mean_squared_gap, residuals
 from .where import where_gap
 
 __all__ = [
@@ -38,6 +39,7 @@ __all__ = [
     "moving_channels",
     "residual_vector",
     "screen_effect",
+    "spread",
     "squared_errors",
     "stretches",
     "where",
@@ -201,6 +203,12 @@ def loop_noise(over: dict[str, Any], names: list[str]) -> dict[str, float]:
     return loop_noise_gap(_CTX["rig"], _CTX["setup"], over, names)
 
 
+def spread(over: dict[str, Any], names: list[str]) -> dict[str, dict[str, Any]]:
+    """Each closed-loop replay of ``names`` with overrides ``over``, its gap beside its own spread per window:
+    :func:`harness.diagnosis.simulation.loop_spread`."""
+    return loop_spread(_CTX["rig"], _CTX["setup"], over, names)
+
+
 TASKS: dict[str, Callable[..., Any]] = {
     "sse": squared_errors,
     "fit": screen_effect,
@@ -208,6 +216,7 @@ TASKS: dict[str, Callable[..., Any]] = {
     "resid": residual_vector,
     "where": where,
     "loopnoise": loop_noise,
+    "spread": spread,
 }
 
 
@@ -224,7 +233,7 @@ def _label(call: tuple[Any, ...]) -> str:
         return f"screen {call[1].name}"
     if kind == "refit":
         return "refit linear" + "".join(f" + {p.split('.', 1)[1]}" for p in call[2])
-    return {"where": "where", "loopnoise": "loop noise"}.get(kind, "score")
+    return {"where": "where", "loopnoise": "loop noise", "spread": "loop spread"}.get(kind, "score")
 
 
 def stretches(setup: Setup, names: list[str], n: int) -> list[list[str]]:

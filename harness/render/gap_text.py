@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
+from ..diagnosis.effects import SELECTED_BY_SPREAD
 from ..diagnosis.result import Diagnosis
 from .tables import fmt, fmt_any, num, table
 
@@ -24,6 +25,7 @@ LATTICE = "ADC lattice"
 FOUND_BY = {
     "held-out closure": "closes the held-out gap",
     "adc lattice in the data": f"{LATTICE} of the data (kept without closing the gap)",
+    SELECTED_BY_SPREAD: "its own spread in closed loop (kept although the gap grew)",
 }
 _ORDINAL = {1: "first", 2: "second", 3: "third", 4: "fourth", 5: "fifth", 6: "sixth"}
 
@@ -119,6 +121,16 @@ def _effects_lines(diag: Diagnosis) -> list[str]:
             "lattice of a converter's steps. It is kept for the record although its shrink is negative, because "
             "quantisation error looks like noise and the simulation scores it against a noisy record (it has no "
             "importance for the same reason).",
+            "",
+        ]
+    for t in (r for rnd in diag.rounds for r in rnd if r.get("test") == "spread" and r.get("kept")):
+        lines += [
+            f"{t['effect']} is not found by closing the gap but by its spread: in a closed loop it makes the motion "
+            "depend on the noise the controller feeds back (a gear's play rattles in a phase the noise sets), so no "
+            "replay reproduces the record sample by sample and the replay with it scores a larger gap than one "
+            f"without it. With it, the replays' held-out gap ({fmt(t['gap_after'], 4)}) is their own spread between "
+            f"noise draws ({fmt(t['spread_gap'], 4)}) window by window: divergence {fmt(t['divergence_with'], 3)}, "
+            f"against {fmt(t['divergence_without'], 3)} without it (0 when the gap is the spread everywhere).",
             "",
         ]
     return lines
