@@ -20,6 +20,7 @@ from harness.executor import fmu_bytes
 from harness.fmu.build import build_all
 from harness.fmu.cosim import Rig
 from harness.ident.calibration import LAB1_CALIBRATION, Calibration, alpha_deg, load_calibration, theta_deg
+from harness.render.gap_text import verdict_sentence
 from harness.rig.campaign import run_campaign
 from harness.rig.controller import Controller, law
 from harness.rundir import Manifest, RunDir, read_dataset
@@ -383,6 +384,7 @@ def test_backlash_in_a_closed_loop_is_found_by_its_spread(tmp_path):
     assert test["divergence_with"] <= SPREAD_GAIN * test["divergence_without"], test
     assert 0.8 < test["gap_after"] / test["spread_gap"] < 1.25, test
     assert d.gap.explained_pct >= 50.0 and d.thresholds.spread_divergence == SPREAD_DIVERGENCE
+    assert verdict_sentence(d).startswith("`backlash` is found by its spread in closed loop")
 
 
 def test_a_drifting_gauge_is_not_explained_by_a_rattle(tmp_path):

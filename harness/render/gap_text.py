@@ -50,6 +50,13 @@ def verdict_sentence(diag: Diagnosis) -> str:
         return f"`{verdict}`: {VERDICT_MEANING[verdict]}."
     if not effects:
         return ""
+    if any(e.effect == verdict and e.selected_by == SELECTED_BY_SPREAD for e in effects):
+        others = [f"`{e.effect}`" for e in effects if e.effect != verdict]
+        return (
+            f"`{verdict}` is found by its spread in closed loop (below): with it the replays' gap is their own spread "
+            f"between noise draws, which accounts for {fmt(diag.gap.explained_pct, 1)} % of the gap beyond noise on "
+            f"held-out experiments{' together with ' + ', '.join(others) if others else ''}."
+        )
     if len(effects) == 1:
         return (
             f"`{verdict}` is the only effect found; modelled on top of the recalibrated simulation it closes "
