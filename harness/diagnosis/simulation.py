@@ -22,7 +22,8 @@ keeps it: the feedback (or the restart) fixes the offset.
 
 Gap. Per experiment and channel q = ||y_real - y_sim||^2 / ||y_real - mean||^2 over valid samples; the mean
 squared gap E = mean q over experiments and channels (channels with no motion skipped), the gap g = sqrt(E), fit %
-= 100 (1 - g) (MATLAB ``compare``'s fit, pooled).
+= 100 (1 - g) (MATLAB ``compare``'s fit, pooled). A closed-loop replay's gap is also set beside its own spread
+between noise draws, window by window (:func:`loop_spread`), for effects the loop does not reproduce sample by sample.
 """
 
 from __future__ import annotations
