@@ -117,6 +117,11 @@ class CrossFit:
     none_ratio: float = NONE_RATIO
 
     @property
+    def all_closed(self) -> bool:
+        """Is every experiment a closed-loop replay (its floor simulated, a spread effect testable)?"""
+        return all(x.replay == "closed" for x in self.experiments.values())
+
+    @property
     def floor(self) -> float:
         """E_floor = max(E_noise, GAP_RESOLUTION^2): below it no gap can be told from noise or calibration."""
         return max(self.noise, GAP_RESOLUTION**2)
@@ -489,14 +494,12 @@ def by_spread(cf: CrossFit, eff: Effect, bases: list[Overrides], sigma_deg: dict
 def spread_round(
     cf: CrossFit, fw: Forward, searched: list[Effect], sigma_deg: dict[str, float], e_expl: float, say: Progress
 ) -> tuple[list[dict[str, Any]], float]:
-    """Where every experiment is a closed-loop replay, each ``spread`` effect not chosen is tested by its spread
-    (:func:`by_spread`) on top of the model ``fw.bases``, which takes it when it is kept (in place). Returns the
-    tests (the round's entries) and the held-out E left beyond what the model's own spread accounts for (``e_expl``,
-    the E after the effects closing the gap, when none is kept)."""
+    """Each ``spread`` effect not chosen tested by its spread (:func:`by_spread`) on top of the model ``fw.bases``,
+    which takes it when it is kept (in place); for a closed-loop cross-fit (:attr:`CrossFit.all_closed`). Returns
+    the tests (the round's entries) and the held-out E left beyond what the model's own spread accounts for
+    (``e_expl``, the E after the effects closing the gap, when none is kept)."""
     tested: list[dict[str, Any]] = []
     e_left = e_expl
-    if not all(x.replay == "closed" for x in cf.experiments.values()):
-        return tested, e_left
     for c in searched:
         if c.spread and c.name not in fw.chosen:
             t = by_spread(cf, c, fw.bases, sigma_deg)
@@ -550,7 +553,7 @@ def search(
     signature = [c for c in cands if c.signature]
     if loop_sigma is not None:  # the noise a closed loop feeds back, on the rig as recalibrated
         cf.noise = e_noise = loop_floor(cf, e_noise, loop_sigma, recalibrated_alone(rec) if recal_paid else {})
-        if not signature and all(x.replay == "closed" for x in experiments.values()):
+        if not signature and cf.all_closed:
             cf.none_ratio = NONE_RATIO_LOOP
     say(f"gap before: fit {fit_pct(e0):.2f} %, noise floor {fit_pct(e_noise):.3f} %")
     bases: list[Overrides] = [dict(r["params"]) for r in rec] if recal_paid else [{}, {}]
@@ -566,27 +569,31 @@ def search(
     for c in signature:
         for k in (0, 1):
             fw.bases[k][c.param] = c.values[0]
+    # an effect the loop does not reproduce sample by sample, by its spread, where a closed-loop gap is left open
     tested: list[dict[str, Any]] = []
     e_left = e_expl
-    if loop_sigma is not None and not no_gap and e_expl > cf.none_ratio**2 * cf.floor:
+    if loop_sigma is not None and cf.all_closed and not no_gap and e_expl > cf.none_ratio**2 * cf.floor:
         tested, e_left = spread_round(cf, fw, searched, loop_sigma, e_expl, say)
     by_spread_kept = [r["effect"] for r in tested if r["kept"]]
     order = fw.chosen + [c.name for c in signature] + by_spread_kept
     steps = [("recalibration", e_recal, recal_paid)] + [
         (e, m, True) for e, m in zip(order, waterfall(cf, fw, order), strict=True)
     ]
-    explained = min(closure(e_start, e_left, cf.floor), 1.0) if not no_gap else math.nan
+
+    def share(e_after: float) -> float:  # of the excess left after recalibration, closed down to e_after
+        return min(closure(e_start, e_after, cf.floor), 1.0) if not no_gap else math.nan
+
+    explained = share(e_left)
     final, table = final_params(cf, fw.bases, order, set(by_spread_kept))
     for prm, value in recalibrated_alone(rec).items():
         table[prm].recalibrated = value
     sse_final, *sse_signature = pool.map(
         [("sse", final, names), *(("sse", {**fw.bases[0], c.param: c.values[0]}, names) for c in signature)]
     )
-    effects = _found_effects(cf, fw.bases, order, steps, e0 if not recal_paid else e_recal, final, shares)
-    for e in effects:
-        if e.effect in by_spread_kept:  # kept although the gap grew: it is its own spread
-            e.selected_by = SELECTED_BY_SPREAD
-    by_closure = min(closure(e_start, e_expl, cf.floor), 1.0) if not no_gap else math.nan
+    effects = _found_effects(
+        cf, fw.bases, order, steps, e0 if not recal_paid else e_recal, final, shares, set(by_spread_kept)
+    )
+    by_closure = share(e_expl)
     if no_gap:
         verdict = signature[0].name if signature else "none"
     elif by_spread_kept and explained >= EXPLAINED and explained - by_closure > by_closure:
@@ -643,9 +650,11 @@ def _found_effects(
     e_first: float,
     final: Overrides,
     shares: dict[str, float],
+    spread_kept: set[str],
 ) -> list[FoundEffect]:
     """The effects found, in ``order``, each with the held-out gap before and after it was added (the waterfall
-    ``steps`` after the recalibration; ``e_first`` the held-out E the first effect started from)."""
+    ``steps`` after the recalibration; ``e_first`` the held-out E the first effect started from); those of
+    ``spread_kept`` entered by their spread (kept although the gap grew)."""
     effects = []
     prev = e_first
     for name, (_, m, _) in zip(order, steps[1:], strict=True):
@@ -664,7 +673,7 @@ def _found_effects(
                 importance_pct=100.0 * shares[name] if name in shares else math.nan,
                 fitted_on=[cf.fits[0], cf.fits[1]],
                 held_out=[cf.helds[0], cf.helds[1]],
-                selected_by=EFFECTS[name].selected_by,
+                selected_by=SELECTED_BY_SPREAD if name in spread_kept else EFFECTS[name].selected_by,
             )
         )
         prev = m
