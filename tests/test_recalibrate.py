@@ -110,3 +110,24 @@ def test_a_simulation_on_a_lattice_still_gets_an_interval():
     f = recal.fit(resid, {"k": recal.Bound(0.5, 2.0, "1", "gain")}, {"k": 1.9}, start={"k": 2.0})
     lo, hi = f.ci95["k"]
     assert recal.identifiable((lo, hi)) and lo < 2.0 < hi and hi / lo < 1.1, (lo, hi)
+
+
+def test_a_staircase_is_fitted_without_derivatives():
+    """A simulation whose output sits on a coarse lattice (a closed loop through an ADC: the controller acts on the
+    quantised angle) is flat to every 0.1 % step: least squares stays at its start (one evaluation). Powell's search
+    finds the gain within 0.5 %, and its interval covers the truth."""
+    t = np.linspace(0, 4, 800)
+    lsb = 0.1
+    y = lsb * np.round(
+        (_second_order(2.0, 6.0, 0.15, t) + 0.02 * np.random.default_rng(0).standard_normal(t.size)) / lsb
+    )
+
+    def resid(p):
+        return y - lsb * np.round(_second_order(p["k"], 6.0, 0.15, t) / lsb)
+
+    bounds = {"k": recal.Bound(0.5, 2.0, "1", "gain")}
+    stuck = recal.fit(resid, bounds, {"k": 1.6})
+    assert stuck.values["k"] == 1.6 and stuck.nfev == 1
+    f = recal.fit(resid, bounds, {"k": 1.6}, derivative_free=True)
+    lo, hi = f.ci95["k"]
+    assert f.values["k"] == pytest.approx(2.0, rel=0.005) and lo < 2.0 < hi and hi / lo < 1.05, (f.values, lo, hi)

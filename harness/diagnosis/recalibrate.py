@@ -8,6 +8,11 @@ to the spec's value (so bounds are factors and steps are relative). Standard err
 the solution, cov = s^2 (J^T J)^-1 with s^2 = SSE / (N - p): the usual output-error intervals, which assume
 white residuals and are therefore optimistic when model error, not noise, dominates (said in the report).
 
+A closed loop through an ADC lattice is fitted without derivatives (``derivative_free``: Powell's search on the
+same sum of squares, steps down to :data:`POWELL_XTOL`). The controller acts on the quantised angles, so the whole
+trajectory is a staircase in the parameters: flat to a 0.1 % step, jumping at the next, and least squares stops
+at its start. The intervals then come from a Jacobian taken with steps of :data:`STAIRCASE_STEP`.
+
 A parameter the data do not determine (its 95 % interval wider than a factor :data:`UNIDENTIFIABLE`) drifts along a
 flat valley of the cost, on real records often to a search bound, where it would read as "the spec may not
 describe this rig" although the spec's value fits as well. Such a parameter (of those the caller names ``hold``)
@@ -26,7 +31,7 @@ from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.optimize import least_squares
+from scipy.optimize import OptimizeResult, least_squares, minimize
 
 
 @dataclass(frozen=True)
@@ -60,6 +65,7 @@ UNIDENTIFIABLE = 100.0  # a 95 % interval wider than this factor (hi / lo) says 
 HOLD_TOLERANCE = 0.02  # an undetermined parameter keeps the spec's value when that costs < 2 % more squared error
 SE_CAP = 50.0  # standard error [log of the factor] of a parameter the residuals do not determine: no interval
 STAIRCASE_STEP = 0.05  # a Jacobian column that a 0.1 % step left at zero is taken again with a 5 % step (log)
+POWELL_XTOL = 0.01  # a derivative-free fit's smallest step: 1 % of a parameter (log)
 
 
 @dataclass
@@ -96,12 +102,14 @@ def fit(
     fixed: Mapping[str, float] | None = None,
     max_nfev: int = 30,
     hold: Collection[str] = (),
+    derivative_free: bool = False,
 ) -> Fit:
     """Fit the parameters of ``bounds`` (FMU names, "plant.Ks") by bounded least squares on ``residuals``
     (parameter dict -> residual vector; ``fixed`` overrides are added to every call), from ``start`` (default
-    ``nominal``), bounds relative to ``nominal``. Returns the fit with 95 % intervals from the Jacobian; those of
-    ``hold`` that the data do not determine are kept at ``nominal`` (see the module)."""
-    f = _fit(residuals, bounds, nominal, start, fixed, max_nfev)
+    ``nominal``), bounds relative to ``nominal``; ``derivative_free``: by Powell's search (a closed loop through a
+    lattice, see the module; up to (parameters + 1) ``max_nfev`` evaluations). Returns the fit with 95 % intervals
+    from the Jacobian; those of ``hold`` that the data do not determine are kept at ``nominal`` (see the module)."""
+    f = _fit(residuals, bounds, nominal, start, fixed, max_nfev, derivative_free)
     loose = [n for n in bounds if n in hold and not identifiable(f.ci95[n])]
     if not loose:
         return f
@@ -109,7 +117,7 @@ def fit(
     rest = {n: b for n, b in bounds.items() if n not in at_spec}
     if rest:
         start_rest = {n: v for n, v in f.values.items() if n in rest}
-        g = _fit(residuals, rest, nominal, start_rest, {**(fixed or {}), **at_spec}, max_nfev)
+        g = _fit(residuals, rest, nominal, start_rest, {**(fixed or {}), **at_spec}, max_nfev, derivative_free)
     else:  # nothing left to fit: the cost at the spec's values
         r = residuals({**(fixed or {}), **at_spec})
         g = Fit({}, {}, float(np.sum(r**2)), 1, int(np.count_nonzero(r)))
@@ -127,8 +135,9 @@ def _fit(
     start: Mapping[str, float] | None,
     fixed: Mapping[str, float] | None,
     max_nfev: int,
+    derivative_free: bool = False,
 ) -> Fit:
-    """:func:`fit`'s one bounded least squares."""
+    """:func:`fit`'s one bounded least squares (or Powell search)."""
     names = list(bounds)
     fixed = dict(fixed or {})
     start = {**nominal, **(start or {})}
@@ -143,17 +152,20 @@ def _fit(
     def params(x: np.ndarray) -> dict[str, float]:
         return {**fixed, **{n: _from_x(float(v), nominal[n], bounds[n]) for n, v in zip(names, x, strict=True)}}
 
-    res = least_squares(
-        lambda x: residuals(params(x)),
-        x0,
-        bounds=([b[0] for b in lo_hi], [b[1] for b in lo_hi]),
-        method="trf",
-        diff_step=1e-3,
-        x_scale=1.0,
-        max_nfev=max_nfev,
-        xtol=1e-3,
-        ftol=1e-4,
-    )
+    if derivative_free:
+        res = _powell(lambda x: residuals(params(x)), x0, lo_hi, max_nfev * (len(names) + 1))
+    else:
+        res = least_squares(
+            lambda x: residuals(params(x)),
+            x0,
+            bounds=([b[0] for b in lo_hi], [b[1] for b in lo_hi]),
+            method="trf",
+            diff_step=1e-3,
+            x_scale=1.0,
+            max_nfev=max_nfev,
+            xtol=1e-3,
+            ftol=1e-4,
+        )
     r = res.fun
     n_eff = int(np.count_nonzero(r))
     dof = max(n_eff - len(names), 1)
@@ -169,6 +181,24 @@ def _fit(
         hi = _from_x(float(res.x[i] + 1.96 * se[i]), nominal[n], bounds[n])
         ci[n] = (min(lo, hi), max(lo, hi))
     return Fit({n: values[n] for n in names}, ci, float(2.0 * res.cost), int(res.nfev), n_eff)
+
+
+def _powell(
+    resid: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, lo_hi: list[tuple[float, float]], max_nfev: int
+) -> OptimizeResult:
+    """Powell's bounded search for the least sum of squares of ``resid`` from ``x0``, returned as least squares
+    returns it (x, fun, cost = half the sum of squares, nfev) with a zero Jacobian for :func:`_felt` to take."""
+    p = minimize(
+        lambda x: float(np.sum(resid(x) ** 2)),
+        x0,
+        method="Powell",
+        bounds=lo_hi,
+        options={"xtol": POWELL_XTOL, "ftol": 1e-4, "maxfev": max_nfev},
+    )
+    r = resid(p.x)
+    return OptimizeResult(
+        x=p.x, fun=r, cost=0.5 * float(np.sum(r**2)), nfev=int(p.nfev) + 1, jac=np.zeros((r.size, x0.size))
+    )
 
 
 def _felt(
