@@ -149,7 +149,8 @@ def diagnose_run(
     noise, e_noise = noise_floor(records, adc_range, cal, experiments)
     closed = any(x.replay == "closed" for x in experiments.values())
     sigma = {"theta": noise.theta_deg, "alpha": noise.alpha_deg}  # [deg], an ADC's quantisation included
-    setup = Setup(plant, daq, cal.comb_angles, experiments, shipped, replay_noise(daq, sigma))  # closed replays
+    lattice = replay_noise(daq, noise.estimated_deg) if noise.adc_lattice_bits and noise.estimated_deg else {}
+    setup = Setup(plant, daq, cal.comb_angles, experiments, shipped, replay_noise(daq, sigma), lattice)  # closed
     top = max(x.peak_command_v for x in experiments.values())
     cands = candidates(CandidateContext(plant, daq, top, noise.adc_lattice_bits))
     pool = Pool(setup, workers, scheduler, progress)
@@ -161,9 +162,12 @@ def diagnose_run(
         pool.close()
     where = {"before": before, "after_recalibration": after, "masked": masked_share(experiments)}
     if closed:
+        less = " (less the lattice's LSB^2 / 12 where the replay's ADC quantises: it adds that)" if lattice else ""
+        powell = "; a replay through an ADC fitted without derivatives" if lattice or daq.get("adc_bits") else ""
         loop = (
-            "closed-loop replays: each simulated with the data's noise fed back through its controller, the floor what "
-            f"another noise draw leaves on the recalibrated rig; none within {found.none_ratio:g}x it"
+            f"closed-loop replays: each simulated with the data's noise{less} fed back through its controller, the "
+            f"floor what another noise draw leaves on the recalibrated rig{powell}; none within "
+            f"{found.none_ratio:g}x it"
         )
         noise = replace(
             noise, gap=math.sqrt(found.noise), fit_pct=fit_pct(found.noise), method=f"{noise.method}; {loop}"

@@ -75,7 +75,9 @@ class Setup:
     """The simulation being judged: its rig parameters (noise off), the real run's comb angles [deg] for the
     sim-side gauge calibration (None: use the sim's gauge gain), the real experiments, the plant and DAQ
     FMUs as bytes ({"flexjoint": ..., "daq": ...}) and the DAQ noise of the closed-loop replays (``loop_noise``:
-    {"noise_theta": V rms, "noise_alpha": V rms}, the data's own, :func:`replay_noise`; {} none)."""
+    {"noise_theta": V rms, "noise_alpha": V rms}, the data's own, :func:`replay_noise`; {} none). ``lattice_noise``:
+    that noise without the LSB^2 / 12 of the ADC lattice the data sit on, for a replay whose own ADC quantises (its
+    quantiser adds that share; {}: the data sit on no lattice, ``loop_noise`` throughout)."""
 
     plant: dict[str, Any]
     daq: dict[str, Any]
@@ -83,6 +85,7 @@ class Setup:
     experiments: dict[str, RigExperiment]
     fmus: dict[str, FmuBytes] = field(default_factory=dict)
     loop_noise: dict[str, float] = field(default_factory=dict)
+    lattice_noise: dict[str, float] = field(default_factory=dict)
 
     def nominal(self, param: str) -> float:
         """The simulation's own value of an FMU parameter ("plant.Ks"): the sim spec's, else the FMU default."""
@@ -122,7 +125,9 @@ def simulate(
     ({"plant.x": v, ...}), and the mask of the theta samples where the simulated pot is on its track."""
     p_over, d_over = _split_overrides(over)
     plant = {**setup.plant, **exp.plant, **p_over}
-    loop = {**setup.loop_noise, "seed": REPLAY_NOISE_SEED} if exp.replay == "closed" and setup.loop_noise else {}
+    daq = {**setup.daq, **exp.daq, **d_over}
+    noise = setup.lattice_noise if setup.lattice_noise and int(daq.get("adc_bits", 0)) > 0 else setup.loop_noise
+    loop = {**noise, "seed": REPLAY_NOISE_SEED} if exp.replay == "closed" and noise else {}
     daq = {**setup.daq, **exp.daq, **loop, **d_over}
     plant.setdefault("theta_start", math.radians(float(exp.theta[0])))
     if exp.replay == "closed":
@@ -175,6 +180,17 @@ def residuals(
     e_th = np.where(exp.valid["theta"][:m] & on_track, exp.theta[:m] - th, 0.0)
     e_al = np.where(exp.valid["alpha"][:m], exp.alpha[:m] - al, 0.0)
     return {"theta": e_th, "alpha": e_al}
+
+
+def lattice_in_loop(setup: Setup, over: Mapping[str, Any], names: list[str]) -> bool:
+    """Does one of the experiments ``names`` run in closed loop through an ADC lattice on the sim rig with ``over``
+    (the controller acting on quantised angles, so its replay is a staircase in the rig's parameters)?"""
+    d_over = _split_overrides(over)[1]
+    return any(
+        setup.experiments[n].replay == "closed"
+        and int({**setup.daq, **setup.experiments[n].daq, **d_over}.get("adc_bits", 0)) > 0
+        for n in names
+    )
 
 
 def mean_squared_gap(sse: SSE, experiments: dict[str, RigExperiment], names: list[str], window: str = "all") -> float:

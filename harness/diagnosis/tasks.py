@@ -28,7 +28,7 @@ from ..executor import Executor, one_blas_thread, worker_rig
 from . import recalibrate as recal
 from .effects import BY_PARAM, Effect
 from .experiments import CHANNELS
-from .simulation import SSE, Setup, loop_noise_gap, loop_spread, mean_squared_gap, residuals
+from .simulation import SSE, Setup, lattice_in_loop, loop_noise_gap, loop_spread, mean_squared_gap, residuals
 from .where import where_gap
 
 __all__ = [
@@ -141,15 +141,21 @@ def joint_refit(
     ``base`` (linear ones default to the sim's), on the fit windows of ``fit`` (:func:`least_squares_refit`);
     squared errors on ``every``. Returns params, ci95, fit_msg (the mean squared gap at the solution), evaluations,
     sse."""
-    res = least_squares_refit(_CTX["setup"], lambda over: residual_vector(over, fit), base, free, max_nfev)
+    res = least_squares_refit(_CTX["setup"], lambda over: residual_vector(over, fit), base, free, fit, max_nfev)
     return {**res, "sse": squared_errors(res["params"], every) if every else {}}
 
 
 def least_squares_refit(
-    setup: Setup, resid: Callable[[dict[str, Any]], np.ndarray], base: dict[str, Any], free: list[str], max_nfev: int
+    setup: Setup,
+    resid: Callable[[dict[str, Any]], np.ndarray],
+    base: dict[str, Any],
+    free: list[str],
+    names: list[str],
+    max_nfev: int,
 ) -> dict[str, Any]:
-    """:func:`joint_refit`'s least squares on the residual vector ``resid(overrides)`` (:func:`residual_vector`,
-    computed here or over the workers); a linear parameter the data do not determine keeps the sim's value
+    """:func:`joint_refit`'s least squares on the residual vector ``resid(overrides)`` (:func:`residual_vector` of
+    the experiments ``names``, computed here or over the workers); a linear parameter the data do not determine keeps
+    the sim's value, and a closed loop through an ADC lattice is fitted without derivatives
     (:func:`harness.diagnosis.recalibrate.fit`). Returns params, ci95, fit_msg, evaluations."""
     bounds: dict[str, recal.Bound] = {}
     nominal: dict[str, float] = {}
@@ -171,6 +177,7 @@ def least_squares_refit(
             fixed=fixed,
             max_nfev=max_nfev,
             hold=recal.LINEAR,
+            derivative_free=lattice_in_loop(setup, fixed, names),
         )
 
     f = refit(fixed, base)
@@ -271,7 +278,7 @@ class Pool:
             return np.concatenate(self.ex.map(_run_call, calls, self.setup, quiet=True))
 
         with one_blas_thread():  # as in a task: the same BLAS, the same numbers in every backend
-            res = least_squares_refit(self.setup, resid, base, free, max_nfev)
+            res = least_squares_refit(self.setup, resid, base, free, names, max_nfev)
         if self.progress is not None:
             self.progress(f"diagnosis {_label(('refit', base, free))} on every experiment")
         return res
