@@ -491,7 +491,7 @@ def diagnosis_summary(d: Diagnosis) -> str:
     for name, p in d.parameters.items():
         if p.finding is not None:
             lo, hi = p.ci95
-            lines.append(f"  {name}: {p.finding} (95 % interval {lo:.4g}..{hi:.4g})")
+            lines.append(f"  {name}: {p.finding}" + ("" if p.kept else f" (95 % interval {lo:.4g}..{hi:.4g})"))
     for e in d.effects:
         params = ", ".join(f"{k}={v:.4g}" for k, v in e.params.items())
         lines.append(f"  + {e.effect} ({params}): shrink {e.shrink_pct:.1f} % on held-out experiments")

@@ -14,9 +14,11 @@ import pytest
 from test_diagnosis_result import minimal_doc
 
 from harness import spec as specmod
+from harness.diagnosis import blindtest as bt
 from harness.diagnosis import diagnose as dg
 from harness.diagnosis import experiments as ex
 from harness.diagnosis import recalibrate as recal
+from harness.diagnosis.diagnose import diagnose_run
 from harness.diagnosis.experiments import RigExperiment, load_experiments
 from harness.diagnosis.noise import noise_floor
 from harness.diagnosis.result import Diagnosis, FittedParameter
@@ -307,3 +309,22 @@ def test_a_lone_real_record_is_diagnosed_on_its_halves(tmp_path):
     assert all(d.parameters[k].recalibrated is not None for k in recal.LINEAR)
     d.write(tmp_path / "returned.json")  # what diagnose_run returns is what the file holds
     assert (tmp_path / "returned.json").read_bytes() == (run / "diagnosis.json").read_bytes()
+
+
+def test_linear_parameters_a_recalibration_that_did_not_pay_leaves_at_the_spec(tmp_path):
+    """A rig that is its spec (the twin, no effect, a quick campaign): recalibrating its linear parameters does not
+    improve the held-out fit, so the waterfall does not apply it. The parameter table then keeps the spec's values,
+    says why and gives no interval, where a final refit used to fit them anyway and report, e.g., viscous damping 27 %
+    off the spec of a closed-loop rig that was its spec, with an interval of +-0.15 %."""
+    case = {"case": 2, "family": "twin", "kind": "none", "nuisance": {}, "truth_params": {}, "truth_effects": [],
+            "sensor": {}, "campaign_seed": 12}  # fmt: skip
+    bt.make_rig_run(case, tmp_path / "run", quick=True)
+    d = diagnose_run(tmp_path / "run", bt.campaign_spec(True), tmp_path / "out", workers=1)
+    assert d.verdict == "none" and not d.recalibration_applied
+    for name, p in d.parameters.items():
+        assert p.fitted == p.nominal and p.kept and p.change_pct == 0.0, (name, p)
+        assert p.finding.endswith("recalibrating did not improve the held-out fit"), p.finding
+        assert p.recalibrated != p.nominal  # what the folds fitted, shown beside it
+    assert Diagnosis.load(tmp_path / "out" / "diagnosis.json").parameters["plant.Ks"].kept  # NaN interval round-trips
+    text = "\n".join(diagnosis_markdown(d))
+    assert "The linear parameters keep the spec's values" in text and "traded off against the effects" not in text

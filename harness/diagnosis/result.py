@@ -86,7 +86,8 @@ class FittedParameter:
     or None: the fit ended at its search bound), ``identifiable`` (False: the 95 % interval spans more than a
     factor 100; left out otherwise) and ``recalibrated``: what recalibration alone fitted, before any effect (the
     geometric mean of the two folds' fits, the model the waterfall's "recalibration" stage scores; ``fitted`` is
-    refitted jointly with the effects found, so the two differ where the recalibration compensated an effect)."""
+    refitted jointly with the effects found, so the two differ where the recalibration compensated an effect). A
+    parameter kept at the spec's value, not fitted, has an interval of NaN (:attr:`kept`)."""
 
     nominal: float
     fitted: float
@@ -97,6 +98,11 @@ class FittedParameter:
     at_bound: str | None = None
     identifiable: bool | None = None
     recalibrated: float | None = None
+
+    @property
+    def kept(self) -> bool:
+        """Kept at the spec's value, not fitted (no interval)."""
+        return not all(math.isfinite(v) for v in self.ci95)
 
     @property
     def off_spec(self) -> bool:
@@ -365,6 +371,8 @@ class Diagnosis:
         for name, p in self.parameters.items():
             r = p.recalibrated
             if r is None or not (p.fitted and p.nominal) or abs(100.0 * (r / p.fitted - 1.0)) <= tolerance_pct:
+                continue
+            if p.kept:  # not fitted: no trade-off
                 continue
             label = LINEAR[name].label if name in LINEAR else name
             side, side_final = at_bound(name, p.nominal, r), at_bound(name, p.nominal, p.fitted)

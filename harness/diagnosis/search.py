@@ -358,8 +358,9 @@ def final_params(
     """The reported parameters: integers from the folds (when they disagree, settled by the lower gap on all
     experiments), then the linear and continuous effect parameters fitted jointly on every experiment's fit
     window from the folds' combined values, with 95 % intervals (the effects ``held`` kept at their folds'
-    combined value: found by their spread, a fit of the gap would take them to zero); returns (overrides,
-    parameter table)."""
+    combined value: found by their spread, a fit of the gap would take them to zero). The linear parameters keep the
+    spec's values where the folds did not fit them (the recalibration did not pay on held-out data and no effect
+    was refitted jointly with them). Returns (overrides, parameter table)."""
     start: Overrides = {}
     for prm in set(bases[0]) | set(bases[1]):
         vals = [b[prm] for b in bases if prm in b]
@@ -371,14 +372,23 @@ def final_params(
             sse = cf.pool.map([("sse", {**start, eff.param: v}, cf.names) for v in opts])
             start[eff.param] = min(zip(opts, sse, strict=True), key=lambda o: cf.msg(o[1]))[0]
     free = [EFFECTS[e].param for e in order if EFFECTS[e].continuous and e not in held]
-    res = cf.pool.refit(start, free, cf.names, 20)
+    linear = any(prm in b for b in bases for prm in recal.LINEAR)
+    res = cf.pool.refit(start, free, cf.names, 20, linear)
     final = res["params"]
     table = {}
     extras = [x for p in free for x in BY_PARAM[p].extra]
     for prm in [*recal.LINEAR, *free, *extras]:
-        nom, val, ci = cf.pool.setup.nominal(prm), float(final[prm]), res["ci95"][prm]
+        nom = cf.pool.setup.nominal(prm)
+        val, ci = float(final.get(prm, nom)), res["ci95"].get(prm, (math.nan, math.nan))
         row = FittedParameter(nominal=nom, fitted=val, ci95=[float(ci[0]), float(ci[1])], change_pct=math.nan, unit="")
-        if prm in recal.LINEAR:
+        if prm in recal.LINEAR and not linear:
+            b = recal.LINEAR[prm]
+            unit = f" {b.unit}" if b.unit != "1" else ""
+            row.change_pct, row.unit = 0.0, b.unit
+            row.finding = (
+                f"{b.label} kept at the spec's {nom:.4g}{unit}: recalibrating did not improve the held-out fit"
+            )
+        elif prm in recal.LINEAR:
             row.change_pct = 100.0 * (val / nom - 1.0)
             row.unit = recal.LINEAR[prm].unit
             row.finding = recal.finding(prm, nom, val, ci)

@@ -152,14 +152,16 @@ def least_squares_refit(
     free: list[str],
     names: list[str],
     max_nfev: int,
+    linear: bool = True,
 ) -> dict[str, Any]:
     """:func:`joint_refit`'s least squares on the residual vector ``resid(overrides)`` (:func:`residual_vector` of
     the experiments ``names``, computed here or over the workers); a linear parameter the data do not determine keeps
     the sim's value, and a closed loop through an ADC lattice is fitted without derivatives
-    (:func:`harness.diagnosis.recalibrate.fit`). Returns params, ci95, fit_msg, evaluations."""
+    (:func:`harness.diagnosis.recalibrate.fit`). ``linear`` False: the linear parameters keep the sim's values, only
+    the effects' are fitted. Returns params, ci95, fit_msg, evaluations."""
     bounds: dict[str, recal.Bound] = {}
     nominal: dict[str, float] = {}
-    for prm, b in recal.LINEAR.items():
+    for prm, b in recal.LINEAR.items() if linear else ():
         bounds[prm], nominal[prm] = b, setup.nominal(prm)
     for prm in free:
         eff = BY_PARAM[prm]
@@ -169,6 +171,9 @@ def least_squares_refit(
     fixed = {k: v for k, v in base.items() if k not in bounds}
 
     def refit(fixed: dict[str, Any], start: dict[str, Any]) -> recal.Fit:
+        if not bounds:  # nothing to fit: the cost as given
+            r = resid(fixed)
+            return recal.Fit({}, {}, float(np.sum(r**2)), 1, int(np.count_nonzero(r)))
         return recal.fit(
             resid,
             bounds,
@@ -265,7 +270,9 @@ class Pool:
     def map(self, calls: list[tuple[Any, ...]]) -> list[Any]:
         return self.ex.map(_run_call, calls, self.setup, desc="diagnosis", labels=[_label(c) for c in calls])
 
-    def refit(self, base: dict[str, Any], free: list[str], names: list[str], max_nfev: int) -> dict[str, Any]:
+    def refit(
+        self, base: dict[str, Any], free: list[str], names: list[str], max_nfev: int, linear: bool = True
+    ) -> dict[str, Any]:
         """:func:`joint_refit` on every experiment of ``names`` (no held-out squared errors), its least squares run
         here and each residual vector computed over the workers, one task per worker of consecutive experiments
         (:func:`stretches`): the same vector as one task computes, so the same path. One task was one worker's work
@@ -278,7 +285,7 @@ class Pool:
             return np.concatenate(self.ex.map(_run_call, calls, self.setup, quiet=True))
 
         with one_blas_thread():  # as in a task: the same BLAS, the same numbers in every backend
-            res = least_squares_refit(self.setup, resid, base, free, names, max_nfev)
+            res = least_squares_refit(self.setup, resid, base, free, names, max_nfev, linear)
         if self.progress is not None:
             self.progress(f"diagnosis {_label(('refit', base, free))} on every experiment")
         return res

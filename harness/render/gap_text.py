@@ -186,6 +186,11 @@ def _parameters_lines(diag: Diagnosis) -> list[str]:
             "waterfall's recalibration stage scores."
         )
         moves = diag.recalibration_moves()
+        if any(p.kept for p in diag.parameters.values()):
+            text += (
+                " The linear parameters keep the spec's values: recalibrating them did not improve the held-out fit, "
+                "and no effect was refitted jointly with them."
+            )
         if moves:
             text += (
                 " Where they differ the linear parameters traded off against the effects (bent to mimic an effect "
