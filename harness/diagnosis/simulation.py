@@ -125,8 +125,7 @@ def simulate(
     ({"plant.x": v, ...}), and the mask of the theta samples where the simulated pot is on its track."""
     p_over, d_over = _split_overrides(over)
     plant = {**setup.plant, **exp.plant, **p_over}
-    daq = {**setup.daq, **exp.daq, **d_over}
-    noise = setup.lattice_noise if setup.lattice_noise and int(daq.get("adc_bits", 0)) > 0 else setup.loop_noise
+    noise = setup.lattice_noise if setup.lattice_noise and _quantises(setup, exp, d_over) else setup.loop_noise
     loop = {**noise, "seed": REPLAY_NOISE_SEED} if exp.replay == "closed" and noise else {}
     daq = {**setup.daq, **exp.daq, **loop, **d_over}
     plant.setdefault("theta_start", math.radians(float(exp.theta[0])))
@@ -182,15 +181,16 @@ def residuals(
     return {"theta": e_th, "alpha": e_al}
 
 
+def _quantises(setup: Setup, exp: RigExperiment, d_over: Mapping[str, Any]) -> bool:
+    """Does the sim DAQ quantise (adc_bits > 0) in ``exp``'s replay with the DAQ overrides ``d_over``?"""
+    return int({**setup.daq, **exp.daq, **d_over}.get("adc_bits", 0)) > 0
+
+
 def lattice_in_loop(setup: Setup, over: Mapping[str, Any], names: list[str]) -> bool:
     """Does one of the experiments ``names`` run in closed loop through an ADC lattice on the sim rig with ``over``
     (the controller acting on quantised angles, so its replay is a staircase in the rig's parameters)?"""
     d_over = _split_overrides(over)[1]
-    return any(
-        setup.experiments[n].replay == "closed"
-        and int({**setup.daq, **setup.experiments[n].daq, **d_over}.get("adc_bits", 0)) > 0
-        for n in names
-    )
+    return any(x.replay == "closed" and _quantises(setup, x, d_over) for x in (setup.experiments[n] for n in names))
 
 
 def mean_squared_gap(sse: SSE, experiments: dict[str, RigExperiment], names: list[str], window: str = "all") -> float:
