@@ -68,7 +68,7 @@ from .search import (
     SPREAD_GAIN,
     search,
 )
-from .simulation import Setup, fit_pct, fmu_value, replay_noise, sim_rig
+from .simulation import Setup, fit_pct, fmu_value, lattice_in_loop, replay_noise, sim_rig
 from .tasks import Pool
 
 __all__ = ["EXPLAINED", "GAP_RESOLUTION", "MIN_CLOSURE", "NONE_RATIO", "NONE_RATIO_LOOP", "THRESHOLDS", "diagnose_run"]
@@ -163,7 +163,8 @@ def diagnose_run(
     where = {"before": before, "after_recalibration": after, "masked": masked_share(experiments)}
     if closed:
         less = " (less the lattice's LSB^2 / 12 where the replay's ADC quantises: it adds that)" if lattice else ""
-        powell = "; a replay through an ADC fitted without derivatives" if lattice or daq.get("adc_bits") else ""
+        adc_in_loop = lattice_in_loop(setup, found.final, list(experiments))
+        powell = "; a replay through an ADC fitted without derivatives" if adc_in_loop else ""
         loop = (
             f"closed-loop replays: each simulated with the data's noise{less} fed back through its controller, the "
             f"floor what another noise draw leaves on the recalibrated rig{powell}; none within "

@@ -270,15 +270,26 @@ def identifiable(ci95: tuple[float, float]) -> bool:
     return lo > 0 and hi / lo <= UNIDENTIFIABLE
 
 
+def _label_unit(name: str) -> tuple[str, str]:
+    """A parameter's plain name and its unit as a sentence ends a value with (" N m/rad"; "" for a ratio)."""
+    b = LINEAR.get(name)
+    return (b.label if b else name), (f" {b.unit}" if b and b.unit != "1" else "")
+
+
+def kept_finding(name: str, nominal: float) -> str:
+    """The sentence of a linear parameter kept at the spec's value ``nominal`` because recalibrating did not improve
+    the held-out fit (not fitted)."""
+    label, unit = _label_unit(name)
+    return f"{label} kept at the spec's {nominal:.4g}{unit}: recalibrating did not improve the held-out fit"
+
+
 def finding(name: str, nominal: float, fitted: float, ci95: tuple[float, float]) -> str:
     """One sentence a lab report would print: "the link stiffness is 15 % higher than the spec (1.3 -> 1.5 N
     m/rad)", or "matches the spec" when the spec's value lies inside the 95 % interval or within 3 %; "at its upper
     bound (1.6x the spec): the spec may not describe this rig" when the fit ended at a bound of :data:`LINEAR`;
     "not identifiable from these data" when its interval spans more than UNIDENTIFIABLE (", kept at the spec's value"
     when the fit held it there)."""
-    b = LINEAR.get(name)
-    label = b.label if b else name
-    unit = f" {b.unit}" if b and b.unit != "1" else ""
+    label, unit = _label_unit(name)
     side = at_bound(name, nominal, fitted)
     if side is not None:
         return (f"{label} at its {side} bound ({fitted / nominal:.2g}x the spec: {nominal:.4g} -> {fitted:.4g}{unit}): "

@@ -382,12 +382,8 @@ def final_params(
         val, ci = float(final.get(prm, nom)), res["ci95"].get(prm, (math.nan, math.nan))
         row = FittedParameter(nominal=nom, fitted=val, ci95=[float(ci[0]), float(ci[1])], change_pct=math.nan, unit="")
         if prm in recal.LINEAR and not linear:
-            b = recal.LINEAR[prm]
-            unit = f" {b.unit}" if b.unit != "1" else ""
-            row.change_pct, row.unit = 0.0, b.unit
-            row.finding = (
-                f"{b.label} kept at the spec's {nom:.4g}{unit}: recalibrating did not improve the held-out fit"
-            )
+            row.change_pct, row.unit = 0.0, recal.LINEAR[prm].unit
+            row.finding = recal.kept_finding(prm, nom)
         elif prm in recal.LINEAR:
             row.change_pct = 100.0 * (val / nom - 1.0)
             row.unit = recal.LINEAR[prm].unit
