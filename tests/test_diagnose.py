@@ -22,6 +22,11 @@ from harness.diagnosis.result import Diagnosis
 from harness.ident.calibration import daq_calibration, gauge_volts
 from harness.rig.campaign import run_campaign
 
+# On a rig whose truth the twin contains (the blind campaign's twin with its parameters set), the diagnoser recovers
+# effects and Ks, Beq to about 0.05 % (the calibration's own error, Ke -0.016 %, is most of it): a rework that loses
+# this precision must fail here, not pass inside a 20-25 % tolerance.
+TWIN_REL = 1e-3
+
 
 def _run(tmp: Path, name: str, sets: list[str]) -> Path:
     dest = tmp / name
@@ -47,8 +52,14 @@ def coulomb_diag(runs, tmp_path_factory):
 def test_coulomb_friction_named_and_fitted(coulomb_diag):
     d, out = coulomb_diag
     assert d.verdict == "coulomb_friction"
+    # the twin contains the truth: the friction level and the linear parameters come back to the data's noise
+    # (measured: 0.04999, Ks -0.01 %, Beq +0.14 %), and the 95 % interval of the effect covers the truth
     fitted = d.effects[0].params["plant.coulomb_torque"]
-    assert abs(fitted - 0.05) / 0.05 < 0.20
+    assert fitted == pytest.approx(0.05, rel=TWIN_REL)
+    lo, hi = d.parameters["plant.coulomb_torque"].ci95
+    assert lo <= 0.05 <= hi and hi - lo < 0.01 * 0.05
+    assert d.parameters["plant.Ks"].fitted == pytest.approx(1.3, rel=TWIN_REL)
+    assert d.parameters["plant.Beq"].fitted == pytest.approx(0.004, rel=3 * TWIN_REL)
     # the gap shrinks on held-out experiments to near the noise floor
     assert d.gap.shrink_pct > 80.0
     assert d.gap.held_out.gap_after < 3.0 * d.noise_floor.gap
@@ -219,11 +230,19 @@ def test_mismatched_twin_recalibrates_then_names_the_effect(tmp_path, fmus, name
     found = d.fitted_effect_params()
     assert set(found) == ({param} if param else set())  # no spurious effect tags along
     if param:
-        assert found[param] == pytest.approx(value, rel=0.25 if isinstance(value, float) else 0)
+        # the truth, to the data's noise (measured: backlash +0.13 %, Coulomb +0.004 %), inside its 95 % interval
+        assert found[param] == pytest.approx(value, rel=2 * TWIN_REL if isinstance(value, float) else 0)
+        if isinstance(value, float):
+            lo, hi = d.parameters[param].ci95
+            assert lo <= value <= hi
         # drop-one importance is a share of what the removals reopen: a lone effect has all of it
         assert d.effects[0].importance_pct == pytest.approx(100.0)
+    truth = {"plant.Ks": 1.5, "plant.Beq": 0.0052, "plant.zeta_link": 0.02, "plant.Jeq": 0.00208, "plant.kt": 0.00768}
+    for name_, value_ in truth.items():  # measured: Ks +0.02 %, Beq +0.05 %, Jeq +0.05 %, kt +0.04 %, zeta +0.3 %
+        rel = 5 * TWIN_REL if name_ == "plant.zeta_link" else TWIN_REL
+        assert d.parameters[name_].fitted == pytest.approx(value_, rel=rel), name_
     ks, beq = d.parameters["plant.Ks"], d.parameters["plant.Beq"]
-    assert ks.fitted == pytest.approx(1.5, rel=0.10) and beq.fitted == pytest.approx(0.0052, rel=0.25)
+    assert beq.ci95[0] <= 0.0052 <= beq.ci95[1]
     assert ks.change_pct == pytest.approx(100 * (ks.fitted / 1.3 - 1))
     assert ks.ci95[0] <= ks.fitted <= ks.ci95[1]
     assert "higher than the spec" in ks.finding
@@ -235,21 +254,33 @@ def test_mismatched_twin_recalibrates_then_names_the_effect(tmp_path, fmus, name
         assert "pot wraps" not in d.where[stage]["theta"].get("headline", "")
 
 
+@pytest.mark.xfail(
+    strict=True,
+    reason="issue 23: the intervals omit the calibration's error (Ke -0.016 % moves Ks +0.02 %, twice its interval)",
+)
+def test_twin_linear_intervals_cover_the_truth(tmp_path, fmus):
+    run = _run(tmp_path, "nothing", [*MISMATCH, "campaign.seed=21"])
+    d = dg.diagnose_run(run, campaign_spec(quick=True), tmp_path / "out", workers=1)
+    lo, hi = d.parameters["plant.Ks"].ci95
+    assert lo <= 1.5 <= hi
+
+
 INDEPENDENT = {
-    # name: (rig fields, verdict, effect parameter, truth, tolerance)
-    "none": (dict(Beq=0.007, zeta_link=0.025, motor_gain=0.93), "none", None, None, 0),
-    "coulomb": (dict(coulomb_torque=0.04, Beq=0.006), "coulomb_friction", "plant.coulomb_torque", 0.04, 0.25),
-    "delay": (dict(delay_samples=2, zeta_link=0.02, Jeq=2.3e-3), "delay", "daq.delay_samples", 2, 0),
-    "second_mode": (dict(n_modes=2, Beq=0.006), "second_mode", "plant.n_modes", 2, 0),
-    "saturation": (dict(amp_limit=1.6, motor_gain=1.08), "saturation", "plant.amp_limit", 1.6, 0.25),
-    # a contact spring that bounces, not the twin's plastic impacts: named, though it closes only ~50-70 %
-    "backlash": (dict(backlash=0.005, Beq=0.003), "backlash", "plant.backlash", 0.005, 0.25),
+    # name: (rig fields, verdict, effect parameter, truth, its tolerance, Beq tolerance). The simulator's linear rig is
+    # the twin's (Ks, Beq come back within 0.03 %); its friction (Stribeck) and backlash (a contact spring that
+    # bounces, not the twin's plastic impacts) are not, and bend Beq by 11 % and 6 % (measured, seed 5).
+    "none": (dict(Beq=0.007, zeta_link=0.025, motor_gain=0.93), "none", None, None, 0, 1e-3),
+    "coulomb": (dict(coulomb_torque=0.04, Beq=0.006), "coulomb_friction", "plant.coulomb_torque", 0.04, 0.06, 0.15),
+    "delay": (dict(delay_samples=2, zeta_link=0.02, Jeq=2.3e-3), "delay", "daq.delay_samples", 2, 0, 1e-3),
+    "second_mode": (dict(n_modes=2, Beq=0.006), "second_mode", "plant.n_modes", 2, 0, 1e-3),
+    "saturation": (dict(amp_limit=1.6, motor_gain=1.08), "saturation", "plant.amp_limit", 1.6, 1e-3, 1e-3),
+    "backlash": (dict(backlash=0.005, Beq=0.003), "backlash", "plant.backlash", 0.005, 0.08, 0.10),
 }
 
 
 @pytest.mark.parametrize("name", list(INDEPENDENT))
 def test_independent_simulator_rigs(tmp_path, fmus, name):
-    fields, verdict, param, truth, tol = INDEPENDENT[name]
+    fields, verdict, param, truth, tol, beq_tol = INDEPENDENT[name]
     rig = IndepRig.from_Ks(1.45, **fields)
     spec = campaign_spec(quick=True)
     run = make_run(tmp_path / name, spec, rig, seed=5)
@@ -259,8 +290,8 @@ def test_independent_simulator_rigs(tmp_path, fmus, name):
     assert set(found) == ({param} if param else set())
     if param:
         assert found[param] == pytest.approx(truth, rel=tol)
-    assert d.parameters["plant.Ks"].fitted == pytest.approx(1.45, rel=0.10)
-    assert d.parameters["plant.Beq"].fitted == pytest.approx(rig.Beq, rel=0.25)
+    assert d.parameters["plant.Ks"].fitted == pytest.approx(1.45, rel=0.01)
+    assert d.parameters["plant.Beq"].fitted == pytest.approx(rig.Beq, rel=beq_tol)
 
 
 def test_identical_noise_free_data_is_none(tmp_path, fmus):
