@@ -20,7 +20,7 @@ from harness.diagnosis import experiments as ex
 from harness.diagnosis import recalibrate as recal
 from harness.diagnosis.diagnose import diagnose_run
 from harness.diagnosis.experiments import RigExperiment, load_experiments
-from harness.diagnosis.noise import noise_floor
+from harness.diagnosis.noise import noise_floor, value_step
 from harness.diagnosis.result import Diagnosis, FittedParameter
 from harness.diagnosis.search import recalibrated_alone
 from harness.ident.calibration import load_calibration
@@ -203,6 +203,38 @@ def test_a_record_on_0_001_rad_steps_has_its_step_in_the_noise_floor(tmp_path):
     q = [h.u.size * sigma[c] ** 2 / float(np.sum((y - y.mean()) ** 2))
          for h in halves.values() for c, y in (("theta", h.theta), ("alpha", h.alpha))]  # fmt: skip
     assert e_halves == pytest.approx(float(np.mean(q)), rel=1e-12)
+
+
+def test_a_lattice_converted_between_units_is_found_from_the_values(tmp_path):
+    """Angles taken on 0.001 rad steps and written in degrees (0.057296, 0.114592, ...: no round last decimal) sit
+    on a lattice all the same: its step is the common step of the values, and the noise floor holds its step^2/12
+    (read from the printed decimals, the step was 1e-6 deg and the floor a fit of 100.00 %)."""
+    t = np.arange(5000) * 1e-3
+    theta = np.round(0.3 * np.sin(2 * np.pi * 0.05 * t), 3)  # rad, on 0.001 rad steps
+    alpha = 1.5 * np.sin(2 * np.pi * 0.2 * t + 0.3)
+    rec = pd.DataFrame({"t": t, "u": np.sin(2 * np.pi * 0.2 * t), "theta": np.degrees(theta), "alpha": alpha})
+    path = tmp_path / "deg.csv"
+    rec.assign(theta=rec["theta"].map(lambda v: f"{v:.6f}")).to_csv(path, index=False)
+    import_records([path], tmp_path / "run", ImportOptions(units={"theta": "deg", "alpha": "deg"}))
+    cal = load_calibration(tmp_path / "run")
+    exps = load_experiments(tmp_path / "run", cal, specmod.load("nominal"), 10.0)
+    step = math.degrees(0.001)
+    assert exps["deg"].lattice_deg["theta"] == pytest.approx(step, rel=1e-6)
+    floor, _ = noise_floor(exps, 10.0, cal)
+    assert floor.theta_deg == pytest.approx(step / math.sqrt(12.0), rel=0.10)
+    assert floor.fit_pct < 100.0 - 1e-3
+
+
+def test_value_step_is_the_common_step_of_the_values():
+    rng = np.random.default_rng(7)
+    counts = np.round(30.0 * rng.standard_normal(2000) / (360 / 4096)) * (360 / 4096)
+    assert value_step(counts) == pytest.approx(360 / 4096, rel=1e-12)  # an encoder's count in degrees
+    printed = np.round(rng.standard_normal(2000), 3)
+    assert value_step(printed) == pytest.approx(1e-3, rel=1e-9)  # the last printed decimal
+    converted = np.round(np.degrees(np.round(rng.standard_normal(2000), 3)), 6)
+    assert value_step(converted) == pytest.approx(math.degrees(1e-3), rel=1e-6)  # 0.001 rad written in deg
+    assert value_step(rng.standard_normal(2000)) == 0.0  # continuous values: no lattice
+    assert value_step(np.array([0.0, 1.0])) == 0.0  # too few levels to tell
 
 
 # ----------------------------------------------------------------------------------------------- recalibration alone

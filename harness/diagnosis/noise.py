@@ -29,6 +29,7 @@ __all__ = [
     "noise_floor",
     "noise_mean_squared_gap",
     "noise_sigma",
+    "value_step",
 ]
 
 TRANSIENT_S = 8.0  # s dropped at the start of a periodic experiment before its periods are compared
@@ -41,6 +42,30 @@ def decimal_resolution(v: np.ndarray, max_decimals: int = 9) -> float:
         if np.max(np.abs(x - np.round(x))) < 1e-6:
             return 10.0**-d
     return 0.0
+
+
+def value_step(v: np.ndarray, max_levels: float = 1e6) -> float:
+    """The common step of the values' differences: the lattice a record sits on (encoder counts, printed decimals, or
+    either converted to another unit: 0.001 rad written in degrees), in the values' unit; 0 when they sit on none
+    (continuous values, or a lattice of more than ``max_levels`` steps over their range).
+
+    The smallest difference between distinct values is the step's first guess; the step is then fitted by least
+    squares to every value's multiple of it and kept when each value lies within its printed rounding of the lattice.
+    """
+    v = np.asarray(v, dtype=float)
+    v = v[np.isfinite(v)]
+    levels = np.unique(v)
+    if levels.size < 3:
+        return 0.0
+    span = float(levels[-1] - levels[0])
+    guess = float(np.min(np.diff(levels)))
+    if guess <= span / max_levels:
+        return 0.0
+    k = np.round((levels - levels[0]) / guess)
+    step = float(np.dot(k, levels - levels[0]) / np.dot(k, k))
+    tol = 0.5 * decimal_resolution(levels) + 1e-9 * max(abs(levels[0]), abs(levels[-1]), step)
+    off = np.abs(levels - levels[0] - k * step)
+    return step if float(off.max()) <= tol + 1e-6 * step else 0.0
 
 
 def adc_lattice(experiments: dict[str, RigExperiment], adc_range: float, max_bits: int = 24) -> int:

@@ -68,7 +68,7 @@ import pyarrow.parquet as pq
 import scipy.io
 
 from ..diagnosis.experiments import MIN_FOLD_SAMPLES, MIN_FOLD_SECONDS
-from ..diagnosis.noise import decimal_resolution
+from ..diagnosis.noise import decimal_resolution, value_step
 from ..ident.calibration import LAB1_CALIBRATION, Calibration, alpha_deg, theta_deg
 from ..rundir import DataError, ExperimentEntry, Manifest, RunDir, validate, write_dataset
 from .controller import KINDS, R2_MIN, Controller, command_r2, identify_controller
@@ -825,18 +825,21 @@ def normalise(table: RawTable, opts: ImportOptions, cal: Calibration, note: Note
 
 
 def _step_deg(c: Channel, opts: ImportOptions) -> float:
-    """The angle step [deg] an angle channel is recorded on: an encoder's count, or the last decimal written of a
-    value in deg, rad or a tip deflection (0 for volts, whose ADC lattice the diagnosis finds itself, or none)."""
+    """The angle step [deg] an angle channel is recorded on: an encoder's count, or the common step of the values of
+    an angle in deg, rad or a tip deflection (their last printed decimal, or a lattice converted between units); 0 for
+    volts, whose ADC lattice the diagnosis finds itself, or none."""
     if c.unit == "counts":
         return 360.0 / float(opts.counts_per_rev or 1)
     if c.unit == "V":
         return 0.0
-    res = decimal_resolution(c.values)
-    if not res:
+    res, step = decimal_resolution(c.values), value_step(c.values)
+    if res and abs(step - res) <= 1e-6 * res:
+        step = res  # the printed decimal itself, exactly
+    if not step:
         return 0.0
     if c.unit in ("m", "mm"):
-        return math.degrees(math.atan(res * (1e-3 if c.unit == "mm" else 1.0) / float(opts.link_length or 1.0)))
-    return math.degrees(res) if c.unit == "rad" else res
+        return math.degrees(math.atan(step * (1e-3 if c.unit == "mm" else 1.0) / float(opts.link_length or 1.0)))
+    return math.degrees(step) if c.unit == "rad" else step
 
 
 def _theta_sensor(theta: Channel, opts: ImportOptions, file: str) -> dict[str, Any]:
