@@ -36,6 +36,32 @@ def test_fit_recovers_parameters_with_covering_intervals():
     assert min(covered.values()) >= 34, covered
 
 
+def test_a_calibrated_gains_error_is_in_the_intervals():
+    """The data were scaled by a sensor gain calibrated to 1 % (drawn anew for each record): the fitted gain k takes
+    its error, which the residuals' own intervals (noise 0.01 on a step of 2) know nothing of. Given how the
+    residuals move with the gain (the measured signal) and its standard error, the intervals hold it."""
+    t = np.linspace(0, 4, 800)
+    truth = {"k": 2.0, "wn": 6.0, "zeta": 0.15}
+    bounds = {
+        "k": recal.Bound(0.5, 2.0, "1", "gain"),
+        "wn": recal.Bound(0.5, 2.0, "rad/s", "natural frequency"),
+        "zeta": recal.Bound(0.2, 10.0, "1", "damping"),
+    }
+    nominal = {"k": 1.6, "wn": 5.0, "zeta": 0.1}
+    covered = {"alone": 0, "with the gain": 0}
+    for seed in range(40):
+        rng = np.random.default_rng(100 + seed)
+        y = (1 + 0.01 * rng.standard_normal()) * _second_order(**truth, t=t) + 0.01 * rng.standard_normal(t.size)
+        for how, cal in (("alone", None), ("with the gain", (y[:, None], np.array([0.01])))):
+            f = recal.fit(
+                lambda p, y=y: y - _second_order(p["k"], p["wn"], p["zeta"], t), bounds, nominal, calibration=cal
+            )
+            covered[how] += f.ci95["k"][0] <= 2.0 <= f.ci95["k"][1]
+            assert f.values["wn"] == pytest.approx(6.0, rel=0.01)  # a gain moves k only
+    # measured: 2 / 40 alone, 38 / 40 with the gain's error
+    assert covered["alone"] <= 10 and covered["with the gain"] >= 34, covered
+
+
 def test_bounds_hold_and_findings_read_as_a_lab_report():
     t = np.linspace(0, 4, 400)
     y = _second_order(2.0, 6.0, 0.15, t)

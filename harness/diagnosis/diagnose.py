@@ -150,7 +150,9 @@ def diagnose_run(
     closed = any(x.replay == "closed" for x in experiments.values())
     sigma = {"theta": noise.theta_deg, "alpha": noise.alpha_deg}  # [deg], an ADC's quantisation included
     lattice = replay_noise(daq, noise.estimated_deg) if noise.adc_lattice_bits and noise.estimated_deg else {}
-    setup = Setup(plant, daq, cal.comb_angles, experiments, shipped, replay_noise(daq, sigma), lattice)  # closed
+    setup = Setup(
+        plant, daq, cal.comb_angles, experiments, shipped, replay_noise(daq, sigma), lattice, cal.gain_rel_se()
+    )
     top = max(x.peak_command_v for x in experiments.values())
     cands = candidates(CandidateContext(plant, daq, top, noise.adc_lattice_bits))
     pool = Pool(setup, workers, scheduler, progress)

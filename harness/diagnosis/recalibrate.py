@@ -6,7 +6,10 @@ to the data by simulating the rig (the caller supplies the residual function: it
 :func:`scipy.optimize.least_squares` (trust-region reflective, bounded), each parameter as the log of its ratio
 to the spec's value (so bounds are factors and steps are relative). Standard errors come from the Jacobian at
 the solution, cov = s^2 (J^T J)^-1 with s^2 = SSE / (N - p): the usual output-error intervals, which assume
-white residuals and are therefore optimistic when model error, not noise, dominates (said in the report).
+white residuals and are therefore optimistic when model error, not noise, dominates (said in the report). The data
+were converted to angles with calibrated sensor gains whose own errors move the fit too: given how the residuals
+move with each gain (``calibration``: columns G and standard errors s_g), the intervals hold A diag(s_g^2) A^T,
+A = J^+ G, the fit's shift per gain error.
 
 A closed loop through an ADC lattice is fitted without derivatives (``derivative_free``: Powell's search on the
 same sum of squares, steps down to :data:`POWELL_XTOL`). The controller acts on the quantised angles, so the whole
@@ -103,13 +106,16 @@ def fit(
     max_nfev: int = 30,
     hold: Collection[str] = (),
     derivative_free: bool = False,
+    calibration: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Fit:
     """Fit the parameters of ``bounds`` (FMU names, "plant.Ks") by bounded least squares on ``residuals``
     (parameter dict -> residual vector; ``fixed`` overrides are added to every call), from ``start`` (default
     ``nominal``), bounds relative to ``nominal``; ``derivative_free``: by Powell's search (a closed loop through a
-    lattice, see the module; up to (parameters + 1) ``max_nfev`` evaluations). Returns the fit with 95 % intervals
-    from the Jacobian; those of ``hold`` that the data do not determine are kept at ``nominal`` (see the module)."""
-    f = _fit(residuals, bounds, nominal, start, fixed, max_nfev, derivative_free)
+    lattice, see the module; up to (parameters + 1) ``max_nfev`` evaluations); ``calibration``: how the residuals
+    move with the log of each sensor gain (residuals x gains) and the gains' standard errors, which the intervals
+    hold. Returns the fit with 95 % intervals from the Jacobian; those of ``hold`` that the data do not determine are
+    kept at ``nominal`` (see the module)."""
+    f = _fit(residuals, bounds, nominal, start, fixed, max_nfev, derivative_free, calibration)
     loose = [n for n in bounds if n in hold and not identifiable(f.ci95[n])]
     if not loose:
         return f
@@ -117,7 +123,9 @@ def fit(
     rest = {n: b for n, b in bounds.items() if n not in at_spec}
     if rest:
         start_rest = {n: v for n, v in f.values.items() if n in rest}
-        g = _fit(residuals, rest, nominal, start_rest, {**(fixed or {}), **at_spec}, max_nfev, derivative_free)
+        g = _fit(
+            residuals, rest, nominal, start_rest, {**(fixed or {}), **at_spec}, max_nfev, derivative_free, calibration
+        )
     else:  # nothing left to fit: the cost at the spec's values
         r = residuals({**(fixed or {}), **at_spec})
         g = Fit({}, {}, float(np.sum(r**2)), 1, int(np.count_nonzero(r)))
@@ -136,6 +144,7 @@ def _fit(
     fixed: Mapping[str, float] | None,
     max_nfev: int,
     derivative_free: bool = False,
+    calibration: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Fit:
     """:func:`fit`'s one bounded least squares (or Powell search)."""
     names = list(bounds)
@@ -172,6 +181,10 @@ def _fit(
     s2 = 2.0 * float(res.cost) / dof
     jac = _felt(lambda x: residuals(params(x)), res.x, r, np.array(res.jac, dtype=float), lo_hi)
     cov = s2 * np.linalg.pinv(jac.T @ jac)
+    if calibration is not None:  # what the sensor gains' errors move the fit by (see the module)
+        g, g_se = calibration
+        shift = np.linalg.pinv(jac) @ g
+        cov = cov + shift @ np.diag(np.asarray(g_se, dtype=float) ** 2) @ shift.T
     se = np.minimum(np.sqrt(np.clip(np.diag(cov), 0.0, None)), SE_CAP)  # an unidentifiable direction: no bound
     se[_in_null_space(jac)] = SE_CAP  # pinv gives a direction the residuals do not feel zero variance, not infinite
     values = params(res.x)

@@ -77,7 +77,9 @@ class Setup:
     FMUs as bytes ({"flexjoint": ..., "daq": ...}) and the DAQ noise of the closed-loop replays (``loop_noise``:
     {"noise_theta": V rms, "noise_alpha": V rms}, the data's own, :func:`replay_noise`; {} none). ``lattice_noise``:
     that noise without the LSB^2 / 12 of the ADC lattice the data sit on, for a replay whose own ADC quantises (its
-    quantiser adds that share; {}: the data sit on no lattice, ``loop_noise`` throughout)."""
+    quantiser adds that share; {}: the data sit on no lattice, ``loop_noise`` throughout). ``gain_rel_se``: the
+    relative standard error of the data's calibration gain per channel ({"theta": Kp's, "alpha": Ke's}; {}: not
+    known), which the fitted parameters' intervals hold (:func:`harness.diagnosis.recalibrate.fit`)."""
 
     plant: dict[str, Any]
     daq: dict[str, Any]
@@ -86,6 +88,7 @@ class Setup:
     fmus: dict[str, FmuBytes] = field(default_factory=dict)
     loop_noise: dict[str, float] = field(default_factory=dict)
     lattice_noise: dict[str, float] = field(default_factory=dict)
+    gain_rel_se: dict[str, float] = field(default_factory=dict)
 
     def nominal(self, param: str) -> float:
         """The simulation's own value of an FMU parameter ("plant.Ks"): the sim spec's, else the FMU default."""

@@ -87,6 +87,31 @@ def residual_vector(over: dict[str, Any], names: list[str], k: int | None = None
     return np.concatenate(parts)
 
 
+def gain_columns(setup: Setup, names: list[str], k: int | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+    """How :func:`residual_vector` of ``names`` moves with the log of each sensor's calibration gain (the measured
+    channel, masked and scaled alike; an open-loop replay's theta less its mean, which the replay's offset takes),
+    and each gain's relative standard error (:attr:`Setup.gain_rel_se`): (columns, se), None when no gain's error
+    is known."""
+    se = np.array([setup.gain_rel_se.get(c, 0.0) for c in CHANNELS])
+    if not np.any(se > 0):
+        return None
+    k = moving_channels(setup, names) if k is None else k
+    blocks = []
+    for n in names:
+        x = setup.experiments[n]
+        for i, c in enumerate(CHANNELS):
+            if x.sst_fit[c] <= 0:
+                continue
+            ok = x.valid[c][: x.n_fit]
+            y = np.where(ok, (x.theta if c == "theta" else x.alpha)[: x.n_fit], 0.0)
+            if c == "theta" and x.replay == "open" and ok.any():
+                y = np.where(ok, y - float(np.mean(y[ok])), 0.0)
+            col = np.zeros((y.size, len(CHANNELS)))
+            col[:, i] = y / math.sqrt(k * x.sst_fit[c])
+            blocks.append(col)
+    return np.concatenate(blocks), se
+
+
 def _screen_msg(over: dict[str, Any], names: list[str]) -> float:
     """Mean squared gap of ``names`` over their screening windows."""
     return mean_squared_gap(squared_errors(over, names, "screen"), _CTX["setup"].experiments, names, "screen")
@@ -169,6 +194,7 @@ def least_squares_refit(
         for x, b in eff.extra.items():
             bounds[x], nominal[x] = b, setup.nominal(x)
     fixed = {k: v for k, v in base.items() if k not in bounds}
+    gains = gain_columns(setup, names)
 
     def refit(fixed: dict[str, Any], start: dict[str, Any]) -> recal.Fit:
         if not bounds:  # nothing to fit: the cost as given
@@ -183,6 +209,7 @@ def least_squares_refit(
             max_nfev=max_nfev,
             hold=recal.LINEAR,
             derivative_free=lattice_in_loop(setup, fixed, names),
+            calibration=gains,
         )
 
     f = refit(fixed, base)

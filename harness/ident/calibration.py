@@ -67,7 +67,8 @@ class PotCalibration:
     = 360 - Kp (v_max - v_min); n_wraps the number of wraps seen. lag_s [s]: when the record starts at rest
     with the command step at t[0], the time after t[0] at which the steady-speed asymptote passes the start
     angle (command delay + mechanical time constant; the ``lag_s`` of :func:`dead_zone_estimate`); NaN when
-    the start lies in the dead band or too few tracks are seen.
+    the start lies in the dead band or too few tracks are seen. rel_se: Kp's relative standard error from the
+    spread of its per-revolution values (NaN from one revolution).
     """
 
     Kp: float
@@ -77,6 +78,7 @@ class PotCalibration:
     deadband_deg: float
     n_wraps: int
     lag_s: float = float("nan")
+    rel_se: float = float("nan")
 
 
 def _robust_line(t: np.ndarray, v: np.ndarray) -> tuple[float, float, float]:
@@ -144,7 +146,14 @@ def kp_from_ramp(t: Any, theta_v: Any) -> PotCalibration:
         raise ValueError(
             "need one full revolution (two tracks crossing mid-range between wraps) to time the potentiometer"
         )
-    kp = 360.0 / abs(float(np.median(volts_per_rev)))
+    vpr = float(np.median(volts_per_rev))
+    kp = 360.0 / abs(vpr)
+    steady = np.asarray(volts_per_rev[1:])  # the first revolution is often still speeding up
+    rel_se = (
+        math.sqrt(math.pi / 2) * float(np.std(steady, ddof=1)) / math.sqrt(steady.size) / abs(vpr)  # a median's
+        if steady.size > 2
+        else float("nan")
+    )
     lag = float("nan")
     later = sorted(i for i in cross if i >= 1)
     if 0.02 < float(v[0] - lo) / span < 0.98 and len(later) >= 2:
@@ -162,6 +171,7 @@ def kp_from_ramp(t: Any, theta_v: Any) -> PotCalibration:
         deadband_deg=360.0 - kp * (v_max - v_min),
         n_wraps=int(jumps.size),
         lag_s=lag,
+        rel_se=rel_se,
     )
 
 
@@ -256,6 +266,15 @@ def comb_table(
     if len(holds) == 0:
         raise ValueError("no comb holds given")
     angles, volts = [], []
+    for i, m in enumerate(_hold_masks(t, holds)):
+        volts.append(float(av[m].mean()))
+        angles.append(float(truth[m].mean()) if per_sample else float(truth[i]))
+    return np.array(angles), np.array(volts)
+
+
+def _hold_masks(t: np.ndarray, holds: list[tuple[float, float]]) -> list[np.ndarray]:
+    """The samples of each comb hold (t_start, t_end) [s] that are averaged: 0.5 s to 2 s after its start."""
+    out = []
     for i, hold in enumerate(holds):
         try:
             t_start, t_end = (float(h) for h in hold)
@@ -266,9 +285,26 @@ def comb_table(
         m = (t >= t_start + 0.5) & (t <= min(t_start + 2.0, t_end))
         if not m.any():
             raise ValueError(f"hold {i} ({t_start}, {t_end}) s has no samples 0.5 s to 2 s after its start")
-        volts.append(float(av[m].mean()))
-        angles.append(float(truth[m].mean()) if per_sample else float(truth[i]))
-    return np.array(angles), np.array(volts)
+        out.append(m)
+    return out
+
+
+def ke_rel_se(t: Any, alpha_v: Any, angles_deg: Any, holds: list[tuple[float, float]]) -> float:
+    """Ke's relative standard error from a comb: the larger of the line's (its residuals, n - 2 of freedom) and what
+    the gauge's noise in each hold's mean [V] leaves on the slope (the hold's samples, many of freedom)."""
+    t = time_axis(t)
+    av = as_signal("alpha_v", alpha_v, t.size)
+    a = np.asarray(angles_deg, dtype=float)
+    masks = _hold_masks(t, holds)
+    v = np.array([av[m].mean() for m in masks])
+    sem = np.array([av[m].std(ddof=1) / math.sqrt(m.sum()) if m.sum() > 1 else 0.0 for m in masks])
+    saa = float(np.sum((a - a.mean()) ** 2))
+    if a.size < 3 or saa <= 0:
+        return float("nan")
+    slope, icpt = np.polyfit(a, v, 1)  # volts on angle: the angles are set, the volts measured
+    resid = v - (slope * a + icpt)
+    sigma = max(math.sqrt(float(resid @ resid) / (a.size - 2)), float(np.sqrt(np.mean(sem**2))))
+    return sigma / math.sqrt(saa) / abs(float(slope))
 
 
 # --- dead zone
@@ -450,6 +486,17 @@ class Calibration:
         ang = src.get("angles_deg") if isinstance(src, dict) else None
         return np.asarray(ang, dtype=float) if ang else None
 
+    def gain_rel_se(self) -> dict[str, float]:
+        """The relative standard errors of the sensor gains as this run measured them: theta's (Kp, from the pot
+        ramp's revolutions) and alpha's (Ke, from the comb: :func:`ke_rel_se`); 0 where the calibration does not say
+        (lab 1's values, imported records)."""
+        out = {}
+        for channel, gain in (("theta", "Kp"), ("alpha", "Ke")):
+            src = self.source.get(gain, {})
+            se = src.get("rel_se") if isinstance(src, dict) else None
+            out[channel] = float(se) if se is not None and math.isfinite(se) else 0.0
+        return out
+
     def to_json(self, path: str | os.PathLike[str]) -> None:
         """Write atomically with sorted keys; floats in shortest round-trip form, NaN (also inside ``source``)
         as null."""
@@ -556,6 +603,7 @@ def calibrate(
             "v_min": pc.v_min,
             "n_wraps": pc.n_wraps,
             "lag_s": pc.lag_s,
+            "rel_se": pc.rel_se,
         }
     else:
         source["Kp"] = {"method": "lab 1's value (no pot ramp in this run)"}
@@ -571,6 +619,7 @@ def calibrate(
             "angles_deg": ang.tolist(),
             "volts": volts.tolist(),
             "r2": gc.r2,
+            "rel_se": ke_rel_se(t, col(comb[0], "alpha_v"), ang, holds),
         }
     else:
         source["Ke"] = {"method": "lab 1's value (no comb in this run)"}
