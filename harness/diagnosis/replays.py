@@ -1,8 +1,9 @@
 """The diagnosis's replays beside the record: ``diagnosis.replays.parquet``, what the report and the viewer draw.
 
 One row per sample of every experiment: ``experiment``, ``t`` [s], the record's ``theta``/``alpha`` [deg] (as the
-diagnosis compared them: calibrated, theta unwrapped, NaN where a sample is not valid) and the simulation's for each
-stage of :data:`STAGES` (``theta_given``, ``alpha_given``, ...; theta NaN where the simulated pot is off its track).
+diagnosis compared them: calibrated, theta unwrapped), ``theta_valid``/``alpha_valid`` (the samples that measure the
+shaft) and the simulation's angles for each stage of :data:`STAGES` (``theta_given``, ``alpha_given``, ...; theta NaN
+where the simulated pot is off its track).
 float32 (a figure's resolution), zstd, no statistics: byte-stable, and kept out of diagnosis.json so that stays small.
 """
 
@@ -29,12 +30,14 @@ STAGES = {
 
 @dataclass(frozen=True)
 class Replay:
-    """One experiment: time ``t`` [s], the record per channel [deg] and the simulation per stage and channel [deg]
-    (``sim[stage][channel]``)."""
+    """One experiment: time ``t`` [s], the record per channel [deg] (NaN where a sample is not valid), the simulation
+    per stage and channel [deg] (``sim[stage][channel]``) and the record's sum of squares about its mean per channel
+    ``sst`` [deg^2] (over every sample, as the diagnosis normalises its gap)."""
 
     t: np.ndarray
     record: dict[str, np.ndarray]
     sim: dict[str, dict[str, np.ndarray]]
+    sst: dict[str, float]
 
 
 def write_replays(
@@ -44,14 +47,15 @@ def write_replays(
     records of ``experiments`` to ``path``, atomically."""
     cols: dict[str, list[np.ndarray]] = {"t": [], **{c: [] for c in CHANNELS}}
     cols.update({f"{c}_{s}": [] for s in STAGES for c in CHANNELS})
+    valid: dict[str, list[np.ndarray]] = {f"{c}_valid": [] for c in CHANNELS}
     names: list[str] = []
     for name, x in experiments.items():
         n = x.t.size
         names += [name] * n
         cols["t"].append(x.t - x.t[0])
         for c in CHANNELS:
-            rec = x.theta if c == "theta" else x.alpha
-            cols[c].append(np.where(x.valid[c][:n], rec[:n], np.nan))
+            cols[c].append((x.theta if c == "theta" else x.alpha)[:n])
+            valid[f"{c}_valid"].append(np.asarray(x.valid[c][:n], dtype=bool))
             for s in STAGES:
                 y = np.full(n, np.nan)
                 sim = traces[s][name][c]
@@ -61,6 +65,7 @@ def write_replays(
         {
             "experiment": pa.array(names, pa.string()).dictionary_encode(),
             **{k: pa.array(np.concatenate(v).astype(np.float32)) for k, v in cols.items()},
+            **{k: pa.array(np.concatenate(v)) for k, v in valid.items()},
         }
     )
     sink = pa.BufferOutputStream()
@@ -74,17 +79,24 @@ def read_replays(path: Path) -> dict[str, Replay]:
         df = pq.read_table(path).to_pandas()
     except (OSError, pa.ArrowException) as exc:
         raise DataError(f"{path}: not a replay file ({exc})") from None
-    need = ["experiment", "t", *CHANNELS, *(f"{c}_{s}" for s in STAGES for c in CHANNELS)]
+    need = [
+        "experiment",
+        "t",
+        *CHANNELS,
+        *(f"{c}_valid" for c in CHANNELS),
+        *(f"{c}_{s}" for s in STAGES for c in CHANNELS),
+    ]
     missing = [c for c in need if c not in df.columns]
     if missing:
         raise DataError(f"{path}: missing column(s) {', '.join(missing)}")
     out = {}
     for name in dict.fromkeys(df["experiment"].astype(str)):
         g = df[df["experiment"].astype(str) == name]
-        col = {k: g[k].to_numpy(dtype=float) for k in need[1:]}
+        col = {k: g[k].to_numpy(dtype=bool if k.endswith("_valid") else float) for k in need[1:]}
         out[name] = Replay(
             t=col["t"],
-            record={c: col[c] for c in CHANNELS},
+            record={c: np.where(col[f"{c}_valid"], col[c], np.nan) for c in CHANNELS},
             sim={s: {c: col[f"{c}_{s}"] for c in CHANNELS} for s in STAGES},
+            sst={c: float(np.sum((col[c] - np.mean(col[c])) ** 2)) for c in CHANNELS},
         )
     return out

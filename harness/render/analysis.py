@@ -158,17 +158,16 @@ def bode_curves(res: RunResults, f_hz: np.ndarray) -> dict[str, lti.BodeData]:
 
 
 def replay_fits(rp: Replay) -> dict[str, float]:
-    """Fit [%] of each stage's replay to the record, as the diagnosis pools it: 100 (1 - sqrt(mean over channels of
-    ||y_rec - y_sim||^2 / ||y_rec - mean||^2)) over the samples valid on both sides (channels with no motion
-    skipped)."""
+    """Fit [%] of each stage's replay to the record, as the diagnosis pools it per experiment: 100 (1 - sqrt(mean
+    over channels of ||y_rec - y_sim||^2 / ||y_rec - mean||^2)), the residual over the samples valid on both sides,
+    the record's spread over all (channels with no motion skipped)."""
     out = {}
     for stage, sim in rp.sim.items():
         qs = []
         for ch, rec in rp.record.items():
             ok = np.isfinite(rec) & np.isfinite(sim[ch])
-            sst = float(np.sum((rec[ok] - np.mean(rec[ok])) ** 2)) if ok.any() else 0.0
-            if sst > 0:
-                qs.append(float(np.sum((rec[ok] - sim[ch][ok]) ** 2)) / sst)
+            if rp.sst[ch] > 0:
+                qs.append(float(np.sum((rec[ok] - sim[ch][ok]) ** 2)) / rp.sst[ch])
         out[stage] = 100.0 * (1.0 - math.sqrt(float(np.mean(qs)))) if qs else math.nan
     return out
 

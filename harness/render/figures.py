@@ -325,7 +325,7 @@ def diagnosis_bars(rows: list[tuple[str, float, float]], path: Path) -> None:
     ax.bar(x - 0.2, [r[1] for r in rows], 0.4, label="simulation as given")
     ax.bar(x + 0.2, [r[2] for r in rows], 0.4, label="recalibrated, with the effects")
     ax.set_xticks(x, [r[0] for r in rows], rotation=30, ha="right", fontsize=8)
-    ax.set_ylabel("gap = 1 - fit/100 (fit in %)")
+    ax.set_ylabel("gap [1] = 1 - fit [%] / 100")
     ax.set_xlabel("experiment")
     ax.set_title("sim-to-real gap per experiment")
     ax.legend(fontsize=8)
@@ -355,7 +355,7 @@ def gap_waterfall(rows: list[tuple[str, float, float]], noise: float, path: Path
         ax.legend(fontsize=8)
     labels = [r[0] for r in rows] + ["final"]
     ax.set_xticks(np.arange(len(labels)), labels, rotation=30, ha="right", fontsize=8)
-    ax.set_ylabel("held-out gap = 1 - fit/100 (fit in %)")
+    ax.set_ylabel("held-out gap [1] = 1 - fit [%] / 100")
     ax.set_xlabel("stage")
     ax.set_title("gap waterfall: the simulation as given, recalibration, then each effect")
     ax.set_ylim(0, 1.12 * rows[0][1])
