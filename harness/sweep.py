@@ -78,7 +78,7 @@ from .ident.accept import judge
 from .ident.calibration import calibrate
 from .ident.identify import load_model, prepare, run_grid
 from .render.figures import new_figure, save_figure
-from .render.viewer import write_recording
+from .render.viewer import bar_bounds, log_bars, write_recording
 from .rig.campaign import simulate_spec, versions
 from .rundir import DataError, ExperimentEntry, RunDir, atomic_write_bytes, atomic_write_text, write_json
 
@@ -536,6 +536,9 @@ def write_rrd(out: Path, table: pd.DataFrame, doc: dict[str, Any], markdown: str
     ok = table["passed"].to_numpy(bool)
     fm = table["fit_mean"].to_numpy(float)
     keys = [v["key"] for v in doc["vary"]]
+    rank = doc["summary"]["sensitivity"]["ranking"]
+    s1 = np.array([r["s1"] if math.isfinite(r["s1"]) else 0.0 for r in rank])
+    bounds = bar_bounds(len(rank))
     scatter_tabs = []
     for key_ in keys:
         scatter_tabs.append(rrb.TimeSeriesView(origin=f"scatter/{rr.escape_entity_path_part(key_)}", name=key_))
@@ -548,7 +551,7 @@ def write_rrd(out: Path, table: pd.DataFrame, doc: dict[str, Any], markdown: str
                 name="rigs",
             ),
             rrb.Tabs(*scatter_tabs, name="fit vs parameter"),
-            rrb.BarChartView(origin="sensitivity", name="first-order index S1 (ranked)"),
+            rrb.Spatial2DView(origin="sensitivity", name="first-order index S1 [1] (ranked)", visual_bounds=bounds),
         ),
         rrb.TimePanel(timeline="rig"),
     )
@@ -577,9 +580,7 @@ def write_rrd(out: Path, table: pd.DataFrame, doc: dict[str, Any], markdown: str
                 idx = rr.TimeColumn(tl, sequence=np.round(x[mask] * scale).astype(np.int64))
                 vals = np.where(np.isfinite(fm[mask]), fm[mask], 0.0)
                 rec.send_columns(p, indexes=[idx], columns=rr.Scalars.columns(scalars=vals))
-        rank = doc["summary"]["sensitivity"]["ranking"]
-        bars = np.array([r["s1"] if math.isfinite(r["s1"]) else 0.0 for r in rank])
-        rec.log("sensitivity", rr.BarChart(bars, abscissa=np.arange(len(rank), dtype=float)), static=True)
+        log_bars(rec, "sensitivity", [r["param"] for r in rank], [("S1", s1, [74, 122, 181])])
 
     rec_id = str(uuid.UUID(hex=key.hexdigest()[:32]))
     return write_recording(path or out / "sweep.rrd", rec_id, log, blueprint=blueprint)
@@ -704,6 +705,8 @@ def report_sweep(out: Path, rrd: Path | None = None) -> tuple[Path, Path]:
         table = pq.read_table(out / "sweep.parquet").to_pandas()
     except (json.JSONDecodeError, OSError, pa.ArrowException) as exc:
         raise DataError(f"{out}: sweep.json or sweep.parquet unreadable ({exc})") from None
+    varies = [Vary(*v["key"].split(".", 1), v["distribution"], tuple(v["args"]), v["integer"]) for v in doc["vary"]]
+    doc["summary"] = summarise(table, varies, doc["thresholds"])  # the same numbers, in the order they were made
     recording = _write_report(out, table, doc, rrd or True)
     assert recording is not None
     return RunDir(out).report, recording

@@ -630,6 +630,8 @@ def test_report_of_what_diagnose_out_wrote(real, tmp_path):
     assert text.startswith(f"# flexjoint diagnosis: `{real[1]['real']}` against `{real[1]['sim_spec']}`")
     assert "## Sim-to-real gap diagnosis" in text and "### Replays against the record" in text
     assert "## Calibration" not in text and "## Data" not in text
+    ks = real[1]["where"]["after_recalibration"]["parameters"]["plant.Ks"]
+    assert "recalibration alone fitted, before any effect (Beq " in text and f"Ks {ks:.4g}," in text
     figs = {p.name for p in RunDir(out).figures.glob("*.png")}
     assert {f"replay_{n}.png" for n in real[1]["replays"]} | {"gap_waterfall.png", "diagnosis.png"} == figs
     assert RunDir(out).recording.stat().st_size > 0

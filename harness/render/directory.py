@@ -6,6 +6,11 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..rundir import DataError, RunDir
+from ..sweep import report_sweep
+from .blindtest import report_blindtest
+from .load import load_results
+from .report import write_report
+from .viewer import log_run
 
 __all__ = ["KINDS", "report_directory", "what_wrote"]
 
@@ -43,16 +48,8 @@ def report_directory(
         if spawn or connect:
             raise ValueError(f"--spawn/--connect stream a run or a diagnosis; open the {kind}'s .rrd with `rerun FILE`")
         if kind == "sweep":
-            from ..sweep import report_sweep
-
             return (kind, *report_sweep(path, rrd))
-        from .blindtest import report_blindtest
-
         return (kind, *report_blindtest(path, rrd))
-    from .load import load_results
-    from .report import write_report
-    from .viewer import log_run
-
     res = load_results(path)
     report = write_report(path, res)
     recording = log_run(path, rrd=rrd, spawn=spawn, connect=connect, results=res)

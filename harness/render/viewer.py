@@ -59,7 +59,7 @@ from .load import RunResults, load_results
 from .report import holds, title
 from .tables import crossfit_table
 
-__all__ = ["APPLICATION_ID", "log_run", "recording_id", "write_recording"]
+__all__ = ["APPLICATION_ID", "bar_bounds", "log_bars", "log_run", "recording_id", "write_recording"]
 
 APPLICATION_ID = "flexjoint"
 N_BODE = 400
@@ -284,7 +284,7 @@ def _log_resid(rec: rr.RecordingStream, res: RunResults) -> dict[str, rrb.Visual
     return bounds
 
 
-def _log_bars(
+def log_bars(
     rec: rr.RecordingStream,
     path: str,
     categories: list[str],
@@ -325,7 +325,13 @@ def _log_bars(
     pos = [(i + 0.5, -(0.06 + (0.08 if stagger and i % 2 else 0.0)) * BAR_HEIGHT) for i in range(n)]
     rec.log(f"{path}/categories", rr.Points2D(_xy(*np.array(pos).T), radii=0.001, colors=[_BLACK],
             labels=categories, show_labels=True), static=True)  # fmt: skip
-    pad_x, pad_y = 0.04 * n, 0.06 * BAR_HEIGHT  # as _log_axes frames its plot, with room for two label rows
+    return bar_bounds(n)
+
+
+def bar_bounds(n: int) -> rrb.VisualBounds2D:
+    """The bounds that frame a :func:`log_bars` chart of ``n`` categories (as :func:`_log_axes` frames its plot,
+    with room for two rows of category names)."""
+    pad_x, pad_y = 0.04 * n, 0.06 * BAR_HEIGHT
     return rrb.VisualBounds2D(x_range=[-3 * pad_x, n + pad_x], y_range=[-BAR_HEIGHT - 2 * pad_y, 5 * pad_y])
 
 
@@ -341,13 +347,13 @@ def _log_diagnosis(rec: rr.RecordingStream, res: RunResults) -> dict[str, rrb.Vi
         after = np.array([r[2] for r in rows])
         series = [("simulation as given", before, _RED), ("recalibrated, with the effects", after, _BLUE)]
         names = [r[0].split(" (")[0] for r in rows]  # the experiment; its fold is in the summary
-        bounds["gap"] = _log_bars(rec, "diagnosis/gap", names, series, values=len(rows) <= 6)
+        bounds["gap"] = log_bars(rec, "diagnosis/gap", names, series, values=len(rows) <= 6)
         lines += ["Gap per experiment (gap = 1 - fit/100): the simulation as given red (left), recalibrated with the "
                   "effects blue (right).", ""]  # fmt: skip
     steps = d.waterfall()
     if len(steps) > 1:
         gaps = np.array([g for _, g, _ in steps])
-        bounds["waterfall"] = _log_bars(rec, "diagnosis/waterfall", [s[0] for s in steps],
+        bounds["waterfall"] = log_bars(rec, "diagnosis/waterfall", [s[0] for s in steps],
                                         [("held-out gap", gaps, _ORANGE)])  # fmt: skip
     lines += diagnosis_markdown(d)
     _markdown(rec, "diagnosis/summary", lines)
