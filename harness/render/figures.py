@@ -197,10 +197,17 @@ def time_response(pnl: TimePanel, zoom_s: float, path: Path) -> None:
 
 
 def experiment_data(
-    name: str, t: np.ndarray, u: np.ndarray, theta: np.ndarray, alpha: np.ndarray, unit: str, path: Path
+    name: str,
+    t: np.ndarray,
+    u: np.ndarray,
+    theta: np.ndarray,
+    alpha: np.ndarray,
+    unit: str,
+    path: Path,
+    ref: np.ndarray | None = None,
 ) -> None:
     """One experiment's data as recorded (MATLAB's ``plot(data)``): command u [V], shaft angle theta and link
-    deflection alpha [``unit``] over t [s]."""
+    deflection alpha [``unit``] over t [s]; a closed-loop record's reference ``ref`` [deg] dashed over theta."""
     fig = new_figure(9, 6)
     axes = fig.subplots(3, 1, sharex=True)
     for ax, y, label, color in (
@@ -211,6 +218,10 @@ def experiment_data(
         ax.plot(t, y, color=color, lw=0.8)
         ax.set_ylabel(label)
         ax.grid(True, alpha=0.3)
+    if ref is not None:
+        axes[1].plot(t, ref, color="0.45", lw=0.9, ls="--", label="reference [deg]")
+        axes[1].plot([], [], color="C0", lw=0.8, label="theta")
+        axes[1].legend(fontsize=8, loc="upper right")
     axes[0].set_title(f"{name}: the data (command, shaft angle, link deflection)")
     axes[2].set_xlabel("t [s]")
     fixed_layout(fig)

@@ -159,8 +159,9 @@ def _section_data(res: RunResults, figdir: Path) -> list[str]:
         t = df["t"].to_numpy(dtype=float)
         theta, alpha, unit = record_angles(res, e.name)
         link = figure_name("data", e.name)
-        figures.experiment_data(e.name, t - t[0], df["u"].to_numpy(dtype=float), theta, alpha, unit,
-                                figdir / Path(link).name)  # fmt: skip
+        ref = df["ref"].to_numpy(dtype=float) if "ref" in df.columns and unit == "deg" else None
+        u = df["u"].to_numpy(dtype=float)
+        figures.experiment_data(e.name, t - t[0], u, theta, alpha, unit, figdir / Path(link).name, ref)
         rows.append([e.name, e.role, e.signal or "—", str(t.size), fmt(float(t[-1] - t[0]), 2)])
         links += [f"![data of {e.name}]({link})", ""]
     how = "through the run's calibration" if res.calibration is not None else "in volts (no calibration yet)"
