@@ -558,7 +558,8 @@ def write_rrd(out: Path, table: pd.DataFrame, doc: dict[str, Any], markdown: str
 
     def log(rec: rr.RecordingStream) -> None:
         rec.send_recording_name(f"flexjoint sweep {doc['spec']['name']}")
-        rec.log("report", rr.TextDocument(markdown, media_type=rr.MediaType.MARKDOWN), static=True)
+        text = "\n".join(x for x in markdown.splitlines() if not x.startswith("!["))  # no broken image links
+        rec.log("report", rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN), static=True)
         series = (("mean", fm, [40, 90, 220]), ("min", table["fit_min"].to_numpy(float), [230, 120, 20]))
         for name, values, color in series:
             rec.log(f"rigs/fit/{name}", rr.SeriesLines(colors=[color], names=[f"{name} fit"]), static=True)

@@ -140,14 +140,18 @@ def report_blindtest(out: Path, rrd: Path | None = None) -> tuple[Path, Path]:
 
     def log(rec: rr.RecordingStream) -> None:
         rec.send_recording_name(f"flexjoint blind test {doc['n']} cases, seed {doc['seed']}")
-        rec.log("report", rr.TextDocument(markdown, media_type=rr.MediaType.MARKDOWN), static=True)
+        text = "\n".join(x for x in markdown.splitlines() if not x.startswith("![")).replace("\n\n\n", "\n\n")
+        rec.log("report", rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN), static=True)  # the figure apart
         rec.log("scores", rr.EncodedImage(contents=fig_path.read_bytes(), media_type="image/png"), static=True)
 
     blueprint = rrb.Blueprint(
-        rrb.Horizontal(
+        rrb.Tabs(  # each at full width: the tables uncut
             rrb.TextDocumentView(origin="report", name="blind test"),
             rrb.Spatial2DView(origin="scores", name="scores per family [%]"),
-        )
+        ),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
+        rrb.TimePanel(state="collapsed"),
     )
     key = hashlib.sha256(json.dumps({k: doc[k] for k in ("n", "seed", "spec", "families")}, sort_keys=True).encode())
     rec_id = str(uuid.UUID(hex=key.hexdigest()[:32]))
