@@ -86,7 +86,7 @@ def spec_overrides(res: RunResults) -> list[str]:
 
 
 def holds(res: RunResults) -> str:
-    """What the directory holds, in the pipeline's words: "campaign: data, calibration, identified, ..."."""
+    """What the directory holds, in the pipeline's words: "simulated campaign: data, calibrated, identified, ..."."""
     p = res.paths
     have = [
         ("data", bool(res.records)),

@@ -7,19 +7,22 @@ axis units in the view names. Rerun's 2D views point y down, so values are drawn
 
 Entity tree (all logged from the run directory alone, via :func:`harness.render.load.load_results`):
 
+- ``overview`` (markdown: what the run holds, the tabs); the blueprint opens on it
+- ``data/<experiment>/{u,theta,alpha}``: every experiment as measured (command [V], angles [deg] through the
+  run's calibration); timeline ``time`` [s]
 - ``datasets/<name>/measured``, ``.../simulated`` (identification domain y_f [deg/sample], selected model),
   ``.../command`` (u [V]), ``.../tip/measured``, ``.../tip/simulated`` (tip angle [deg]); timeline ``time`` [s]
-- ``crossfit/matrix`` (Tensor, dims model x dataset, fit [%]), ``crossfit/table`` (markdown, datasets
-  numbered 1..n as in report.md), ``crossfit/heatmap/{cells,values,rows,columns,scale}`` (2D: coloured cells,
-  their values, model and dataset labels, the colour scale)
+- ``crossfit/matrix`` (Tensor, dims model x dataset, fit [%]), ``crossfit/heatmap`` (the report's heat map, a PNG:
+  models and datasets by name, each value readable on its cell), ``crossfit/table`` (markdown, at full width)
 - ``models/selected/pz/{poles,zeros,unit_circle,axes}`` (z-plane, model with integrator)
 - ``bode/magnitude/<model>``, ``bode/phase/<model>`` (2D line strips: x = log10 f [Hz], y = magnitude / 20 dB or
   phase / 90 deg) and ``bode/{magnitude,phase}/axes``
 - ``resid/acf/<dataset>``, ``resid/ccf/<dataset>`` (2D line strips over the lag), ``resid/{acf,ccf}/bounds``
   (99 %), ``resid/{acf,ccf}/axes``; ``resid/summary`` (markdown)
-- ``diagnosis/gap/before``, ``diagnosis/gap/after`` (bar charts side by side per experiment),
-  ``diagnosis/waterfall`` (held-out gap stage by stage), ``diagnosis/summary`` (markdown)
-- ``overview`` (markdown)
+- ``diagnosis/gap`` (2D bars per experiment, named, as given and with the effects: :func:`log_bars`),
+  ``diagnosis/waterfall`` (the held-out gap stage by stage, named), ``diagnosis/summary`` (markdown),
+  ``diagnosis/replays/<experiment>/<channel>/{record,given,recalibrated,effects}`` (the replays against the record,
+  [deg] over ``time``)
 
 Time series use one ``send_columns`` call per entity.
 """
