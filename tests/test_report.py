@@ -486,7 +486,7 @@ def test_every_figure_has_a_title_and_labelled_axes_with_units(real, drawn, tmp_
         axes = [ax for ax in fig.axes if ax.get_visible() and ax.get_label() != "<colorbar>"]
         assert any(ax.get_title() for ax in axes), f"{name}: no title"
         for ax in axes:
-            y = ax.get_ylabel()
+            y = next((a.get_ylabel() for a in ax.get_shared_y_axes().get_siblings(ax) if a.get_ylabel()), "")
             unitless = ("Im z", "r_ee(k) / r_ee(0)", "r_eu(k), normalised", "model (fitted on dataset)")
             assert y and ("[" in y or y in unitless), f"{name}: y {y!r}"
             shared = ax.get_shared_x_axes().get_siblings(ax)
@@ -536,17 +536,20 @@ def test_replays_against_the_record_per_experiment(real, drawn, tmp_path):
     rows = {r[0]: r[1:] for r in _rows(text.split("### Replays against the record", 1)[1].split("\n## ", 1)[0])[1:]}
     for name, rp in replays.items():
         fig = drawn[f"replay_{name}.png"]
-        th_ax, al_ax, e_ax = fig.axes
+        th_ax, zoom_ax, al_ax, _, e_ax, _ = fig.axes  # whole record left, its zoom right
         labels = [ln.get_label() for ln in th_ax.get_lines()]
-        assert labels[0] == "record" and [x.split(" (fit")[0] for x in labels[1:]] == list(STAGES.values())
-        fits = [float(x.split("(fit ")[1].split(" %")[0]) for x in labels[1:]]
+        assert labels[-1] == "record" and [x.split(" (fit")[0] for x in labels[:-1]] == list(STAGES.values())
+        assert [ln.get_label() for ln in zoom_ax.get_lines()] == labels
+        t0, t1 = zoom_ax.get_xlim()
+        assert rp.t[0] <= t0 < t1 <= rp.t[-1] and t1 - t0 == pytest.approx(4.0, abs=0.05)
+        fits = [float(x.split("(fit ")[1].split(" %")[0]) for x in labels[:-1]]
         assert fits == [float(c) for c in rows[name]]
         for stage, key in ((0, "before"), (2, "after")):
             ref = d["gap"][key]["experiments"][name]["fit_pct"]
             want = 100 * (1 - math.sqrt(np.mean([(1 - ref[c] / 100) ** 2 for c in ("theta", "alpha")])))
             assert fits[stage] == pytest.approx(want, abs=0.15)
         assert fits[0] < fits[2]  # the effects close the gap on every experiment of this rig
-        np.testing.assert_array_equal(th_ax.get_lines()[0].get_ydata(), rp.record["theta"])
+        np.testing.assert_array_equal(th_ax.get_lines()[-1].get_ydata(), rp.record["theta"])
         assert th_ax.get_ylabel() == "theta [deg]" and al_ax.get_ylabel() == "alpha [deg]"
         assert e_ax.get_xlabel() == "t [s]"
 

@@ -235,30 +235,38 @@ def replay(
     sims: Mapping[str, Mapping[str, np.ndarray]],
     labels: Mapping[str, str],
     fits: Mapping[str, float],
+    zoom: tuple[float, float],
     path: Path,
 ) -> None:
-    """One experiment's replays against its record, per channel (theta, alpha [deg] over t [s]): the record black,
-    each stage of ``sims`` ({stage: {channel: [deg]}}, labelled ``labels[stage]`` with its fit ``fits[stage]`` [%])
-    in its own colour, the last stage's residual under them."""
+    """One experiment's replays against its record, per channel (theta, alpha [deg] over t [s]): each stage of
+    ``sims`` ({stage: {channel: [deg]}}, labelled ``labels[stage]`` with its fit ``fits[stage]`` [%]) in its own
+    colour, the record black over them, the last stage's residual under them; the whole record on the left, the
+    window ``zoom`` (t0, t1) [s] on the right (shaded on the left)."""
     colors = ("C1", "C2", "C0", "C4")
-    fig = new_figure(9, 7)
-    ax_th, ax_al, ax_e = fig.subplots(3, 1, sharex=True, height_ratios=[2, 2, 1])
-    for ax, ch in ((ax_th, "theta"), (ax_al, "alpha")):
-        ax.plot(t, record[ch], color="k", lw=1.4, label="record")
-        for (stage, sim), color in zip(sims.items(), colors, strict=False):
-            ax.plot(t, sim[ch], color=color, lw=0.9, label=f"{labels[stage]} (fit {fmt(fits[stage], 1)} %)")
-        ax.set_ylabel(f"{ch} [deg]")
-        ax.grid(True, alpha=0.3)
+    fig = new_figure(13, 7)
+    grid = fig.subplots(3, 2, sharex="col", sharey="row", height_ratios=[2, 2, 1], width_ratios=[3, 2])
     last = list(sims)[-1]
-    for ch, color in (("theta", "C0"), ("alpha", "C2")):
-        ax_e.plot(t, record[ch] - sims[last][ch], color=color, lw=0.7, label=ch)
-    ax_e.set_ylabel("residual [deg]")
-    ax_e.set_xlabel("t [s]")
-    ax_e.grid(True, alpha=0.3)
-    ax_e.legend(fontsize=7, loc="upper right", title=f"record - {labels[last]}", title_fontsize=7)
-    ax_th.set_title(f"{name}: the diagnosis's replays against the record")
-    ax_th.legend(fontsize=7, loc="best")
-    fixed_layout(fig)
+    for col in (0, 1):
+        ax_th, ax_al, ax_e = grid[:, col]
+        for ax, ch in ((ax_th, "theta"), (ax_al, "alpha")):
+            for (stage, sim), color in zip(sims.items(), colors, strict=False):
+                ax.plot(t, sim[ch], color=color, lw=0.9, label=f"{labels[stage]} (fit {fmt(fits[stage], 1)} %)")
+            ax.plot(t, record[ch], color="k", lw=0.8, label="record", zorder=5)
+            ax.grid(True, alpha=0.3)
+        for ch, color in (("theta", "C0"), ("alpha", "C2")):
+            ax_e.plot(t, record[ch] - sims[last][ch], color=color, lw=0.7, label=ch)
+        ax_e.grid(True, alpha=0.3)
+    for row, label in enumerate(("theta [deg]", "alpha [deg]", "residual [deg]")):
+        grid[row, 0].set_ylabel(label)
+        grid[row, 0].axvspan(*zoom, color="0.5", alpha=0.12)
+    grid[2, 0].set_xlabel("t [s]")
+    grid[2, 1].set_xlabel("t [s] (zoom: where the simulation as given misses most)")
+    grid[2, 1].set_xlim(*zoom)
+    grid[2, 0].legend(fontsize=7, loc="upper right", title=f"record - {labels[last]}", title_fontsize=7)
+    grid[0, 0].set_title(f"{name}: the diagnosis's replays against the record")
+    grid[0, 1].set_title(f"{zoom[0]:.1f}-{zoom[1]:.1f} s")
+    grid[0, 1].legend(fontsize=7, loc="best")
+    fig.subplots_adjust(left=0.06, right=0.99, top=0.94, bottom=0.08, hspace=0.3, wspace=0.06)
     save_figure(fig, path)
 
 

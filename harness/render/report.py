@@ -538,7 +538,9 @@ def _replay_lines(res: RunResults, figdir: Path) -> list[str]:
     ]
     for name, rp in res.replays.items():
         link = figure_name("replay", name)
-        figures.replay(name, rp.t, rp.record, rp.sim, STAGES, fits[name], figdir / Path(link).name)
+        miss = np.nan_to_num(rp.record["theta"] - rp.sim["given"]["theta"])  # where the simulation as given misses
+        zoom = zoom_window(rp.t, miss, ZOOM_S)
+        figures.replay(name, rp.t, rp.record, rp.sim, STAGES, fits[name], zoom, figdir / Path(link).name)
         lines += [f"![replays of {name}]({link})", ""]
     return lines
 
