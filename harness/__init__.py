@@ -55,6 +55,7 @@ _API: dict[str, tuple[str, str]] = {
     "blindtest": ("diagnosis.blindtest", "blindtest"),
     "write_report": ("render.report", "write_report"),
     "log_run": ("render.viewer", "log_run"),
+    "report_directory": ("render.directory", "report_directory"),
     "identify_run": ("pipeline", "identify_run"),
     "run_pipeline": ("pipeline", "run_pipeline"),
     "run_sweep": ("sweep", "run_sweep"),

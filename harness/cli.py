@@ -469,19 +469,18 @@ def sweep(
 
 @app.command()
 def report(
-    run_dir: Annotated[Path, typer.Argument(help="run directory (from run, campaign, import, identify, diagnose)")],
-    rrd: Annotated[Path | None, typer.Option("--rrd", help="recording file (default RUN/run.rrd)")] = None,
+    run_dir: Annotated[
+        Path, typer.Argument(help="what run, campaign, import, identify, diagnose (--out), sweep or blindtest wrote")
+    ],
+    rrd: Annotated[Path | None, typer.Option("--rrd", help="recording file (default DIR/run.rrd)")] = None,
     spawn: Annotated[bool, typer.Option("--spawn", help="open a Rerun viewer")] = False,
     connect: Annotated[str | None, typer.Option("--connect", help="stream to a running viewer at URL")] = None,
 ) -> None:
-    """Write report.md, figures/ and run.rrd for any run directory, each section from what the directory holds."""
-    from .render.load import load_results
-    from .render.report import write_report
-    from .render.viewer import log_run
+    """Write report.md, figures/ and the Rerun recording for whatever a command wrote, each section from what the
+    directory holds."""
+    from .render.directory import report_directory
 
-    res = load_results(run_dir)
-    path = write_report(run_dir, res)
-    recording = log_run(run_dir, rrd=rrd, spawn=spawn, connect=connect, results=res)
+    _, path, recording = report_directory(run_dir, rrd=rrd, spawn=spawn, connect=connect)
     out.print(f"{path} ({path.stat().st_size / 1024:.1f} kB), {path.parent / 'figures'}, {recording}")
 
 

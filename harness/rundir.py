@@ -12,6 +12,7 @@ Layout::
     grid.csv                the order grid's fits;   crossfit.csv  the cross-fit matrix
     doubled_rate.json       the selected orders re-identified at twice the sample rate
     diagnosis.json          the diagnosis (harness.diagnosis.result.Diagnosis); diagnosis.timing.json its wall times
+    diagnosis.replays.parquet  its replays beside the record, per stage (harness.diagnosis.replays)
     report.md, figures/     the report;   run.rrd  the Rerun recording
     run.timing.json         flexjoint run's wall time per stage (timings apart: every other file is byte-stable)
 """
@@ -95,6 +96,10 @@ class RunDir:
     @property
     def diagnosis_timing(self) -> Path:
         return self.root / "diagnosis.timing.json"
+
+    @property
+    def diagnosis_replays(self) -> Path:
+        return self.root / "diagnosis.replays.parquet"
 
     @property
     def run_timing(self) -> Path:

@@ -65,22 +65,34 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import rerun as rr
 import rerun.blueprint as rrb
+from matplotlib.ticker import MaxNLocator
 from scipy import stats
 from scipy.stats import binomtest, qmc, rankdata, spearmanr
 
 from . import spec as specmod
 from .executor import Executor, FmuBytes, fmu_bytes
 from .fmu.build import build_all
+from .fmu.modeldesc import source_model
 from .ident import armax
 from .ident.accept import judge
 from .ident.calibration import calibrate
 from .ident.identify import load_model, prepare, run_grid
 from .render.figures import new_figure, save_figure
-from .render.viewer import write_recording
+from .render.viewer import bar_bounds, log_bars, write_recording
 from .rig.campaign import simulate_spec, versions
-from .rundir import ExperimentEntry, RunDir, atomic_write_bytes, atomic_write_text, write_json
+from .rundir import DataError, ExperimentEntry, RunDir, atomic_write_bytes, atomic_write_text, write_json
 
-__all__ = ["DISTRIBUTIONS", "Vary", "draw", "first_order", "parse_vary", "pass_interval", "run_sweep", "sensitivity"]
+__all__ = [
+    "DISTRIBUTIONS",
+    "Vary",
+    "draw",
+    "first_order",
+    "parse_vary",
+    "pass_interval",
+    "report_sweep",
+    "run_sweep",
+    "sensitivity",
+]
 
 Progress = Callable[[str], None]
 
@@ -397,44 +409,64 @@ def _write_parquet(path: Path, table: pd.DataFrame) -> None:
     atomic_write_bytes(path, sink.getvalue().to_pybytes())
 
 
+def param_label(key: str) -> str:
+    """``plant.Ks`` -> "plant.Ks [N.m/rad]": the varied parameter with the unit its FMU declares (none: as is)."""
+    table, _, name = key.partition(".")
+    try:
+        unit = source_model(_MODELS[table]).parameters()[name].unit if table in _MODELS else ""
+    except (FileNotFoundError, KeyError):
+        unit = ""
+    return f"{key} [{unit}]" if unit else key
+
+
 def write_figures(out: Path, table: pd.DataFrame, summary: dict[str, Any], th: Mapping[str, float]) -> list[str]:
     """``figures/sweep_fit.png`` (mean-fit histogram), ``sweep_scatter.png`` (mean fit against each varied
-    parameter, pass/fail coloured), ``sweep_sensitivity.png`` (S1 bars); returns their relative paths."""
+    parameter, pass/fail coloured), ``sweep_sensitivity.png`` (S1 bars); returns their relative paths. Each with
+    a title, axes with units, whole rigs on a count axis."""
 
     figs = RunDir(out).figures
     ok = table["passed"].to_numpy(bool)
     fm = table["fit_mean"].to_numpy(float)
-    fig = new_figure(6, 3.5)
+    n = len(table)
+    fig = new_figure(7, 4)
     ax = fig.subplots()
     f = fm[np.isfinite(fm)]
     ax.hist(f, bins=max(5, min(40, int(np.sqrt(max(f.size, 1))) * 2)), color="#4a7ab5")
     ax.axvline(th["min_average_fit"], color="#d62728", ls="--", label=f"min_average_fit {th['min_average_fit']:g} %")
-    ax.set_xlabel("mean fit over datasets [%]")
-    ax.set_ylabel("rigs")
+    ax.yaxis.set_major_locator(MaxNLocator(integer=True))
+    ax.set_xlabel("mean fit over the identification datasets [%]")
+    ax.set_ylabel("rigs [count]")
+    no_model = n - f.size
+    extra = f"; {no_model} without a model, not shown" if no_model else ""
+    ax.set_title(f"mean fit of {n} rigs: {int(ok.sum())} pass{extra}")
     ax.legend(fontsize=8)
     fig.tight_layout()
     save_figure(fig, figs / "sweep_fit.png")
 
     keys = list(summary["parameters"])
-    fig = new_figure(4 * len(keys), 3.5)
+    fig = new_figure(4.5 * len(keys), 4)
     axes = np.atleast_1d(fig.subplots(1, len(keys)))
     for ax, key in zip(axes, keys, strict=True):
         x = table[key].to_numpy(float)
-        ax.scatter(x[ok], fm[ok], s=10, c="#2ca02c", label="pass")
-        ax.scatter(x[~ok], np.where(np.isfinite(fm[~ok]), fm[~ok], np.nan), s=10, c="#d62728", label="fail")
-        ax.axhline(th["min_average_fit"], color="#999999", ls="--", lw=0.8)
-        ax.set_xlabel(key)
+        ax.scatter(x[ok], fm[ok], s=12, c="#2ca02c", label="pass")
+        ax.scatter(x[~ok], np.where(np.isfinite(fm[~ok]), fm[~ok], np.nan), s=12, c="#d62728", label="fail")
+        ax.axhline(th["min_average_fit"], color="#999999", ls="--", lw=0.8, label="min_average_fit")
+        ax.set_xlabel(param_label(key))
         ax.set_ylabel("mean fit [%]")
+        ax.set_title(f"mean fit against {key}")
+        ax.grid(True, alpha=0.3)
     axes[0].legend(fontsize=8)
     fig.tight_layout()
     save_figure(fig, figs / "sweep_scatter.png")
 
     rank = summary["sensitivity"]["ranking"]
-    fig = new_figure(6, 0.6 * len(rank) + 1.2)
+    fig = new_figure(7, 0.6 * len(rank) + 1.6)
     ax = fig.subplots()
     vals = [r["s1"] if math.isfinite(r["s1"]) else 0.0 for r in rank]
-    ax.barh([r["param"] for r in rank][::-1], vals[::-1], color="#4a7ab5")
-    ax.set_xlabel("first-order index S1 of the mean fit")
+    names = [param_label(r["param"]) + ("" if math.isfinite(r["s1"]) else " (S1 undefined)") for r in rank]
+    ax.barh(names[::-1], vals[::-1], color="#4a7ab5")
+    ax.set_xlabel("first-order sensitivity index S1 of the mean fit [1]")
+    ax.set_title("which varied parameter explains the spread of the mean fit")
     ax.set_xlim(0, max(1.0, max(vals, default=0.0)))
     fig.tight_layout()
     save_figure(fig, figs / "sweep_sensitivity.png")
@@ -494,7 +526,7 @@ def report_markdown(doc: dict[str, Any], figures: Sequence[str]) -> str:
     return "\n".join(lines)
 
 
-def write_rrd(out: Path, table: pd.DataFrame, doc: dict[str, Any], markdown: str) -> Path:
+def write_rrd(out: Path, table: pd.DataFrame, doc: dict[str, Any], markdown: str, path: Path | None = None) -> Path:
     """``sweep.rrd`` (by the viewer's writer, :func:`harness.render.viewer.write_recording`): per-rig series on the
     ``rig`` timeline, mean fit against each parameter on that parameter's own timeline, the sensitivity bars and
     the report, with its blueprint."""
@@ -504,6 +536,9 @@ def write_rrd(out: Path, table: pd.DataFrame, doc: dict[str, Any], markdown: str
     ok = table["passed"].to_numpy(bool)
     fm = table["fit_mean"].to_numpy(float)
     keys = [v["key"] for v in doc["vary"]]
+    rank = doc["summary"]["sensitivity"]["ranking"]
+    s1 = np.array([r["s1"] if math.isfinite(r["s1"]) else 0.0 for r in rank])
+    bounds = bar_bounds(len(rank))
     scatter_tabs = []
     for key_ in keys:
         scatter_tabs.append(rrb.TimeSeriesView(origin=f"scatter/{rr.escape_entity_path_part(key_)}", name=key_))
@@ -516,14 +551,15 @@ def write_rrd(out: Path, table: pd.DataFrame, doc: dict[str, Any], markdown: str
                 name="rigs",
             ),
             rrb.Tabs(*scatter_tabs, name="fit vs parameter"),
-            rrb.BarChartView(origin="sensitivity", name="first-order index S1 (ranked)"),
+            rrb.Spatial2DView(origin="sensitivity", name="first-order index S1 [1] (ranked)", visual_bounds=bounds),
         ),
         rrb.TimePanel(timeline="rig"),
     )
 
     def log(rec: rr.RecordingStream) -> None:
         rec.send_recording_name(f"flexjoint sweep {doc['spec']['name']}")
-        rec.log("report", rr.TextDocument(markdown, media_type=rr.MediaType.MARKDOWN), static=True)
+        text = "\n".join(x for x in markdown.splitlines() if not x.startswith("!["))  # no broken image links
+        rec.log("report", rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN), static=True)
         series = (("mean", fm, [40, 90, 220]), ("min", table["fit_min"].to_numpy(float), [230, 120, 20]))
         for name, values, color in series:
             rec.log(f"rigs/fit/{name}", rr.SeriesLines(colors=[color], names=[f"{name} fit"]), static=True)
@@ -545,12 +581,10 @@ def write_rrd(out: Path, table: pd.DataFrame, doc: dict[str, Any], markdown: str
                 idx = rr.TimeColumn(tl, sequence=np.round(x[mask] * scale).astype(np.int64))
                 vals = np.where(np.isfinite(fm[mask]), fm[mask], 0.0)
                 rec.send_columns(p, indexes=[idx], columns=rr.Scalars.columns(scalars=vals))
-        rank = doc["summary"]["sensitivity"]["ranking"]
-        bars = np.array([r["s1"] if math.isfinite(r["s1"]) else 0.0 for r in rank])
-        rec.log("sensitivity", rr.BarChart(bars, abscissa=np.arange(len(rank), dtype=float)), static=True)
+        log_bars(rec, "sensitivity", [r["param"] for r in rank], [("S1", s1, [74, 122, 181])])
 
     rec_id = str(uuid.UUID(hex=key.hexdigest()[:32]))
-    return write_recording(out / "sweep.rrd", rec_id, log, blueprint=blueprint)
+    return write_recording(path or out / "sweep.rrd", rec_id, log, blueprint=blueprint)
 
 
 # ----------------------------------------------------------------------------------------------- the sweep
@@ -643,11 +677,37 @@ def run_sweep(
     }
     _write_parquet(out / "sweep.parquet", table)
     write_json(out / "sweep.json", doc)
-    figures = write_figures(out, table, summary, th)
-    markdown = report_markdown(doc, figures)
-    atomic_write_text(RunDir(out).report, markdown)
-    if rrd:
-        write_rrd(out, table, doc, markdown)
+    _write_report(out, table, doc, rrd)
     wall = time.perf_counter() - t0
     write_json(out / "sweep.timing.json", {"wall_s": wall, "workers": workers, "scheduler": scheduler})
     return {**doc, "wall_s": wall}
+
+
+def _write_report(out: Path, table: pd.DataFrame, doc: dict[str, Any], rrd: bool | Path) -> Path | None:
+    """``report.md`` and ``figures/`` of a sweep, and its recording (``sweep.rrd``, or the path ``rrd``; none when
+    False); returns the recording's path."""
+    figures = write_figures(out, table, doc["summary"], doc["thresholds"])
+    markdown = report_markdown(doc, figures)
+    atomic_write_text(RunDir(out).report, markdown)
+    if rrd is False:
+        return None
+    return write_rrd(out, table, doc, markdown, None if rrd is True else Path(rrd))
+
+
+def report_sweep(out: Path, rrd: Path | None = None) -> tuple[Path, Path]:
+    """Write a sweep directory's report again from its ``sweep.json`` and ``sweep.parquet`` (``flexjoint report``
+    on a sweep): report.md, figures/ and the recording (``sweep.rrd`` unless ``rrd``); returns (report, recording)."""
+    out = Path(out)
+    for f in ("sweep.json", "sweep.parquet"):
+        if not (out / f).is_file():
+            raise DataError(f"{out}: not a sweep directory (no {f})")
+    try:
+        doc = json.loads((out / "sweep.json").read_text())
+        table = pq.read_table(out / "sweep.parquet").to_pandas()
+    except (json.JSONDecodeError, OSError, pa.ArrowException) as exc:
+        raise DataError(f"{out}: sweep.json or sweep.parquet unreadable ({exc})") from None
+    varies = [Vary(*v["key"].split(".", 1), v["distribution"], tuple(v["args"]), v["integer"]) for v in doc["vary"]]
+    doc["summary"] = summarise(table, varies, doc["thresholds"])  # the same numbers, in the order they were made
+    recording = _write_report(out, table, doc, rrd or True)
+    assert recording is not None
+    return RunDir(out).report, recording

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 import signal
 import sys
 import tempfile
@@ -197,6 +198,44 @@ def test_sweep_same_bytes_serial_and_on_a_cluster_that_loses_a_worker(tmp_path, 
     mean = next(d for d in chunks["/rigs/fit/mean"] if "Scalars:scalars" in d)
     assert mean["rig"] == list(range(n))
     assert [v[0] for v in mean["Scalars:scalars"]] == table["fit_mean"].tolist()
-    bars = next(d for d in chunks["/sensitivity"] if "BarChart:values" in d)["BarChart:values"][0][0]["buffer"]
-    assert bars == pytest.approx([r["s1"] for r in rank])
+    # the S1 bars in 2D, each parameter named under its bar, its value over it
+    names = next(d for d in chunks["/sensitivity/categories"] if "Points2D:labels" in d)["Points2D:labels"][0]
+    assert names == [r["param"] for r in rank]
+    values = next(d for d in chunks["/sensitivity/S1/values"] if "Points2D:labels" in d)["Points2D:labels"][0]
+    assert values == [f"{r['s1']:.3f}" for r in rank]
     assert "Pass rate" in (tmp_path / "serial" / "report.md").read_text()
+
+
+def test_report_of_a_sweep_rewrites_its_report_with_titled_figures(tmp_path, fmus, monkeypatch):
+    """`flexjoint report DIR` on a sweep's output: report.md, figures/ and sweep.rrd written again from sweep.json
+    and sweep.parquet (the same report.md bytes); each figure titled, the varied parameters with the units their
+    FMU declares, whole rigs on the histogram's count axis."""
+    from matplotlib.ticker import MaxNLocator
+
+    from harness import sweep as sw
+
+    out = tmp_path / "sweep"
+    sw.run_sweep(tiny_spec(tmp_path), ["plant.Ks=uniform(1.2,1.4)", "plant.Beq=uniform(0.004,0.006)"], 5, 1, out,
+                 orders="2,1,1", workers=1, rrd=False)  # fmt: skip
+    first = (out / "report.md").read_bytes()
+    (out / "report.md").unlink()
+    shutil.rmtree(out / "figures")
+    drawn = {}
+    save = sw.save_figure
+    monkeypatch.setattr(sw, "save_figure", lambda fig, path: (drawn.setdefault(path.name, fig), save(fig, path)))
+    _cli(monkeypatch, "report", out)
+    assert (out / "report.md").read_bytes() == first and (out / "sweep.rrd").stat().st_size > 0
+    assert set(drawn) == {"sweep_fit.png", "sweep_scatter.png", "sweep_sensitivity.png"}
+    hist = drawn["sweep_fit.png"].axes[0]
+    assert hist.get_title().startswith("mean fit of 5 rigs") and hist.get_ylabel() == "rigs [count]"
+    assert isinstance(hist.yaxis.get_major_locator(), MaxNLocator)
+    assert all(float(t).is_integer() for t in hist.get_yticks())
+    scatter = drawn["sweep_scatter.png"].axes
+    assert [a.get_xlabel() for a in scatter] == ["plant.Ks [N.m/rad]", "plant.Beq [N.m.s/rad]"]
+    assert all(a.get_title() and a.get_ylabel() == "mean fit [%]" for a in scatter)
+    sens = drawn["sweep_sensitivity.png"].axes[0]
+    assert sens.get_title() and sens.get_xlabel().endswith("[1]")
+    assert {t.get_text().split(" (")[0] for t in sens.get_yticklabels()} == {
+        "plant.Ks [N.m/rad]",
+        "plant.Beq [N.m.s/rad]",
+    }

@@ -5,18 +5,19 @@ static or on the time panel's timeline, so no view opens blank."""
 from __future__ import annotations
 
 import json
-import math
 import shutil
 import socket
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 import rerun as rr
 from rerun.chunk import RrdReader
 
 from harness.ident import armax
+from harness.render import figures
 from harness.render.viewer import APPLICATION_ID, CORR_HEIGHT, DB_PER_UNIT, log_run, recording_id
 from harness.rundir import Manifest, RunDir
 
@@ -28,12 +29,13 @@ except ImportError:  # tests/ imported as a package
 # what each kind of view draws (the component that carries the data)
 VIEW_DATA = {
     "TimeSeries": {"Scalars:scalars"},
-    "2D": {"LineStrips2D:strips", "Points2D:positions", "Image:buffer"},
+    "2D": {"LineStrips2D:strips", "Points2D:positions", "Image:buffer", "EncodedImage:blob"},
     "Tensor": {"Tensor:data"},
     "TextDocument": {"TextDocument:text"},
     "BarChart": {"BarChart:values"},
 }
 DATA = set().union(*VIEW_DATA.values())
+HELD_OUT = rr.escape_entity_path_part("held-out gap")
 
 
 def read_chunks(rrd: Path) -> dict[str, list[dict]]:
@@ -142,7 +144,7 @@ def test_every_view_of_the_blueprint_shows_data(logged):
     _, _, _, rrd = logged
     views = check_every_view_shows_data(rrd)
     kinds = {v["class"] for v in views}
-    assert {"TimeSeries", "Tensor", "TextDocument", "2D", "BarChart"} <= kinds
+    assert {"TimeSeries", "Tensor", "TextDocument", "2D"} <= kinds
     names = [v["name"] for v in views]
     for label in ("Bode magnitude [dB] vs log10 f [Hz]", "Bode phase [deg] vs log10 f [Hz]",
                   "residual autocorrelation r_ee vs lag [samples]"):  # fmt: skip
@@ -158,21 +160,21 @@ def test_every_view_shows_data_for_a_real_run(real, tmp_path):
     shutil.copytree(real[0], run)
     rrd = log_run(run)
     views = check_every_view_shows_data(rrd)
-    assert {"TimeSeries", "Tensor", "TextDocument", "2D", "BarChart"} <= {v["class"] for v in views}
+    assert {"TimeSeries", "Tensor", "TextDocument", "2D"} <= {v["class"] for v in views}
     chunks = read_chunks(rrd)
     d = real[1]
     summary = _column(chunks, "/diagnosis/summary", "TextDocument:text")[0][0]
     assert "removing `coulomb_friction` alone from the final model reopens the most gap" in summary
-    stages = _column(chunks, "/diagnosis/waterfall", "BarChart:values")[0][0]["buffer"]
+    stages = _column(chunks, f"/diagnosis/waterfall/{HELD_OUT}/values", "Points2D:labels")[0]
     dec = d["gap"]["decomposition"]
-    np.testing.assert_allclose(stages, [dec["before"], *(s["gap_after"] for s in dec["steps"])], rtol=1e-6)
+    assert stages == [f"{g:.3f}" for g in [dec["before"], *(s["gap_after"] for s in dec["steps"])]]
     for name in REAL_EXPERIMENTS:
         assert f"/datasets/{name}/simulated" in chunks and f"/resid/acf/{name}" in chunks
 
 
 def test_every_view_shows_data_for_a_run_without_models(real, tmp_path):
     views = check_every_view_shows_data(log_run(campaign_only(real[0], tmp_path / "campaign")))
-    assert {v["class"] for v in views} == {"TimeSeries", "TextDocument", "BarChart"}
+    assert {v["class"] for v in views} == {"TimeSeries", "TextDocument", "2D"}
 
 
 def test_recording_ids(logged):
@@ -214,20 +216,14 @@ def test_crossfit_tensor_heatmap_and_table(logged):
     cf = truth["crossfit"]
     assert tensor["shape"] == [len(cf), len(NAMES)]
     np.testing.assert_allclose(np.reshape(tensor["buffer"], tensor["shape"]), cf.to_numpy(), atol=5e-7)
-    # the heat map: a value per cell, the models by name, the datasets numbered 1..n as in the table
-    values = _column(chunks, "/crossfit/heatmap/values", "Points2D:labels")[0]
-    assert values == [f"{v:.1f}" for v in cf.to_numpy().ravel()]
-    assert _column(chunks, "/crossfit/heatmap/rows", "Points2D:labels")[0] == list(cf.index)
-    assert _column(chunks, "/crossfit/heatmap/columns", "Points2D:labels")[0] == ["1", "2", "3"]
-    scale = _column(chunks, "/crossfit/heatmap/scale", "Points2D:labels")[0]
-    assert (
-        scale[0] == f"{math.ceil(cf.to_numpy().max()):.0f} %"
-        and scale[-1] == f"{math.floor(cf.to_numpy().min()):.0f} %"
-    )
+    # the heat map: the report's figure (models and datasets by name, each value readable on its cell) as a PNG
+    (blob,) = _column(chunks, "/crossfit/heatmap", "EncodedImage:blob")[0]
+    assert bytes(blob) == figures.png_bytes(figures.crossfit_figure(cf))
+    assert _column(chunks, "/crossfit/heatmap", "EncodedImage:media_type")[0] == ["image/png"]
     text = _column(chunks, "/crossfit/table", "TextDocument:text")[0][0]
     header = next(line for line in text.splitlines() if line.startswith("| Models/Data Sets"))
     assert [c.strip() for c in header.strip("|").split("|")][1:4] == ["1", "2", "3"]
-    assert "1 = `prbs_a`, 2 = `prbs_b`, 3 = `square_c`" in text
+    assert "1 = `prbs_a`, 2 = `prbs_b`, 3 = `square_c`" in text and "The heat map names them" in text
     row = next(line for line in text.splitlines() if line.startswith("| selected"))
     assert row.split("|")[-2].strip() == f"{cf.loc['selected'].mean():.2f}"
 
@@ -269,24 +265,74 @@ def test_residual_correlations_in_2d(logged):
     assert abs(np.array(bounds[0], dtype=float)[0, 1]) / CORR_HEIGHT == pytest.approx(bound, rel=1e-5)
 
 
+def _bar_tops(chunks: dict[str, list[dict]], path: str) -> tuple[np.ndarray, np.ndarray]:
+    """(x, top) of each bar of a 2D bar chart: an upright strip's upper end plus its radius (its round end)."""
+    strips = _column(chunks, path, "LineStrips2D:strips")[0]
+    radii = np.array(_column(chunks, path, "LineStrips2D:radii")[0], dtype=float)
+    ends = np.array([np.array(st, dtype=float)[1] for st in strips])
+    return ends[:, 0], -ends[:, 1] + radii
+
+
 def test_diagnosis_bars_show_before_and_after(logged, real):
+    """The gap per experiment as 2D bars in named categories (the experiments), as given and with the effects side by
+    side, heights proportional to the gaps, each value over its bar; the waterfall's stages named likewise."""
     _, _, chunks, _ = logged
     d = real[1]
     exps = d["gap"]["before"]["experiments"]
-    before = _column(chunks, "/diagnosis/gap/before", "BarChart:values")[0][0]
-    after = _column(chunks, "/diagnosis/gap/after", "BarChart:values")[0][0]
-    np.testing.assert_allclose(before["buffer"], [exp_gap(exps[n]) for n in exps], atol=1e-6)
-    np.testing.assert_allclose(after["buffer"], [exp_gap(d["gap"]["after"]["experiments"][n]) for n in exps], atol=1e-6)
-    # side by side, not on top of each other: left and right halves of each slot
-    xb = np.array(_column(chunks, "/diagnosis/gap/before", "BarChart:abscissa")[0][0]["buffer"])
-    xa = np.array(_column(chunks, "/diagnosis/gap/after", "BarChart:abscissa")[0][0]["buffer"])
-    wb = np.array(_column(chunks, "/diagnosis/gap/before", "BarChart:widths")[0])
-    assert np.all(xb + wb / 2 <= xa - wb / 2 + 1e-6)  # widths are float32
+    assert _column(chunks, "/diagnosis/gap/categories", "Points2D:labels")[0] == list(exps)
+    stages = ("simulation as given", "recalibrated, with the effects")
+    given, final = (f"/diagnosis/gap/{rr.escape_entity_path_part(s)}" for s in stages)
+    want_b = [exp_gap(exps[n]) for n in exps]
+    want_a = [exp_gap(d["gap"]["after"]["experiments"][n]) for n in exps]
+    assert _column(chunks, f"{given}/values", "Points2D:labels")[0] == [f"{g:.3f}" for g in want_b]
+    assert _column(chunks, f"{final}/values", "Points2D:labels")[0] == [f"{g:.3f}" for g in want_a]
+    xb, hb = _bar_tops(chunks, given)
+    xa, _ = _bar_tops(chunks, final)
+    np.testing.assert_allclose(hb / hb.max(), np.array(want_b) / max(want_b), rtol=1e-5)  # float32 positions
+    assert np.all(xb < xa) and np.all(np.diff(xb) == pytest.approx(1.0))  # side by side, one slot per experiment
     summary = _column(chunks, "/diagnosis/summary", "TextDocument:text")[0][0]
-    assert "Verdict: **coulomb_friction**" in summary and "red (left) before and blue (right) after" in summary
-    if "decomposition" in d["gap"]:
-        stages = _column(chunks, "/diagnosis/waterfall", "BarChart:values")[0][0]["buffer"]
-        assert stages[0] == pytest.approx(d["gap"]["decomposition"]["before"], rel=1e-6)
+    assert "Verdict: **coulomb_friction**" in summary and "as given red (left)" in summary
+    stages = _column(chunks, "/diagnosis/waterfall/categories", "Points2D:labels")[0]
+    assert stages == ["simulation as given", *(s["stage"] for s in d["gap"]["decomposition"]["steps"])]
+    _, tops = _bar_tops(chunks, f"/diagnosis/waterfall/{HELD_OUT}")
+    assert tops[0] == pytest.approx(4.0, rel=1e-5)  # the gap before: the tallest bar, BAR_HEIGHT
+
+
+def test_recording_opens_on_the_overview_with_replays_and_data(real, tmp_path):
+    """The blueprint's root tabs open on the overview (not the datasets); the replays of each experiment and the data
+    of each as time series, the same numbers as diagnosis.replays.parquet and the datasets."""
+    from harness.diagnosis.replays import STAGES, read_replays
+
+    run = tmp_path / "real"
+    shutil.copytree(real[0], run)
+    rrd = log_run(run)
+    reader = RrdReader(rrd)
+    (store,) = reader.blueprints()
+    names, active = {}, []
+    for c in reader.stream(store=store):
+        d = c.to_record_batch().to_pydict()
+        if d.get("ViewBlueprint:display_name"):
+            names[c.entity_path.strip("/")] = d["ViewBlueprint:display_name"][-1][0]
+        if d.get("ContainerBlueprint:container_kind") and d.get("ContainerBlueprint:active_tab"):
+            active.append((d["ContainerBlueprint:contents"][-1], d["ContainerBlueprint:active_tab"][-1][0]))
+    root = next((contents, tab) for contents, tab in active if any(names.get(x.strip("/")) == "overview"
+                                                                     for x in contents))  # fmt: skip
+    assert names[root[1].strip("/")] == "overview" and root[0][0] == root[1]
+    chunks = read_chunks(rrd)
+    for name, rp in read_replays(RunDir(run).diagnosis_replays).items():
+        base = f"/diagnosis/replays/{rr.escape_entity_path_part(name)}"
+        for ch in ("theta", "alpha"):
+            rec = np.array(_column(chunks, f"{base}/{ch}/record", "Scalars:scalars"))[:, 0]
+            np.testing.assert_array_equal(np.isnan(rec), np.isnan(rp.record[ch]))
+            for stage in STAGES:
+                sim = np.array(_column(chunks, f"{base}/{ch}/{stage}", "Scalars:scalars"))[:, 0]
+                np.testing.assert_allclose(sim, rp.sim[stage][ch], equal_nan=True)
+                (label,) = _column(chunks, f"{base}/{ch}/{stage}", "SeriesLines:names")[0]
+                assert label.startswith(f"{STAGES[stage]} (fit ") and label.endswith(" %)")
+    for e in Manifest.load(run).experiments:
+        u = np.array(_column(chunks, f"/data/{e.name}/u", "Scalars:scalars"))[:, 0]
+        np.testing.assert_array_equal(u, pd.read_parquet(RunDir(run).dataset(e.name))["u"].to_numpy())
+        assert f"/data/{e.name}/theta" in chunks and f"/data/{e.name}/alpha" in chunks
 
 
 def test_connect_and_errors_leave_no_half_file(logged, real, tmp_path):

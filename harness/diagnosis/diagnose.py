@@ -57,6 +57,7 @@ from . import recalibrate as recal
 from .effects import CandidateContext, candidates
 from .experiments import REPLAYS, RigExperiment, fold_experiments, load_experiments, masked_share
 from .noise import noise_floor
+from .replays import write_replays
 from .result import Diagnosis, FittedParameter, SensorCalibration, Thresholds
 from .search import (
     EXPLAINED,
@@ -127,9 +128,10 @@ def diagnose_run(
     the built plant, DAQ and controller FMUs (default: built or taken from the cache); ``replay``: how each experiment
     is re-simulated (:func:`harness.diagnosis.experiments.load_experiments`); a lone record is cut in time into two
     halves, one per fold (:func:`harness.diagnosis.experiments.fold_experiments`; too short for that: a one-line
-    DataError, nothing written). Writes
-    ``out/diagnosis.json`` (default out = real) and returns it as a :class:`harness.diagnosis.result.Diagnosis`;
-    the wall-clock seconds go to ``diagnosis.timing.json``, so that diagnosis.json is byte-stable."""
+    DataError, nothing written). Writes ``out/diagnosis.json`` (default out = real) and its replays beside the
+    record, per stage (as given, recalibrated, with the effects: ``diagnosis.replays.parquet``,
+    :mod:`harness.diagnosis.replays`), and returns it as a :class:`harness.diagnosis.result.Diagnosis`; the wall-clock
+    seconds go to ``diagnosis.timing.json``, so that diagnosis.json is byte-stable."""
 
     t0 = time.perf_counter()
     say = progress or (lambda _m: None)
@@ -158,10 +160,14 @@ def diagnose_run(
     pool = Pool(setup, workers, scheduler, progress)
     try:
         found = search(pool, experiments, (folds.A, folds.B), cands, e_noise, say, sigma)
-        recal_over = {k: v for k, v in found.final.items() if k in recal.LINEAR}
-        before, after = pool.map([("where", {}), ("where", recal_over)])  # as tasks: side by side
+        # after recalibration: what recalibration alone fitted (the waterfall's stage), not the final joint refit
+        stages = {"given": {}, "recalibrated": found.recalibrated, "effects": found.final}
+        before, after, *traces = pool.map(
+            [("where", {}), ("where", found.recalibrated), *(("replay", over) for over in stages.values())]
+        )  # as tasks: side by side
     finally:
         pool.close()
+    after["parameters"] = dict(sorted(found.recalibrated.items()))
     where = {"before": before, "after_recalibration": after, "masked": masked_share(experiments)}
     if closed:
         less = " (less the lattice's LSB^2 / 12 where the replay's ADC quantises: it adds that)" if lattice else ""
@@ -196,6 +202,7 @@ def diagnose_run(
         caveats=_caveats(found.parameters, found.verdict),
     ).rounded()
     diagnosis.write(RunDir(dest).diagnosis)
+    write_replays(RunDir(dest).diagnosis_replays, experiments, dict(zip(stages, traces, strict=True)))
     timing = time.perf_counter() - t0
     write_json(RunDir(dest).diagnosis_timing, {"timing_s": timing, "workers": workers, "scheduler": scheduler})
     say(f"verdict {diagnosis.verdict}")

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -151,7 +151,8 @@ class Forward:
 @dataclass
 class SearchResult:
     """What the search finds: verdict, effects, candidates, rounds, gap, parameter table, whether recalibration
-    was applied, the final parameters (all experiments) and the noise floor it judged against."""
+    was applied, the final parameters (all experiments), the linear parameters recalibration alone fitted
+    (:func:`recalibrated_alone`; {} when it was not applied) and the noise floor it judged against."""
 
     verdict: str
     effects: list[FoundEffect]
@@ -161,6 +162,7 @@ class SearchResult:
     parameters: dict[str, FittedParameter]
     recalibration_applied: bool
     final: Overrides
+    recalibrated: Overrides = field(default_factory=dict)
     noise: float = 0.0  # the floor's mean squared gap E_noise the search judged against (:func:`loop_floor`)
     none_ratio: float = NONE_RATIO  # the gap within which of the floor there was none beyond noise
 
@@ -643,6 +645,7 @@ def search(
         parameters=table,
         recalibration_applied=recal_paid,
         final=final,
+        recalibrated=recalibrated_alone(rec) if recal_paid else {},
         noise=e_noise,
         none_ratio=cf.none_ratio,
     )

@@ -52,6 +52,7 @@ __all__ = [
     "loop_spread",
     "mean_squared_gap",
     "replay_noise",
+    "replay_traces",
     "residuals",
     "sim_calibration",
     "sim_rig",
@@ -182,6 +183,16 @@ def residuals(
     e_th = np.where(exp.valid["theta"][:m] & on_track, exp.theta[:m] - th, 0.0)
     e_al = np.where(exp.valid["alpha"][:m], exp.alpha[:m] - al, 0.0)
     return {"theta": e_th, "alpha": e_al}
+
+
+def replay_traces(rig: Any, setup: Setup, over: Mapping[str, Any]) -> dict[str, dict[str, np.ndarray]]:
+    """Every experiment's replay on the sim rig with overrides ``over``: {experiment: {"theta": [deg], "alpha":
+    [deg]}}, NaN where the simulated pot is off its track (what a person compares with the record)."""
+    out = {}
+    for name, x in setup.experiments.items():
+        th, al, on_track = simulate(rig, setup, x, over)
+        out[name] = {"theta": np.where(on_track, th, np.nan), "alpha": al}
+    return out
 
 
 def _quantises(setup: Setup, exp: RigExperiment, d_over: Mapping[str, Any]) -> bool:

@@ -1,7 +1,7 @@
 """The diagnosis's simulations as tasks of a :class:`harness.executor.Executor`.
 
 The setup (simulation, real experiments, FMU bytes) is sent to every worker once and each worker loads the rig
-once. Seven tasks, given as ``(kind, *args)`` calls to :meth:`Pool.map`:
+once. Eight tasks, given as ``(kind, *args)`` calls to :meth:`Pool.map`:
 
 - ``("sse", over, names[, window])``: squared errors per experiment and channel with overrides ``over``;
 - ``("fit", effect, base, fit, every)``: :func:`screen_effect`, one effect's parameter alone on top of ``base``;
@@ -11,7 +11,8 @@ once. Seven tasks, given as ``(kind, *args)`` calls to :meth:`Pool.map`:
   by the client (:meth:`Pool.refit`);
 - ``("where", over)``: :func:`where`, where the gap lies;
 - ``("loopnoise", over, names)``: :func:`loop_noise`, what the noise a closed loop feeds back leaves, per experiment;
-- ``("spread", over, names)``: :func:`spread`, a closed-loop replay's gap beside its own spread, window by window.
+- ``("spread", over, names)``: :func:`spread`, a closed-loop replay's gap beside its own spread, window by window;
+- ``("replay", over)``: :func:`replay`, every experiment's simulated angles, for the report's replay figures.
 """
 
 from __future__ import annotations
@@ -28,7 +29,16 @@ from ..executor import Executor, one_blas_thread, worker_rig
 from . import recalibrate as recal
 from .effects import BY_PARAM, Effect
 from .experiments import CHANNELS
-from .simulation import SSE, Setup, lattice_in_loop, loop_noise_gap, loop_spread, mean_squared_gap, residuals
+from .simulation import (
+    SSE,
+    Setup,
+    lattice_in_loop,
+    loop_noise_gap,
+    loop_spread,
+    mean_squared_gap,
+    replay_traces,
+    residuals,
+)
 from .where import where_gap
 
 __all__ = [
@@ -37,6 +47,7 @@ __all__ = [
     "least_squares_refit",
     "loop_noise",
     "moving_channels",
+    "replay",
     "residual_vector",
     "screen_effect",
     "spread",
@@ -248,6 +259,12 @@ def spread(over: dict[str, Any], names: list[str]) -> dict[str, dict[str, Any]]:
     return loop_spread(_CTX["rig"], _CTX["setup"], over, names)
 
 
+def replay(over: dict[str, Any]) -> dict[str, dict[str, np.ndarray]]:
+    """Every experiment's simulated (theta, alpha) [deg] with overrides ``over``:
+    :func:`harness.diagnosis.simulation.replay_traces`."""
+    return replay_traces(_CTX["rig"], _CTX["setup"], over)
+
+
 TASKS: dict[str, Callable[..., Any]] = {
     "sse": squared_errors,
     "fit": screen_effect,
@@ -256,6 +273,7 @@ TASKS: dict[str, Callable[..., Any]] = {
     "where": where,
     "loopnoise": loop_noise,
     "spread": spread,
+    "replay": replay,
 }
 
 
@@ -272,7 +290,7 @@ def _label(call: tuple[Any, ...]) -> str:
         return f"screen {call[1].name}"
     if kind == "refit":
         return "refit linear" + "".join(f" + {p.split('.', 1)[1]}" for p in call[2])
-    return {"where": "where", "loopnoise": "loop noise", "spread": "loop spread"}.get(kind, "score")
+    return {"where": "where", "loopnoise": "loop noise", "spread": "loop spread", "replay": "replay"}.get(kind, "score")
 
 
 def stretches(setup: Setup, names: list[str], n: int) -> list[list[str]]:

@@ -12,7 +12,9 @@ import numpy as np
 import pandas as pd
 from scipy.signal import coherence, csd, lfilter, welch
 
+from ..diagnosis.replays import Replay
 from ..ident import armax, lti
+from ..ident.calibration import alpha_deg, theta_deg
 from ..ident.identify import PreparedExperiment
 from ..ident.preprocess import filter_coefficients, filter_response
 from .load import RunResults
@@ -27,6 +29,8 @@ __all__ = [
     "bode_grid",
     "estimates",
     "measured_frf",
+    "record_angles",
+    "replay_fits",
     "residual_tests",
     "tip_from_filtered",
     "zoom_window",
@@ -151,3 +155,27 @@ def best_per_dataset(grid: pd.DataFrame) -> pd.DataFrame:
 def bode_curves(res: RunResults, f_hz: np.ndarray) -> dict[str, lti.BodeData]:
     """Bode data of G = B/A / H(z) (u [V] -> tip angle [deg]) of every model of the run at ``f_hz`` [Hz]."""
     return {name: lti.bode_data(lti.with_integrator(m, res.af), f_hz) for name, (m, _) in res.models.items()}
+
+
+def replay_fits(rp: Replay) -> dict[str, float]:
+    """Fit [%] of each stage's replay to the record, as the diagnosis pools it per experiment: 100 (1 - sqrt(mean
+    over channels of ||y_rec - y_sim||^2 / ||y_rec - mean||^2)), the residual over the samples valid on both sides,
+    the record's spread over all (channels with no motion skipped)."""
+    out = {}
+    for stage, sim in rp.sim.items():
+        qs = []
+        for ch, rec in rp.record.items():
+            ok = np.isfinite(rec) & np.isfinite(sim[ch])
+            if rp.sst[ch] > 0:
+                qs.append(float(np.sum((rec[ok] - sim[ch][ok]) ** 2)) / rp.sst[ch])
+        out[stage] = 100.0 * (1.0 - math.sqrt(float(np.mean(qs)))) if qs else math.nan
+    return out
+
+
+def record_angles(res: RunResults, name: str) -> tuple[np.ndarray, np.ndarray, str]:
+    """theta and alpha of experiment ``name`` as measured: in degrees through the run's calibration (theta
+    unwrapped), else the sensor volts; and their unit ("deg" or "V")."""
+    df = res.records[name]
+    if res.calibration is None:
+        return df["theta_v"].to_numpy(dtype=float), df["alpha_v"].to_numpy(dtype=float), "V"
+    return theta_deg(df["theta_v"], res.calibration), alpha_deg(df["alpha_v"], res.calibration), "deg"

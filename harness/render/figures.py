@@ -30,15 +30,20 @@ __all__ = [
     "TimePanel",
     "bode",
     "crossfit",
+    "crossfit_figure",
     "diagnosis_bars",
     "filter_responses",
+    "fixed_layout",
     "gap_waterfall",
     "new_figure",
+    "png_bytes",
     "pole_zero",
     "residual_correlations",
     "save_figure",
     "square_response",
-    "time_responses",
+    "experiment_data",
+    "replay",
+    "time_response",
 ]
 
 DPI = 100
@@ -52,11 +57,22 @@ def new_figure(w: float, h: float) -> Figure:
     return fig
 
 
-def save_figure(fig: Figure, path: Path) -> None:
-    """Write ``fig`` as PNG atomically, without a timestamp or software tag (the same bytes on a re-run)."""
+def fixed_layout(fig: Figure, hspace: float = 0.3) -> None:
+    """Fixed margins for the report's many stacked time plots (9 in wide): a third of ``tight_layout``'s cost, which
+    draws every tick label once more to measure it."""
+    fig.subplots_adjust(left=0.09, right=0.98, top=0.94, bottom=0.08, hspace=hspace)
+
+
+def png_bytes(fig: Figure) -> bytes:
+    """``fig`` as PNG bytes, without a timestamp or software tag (the same bytes on a re-run)."""
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=DPI, metadata={"Software": None})
-    atomic_write_bytes(path, buf.getvalue())
+    return buf.getvalue()
+
+
+def save_figure(fig: Figure, path: Path) -> None:
+    """Write ``fig`` as PNG atomically (:func:`png_bytes`)."""
+    atomic_write_bytes(path, png_bytes(fig))
 
 
 def filter_responses(afs: tuple[float, ...], af_used: float, f_hz: np.ndarray, Ts: float, path: Path) -> None:
@@ -156,32 +172,101 @@ class TimePanel:
     zoom: tuple[float, float]
 
 
-def time_responses(panels: list[TimePanel], zoom_s: float, path: Path) -> None:
-    """Per dataset: the whole record (measured, simulated, residual) and, under it, the zoom window where the
-    residual is largest, so that measurement and simulation can be told apart."""
-    ncol = 3 if len(panels) > 4 else min(2, len(panels))
-    nrow = math.ceil(len(panels) / ncol)
-    fig = new_figure(4.2 * ncol, 4.2 * nrow)
-    grid = fig.subplots(2 * nrow, ncol, squeeze=False)
-    for i, pnl in enumerate(panels):
-        top, zoom = grid[2 * (i // ncol), i % ncol], grid[2 * (i // ncol) + 1, i % ncol]
-        for ax in (top, zoom):
-            ax.plot(pnl.t, pnl.measured, color="k", lw=0.8, label="measured")
-            if pnl.simulated is not None:
-                ax.plot(pnl.t, pnl.simulated, color="C1", lw=0.8, label="simulated")
-                ax.plot(pnl.t, pnl.measured - pnl.simulated, color="C3", lw=0.6, label="residual")
-            ax.tick_params(labelsize=7)
-            ax.set_ylabel("y_f [deg/sample]", fontsize=7)
-        fit = f": fit {fmt(armax.fit_percent(pnl.measured, pnl.simulated))} %" if pnl.simulated is not None else ""
-        top.set_title(pnl.name + fit, fontsize=9)
-        top.axvspan(*pnl.zoom, color="C0", alpha=0.12)
-        zoom.set_xlim(*pnl.zoom)
-        zoom.set_xlabel(f"t [s] (zoom: largest residual over {zoom_s:g} s)", fontsize=7)
-    for i in range(len(panels), nrow * ncol):
-        grid[2 * (i // ncol), i % ncol].set_visible(False)
-        grid[2 * (i // ncol) + 1, i % ncol].set_visible(False)
-    grid[0, 0].legend(fontsize=7)
-    fig.tight_layout()
+def time_response(pnl: TimePanel, zoom_s: float, path: Path) -> None:
+    """One dataset: the whole record (measured, and with a model simulated and the residual) and, under it, the
+    zoom window where the residual is largest, so that measurement and simulation can be told apart."""
+    fig = new_figure(9, 6)
+    top, zoom = fig.subplots(2, 1)
+    for ax in (top, zoom):
+        ax.plot(pnl.t, pnl.measured, color="k", lw=0.9, label="measured")
+        if pnl.simulated is not None:
+            ax.plot(pnl.t, pnl.simulated, color="C1", lw=0.9, label="simulated (selected model)")
+            ax.plot(pnl.t, pnl.measured - pnl.simulated, color="C3", lw=0.7, label="residual")
+        ax.set_ylabel("y_f [deg/sample]")
+        ax.grid(True, alpha=0.3)
+    fit = f": fit {fmt(armax.fit_percent(pnl.measured, pnl.simulated))} %" if pnl.simulated is not None else ""
+    top.set_title(f"{pnl.name}{fit} (filtered tip-angle difference y_f)")
+    top.set_xlabel("t [s]")
+    top.axvspan(*pnl.zoom, color="C0", alpha=0.12)
+    zoom.set_xlim(*pnl.zoom)
+    what = "largest residual" if pnl.simulated is not None else "first"
+    zoom.set_xlabel(f"t [s] (zoom: the {what} {zoom_s:g} s, shaded above)")
+    top.legend(fontsize=8, loc="upper right")
+    fixed_layout(fig)
+    save_figure(fig, path)
+
+
+def experiment_data(
+    name: str,
+    t: np.ndarray,
+    u: np.ndarray,
+    theta: np.ndarray,
+    alpha: np.ndarray,
+    unit: str,
+    path: Path,
+    ref: np.ndarray | None = None,
+) -> None:
+    """One experiment's data as recorded (MATLAB's ``plot(data)``): command u [V], shaft angle theta and link
+    deflection alpha [``unit``] over t [s]; a closed-loop record's reference ``ref`` [deg] dashed over theta."""
+    fig = new_figure(9, 6)
+    axes = fig.subplots(3, 1, sharex=True)
+    for ax, y, label, color in (
+        (axes[0], u, "command u [V]", "k"),
+        (axes[1], theta, f"theta [{unit}]", "C0"),
+        (axes[2], alpha, f"alpha [{unit}]", "C2"),
+    ):
+        ax.plot(t, y, color=color, lw=0.8)
+        ax.set_ylabel(label)
+        ax.grid(True, alpha=0.3)
+    if ref is not None:
+        axes[1].plot(t, ref, color="0.45", lw=0.9, ls="--", label="reference [deg]")
+        axes[1].plot([], [], color="C0", lw=0.8, label="theta")
+        axes[1].legend(fontsize=8, loc="upper right")
+    axes[0].set_title(f"{name}: the data (command, shaft angle, link deflection)")
+    axes[2].set_xlabel("t [s]")
+    fixed_layout(fig)
+    save_figure(fig, path)
+
+
+def replay(
+    name: str,
+    t: np.ndarray,
+    record: Mapping[str, np.ndarray],
+    sims: Mapping[str, Mapping[str, np.ndarray]],
+    labels: Mapping[str, str],
+    fits: Mapping[str, float],
+    zoom: tuple[float, float],
+    path: Path,
+) -> None:
+    """One experiment's replays against its record, per channel (theta, alpha [deg] over t [s]): each stage of
+    ``sims`` ({stage: {channel: [deg]}}, labelled ``labels[stage]`` with its fit ``fits[stage]`` [%]) in its own
+    colour, the record black over them, the last stage's residual under them; the whole record on the left, the
+    window ``zoom`` (t0, t1) [s] on the right (shaded on the left)."""
+    colors = ("C1", "C2", "C0", "C4")
+    fig = new_figure(13, 7)
+    grid = fig.subplots(3, 2, sharex="col", sharey="row", height_ratios=[2, 2, 1], width_ratios=[3, 2])
+    last = list(sims)[-1]
+    for col in (0, 1):
+        ax_th, ax_al, ax_e = grid[:, col]
+        for ax, ch in ((ax_th, "theta"), (ax_al, "alpha")):
+            for (stage, sim), color in zip(sims.items(), colors, strict=False):
+                ax.plot(t, sim[ch], color=color, lw=0.9, label=f"{labels[stage]} (fit {fmt(fits[stage], 1)} %)")
+            ax.plot(t, record[ch], color="k", lw=0.8, label="record", zorder=5)
+            ax.grid(True, alpha=0.3)
+        for ch, color in (("theta", "C0"), ("alpha", "C2")):
+            ax_e.plot(t, record[ch] - sims[last][ch], color=color, lw=0.7, label=ch)
+        ax_e.grid(True, alpha=0.3)
+    for row, label in enumerate(("theta [deg]", "alpha [deg]", "residual [deg]")):
+        grid[row, 0].set_ylabel(label)
+        grid[row, 0].axvspan(*zoom, color="0.5", alpha=0.12)
+    grid[2, 0].set_xlabel("t [s]")
+    grid[2, 1].set_xlabel("t [s] (zoom: where the simulation as given misses most)")
+    grid[2, 1].set_xlim(*zoom)
+    grid[2, 0].legend(fontsize=7, loc="upper right", title=f"record - {labels[last]}", title_fontsize=7)
+    grid[0, 0].set_title(f"{name}: the diagnosis's replays against the record")
+    grid[0, 1].set_title(f"{zoom[0]:.1f}-{zoom[1]:.1f} s")
+    grid[0, 1].legend(fontsize=7, loc="best")
+    fig.subplots_adjust(left=0.06, right=0.99, top=0.94, bottom=0.08, hspace=0.3, wspace=0.06)
     save_figure(fig, path)
 
 
@@ -215,30 +300,40 @@ def residual_correlations(rt: armax.ResidTest, title: str, path: Path) -> None:
         ax.axhline(0, color="0.5", lw=0.6)
     ax1.set_title(title, fontsize=10)
     ax1.set_ylabel("r_ee(k) / r_ee(0)")
-    ax1.set_xlabel("lag k")
+    ax1.set_xlabel("lag k [samples]")
     ax2.set_ylabel("r_eu(k), normalised")
-    ax2.set_xlabel("lag k")
+    ax2.set_xlabel("lag k [samples]")
     ax1.legend(fontsize=8)
     fig.tight_layout()
     save_figure(fig, path)
 
 
 def crossfit(cf: pd.DataFrame, path: Path) -> None:
-    """Heat map of the cross-fit matrix [%], datasets numbered as in the table."""
+    """The cross-fit heat map (:func:`crossfit_figure`) as ``path``."""
+    save_figure(crossfit_figure(cf), path)
+
+
+def crossfit_figure(cf: pd.DataFrame) -> Figure:
+    """Heat map of the cross-fit matrix [%] (model rows, dataset columns, by name), each value written in black
+    or white, whichever reads on its cell's colour."""
     vals = cf.to_numpy(dtype=float)
-    fig = new_figure(1.2 + 0.75 * vals.shape[1], 1.0 + 0.45 * vals.shape[0])
+    fig = new_figure(2.6 + 0.9 * vals.shape[1], 2.2 + 0.5 * vals.shape[0])
     ax = fig.subplots()
-    im = ax.imshow(np.where(np.isfinite(vals), vals, np.nan), cmap="viridis", aspect="auto")
-    ax.set_xticks(range(vals.shape[1]), [str(i + 1) for i in range(vals.shape[1])])
+    shown = np.where(np.isfinite(vals), vals, np.nan)
+    im = ax.imshow(shown, cmap="viridis", aspect="auto")
+    ax.set_xticks(range(vals.shape[1]), [str(c) for c in cf.columns], rotation=35, ha="right")
     ax.set_yticks(range(vals.shape[0]), list(cf.index))
-    ax.set_xlabel("dataset")
+    ax.set_xlabel("dataset the model is simulated on")
+    ax.set_ylabel("model (fitted on dataset)")
     for i in range(vals.shape[0]):
         for j in range(vals.shape[1]):
-            ax.text(j, i, fmt(vals[i, j], 1), ha="center", va="center", fontsize=7, color="w")
+            r, g, b, _ = im.cmap(im.norm(vals[i, j])) if np.isfinite(vals[i, j]) else (1.0, 1.0, 1.0, 1.0)
+            dark = 0.299 * r + 0.587 * g + 0.114 * b < 0.5
+            ax.text(j, i, fmt(vals[i, j], 1), ha="center", va="center", fontsize=8, color="w" if dark else "k")
     fig.colorbar(im, ax=ax, label="fit [%]")
-    ax.set_title("cross-fit: model (row) on dataset (column)")
+    ax.set_title("cross-fit [%]: each model (row) simulated on each dataset (column)")
     fig.tight_layout()
-    save_figure(fig, path)
+    return fig
 
 
 def diagnosis_bars(rows: list[tuple[str, float, float]], path: Path) -> None:
@@ -249,7 +344,8 @@ def diagnosis_bars(rows: list[tuple[str, float, float]], path: Path) -> None:
     ax.bar(x - 0.2, [r[1] for r in rows], 0.4, label="simulation as given")
     ax.bar(x + 0.2, [r[2] for r in rows], 0.4, label="recalibrated, with the effects")
     ax.set_xticks(x, [r[0] for r in rows], rotation=30, ha="right", fontsize=8)
-    ax.set_ylabel("gap (fit % = 100 (1 - gap))")
+    ax.set_ylabel("gap [1] = 1 - fit [%] / 100")
+    ax.set_xlabel("experiment")
     ax.set_title("sim-to-real gap per experiment")
     ax.legend(fontsize=8)
     fig.tight_layout()
@@ -278,7 +374,8 @@ def gap_waterfall(rows: list[tuple[str, float, float]], noise: float, path: Path
         ax.legend(fontsize=8)
     labels = [r[0] for r in rows] + ["final"]
     ax.set_xticks(np.arange(len(labels)), labels, rotation=30, ha="right", fontsize=8)
-    ax.set_ylabel("held-out gap (fit % = 100 (1 - gap))")
+    ax.set_ylabel("held-out gap [1] = 1 - fit [%] / 100")
+    ax.set_xlabel("stage")
     ax.set_title("gap waterfall: the simulation as given, recalibration, then each effect")
     ax.set_ylim(0, 1.12 * rows[0][1])
     fig.tight_layout()

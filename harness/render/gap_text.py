@@ -333,6 +333,17 @@ def _where_lines(diag: Diagnosis) -> list[str]:
         header = ["residual of", "channel", "dominant band", "amplitude", "concentrates at", "finding"]
         lines += ["Where the gap is (pooled over experiments; per experiment in `diagnosis.json`):", ""]
         lines += [*table(header, rows), ""]
+        used = (where.get("after_recalibration") or {}).get("parameters")
+        if isinstance(used, dict):
+            what = ", ".join(f"{k.split('.', 1)[-1]} {fmt_any(v)}" for k, v in used.items())
+            lines += [
+                "After recalibration: the simulation with the linear parameters recalibration alone fitted, before any "
+                f"effect ({what})."
+                if used
+                else "After recalibration: recalibration was not applied (it did not "
+                "improve the held-out fit), so this is the simulation as given.",
+                "",
+            ]
     masked = where.get("masked")
     if isinstance(masked, dict) and masked:
         share = ", ".join(f"{k} {fmt(100.0 * num(v), 1)} %" for k, v in masked.items())

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from ..diagnosis.replays import Replay, read_replays
 from ..diagnosis.result import Diagnosis
 from ..ident import armax
 from ..ident.calibration import Calibration
@@ -35,7 +36,10 @@ class RunResults:
     ``prepared``: identification datasets (u_d [V], y_f [deg/sample], y [deg], u [V], Ts [s]), manifest order;
     ``models``: name -> (ArmaxModel, JSON record) for ``models/<dataset>.json`` and ``models/selected.json``;
     ``simulated``: dataset -> y_f simulated by the selected model (ic of its preprocessing record);
-    ``crossfit``: models x datasets fit [%] (no average column), ``crossfit_source`` where it came from.
+    ``crossfit``: models x datasets fit [%] (no average column), ``crossfit_source`` where it came from;
+    ``records``: every experiment's dataset (all roles, manifest order); ``replays``: the diagnosis's replays beside
+    the record per experiment (:mod:`harness.diagnosis.replays`). A directory that ``flexjoint diagnose --out``
+    wrote holds a diagnosis only: its manifest is then a stand-in of kind "diagnosis" with no experiments.
     """
 
     run: Path
@@ -51,6 +55,8 @@ class RunResults:
     crossfit_source: str = ""
     diagnosis: Diagnosis | None = None
     doubled_rate: dict[str, Any] | None = None
+    records: dict[str, pd.DataFrame] = field(default_factory=dict)
+    replays: dict[str, Replay] = field(default_factory=dict)
     af: float = float(IDENTIFY_DEFAULTS["af"])
     ic: str = str(IDENTIFY_DEFAULTS["ic"])
 
@@ -116,7 +122,13 @@ def load_results(run: Path) -> RunResults:
     if not run.is_dir():
         raise DataError(f"{run}: no such run directory")
     paths = RunDir(run)
-    res = RunResults(run=run, manifest=Manifest.load(run))
+    if not paths.manifest.exists() and paths.diagnosis.exists():  # what `flexjoint diagnose --out` wrote
+        manifest = Manifest(kind="diagnosis", experiments=[], sample_rate=None)
+    else:
+        manifest = Manifest.load(run)
+    res = RunResults(run=run, manifest=manifest)
+    if manifest.experiments:
+        res.records = load_run(run, role=None)
     names = [e.name for e in res.manifest.entries("identification")]
     for name in [*names, "selected"]:
         p = paths.model(name)
@@ -134,7 +146,7 @@ def load_results(run: Path) -> RunResults:
     res.calibration, res.calibration_file = _calibration(paths, sel_rec)
     if names and res.calibration is not None:
         output = str(pre.get("output", "y"))
-        res.prepared = prepare(load_run(run, role="identification"), res.calibration, res.af, output)
+        res.prepared = prepare({n: res.records[n] for n in names}, res.calibration, res.af, output)
     if sel is not None and sel[0].stable:
         for name, p in res.prepared.items():
             res.simulated[name] = armax.simulate(sel[0], p.u_d, p.y_f, res.ic)
@@ -145,6 +157,8 @@ def load_results(run: Path) -> RunResults:
             raise ValueError(f"{paths.grid}: missing column(s) {', '.join(missing)}")
     _load_crossfit(res)
     res.diagnosis = Diagnosis.load(paths.diagnosis) if paths.diagnosis.exists() else None
+    if res.diagnosis is not None and paths.diagnosis_replays.exists():
+        res.replays = read_replays(paths.diagnosis_replays)
     res.doubled_rate = _read_json(paths.doubled_rate)
     return res
 

@@ -9,15 +9,19 @@ The run is loaded by :mod:`harness.render.load`, the numbers are computed by :mo
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import tomllib
 
+from ..diagnosis.replays import STAGES
 from ..ident import armax, lti
 from ..ident.calibration import LAB1_CALIBRATION
 from ..ident.preprocess import filter_response
 from ..rundir import atomic_write_bytes
+from ..spec import SPEC_DIR
 from . import figures
 from .analysis import (
     MIN_COHERENCE,
@@ -26,6 +30,8 @@ from .analysis import (
     bode_grid,
     estimates,
     measured_frf,
+    record_angles,
+    replay_fits,
     residual_tests,
     zoom_window,
 )
@@ -33,7 +39,7 @@ from .gap_text import diagnosis_markdown, gap_rows
 from .load import RunResults, load_results
 from .tables import crossfit_table, fmt, fmt_any, orders, table, vec
 
-__all__ = ["write_report"]
+__all__ = ["figure_name", "holds", "spec_overrides", "title", "write_report"]
 
 FILTER_AFS = (0.6, 0.8, 0.9)
 SQUARE_HZ, SQUARE_V, SQUARE_PERIODS = 0.4, 1.0, 3  # square-wave test input of the selected model
@@ -54,20 +60,74 @@ def _same(a: float, b: float, tol: float = 0.005) -> bool:
 
 
 # ----------------------------------------------------------------------------------------------- sections
+def figure_name(prefix: str, name: str) -> str:
+    """``figures/<prefix>_<name>.png`` with any character of ``name`` a file name should not carry replaced."""
+    return f"figures/{prefix}_{re.sub(r'[^A-Za-z0-9_.-]', '_', name)}.png"
+
+
+def spec_overrides(res: RunResults) -> list[str]:
+    """``table.name=value`` where the spec a campaign ran differs from the bundled spec file it names (its
+    ``--set`` overrides); [] for imports, for specs that are not bundled, and when there is no difference."""
+    m = res.manifest
+    path = SPEC_DIR / (m.spec_file or "")
+    if m.kind != "campaign" or not m.spec or not m.spec_file or not path.is_file():
+        return []
+    try:
+        base = tomllib.loads(path.read_text())
+    except (OSError, tomllib.TOMLDecodeError):
+        return []
+    out = []
+    for tab, ran in sorted(m.spec.items()):
+        if not isinstance(ran, dict):
+            continue
+        given = base.get(tab) if isinstance(base.get(tab), dict) else {}
+        out += [f"{tab}.{k}={v}" for k, v in sorted(ran.items()) if not isinstance(v, dict) and given.get(k) != v]
+    return out
+
+
+def holds(res: RunResults) -> str:
+    """What the directory holds, in the pipeline's words: "simulated campaign: data, calibrated, identified, ..."."""
+    p = res.paths
+    have = [
+        ("data", bool(res.records)),
+        ("calibrated", p.calibration.exists()),
+        ("identified", res.selected is not None),
+        ("cross-fitted", p.crossfit.exists()),
+        ("diagnosed", res.diagnosis is not None),
+    ]
+    source = {"campaign": "simulated campaign", "import": "imported records"}.get(res.manifest.kind, res.manifest.kind)
+    return f"{source}: " + ", ".join(k for k, ok in have if ok) if any(ok for _, ok in have) else source
+
+
+def title(res: RunResults) -> str:
+    """The report's title: the spec's name and its overrides, or what a diagnosis compared."""
+    m = res.manifest
+    if m.kind == "diagnosis" and res.diagnosis is not None:
+        d = res.diagnosis
+        return f"flexjoint diagnosis: `{d.real}` against `{d.sim_spec}`"
+    name = ((m.spec or {}).get("campaign") or {}).get("name", m.spec_file or "") or res.run.name
+    over = spec_overrides(res)
+    return f"flexjoint run report: {name}" + (f" (--set {', --set '.join(over)})" if over else "")
+
+
 def _section_header(res: RunResults) -> list[str]:
     m = res.manifest
-    name = ((m.spec or {}).get("campaign") or {}).get("name", m.spec_file or "")
-    lines = [f"# flexjoint run report: {name or res.run.name}", ""]
+    lines = [f"# {title(res)}", ""]
     versions = ", ".join(f"{k} {v}" for k, v in sorted((m.versions or {}).items()))
     rows = [
-        ["kind", m.kind],
+        ["holds", holds(res)],
+        ["spec", f"`{m.spec_file}`" if m.spec_file else ""],
+        ["overrides (`--set`)", ", ".join(f"`{o}`" for o in spec_overrides(res))],
         ["spec sha256", f"`{m.spec_sha256}`" if m.spec_sha256 else ""],
         ["random seed", fmt_any(m.seed) if m.seed is not None else ""],
-        ["sample rate [Hz]", fmt_any(m.sample_rate)],
-        ["experiments", str(len(m.experiments))],
-        ["identification datasets", ", ".join(res.prepared) or "—"],
+        ["sample rate [Hz]", fmt_any(m.sample_rate) if m.sample_rate is not None else ""],
+        ["experiments", str(len(m.experiments)) if m.experiments else ""],
+        ["identification datasets", ", ".join(res.prepared)],
         ["versions", versions],
     ]
+    if m.kind == "diagnosis" and res.diagnosis is not None:
+        d = res.diagnosis
+        rows += [["real run", f"`{d.real}` (relative to this directory)"], ["simulation", f"`{d.sim_spec}`"]]
     lines += [*table(["item", "value"], [r for r in rows if r[1]]), ""]
     sources = m.sources
     if m.kind == "import" and sources:
@@ -85,6 +145,35 @@ def _section_header(res: RunResults) -> list[str]:
         ]
         lines += ["Imported records:", "", *table(["dataset", "file", "format", "units", "notes"], body), ""]
     return lines
+
+
+def _section_data(res: RunResults, figdir: Path) -> list[str]:
+    """Every experiment's data as measured (command, shaft angle, deflection over time), one figure each."""
+    if not res.records:
+        return []
+    rows, links = [], []
+    for e in res.manifest.experiments:
+        df = res.records.get(e.name)
+        if df is None:
+            continue
+        t = df["t"].to_numpy(dtype=float)
+        theta, alpha, unit = record_angles(res, e.name)
+        link = figure_name("data", e.name)
+        ref = df["ref"].to_numpy(dtype=float) if "ref" in df.columns and unit == "deg" else None
+        u = df["u"].to_numpy(dtype=float)
+        figures.experiment_data(e.name, t - t[0], u, theta, alpha, unit, figdir / Path(link).name, ref)
+        rows.append([e.name, e.role, e.signal or "—", str(t.size), fmt(float(t[-1] - t[0]), 2)])
+        links += [f"![data of {e.name}]({link})", ""]
+    how = "through the run's calibration" if res.calibration is not None else "in volts (no calibration yet)"
+    return [
+        "## Data",
+        "",
+        f"Each experiment as measured: command u [V], shaft angle theta and link deflection alpha {how}.",
+        "",
+        *table(["experiment", "role", "signal", "samples", "duration [s]"], rows),
+        "",
+        *links,
+    ]
 
 
 def _section_calibration(res: RunResults) -> list[str]:
@@ -327,7 +416,6 @@ def _section_time(res: RunResults, figdir: Path) -> list[str]:
         sim = res.simulated.get(name)
         zoom = zoom_window(t, p.y_f - sim, ZOOM_S) if sim is not None else (0.0, min(ZOOM_S, float(t[-1])))
         panels.append(figures.TimePanel(name, t, p.y_f, sim, zoom))
-    figures.time_responses(panels, ZOOM_S, figdir / "time_responses.png")
     lines = ["## Time responses per dataset", ""]
     if res.simulated:
         rows = [
@@ -342,12 +430,22 @@ def _section_time(res: RunResults, figdir: Path) -> list[str]:
         ]
         lines += [f"Selected model simulated (ic = '{res.ic}') on every dataset, identification domain y_f:", ""]
         lines += table(["dataset", "fit [%]", "residual rms [deg/sample]", "zoom window [s]"], rows) + [""]
-    lines += [
-        f"Each panel: the whole record with the residual (red), and under it the {ZOOM_S:g} s where the residual is "
-        "largest (shaded above).",
-        "",
-    ]
-    return [*lines, "![time responses](figures/time_responses.png)", ""]
+        lines += [
+            "Each figure: the whole record, measured (black), simulated (orange) and the residual (red), and under "
+            f"it the {ZOOM_S:g} s where the residual is largest (shaded above).",
+            "",
+        ]
+    else:
+        lines += [
+            "No identified model yet: each figure shows the measured y_f (the filtered difference of the tip angle, "
+            f"identification domain), the whole record and its first {ZOOM_S:g} s.",
+            "",
+        ]
+    for pnl in panels:
+        link = figure_name("time", pnl.name)
+        figures.time_response(pnl, ZOOM_S, figdir / Path(link).name)
+        lines += [f"![time response of {pnl.name}]({link})", ""]
+    return lines
 
 
 def _section_resid(res: RunResults, figdir: Path) -> list[str]:
@@ -419,6 +517,31 @@ def _section_diagnosis(res: RunResults, figdir: Path) -> list[str]:
     if rows:
         figures.diagnosis_bars(rows, figdir / "diagnosis.png")
         lines += ["![gap per experiment](figures/diagnosis.png)", ""]
+    return lines + _replay_lines(res, figdir)
+
+
+def _replay_lines(res: RunResults, figdir: Path) -> list[str]:
+    """Each experiment's replays (as given, recalibrated, with the effects) against its record, per channel."""
+    if not res.replays:
+        return []
+    fits = {name: replay_fits(rp) for name, rp in res.replays.items()}
+    body = [[name, *(fmt(f[s], 1) for s in STAGES)] for name, f in fits.items()]
+    lines = [
+        "### Replays against the record",
+        "",
+        "Every experiment re-simulated as the diagnosis replayed it (`diagnosis.replays.parquet`): the simulation as "
+        "given, recalibrated (the linear parameters recalibration alone fitted) and recalibrated with the effects "
+        "found (the final parameters), against the record; fit [%] pooled over theta and alpha:",
+        "",
+        *table(["experiment", *(f"{label} [%]" for label in STAGES.values())], body),
+        "",
+    ]
+    for name, rp in res.replays.items():
+        link = figure_name("replay", name)
+        miss = np.nan_to_num(rp.record["theta"] - rp.sim["given"]["theta"])  # where the simulation as given misses
+        zoom = zoom_window(rp.t, miss, ZOOM_S)
+        figures.replay(name, rp.t, rp.record, rp.sim, STAGES, fits[name], zoom, figdir / Path(link).name)
+        lines += [f"![replays of {name}]({link})", ""]
     return lines
 
 
@@ -427,28 +550,37 @@ def write_report(run: Path, results: RunResults | None = None) -> Path:
     """Write ``<run>/report.md`` and ``<run>/figures/*.png`` from the run directory alone; returns report.md.
     ``results``: the run already loaded (:func:`harness.render.load.load_results`), shared with the viewer.
 
-    Any run directory (a campaign, an import, identified or not, diagnosed or not): each section is written from
-    what the directory holds and skipped (or one line) when it has nothing for it. Sections: run header (with the
-    imported records' formats and units), calibration vs lab 1, preprocessing filter (af = 0.6, 0.8, 0.9), grid
-    summary and selection (best and selected per dataset, parameter deviations, FPE and AIC), cross-fit table
-    (averages computed), selected model with integrator (Bode with the measured response, pole-zero, square wave),
-    time responses (with zoom and residual), residual tests, doubled-rate check and the diagnosis (verdict and what
-    it means, recalibrated parameters, effects with their importance, gap waterfall, folds, where).
-    Every file is written atomically (temp file + rename).
+    Any run directory (a campaign, an import, identified or not, diagnosed or not, or the diagnosis alone that
+    ``flexjoint diagnose --out`` wrote): each section is written from what the directory holds and skipped (or one
+    line) when it has nothing for it. Sections: run header (what it holds, the spec's overrides, the imported
+    records' formats and units), the data of every experiment, calibration vs lab 1, preprocessing filter (af =
+    0.6, 0.8, 0.9), grid summary and selection (best and selected per dataset, parameter deviations, FPE and AIC),
+    cross-fit table (averages computed), selected model with integrator (Bode with the measured response,
+    pole-zero, square wave), time responses (with zoom and residual), residual tests, doubled-rate check and the
+    diagnosis (verdict and what it means, recalibrated parameters, effects with their importance, gap waterfall,
+    folds, where, the replays against the record). Every file is written atomically (temp file + rename); a
+    figure of an earlier report that this one does not link is removed.
     """
     res = results if results is not None else load_results(run)
     figdir = res.paths.figures
     figdir.mkdir(parents=True, exist_ok=True)
     lines = _section_header(res)
-    lines += _section_calibration(res)
-    lines += _section_filter(res, figdir)
-    lines += _section_grid(res)
-    lines += _section_crossfit(res, figdir)
-    lines += _section_model(res, figdir)
-    lines += _section_time(res, figdir)
-    lines += _section_resid(res, figdir)
-    lines += _section_doubled(res)
+    if res.manifest.kind != "diagnosis":
+        lines += _section_data(res, figdir)
+        lines += _section_calibration(res)
+        lines += _section_filter(res, figdir)
+        lines += _section_grid(res)
+        lines += _section_crossfit(res, figdir)
+        lines += _section_model(res, figdir)
+        lines += _section_time(res, figdir)
+        lines += _section_resid(res, figdir)
+        lines += _section_doubled(res)
     lines += _section_diagnosis(res, figdir)
+    text = "\n".join(lines).rstrip() + "\n"
+    linked = {Path(x).name for x in re.findall(r"!\[[^\]]*\]\(figures/([^)]+)\)", text)}
+    for old in figdir.glob("*.png"):
+        if old.name not in linked:
+            old.unlink()
     out = res.paths.report
-    atomic_write_bytes(out, ("\n".join(lines).rstrip() + "\n").encode())
+    atomic_write_bytes(out, text.encode())
     return out

@@ -7,19 +7,22 @@ axis units in the view names. Rerun's 2D views point y down, so values are drawn
 
 Entity tree (all logged from the run directory alone, via :func:`harness.render.load.load_results`):
 
+- ``overview`` (markdown: what the run holds, the tabs); the blueprint opens on it
+- ``data/<experiment>/{u,theta,alpha}``: every experiment as measured (command [V], angles [deg] through the
+  run's calibration); timeline ``time`` [s]
 - ``datasets/<name>/measured``, ``.../simulated`` (identification domain y_f [deg/sample], selected model),
   ``.../command`` (u [V]), ``.../tip/measured``, ``.../tip/simulated`` (tip angle [deg]); timeline ``time`` [s]
-- ``crossfit/matrix`` (Tensor, dims model x dataset, fit [%]), ``crossfit/table`` (markdown, datasets
-  numbered 1..n as in report.md), ``crossfit/heatmap/{cells,values,rows,columns,scale}`` (2D: coloured cells,
-  their values, model and dataset labels, the colour scale)
+- ``crossfit/matrix`` (Tensor, dims model x dataset, fit [%]), ``crossfit/heatmap`` (the report's heat map, a PNG:
+  models and datasets by name, each value readable on its cell), ``crossfit/table`` (markdown, at full width)
 - ``models/selected/pz/{poles,zeros,unit_circle,axes}`` (z-plane, model with integrator)
 - ``bode/magnitude/<model>``, ``bode/phase/<model>`` (2D line strips: x = log10 f [Hz], y = magnitude / 20 dB or
   phase / 90 deg) and ``bode/{magnitude,phase}/axes``
 - ``resid/acf/<dataset>``, ``resid/ccf/<dataset>`` (2D line strips over the lag), ``resid/{acf,ccf}/bounds``
   (99 %), ``resid/{acf,ccf}/axes``; ``resid/summary`` (markdown)
-- ``diagnosis/gap/before``, ``diagnosis/gap/after`` (bar charts side by side per experiment),
-  ``diagnosis/waterfall`` (held-out gap stage by stage), ``diagnosis/summary`` (markdown)
-- ``overview`` (markdown)
+- ``diagnosis/gap`` (2D bars per experiment, named, as given and with the effects: :func:`log_bars`),
+  ``diagnosis/waterfall`` (the held-out gap stage by stage, named), ``diagnosis/summary`` (markdown),
+  ``diagnosis/replays/<experiment>/<channel>/{record,given,recalibrated,effects}`` (the replays against the record,
+  [deg] over ``time``)
 
 Time series use one ``send_columns`` call per entity.
 """
@@ -40,16 +43,26 @@ from typing import Any
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
-from matplotlib import colormaps
 
+from ..diagnosis.replays import STAGES
 from ..ident import lti
 from ..rundir import Manifest, to_plain
-from .analysis import RESID_LAGS, bode_curves, bode_grid, residual_tests, tip_from_filtered
+from . import figures
+from .analysis import (
+    RESID_LAGS,
+    bode_curves,
+    bode_grid,
+    record_angles,
+    replay_fits,
+    residual_tests,
+    tip_from_filtered,
+)
 from .gap_text import diagnosis_markdown, gap_rows
 from .load import RunResults, load_results
+from .report import holds, title
 from .tables import crossfit_table
 
-__all__ = ["APPLICATION_ID", "log_run", "recording_id", "write_recording"]
+__all__ = ["APPLICATION_ID", "bar_bounds", "log_bars", "log_run", "recording_id", "write_recording"]
 
 APPLICATION_ID = "flexjoint"
 N_BODE = 400
@@ -57,7 +70,8 @@ DB_PER_UNIT = 20.0  # Bode magnitude: one 2D unit per 20 dB (a decade of gain, a
 DEG_PER_UNIT = 90.0  # Bode phase: one 2D unit per 90 deg
 LAG_WIDTH = 10.0  # residual plots: the lag axis spans 10 units
 CORR_HEIGHT = 4.0  # residual plots: a correlation of 1 is 4 units high
-CELL = 8  # cross-fit heat map: pixels per cell
+MIN_BAR = 0.01  # 2D bar charts: half the thickness of a bar of (about) zero
+BAR_HEIGHT = 4.0  # 2D bar charts: the tallest bar is 4 units high, a category 1 unit wide
 
 _BLACK = [30, 30, 30]
 _ORANGE = [230, 120, 20]
@@ -147,48 +161,20 @@ def _log_datasets(rec: rr.RecordingStream, res: RunResults) -> None:
             _series(rec, f"{base}/tip/simulated", t, tip_from_filtered(ys + p.y_f_offset, res.af, float(p.y[0])))
 
 
-def _heat_colors(values: np.ndarray, lo: float, hi: float) -> np.ndarray:
-    """RGB uint8 of ``values`` on viridis over [lo, hi]; NaN (an unstable model) light grey."""
-    span = hi - lo if hi > lo else 1.0
-    rgb = colormaps["viridis"](np.clip((np.nan_to_num(values, nan=lo) - lo) / span, 0.0, 1.0))[..., :3] * 255
-    rgb = rgb.astype(np.uint8)
-    rgb[~np.isfinite(values)] = _LIGHT
-    return rgb
-
-
-def _log_crossfit(rec: rr.RecordingStream, res: RunResults) -> rrb.VisualBounds2D | None:
+def _log_crossfit(rec: rr.RecordingStream, res: RunResults) -> bool:
+    """The matrix as a Tensor, the report's heat map (models and datasets by name, each value in a colour that
+    reads on its cell) as a PNG image, and the table; False when there is no cross-fit."""
     cf = res.crossfit
     if cf is None or cf.empty:
-        return None
+        return False
     values = cf.to_numpy(dtype=float)
     finite = values[np.isfinite(values)]
     lo, hi = (float(np.floor(finite.min())), float(np.ceil(finite.max()))) if finite.size else (0.0, 100.0)
     hi = hi if hi > lo else lo + 1.0
     # colour map over the fits actually present (e.g. 86-98 %), not 0-max, or every cell looks the same
     rec.log("crossfit/matrix", rr.Tensor(values, dim_names=("model", "dataset"), value_range=(lo, hi)), static=True)
-    nr, nc = values.shape
-    # one image: the matrix (CELL pixels per cell), a blank column, then the colour scale (hi at the top)
-    img = np.full((nr * CELL, (nc + 2) * CELL, 3), 255, dtype=np.uint8)
-    img[:, : nc * CELL] = np.repeat(np.repeat(_heat_colors(values, lo, hi), CELL, 0), CELL, 1)
-    scale = np.linspace(hi, lo, nr * CELL)[:, None]
-    img[:, (nc + 1) * CELL :] = np.repeat(_heat_colors(scale, lo, hi), CELL, 1)
-    rec.log("crossfit/heatmap/cells", rr.Image(img, magnification_filter="Nearest"), static=True)
-    ii, jj = np.meshgrid(np.arange(nr), np.arange(nc), indexing="ij")
-    centres = np.column_stack([(jj.ravel() + 0.5) * CELL, (ii.ravel() + 0.5) * CELL])
-    text = ["—" if not math.isfinite(v) else f"{v:.1f}" for v in values.ravel()]
-    rec.log("crossfit/heatmap/values", rr.Points2D(centres, radii=0.01, colors=[[255, 255, 255]], labels=text,
-                                                   show_labels=True), static=True)  # fmt: skip
-    rows = [f"{name}" for name in cf.index]
-    rec.log("crossfit/heatmap/rows", rr.Points2D(np.column_stack([np.full(nr, -0.2 * CELL), (np.arange(nr) + 0.5) *
-            CELL]), radii=0.01, colors=[_BLACK], labels=rows, show_labels=True), static=True)  # fmt: skip
-    cols = [f"{j + 1}" for j in range(nc)]
-    rec.log("crossfit/heatmap/columns", rr.Points2D(np.column_stack([(np.arange(nc) + 0.5) * CELL, np.full(nc, -0.3 *
-            CELL)]), radii=0.01, colors=[_BLACK], labels=cols, show_labels=True), static=True)  # fmt: skip
-    ticks = [hi, 0.5 * (lo + hi), lo]
-    ys = [0.0, 0.5 * nr * CELL, nr * CELL]
-    xs = np.full(3, (nc + 2.3) * CELL)
-    rec.log("crossfit/heatmap/scale", rr.Points2D(np.column_stack([xs, ys]), radii=0.01, colors=[_BLACK],
-            labels=[f"{v:.0f} %" for v in ticks], show_labels=True), static=True)  # fmt: skip
+    png = figures.png_bytes(figures.crossfit_figure(cf))
+    rec.log("crossfit/heatmap", rr.EncodedImage(contents=png, media_type="image/png"), static=True)
     legend = ", ".join(f"{j + 1} = `{c}`" for j, c in enumerate(cf.columns))
     _markdown(
         rec,
@@ -196,16 +182,15 @@ def _log_crossfit(rec: rr.RecordingStream, res: RunResults) -> rrb.VisualBounds2
         [
             "### Cross-fit fit [%]",
             "",
-            "Model (row) simulated on dataset (column). Datasets are numbered 1..n here, in the heat map and in "
-            f"report.md: {legend}. The tensor view holds the same matrix (rows in this order). Colour scale "
-            f"viridis over {lo:.0f}-{hi:.0f} %.",
+            "Model (row) simulated on dataset (column). Datasets are numbered 1..n in this table as in report.md: "
+            f"{legend}. The heat map names them; the tensor view holds the same matrix (rows in this order).",
             "",
             *crossfit_table(res),
             "",
             f"Source: {res.crossfit_source}.",
         ],
     )
-    return rrb.VisualBounds2D(x_range=[-2.5 * CELL, (nc + 3.5) * CELL], y_range=[-1.0 * CELL, (nr + 0.5) * CELL])
+    return True
 
 
 def _log_pz(rec: rr.RecordingStream, res: RunResults) -> None:
@@ -302,36 +287,118 @@ def _log_resid(rec: rr.RecordingStream, res: RunResults) -> dict[str, rrb.Visual
     return bounds
 
 
-def _log_diagnosis(rec: rr.RecordingStream, res: RunResults) -> None:
+def log_bars(
+    rec: rr.RecordingStream,
+    path: str,
+    categories: list[str],
+    series: list[tuple[str, np.ndarray, list[int]]],
+    values: bool = True,
+) -> rrb.VisualBounds2D:
+    """A bar chart in 2D with named categories: per category one bar per series (``name``, values, colour) side by
+    side, the category names under the slots (on two staggered rows when there are many), the value axis ticked on
+    the left, each bar's value over it (``values``); ``path/<series name>`` the bars (line strips as wide as their
+    slot, their round ends kept within the bar), ``path/<series name>/values`` the values."""
+    n, k = len(categories), len(series)
+    width = 0.8 / k
+    r = 0.5 * width
+    top = max((float(np.nanmax(v)) for _, v, _ in series if np.isfinite(v).any()), default=1.0) or 1.0
+    scale = BAR_HEIGHT / top  # the tallest bar BAR_HEIGHT units high
+    for j, (name, v, color) in enumerate(series):
+        h = np.nan_to_num(np.asarray(v, dtype=float)) * scale
+        xc = np.arange(n) + 0.1 + (j + 0.5) * width
+        strips, radii = [], []
+        for x, y in zip(xc, h, strict=True):
+            if y >= 2 * r:  # upright, its round ends (r past each point) kept within 0..y
+                strips.append(_xy([x, x], [r, y - r]))
+                radii.append(r)
+            else:  # lower than wide: lying, as wide as the slot
+                half = max(0.5 * y, MIN_BAR)
+                strips.append(_xy([x - r + half, x + r - half], [half, half]))
+                radii.append(half)
+        rec.log(f"{path}/{_part(name)}", rr.LineStrips2D(strips, colors=[color], radii=radii), static=True)
+        if values:
+            at = _xy(xc, h + 0.04 * BAR_HEIGHT)
+            rec.log(f"{path}/{_part(name)}/values", rr.Points2D(at, radii=0.001, colors=[color],
+                    labels=[f"{x:.3f}" for x in v], show_labels=True), static=True)  # fmt: skip
+    step = 10.0 ** math.floor(math.log10(top / 2))
+    step = step * 5 if top / step > 10 else step * 2 if top / step > 5 else step
+    yticks = [(y * scale, f"{y:g}") for y in _ticks(0.0, top, step) if y <= top * 1.05]
+    _log_axes(rec, f"{path}/axes", [(i + 0.5, "") for i in range(n)], yticks, (0.0, float(n)), (0.0, BAR_HEIGHT))
+    stagger = n > 5
+    pos = [(i + 0.5, -(0.06 + (0.08 if stagger and i % 2 else 0.0)) * BAR_HEIGHT) for i in range(n)]
+    rec.log(f"{path}/categories", rr.Points2D(_xy(*np.array(pos).T), radii=0.001, colors=[_BLACK],
+            labels=categories, show_labels=True), static=True)  # fmt: skip
+    return bar_bounds(n)
+
+
+def bar_bounds(n: int) -> rrb.VisualBounds2D:
+    """The bounds that frame a :func:`log_bars` chart of ``n`` categories (as :func:`_log_axes` frames its plot,
+    with room for two rows of category names)."""
+    pad_x, pad_y = 0.04 * n, 0.06 * BAR_HEIGHT
+    return rrb.VisualBounds2D(x_range=[-3 * pad_x, n + pad_x], y_range=[-BAR_HEIGHT - 2 * pad_y, 5 * pad_y])
+
+
+def _log_diagnosis(rec: rr.RecordingStream, res: RunResults) -> dict[str, rrb.VisualBounds2D]:
     d = res.diagnosis
     if d is None:
-        return
+        return {}
+    bounds = {}
     rows = gap_rows(d)
     lines = ["### Sim-to-real gap diagnosis", ""]
     if rows:
-        x = np.arange(len(rows), dtype=float)
         before = np.array([r[1] for r in rows])
         after = np.array([r[2] for r in rows])
-        w = np.full(x.size, 0.4)
-        rec.log("diagnosis/gap/before", rr.BarChart(before, abscissa=x - 0.2, widths=w, color=_RED), static=True)
-        rec.log("diagnosis/gap/after", rr.BarChart(after, abscissa=x + 0.2, widths=w, color=_BLUE), static=True)
-        legend = ", ".join(f"{i} = {r[0]}" for i, r in enumerate(rows))
-        lines += [f"Gap per experiment, red (left) before and blue (right) after, by index: {legend}", ""]
+        series = [("simulation as given", before, _RED), ("recalibrated, with the effects", after, _BLUE)]
+        names = [r[0].split(" (")[0] for r in rows]  # the experiment; its fold is in the summary
+        bounds["gap"] = log_bars(rec, "diagnosis/gap", names, series, values=len(rows) <= 6)
+        lines += ["Gap per experiment (gap = 1 - fit/100): the simulation as given red (left), recalibrated with the "
+                  "effects blue (right).", ""]  # fmt: skip
     steps = d.waterfall()
     if len(steps) > 1:
         gaps = np.array([g for _, g, _ in steps])
-        rec.log("diagnosis/waterfall", rr.BarChart(gaps, color=_ORANGE), static=True)
-        lines += ["Held-out gap by stage, by index: " + ", ".join(f"{i} = {s[0]}" for i, s in enumerate(steps)), ""]
+        bounds["waterfall"] = log_bars(rec, "diagnosis/waterfall", [s[0] for s in steps],
+                                        [("held-out gap", gaps, _ORANGE)])  # fmt: skip
     lines += diagnosis_markdown(d)
     _markdown(rec, "diagnosis/summary", lines)
+    return bounds
+
+
+def _log_replays(rec: rr.RecordingStream, res: RunResults) -> None:
+    """Each experiment's replays against its record, per channel, over ``time``:
+    ``diagnosis/replays/<experiment>/<channel>/{record,given,recalibrated,effects}``."""
+    colors = {"record": _BLACK, "given": _ORANGE, "recalibrated": [44, 160, 44], "effects": _BLUE}
+    for name, rp in res.replays.items():
+        t = rr.TimeColumn("time", duration=rp.t)
+        fits = replay_fits(rp)
+        for ch in ("theta", "alpha"):
+            base = f"diagnosis/replays/{_part(name)}/{ch}"
+            _style(rec, f"{base}/record", f"record {ch} [deg]", colors["record"], 2.0)
+            _series(rec, f"{base}/record", t, rp.record[ch])
+            for stage, label in STAGES.items():
+                _style(rec, f"{base}/{stage}", f"{label} (fit {fits[stage]:.1f} %)", colors[stage])
+                _series(rec, f"{base}/{stage}", t, rp.sim[stage][ch])
+
+
+def _log_data(rec: rr.RecordingStream, res: RunResults) -> None:
+    """Every experiment's data as measured over ``time``: ``data/<experiment>/{u,theta,alpha}``."""
+    for name, df in res.records.items():
+        t_s = df["t"].to_numpy(dtype=float)
+        t = rr.TimeColumn("time", duration=t_s - t_s[0])
+        theta, alpha, unit = record_angles(res, name)
+        base = f"data/{_part(name)}"
+        for ch, y, label, color in (("u", df["u"].to_numpy(dtype=float), "command u [V]", _BLUE),
+                                    ("theta", theta, f"theta [{unit}]", _BLACK),
+                                    ("alpha", alpha, f"alpha [{unit}]", [44, 160, 44])):  # fmt: skip
+            _style(rec, f"{base}/{ch}", label, color)
+            _series(rec, f"{base}/{ch}", t, y)
 
 
 def _log_overview(rec: rr.RecordingStream, res: RunResults) -> None:
     m = res.manifest
     lines = [
-        "### flexjoint run",
+        f"### {title(res)}",
         "",
-        f"- kind: {m.kind}",
+        f"- holds: {holds(res)}",
         f"- spec sha256: `{m.spec_sha256 or '-'}`",
         f"- sample rate: {'-' if m.sample_rate is None else m.sample_rate} Hz",
         f"- identification datasets: {', '.join(res.prepared) or '-'}",
@@ -344,120 +411,161 @@ def _log_overview(rec: rr.RecordingStream, res: RunResults) -> None:
         lines.append(f"- diagnosis verdict: **{res.diagnosis.verdict}**")
     lines += [
         "",
-        "Tabs: datasets (measured vs simulated over time), cross-fit (heat map, table, tensor), model (pole-zero",
-        "map, Bode over log10 f), residuals (correlations over the lag), diagnosis (gaps and summary); the ones",
-        "this run directory has data for. The full numbers are in report.md and the JSON files.",
+        "Tabs: data (each experiment as measured), datasets (identification domain, measured vs the selected",
+        "model), cross-fit (heat map, table, tensor), model (pole-zero map, Bode over log10 f), residuals",
+        "(correlations over the lag), diagnosis (gaps, stages and summary), replays (each experiment re-simulated",
+        "as given, recalibrated and with the effects, against the record); the ones this run directory has data",
+        "for. The full numbers are in report.md and the JSON files.",
     ]
     _markdown(rec, "overview", lines)
 
 
 def _log_all(rec: rr.RecordingStream, res: RunResults) -> dict[str, rrb.VisualBounds2D]:
     """Log everything; returns the 2D views' bounds by plot name."""
-    name = ((res.manifest.spec or {}).get("campaign") or {}).get("name")
-    rec.send_recording_name(f"flexjoint {name or res.run.name}")
+    rec.send_recording_name(title(res).replace("`", ""))
     _log_overview(rec, res)
+    _log_data(rec, res)
     _log_datasets(rec, res)
     bounds: dict[str, rrb.VisualBounds2D] = {}
-    heat = _log_crossfit(rec, res)
-    if heat is not None:
-        bounds["heatmap"] = heat
+    if _log_crossfit(rec, res):
+        bounds["heatmap"] = rrb.VisualBounds2D()  # the image framed as logged
     _log_pz(rec, res)
     bounds.update({f"bode_{k}": v for k, v in _log_bode(rec, res).items()})
     bounds.update({f"resid_{k}": v for k, v in _log_resid(rec, res).items()})
-    _log_diagnosis(rec, res)
+    bounds.update({f"diagnosis_{k}": v for k, v in _log_diagnosis(rec, res).items()})
+    _log_replays(rec, res)
     return bounds
 
 
 # ----------------------------------------------------------------------------------------------- blueprint
-def _blueprint(res: RunResults, bounds: dict[str, rrb.VisualBounds2D]) -> rrb.Blueprint:
-    tabs: list[Any] = [rrb.TextDocumentView(origin="overview", name="overview")]
-    if res.prepared:
-        per = []
-        for name in res.prepared:
-            o = f"datasets/{_part(name)}"
-            views = [rrb.TimeSeriesView(origin=f"{o}/tip", name=f"{name}: tip angle [deg] vs t [s]")]
-            if name in res.simulated:
-                ts = rrb.TimeSeriesView(origin=o, contents=["$origin/measured", "$origin/simulated"],
-                                        name=f"{name}: y_f [deg/sample] vs t [s]")  # fmt: skip
-            else:
-                ts = rrb.TimeSeriesView(
-                    origin=o, contents=["$origin/measured"], name=f"{name}: y_f [deg/sample] vs t [s]"
-                )
-            views.insert(0, ts)
-            views.append(
-                rrb.TimeSeriesView(origin=o, contents=["$origin/command"], name=f"{name}: command u [V] vs t [s]")
+def _data_tab(res: RunResults) -> Any:
+    """Each experiment as measured: command, theta, alpha over time, one tab per experiment."""
+    per = []
+    for name in res.records:
+        o = f"data/{_part(name)}"
+        unit = "deg" if res.calibration is not None else "V"
+        per.append(rrb.Vertical(
+            rrb.TimeSeriesView(origin=f"{o}/u", name=f"{name}: command u [V] vs t [s]"),
+            rrb.TimeSeriesView(origin=f"{o}/theta", name=f"{name}: theta [{unit}] vs t [s]"),
+            rrb.TimeSeriesView(origin=f"{o}/alpha", name=f"{name}: alpha [{unit}] vs t [s]"),
+            name=name,
+        ))  # fmt: skip
+    return rrb.Tabs(*per, name="data")
+
+
+def _datasets_tab(res: RunResults) -> Any:
+    """The identification datasets: y_f measured (and simulated by the selected model), tip angle, command."""
+    per = []
+    for name in res.prepared:
+        o = f"datasets/{_part(name)}"
+        shown = ["$origin/measured", "$origin/simulated"] if name in res.simulated else ["$origin/measured"]
+        per.append(rrb.Vertical(
+            rrb.TimeSeriesView(origin=o, contents=shown, name=f"{name}: y_f [deg/sample] vs t [s]"),
+            rrb.TimeSeriesView(origin=f"{o}/tip", name=f"{name}: tip angle [deg] vs t [s]"),
+            rrb.TimeSeriesView(origin=o, contents=["$origin/command"], name=f"{name}: command u [V] vs t [s]"),
+            row_shares=[2.0, 2.0, 1.0],
+            name=name,
+        ))  # fmt: skip
+    return rrb.Tabs(*per, name="datasets")
+
+
+def _model_tab(res: RunResults, bounds: dict[str, rrb.VisualBounds2D]) -> Any:
+    views: list[Any] = []
+    if res.selected is not None:
+        views.append(
+            rrb.Spatial2DView(
+                origin="models/selected/pz",
+                name="pole-zero map of the selected model: Re z (right) vs Im z (up)",
+                visual_bounds=rrb.VisualBounds2D(x_range=[-1.5, 1.5], y_range=[-1.5, 1.5]),
             )
-            per.append(rrb.Vertical(*views, row_shares=[2.0, 2.0, 1.0], name=name))
-        tabs.append(rrb.Tabs(*per, name="datasets"))
+        )
+    views.append(
+        rrb.Vertical(
+            rrb.Spatial2DView(origin="bode/magnitude", name="Bode magnitude [dB] vs log10 f [Hz]",
+                              visual_bounds=bounds.get("bode_magnitude")),
+            rrb.Spatial2DView(origin="bode/phase", name="Bode phase [deg] vs log10 f [Hz]",
+                              visual_bounds=bounds.get("bode_phase")),
+        )
+    )  # fmt: skip
+    return rrb.Horizontal(*views, name="model")
+
+
+def _diagnosis_tab(res: RunResults, bounds: dict[str, rrb.VisualBounds2D]) -> Any:
+    bars: list[Any] = []
+    if "diagnosis_gap" in bounds:
+        bars.append(
+            rrb.Spatial2DView(
+                origin="diagnosis/gap",
+                visual_bounds=bounds["diagnosis_gap"],
+                name="gap per experiment: as given (red) / recalibrated with the effects (blue)",
+            )
+        )
+    if "diagnosis_waterfall" in bounds:
+        bars.append(rrb.Spatial2DView(origin="diagnosis/waterfall", visual_bounds=bounds["diagnosis_waterfall"],
+                                      name="held-out gap by stage (gap = 1 - fit/100)"))  # fmt: skip
+    summary = rrb.TextDocumentView(origin="diagnosis/summary", name="summary")
+    if not bars:
+        return summary
+    return rrb.Tabs(summary, rrb.Horizontal(*bars, name="gaps"), name="diagnosis")  # the summary's tables at full width
+
+
+def _replays_tab(res: RunResults) -> Any:
+    """Per experiment: theta and alpha of the record and the replays (as given, recalibrated, with the effects)."""
+    per = []
+    for name in res.replays:
+        o = f"diagnosis/replays/{_part(name)}"
+        per.append(rrb.Vertical(
+            rrb.TimeSeriesView(origin=f"{o}/theta", name=f"{name}: theta [deg] vs t [s], record and replays"),
+            rrb.TimeSeriesView(origin=f"{o}/alpha", name=f"{name}: alpha [deg] vs t [s], record and replays"),
+            name=name,
+        ))  # fmt: skip
+    return rrb.Tabs(*per, name="replays")
+
+
+def _blueprint(res: RunResults, bounds: dict[str, rrb.VisualBounds2D], active: int = 0) -> rrb.Blueprint:
+    """The tabs this run has data for, the overview first and active (``active``: another tab's index); tables at
+    full width."""
+    tabs: list[Any] = [rrb.TextDocumentView(origin="overview", name="overview")]
+    if res.records:
+        tabs.append(_data_tab(res))
+    if res.prepared:
+        tabs.append(_datasets_tab(res))
     if "heatmap" in bounds:
         tabs.append(
-            rrb.Horizontal(
-                rrb.Spatial2DView(
-                    origin="crossfit/heatmap",
-                    name="cross-fit [%]: model (row) on dataset (column)",
-                    visual_bounds=bounds["heatmap"],
-                ),  # fmt: skip
-                rrb.Vertical(
-                    rrb.TextDocumentView(origin="crossfit/table", name="cross-fit table"),
+            rrb.Vertical(
+                rrb.Horizontal(
+                    rrb.Spatial2DView(origin="crossfit/heatmap", name="cross-fit [%]: model (row) on dataset (column)"),
                     rrb.TensorView(origin="crossfit/matrix", name="cross-fit tensor (model x dataset)"),
-                    row_shares=[2.0, 1.0],
+                    column_shares=[3.0, 1.0],
                 ),
-                column_shares=[3.0, 2.0],
+                rrb.TextDocumentView(origin="crossfit/table", name="cross-fit table"),
+                row_shares=[3.0, 2.0],
                 name="cross-fit",
             )
         )
     if res.models:
-        model_views: list[Any] = []
-        if res.selected is not None:
-            model_views.append(
-                rrb.Spatial2DView(
-                    origin="models/selected/pz",
-                    name="pole-zero map of the selected model: Re z (right) vs Im z (up)",
-                    visual_bounds=rrb.VisualBounds2D(x_range=[-1.5, 1.5], y_range=[-1.5, 1.5]),
-                )
-            )
-        model_views.append(
-            rrb.Vertical(
-                rrb.Spatial2DView(
-                    origin="bode/magnitude",
-                    name="Bode magnitude [dB] vs log10 f [Hz]",
-                    visual_bounds=bounds.get("bode_magnitude"),
-                ),  # fmt: skip
-                rrb.Spatial2DView(
-                    origin="bode/phase", name="Bode phase [deg] vs log10 f [Hz]", visual_bounds=bounds.get("bode_phase")
-                ),  # fmt: skip
-            )
-        )
-        tabs.append(rrb.Horizontal(*model_views, name="model"))
+        tabs.append(_model_tab(res, bounds))
     if "resid_acf" in bounds:
         tabs.append(
             rrb.Vertical(
-                rrb.Spatial2DView(
-                    origin="resid/acf",
-                    name="residual autocorrelation r_ee vs lag [samples]",
-                    visual_bounds=bounds["resid_acf"],
-                ),  # fmt: skip
-                rrb.Spatial2DView(
-                    origin="resid/ccf",
-                    name="residual-input cross-correlation r_eu vs lag [samples]",
-                    visual_bounds=bounds["resid_ccf"],
-                ),  # fmt: skip
+                rrb.Spatial2DView(origin="resid/acf", name="residual autocorrelation r_ee vs lag [samples]",
+                                  visual_bounds=bounds["resid_acf"]),
+                rrb.Spatial2DView(origin="resid/ccf", name="residual-input cross-correlation r_eu vs lag [samples]",
+                                  visual_bounds=bounds["resid_ccf"]),
                 rrb.TextDocumentView(origin="resid/summary", name="residual tests"),
                 name="residuals",
             )
-        )
+        )  # fmt: skip
     if res.diagnosis is not None:
-        bars: list[Any] = []
-        if gap_rows(res.diagnosis):
-            bars.append(
-                rrb.BarChartView(origin="diagnosis/gap", name="gap per experiment: before (red) / after (blue)")
-            )
-        if len(res.diagnosis.waterfall()) > 1:
-            bars.append(rrb.BarChartView(origin="diagnosis/waterfall", name="held-out gap by stage"))
-        summary = rrb.TextDocumentView(origin="diagnosis/summary", name="diagnosis")
-        tabs.append(rrb.Horizontal(rrb.Vertical(*bars), summary, name="diagnosis") if bars else summary)
-    root = rrb.Tabs(*tabs, active_tab=1 if len(tabs) > 1 else 0)
-    return rrb.Blueprint(root, rrb.TimePanel(timeline="time"))
+        tabs.append(_diagnosis_tab(res, bounds))
+    if res.replays:
+        tabs.append(_replays_tab(res))
+    return rrb.Blueprint(
+        rrb.Tabs(*tabs, active_tab=min(active, len(tabs) - 1)),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
+        rrb.TimePanel(timeline="time", state="collapsed"),
+    )
 
 
 # ----------------------------------------------------------------------------------------------- entry point
