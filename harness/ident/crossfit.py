@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from ..rundir import atomic_write_text, load_run
+from ..rundir import atomic_write_text, load_run, record_inputs
 from . import armax
 from .calibration import load_calibration
 from .export import ModelFMU, export_model, model_records
@@ -142,6 +142,7 @@ def crossfit_run(run: Path, progress: Callable[[str], None] | None = None) -> pd
             models[name] = (model, None)
     res = score_models(models, prepared, progress)
     atomic_write_text(run / "crossfit.csv", format_csv(res.fmu))
+    record_inputs(run, "crossfit.csv")
     out = res.fmu.copy()
     out["average"] = out.mean(axis=1, skipna=False)
     out.attrs["max_abs_diff"] = res.max_abs_diff

@@ -69,6 +69,11 @@ def _section_header(res: RunResults) -> list[str]:
         ["versions", versions],
     ]
     lines += [*table(["item", "value"], [r for r in rows if r[1]]), ""]
+    if res.stale:
+        lines += ["Left out of this report, made from other inputs than the directory holds:", ""]
+        lines += [f"- {why}" for why in res.stale.values()] + [""]
+    if m.removed:
+        lines += [f"Replaced an earlier run here (`--force`), removing: {', '.join(f'`{r}`' for r in m.removed)}.", ""]
     sources = m.sources
     if m.kind == "import" and sources:
         units = {e.name: e.units or {} for e in m.experiments}
