@@ -1,0 +1,205 @@
+"""Run directories that cannot lie: a new run never mixes with an old one, artefacts made from other data are
+refused or left out, an interrupted run leaves nothing, and values a rig cannot have are refused."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from test_cli import TINY, _one_line_error, flexjoint
+
+from harness import spec as specmod
+from harness.ident.accept import accept
+from harness.ident.calibration import calibrate_run
+from harness.ident.crossfit import crossfit_run
+from harness.pipeline import identify_run
+from harness.render.load import load_results
+from harness.render.report import write_report
+from harness.rig import campaign as campaign_mod
+from harness.rig.campaign import run_campaign
+from harness.rundir import DataError, Manifest, RunDir, read_dataset, record_inputs, stale_artefacts, write_dataset
+
+GRID = {"na": [2, 3], "nb": [1, 2], "nc": [1, 2], "doubled_rate": False}
+
+
+def _small_lab() -> specmod.Spec:
+    """The lab spec with its calibration experiments and two 20 s identification experiments, a small grid."""
+    raw = specmod.apply_overrides(specmod.load("lab").raw, [])
+    raw["experiment"] = [dict(e, duration=20.0) for e in raw["experiment"] if e["name"] in ("prbs_b010", "square_040")]
+    raw["identify"] = {**raw.get("identify", {}), **GRID}
+    return specmod.from_dict(raw, "lab.toml")
+
+
+@pytest.fixture(scope="module")
+def identified(tmp_path_factory) -> Path:
+    """A campaign, calibrated, identified and cross-fitted (no diagnosis: not needed here)."""
+    run = tmp_path_factory.mktemp("rundir") / "lab"
+    run_campaign(_small_lab(), run, workers=1)
+    calibrate_run(run)
+    identify_run(run)
+    crossfit_run(run)
+    return run
+
+
+def _copy(run: Path, dest: Path) -> Path:
+    shutil.copytree(run, dest)
+    return dest
+
+
+def _files(run: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(run)): p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()}
+
+
+def test_the_fixture_accepts_and_records_what_each_artefact_was_made_from(identified):
+    assert accept(identified).passed
+    rec = Manifest.load(identified).artefacts
+    assert set(rec) == {"calibration.json", "models", "grid.csv", "crossfit.csv"}
+    assert rec["models"]["data"] == rec["crossfit.csv"]["data"] == rec["calibration.json"]["data"]
+    assert stale_artefacts(identified) == {}
+
+
+def test_campaign_onto_an_identified_run_is_refused_and_force_removes_the_old_run(identified, tmp_path):
+    run = _copy(identified, tmp_path / "run")
+    spec = tmp_path / "tiny.toml"
+    spec.write_text(TINY)
+    before = _files(run)
+    line = _one_line_error(flexjoint("campaign", spec, "--out", run))
+    assert "already holds a run" in line and "--force" in line and "--out" in line
+    assert _files(run) == before  # nothing touched
+    r = flexjoint("campaign", spec, "--out", run, "--force")
+    assert r.returncode == 0, r.stderr
+    assert sorted(p.name for p in run.iterdir()) == ["data", "manifest.json"]
+    assert sorted(p.name for p in (run / "data").iterdir()) == ["sq.parquet"]
+    m = Manifest.load(run)
+    assert {"calibration.json", "models/", "grid.csv", "crossfit.csv", "data/"} <= set(m.removed)
+    line = _one_line_error(flexjoint("accept", run))  # the old model is gone, not "accepted" on new data
+    assert "no selected model" in line
+    assert not list(tmp_path.glob(".run.*"))  # no aside left behind
+
+
+def test_import_onto_a_run_is_refused_and_force_replaces_it(identified, tmp_path):
+    run = _copy(identified, tmp_path / "run")
+    t = np.arange(400) * 0.02
+    pd.DataFrame({"t": t, "u": np.sign(np.sin(t)), "theta_v": 0.01 * t, "alpha_v": 0 * t}).to_csv(
+        tmp_path / "rec.csv", index=False
+    )
+    line = _one_line_error(flexjoint("import", tmp_path / "rec.csv", "--out", run))
+    assert "already holds a run" in line and "--force" in line
+    assert (run / "models" / "selected.json").exists()
+    r = flexjoint("import", tmp_path / "rec.csv", "--out", run, "--force")
+    assert r.returncode == 0, r.stderr
+    assert sorted(p.name for p in run.iterdir()) == ["calibration.json", "data", "manifest.json"]
+    m = Manifest.load(run)
+    assert m.kind == "import" and "models/" in m.removed and [e.name for e in m.experiments] == ["rec"]
+
+
+def _other_data(run: Path) -> None:
+    """Replace one identification dataset by other data (the command 2 % larger), as a hand copy would."""
+    p = RunDir(run).dataset("square_040")
+    df = read_dataset(p)
+    write_dataset(p, {c: (df[c] * 1.02 if c == "u" else df[c]).to_numpy() for c in df.columns})
+
+
+def test_accept_refuses_models_made_from_other_data(identified, tmp_path):
+    run = _copy(identified, tmp_path / "run")
+    _other_data(run)
+    line = _one_line_error(flexjoint("accept", run))
+    assert line == "error: models/ were identified from other data than data/ now holds: re-run flexjoint identify"
+    with pytest.raises(DataError, match="models/ were identified from other data"):
+        accept(run)
+    identify_run(run)  # the models again, from these data: the cross-fit is now the stale one
+    with pytest.raises(DataError, match="crossfit.csv was computed from other data than data/ now holds"):
+        accept(run)
+    crossfit_run(run)
+    assert accept(run).passed
+
+
+def test_report_leaves_out_and_names_what_was_made_from_other_data(identified, tmp_path):
+    run = _copy(identified, tmp_path / "run")
+    _other_data(run)
+    res = load_results(run)
+    assert set(res.stale) == {"calibration.json", "models", "grid.csv", "crossfit.csv"}
+    assert res.models == {} and res.crossfit is None and res.grid is None
+    text = write_report(run, res).read_text()
+    assert "- models/ were identified from other data than data/ now holds: re-run flexjoint identify" in text
+    assert "crossfit.csv was computed from other data" in text
+    assert "| selected |" not in text  # no cross-fit row of the old model
+
+
+def test_diagnose_out_onto_another_run_is_refused_and_never_touches_either(identified, tmp_path):
+    real = _copy(identified, tmp_path / "real")
+    other = _copy(identified, tmp_path / "other")
+    real_before, other_before = _files(real), _files(other)
+    line = _one_line_error(flexjoint("diagnose", "--real", real, "--out", other, "--workers", "1"))
+    assert "another run" in line and "--force" in line
+    assert _files(real) == real_before and _files(other) == other_before
+
+
+def test_a_diagnosis_written_into_another_run_is_flagged_as_of_that_run(identified, tmp_path):
+    real = _copy(identified, tmp_path / "real")
+    other = _copy(identified, tmp_path / "other")
+    (other / "diagnosis.json").write_text("{}")  # what diagnose --force writes there; its content is not read here
+    record_inputs(other, "diagnosis.json", source=real)
+    assert stale_artefacts(other)["diagnosis.json"].startswith(
+        "diagnosis.json was made from the data of another run (../real)"
+    )
+    record_inputs(other, "diagnosis.json")  # diagnosed from its own data: fresh
+    assert "diagnosis.json" not in stale_artefacts(other)
+
+
+def test_an_interrupted_campaign_leaves_no_partial_folder_and_an_old_run_intact(identified, tmp_path, monkeypatch):
+    calls = []
+
+    def interrupted(path, cols):
+        calls.append(path)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        write_dataset(path, cols)
+
+    monkeypatch.setattr(campaign_mod, "write_dataset", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        run_campaign(_small_lab(), tmp_path / "new", workers=1)
+    assert list(tmp_path.iterdir()) == []  # neither the run nor its aside
+    old = _copy(identified, tmp_path / "old")
+    before = _files(old)
+    calls.clear()
+    with pytest.raises(KeyboardInterrupt):
+        run_campaign(_small_lab(), old, workers=1, force=True)
+    assert _files(old) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["old"]
+
+
+@pytest.mark.parametrize(
+    "setting, words",
+    [
+        ("plant.backlash=1e9", "[plant].backlash = 1e+09 is outside its physical range [0, 0.2] rad"),
+        ("daq.adc_bits=99", "[daq].adc_bits = 99 is outside its physical range [0, 52]"),
+        ("plant.eta_g=1.5", "[plant].eta_g = 1.5 is outside its physical range [0, 1]"),
+        ("accept.min_fit=101", "[accept].min_fit = 101: a fit threshold is a percentage in 0..100"),
+    ],
+)
+def test_set_values_outside_their_physical_range_are_refused(tmp_path, setting, words):
+    line = _one_line_error(flexjoint("campaign", "lab", "--out", tmp_path / "r", "--set", setting))
+    assert words in line
+    assert not (tmp_path / "r").exists()
+
+
+def test_a_spec_value_outside_its_range_is_refused():
+    raw = specmod.apply_overrides(specmod.load("lab").raw, [])
+    raw["experiment"][0]["plant"] = {"backlash": 0.5}
+    with pytest.raises(specmod.SpecError, match=r"plant.backlash = 0.5 is outside its physical range \[0, 0.2\] rad"):
+        specmod.from_dict(raw, "x.toml")
+
+
+@pytest.mark.parametrize("option, value", [("--min-fit", "101"), ("--min-average-fit", "-5"), ("--min-fit", "nan")])
+def test_accept_thresholds_outside_0_100_are_refused(tmp_path, option, value):
+    (tmp_path / "models").mkdir()
+    Manifest(kind="campaign", spec={}, experiments=[], sample_rate=50.0).write(tmp_path)
+    (tmp_path / "models" / "selected.json").write_text(json.dumps({"cv": {"a": 99.0}}))
+    assert flexjoint("accept", tmp_path).returncode == 0
+    line = _one_line_error(flexjoint("accept", tmp_path, option, value))
+    assert f"{option} = " in line and "a fit threshold is a percentage in 0..100" in line
