@@ -9,7 +9,9 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import pyarrow as pa
 import pytest
+from rerun.chunk import RrdReader
 from test_cli import TINY, _one_line_error, flexjoint
 
 from harness import spec as specmod
@@ -19,6 +21,7 @@ from harness.ident.crossfit import crossfit_run
 from harness.pipeline import identify_run
 from harness.render.load import load_results
 from harness.render.report import write_report
+from harness.render.viewer import log_run
 from harness.rig import campaign as campaign_mod
 from harness.rig.campaign import run_campaign
 from harness.rundir import DataError, Manifest, RunDir, read_dataset, record_inputs, stale_artefacts, write_dataset
@@ -203,3 +206,25 @@ def test_accept_thresholds_outside_0_100_are_refused(tmp_path, option, value):
     assert flexjoint("accept", tmp_path).returncode == 0
     line = _one_line_error(flexjoint("accept", tmp_path, option, value))
     assert f"{option} = " in line and "a fit threshold is a percentage in 0..100" in line
+
+
+def _rrd_content(path: Path) -> list[tuple[str, str, pa.RecordBatch]]:
+    """What a recording holds, store by store, without what Rerun stamps with the clock: its chunk and row ids (time
+    based) and the blueprint's log_time."""
+    reader = RrdReader(path)
+    out = []
+    for store in [*reader.recordings(), *reader.blueprints()]:
+        for chunk in reader.stream(store=store):
+            rb = chunk.to_record_batch()
+            keep = [n for n in rb.schema.names if n not in ("rerun.controls.RowId", "log_time")]
+            out.append((store.kind, chunk.entity_path, rb.select(keep).replace_schema_metadata(None)))
+    return out
+
+
+def test_two_recordings_of_one_run_hold_the_same_data(identified, tmp_path):
+    a, b = log_run(identified, rrd=tmp_path / "a.rrd"), log_run(identified, rrd=tmp_path / "b.rrd")
+    ca, cb = _rrd_content(a), _rrd_content(b)
+    assert [x[:2] for x in ca] == [x[:2] for x in cb]
+    assert ("recording", "/__properties") in [x[:2] for x in ca]  # the recording's name
+    for (kind, entity, x), (_, _, y) in zip(ca, cb, strict=True):
+        assert x.equals(y), f"{kind} {entity}: {x.schema.names}"
