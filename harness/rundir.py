@@ -541,8 +541,8 @@ def new_run(out: Path, force: bool = False) -> Iterator[Path]:
     sibling of ``out``, the run under its own name); on success an existing run in ``out`` (only with ``force``,
     :func:`check_new_run`) is removed first, layout entries only, and what was removed is listed in the new
     manifest's ``removed``. On any error or Ctrl-C the aside is removed and ``out`` stays as it was."""
-    out = Path(out)
-    check_new_run(out, force)
+    check_new_run(Path(out), force)
+    out = Path(out).resolve()  # ".", "..": the aside goes beside the directory itself
     out.parent.mkdir(parents=True, exist_ok=True)
     aside = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.", suffix=".new"))
     work = aside / out.name

@@ -96,7 +96,7 @@ def _section_calibration(res: RunResults) -> list[str]:
     lines = ["## Calibration", ""]
     cal = res.calibration
     if cal is None:
-        return [*lines, "No `calibration.json` in this run.", ""]
+        return [*lines, res.stale.get("calibration.json", "No `calibration.json` in this run."), ""]
     rows = []
     for key, label, unit in (("Kp", "Kp", "deg/V"), ("Ke", "Ke", "deg/V"), ("dead_zone_v", "dead zone", "V")):
         v = float(getattr(cal, key))
