@@ -478,8 +478,9 @@ def _exists(run: Path, artefact: str) -> bool:
 
 
 def stale_artefacts(run: Path) -> dict[str, str]:
-    """The derived artefacts of ``run`` made from other inputs than it now holds, each with one line saying so and
-    which command makes it again (an artefact whose inputs were not recorded, by an older version, is not judged)."""
+    """The derived artefacts of ``run`` made from other inputs than it now holds, or from an input that is itself
+    stale, each with one line saying so and which command makes it again (an artefact whose inputs were not
+    recorded, by an older version, is not judged)."""
     run = Path(run)
     recorded = Manifest.load(run).artefacts or {}
     now: dict[str, str | None] = {}
@@ -494,6 +495,10 @@ def stale_artefacts(run: Path) -> dict[str, str]:
                              f"re-run flexjoint {command} on this directory")  # fmt: skip
             continue
         for name in inputs:
+            if name in out:  # made from an input that is itself stale
+                what, where = _INPUT[name]
+                out[artefact] = f"{label} {verb} from {where}, which is stale: re-run flexjoint {_ARTEFACT[name][2]}"
+                break
             if name not in now:
                 now[name] = input_sha256(run, name) or "none"
             if rec.get(name) != now[name]:

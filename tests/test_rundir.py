@@ -228,3 +228,34 @@ def test_two_recordings_of_one_run_hold_the_same_data(identified, tmp_path):
     assert ("recording", "/__properties") in [x[:2] for x in ca]  # the recording's name
     for (kind, entity, x), (_, _, y) in zip(ca, cb, strict=True):
         assert x.equals(y), f"{kind} {entity}: {x.schema.names}"
+
+
+@pytest.mark.parametrize(
+    "command",
+    [
+        ("run", "--workers", "1"),
+        ("sweep", "lab", "--vary", "plant.Ks=normal(1.3,0.05)", "--n", "2", "--orders", "2,1,1", "--workers", "1"),
+    ],
+)
+def test_run_and_sweep_onto_a_run_are_refused_before_any_work(identified, tmp_path, command):
+    run = _copy(identified, tmp_path / "run")
+    before = _files(run)
+    line = _one_line_error(flexjoint(*command, "--out", run))
+    assert f"--out {run}" in line and ("already holds a run" in line or "holds a run" in line)
+    assert _files(run) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]
+
+
+def test_what_was_made_from_a_stale_input_is_stale_and_crossfit_refuses_stale_models(identified, tmp_path):
+    run = _copy(identified, tmp_path / "run")
+    m = Manifest.load(run)
+    m.artefacts["calibration.json"]["data"] = "0" * 64  # as if calibrated from other data than data/ holds
+    m.write(run)
+    stale = stale_artefacts(run)
+    assert stale["calibration.json"].startswith("calibration.json was made from other data than data/ now holds")
+    assert stale["models"] == "models/ were identified from calibration.json, which is stale: re-run flexjoint identify"
+    assert stale["crossfit.csv"] == "crossfit.csv was computed from models/, which is stale: re-run flexjoint identify"
+    with pytest.raises(DataError, match="models/ were identified from calibration.json, which is stale"):
+        crossfit_run(run)
+    identify_run(run)  # calibrates again (the calibration experiments are in data/), then the models: the same bytes,
+    assert stale_artefacts(run) == {}  # so the cross-fit made from them is current again
