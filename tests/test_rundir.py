@@ -19,6 +19,7 @@ from harness.ident.accept import accept
 from harness.ident.calibration import calibrate_run
 from harness.ident.crossfit import crossfit_run
 from harness.pipeline import identify_run
+from harness.render import viewer
 from harness.render.load import load_results
 from harness.render.report import write_report
 from harness.render.viewer import log_run
@@ -221,13 +222,29 @@ def _rrd_content(path: Path) -> list[tuple[str, str, pa.RecordBatch]]:
     return out
 
 
-def test_two_recordings_of_one_run_hold_the_same_data(identified, tmp_path):
-    a, b = log_run(identified, rrd=tmp_path / "a.rrd"), log_run(identified, rrd=tmp_path / "b.rrd")
-    ca, cb = _rrd_content(a), _rrd_content(b)
-    assert [x[:2] for x in ca] == [x[:2] for x in cb]
-    assert ("recording", "/__properties") in [x[:2] for x in ca]  # the recording's name
-    for (kind, entity, x), (_, _, y) in zip(ca, cb, strict=True):
-        assert x.equals(y), f"{kind} {entity}: {x.schema.names}"
+def test_report_twice_writes_the_same_run_rrd_bytes(identified, tmp_path):
+    run = _copy(identified, tmp_path / "run")
+    sizes = []
+    for _ in range(2):  # two processes: the same bytes whatever the clock, the threads and the hash seed
+        r = flexjoint("report", run)
+        assert r.returncode == 0, r.stderr
+        sizes.append((run / "run.rrd").read_bytes())
+    assert sizes[0] == sizes[1]
+
+
+def test_the_stable_recording_holds_what_rerun_wrote(identified, tmp_path, monkeypatch):
+    stable = log_run(identified, rrd=tmp_path / "stable.rrd")
+    monkeypatch.setattr(viewer, "make_stable", lambda path: None)
+    raw = log_run(identified, rrd=tmp_path / "raw.rrd")
+    assert raw.read_bytes() != stable.read_bytes()
+    a, b = _rrd_content(stable), _rrd_content(raw)
+    assert sorted(x[:2] for x in a) == sorted(x[:2] for x in b)
+    assert ("recording", "/__properties") in [x[:2] for x in a]  # the recording's name
+    by_place = {}
+    for kind, entity, rb in b:
+        by_place.setdefault((kind, entity), []).append(rb)
+    for kind, entity, rb in a:
+        assert any(rb.equals(other) for other in by_place[(kind, entity)]), f"{kind} {entity}"
 
 
 @pytest.mark.parametrize(

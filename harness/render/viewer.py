@@ -47,6 +47,7 @@ from ..rundir import Manifest, to_plain
 from .analysis import RESID_LAGS, bode_curves, bode_grid, residual_tests, tip_from_filtered
 from .gap_text import diagnosis_markdown, gap_rows
 from .load import RunResults, load_results
+from .rrd import make_stable
 from .tables import crossfit_table
 
 __all__ = ["APPLICATION_ID", "log_run", "recording_id", "write_recording"]
@@ -504,13 +505,17 @@ def write_recording(
     tmp = Path(tmp_name)
     rec = None
     try:
-        # no start-time property (the recording's name is logged): the same run gives the same data
-        rec = rr.RecordingStream(APPLICATION_ID, recording_id=rec_id, send_properties=False)
+        # no start-time property (the recording's name is logged), chunks cut at the end, not by the clock: the
+        # same run gives the same data, and make_stable the same bytes
+        rec = rr.RecordingStream(
+            APPLICATION_ID, recording_id=rec_id, send_properties=False, batcher_config=rr.ChunkBatcherConfig.NEVER()
+        )
         rec.set_sinks(rr.FileSink(str(tmp)), default_blueprint=stable_ids(blueprint) if blueprint else None)
         log(rec)
         rec.flush()
         rec.disconnect()  # closes the file sink and writes the RRD footer
         rec = None
+        make_stable(tmp)  # the same bytes for the same logging (harness.render.rrd)
         os.chmod(tmp, 0o644)  # mkstemp made it 0600
         os.replace(tmp, rrd)
     except BaseException:
