@@ -167,12 +167,9 @@ def make_stable(path: Path) -> None:
             raw = sink.getvalue().to_pybytes()
             compressed = dict((n, v) for n, _, v in fields).get(2) == LZ4
             chunk = chunk_rank[(batches[i][0].schema.metadata or {}).get(CHUNK_ID, b"")]
-            fields = [
-                (n, w, len(raw) if n == 3 else
-                 (pa.compress(raw, codec="lz4_raw", asbytes=True) if compressed else raw) if n == 5 else
-                 _tuid_message(2, chunk) if n == 6 else v)
-                for n, w, v in fields
-            ]  # fmt: skip
+            payload = pa.compress(raw, codec="lz4_raw", asbytes=True) if compressed else raw
+            new = {3: len(raw), 5: payload, 6: _tuid_message(2, chunk)}
+            fields = [(n, w, new.get(n, v)) for n, w, v in fields]
         body = _encode(fields)
         out += struct.pack("<QQ", kind, len(body)) + body
     out += struct.pack("<QQ", END, 0)
