@@ -536,7 +536,7 @@ def check_new_run(out: Path, force: bool = False) -> None:
     if held and not force:
         raise FileExistsError(
             f"--out {out} already holds a run ({', '.join(held[:4])}{', ...' if len(held) > 4 else ''}): give a fresh "
-            "--out, or --force to replace it (every file of that run is removed)"
+            "--out, or --force (force=True) to replace it (every file of that run is removed)"
         )
 
 
