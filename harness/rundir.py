@@ -478,9 +478,9 @@ def _exists(run: Path, artefact: str) -> bool:
 
 
 def stale_artefacts(run: Path) -> dict[str, str]:
-    """The derived artefacts of ``run`` made from other inputs than it now holds, or from an input that is itself
-    stale, each with one line saying so and which command makes it again (an artefact whose inputs were not
-    recorded, by an older version, is not judged)."""
+    """The derived artefacts of ``run`` made from other inputs than it now holds (a diagnosis of another run: from
+    other data than these), or from an input that is itself stale, each with one line saying so and which command
+    makes it again (an artefact whose inputs were not recorded, by an older version, is not judged)."""
     run = Path(run)
     recorded = Manifest.load(run).artefacts or {}
     now: dict[str, str | None] = {}
@@ -490,20 +490,21 @@ def stale_artefacts(run: Path) -> dict[str, str]:
         if rec is None or not _exists(run, artefact):
             continue
         label, verb, command = _ARTEFACT[artefact]
-        if "run" in rec:
-            out[artefact] = (f"{label} {verb} from the data of another run ({rec['run']}), not from data/ here: "
-                             f"re-run flexjoint {command} on this directory")  # fmt: skip
-            continue
         for name in inputs:
             if name in out:  # made from an input that is itself stale
-                what, where = _INPUT[name]
-                out[artefact] = f"{label} {verb} from {where}, which is stale: re-run flexjoint {_ARTEFACT[name][2]}"
+                out[artefact] = (f"{label} {verb} from {_INPUT[name][1]}, which is stale: re-run flexjoint "
+                                 f"{_ARTEFACT[name][2]}")  # fmt: skip
                 break
             if name not in now:
                 now[name] = input_sha256(run, name) or "none"
             if rec.get(name) != now[name]:
                 what, where = _INPUT[name]
-                out[artefact] = f"{label} {verb} from other {what} than {where} now holds: re-run flexjoint {command}"
+                out[artefact] = (
+                    f"{label} {verb} from the data of another run ({rec['run']}), not from data/ here: re-run "
+                    f"flexjoint {command} on this directory"
+                    if "run" in rec
+                    else f"{label} {verb} from other {what} than {where} now holds: re-run flexjoint {command}"
+                )
                 break
     return out
 

@@ -148,10 +148,15 @@ def test_a_diagnosis_written_into_another_run_is_flagged_as_of_that_run(identifi
     other = _copy(identified, tmp_path / "other")
     (other / "diagnosis.json").write_text("{}")  # what diagnose --force writes there; its content is not read here
     record_inputs(other, "diagnosis.json", source=real)
-    assert stale_artefacts(other)["diagnosis.json"].startswith(
-        "diagnosis.json was made from the data of another run (../real)"
+    assert Manifest.load(other).artefacts["diagnosis.json"]["run"] == "../real"
+    assert "diagnosis.json" not in stale_artefacts(other)  # a copy: the same data, so a diagnosis of these data
+    _other_data(real)
+    record_inputs(other, "diagnosis.json", source=real)
+    assert stale_artefacts(other)["diagnosis.json"] == (
+        "diagnosis.json was made from the data of another run (../real), not from data/ here: re-run flexjoint "
+        "diagnose on this directory"
     )
-    record_inputs(other, "diagnosis.json")  # diagnosed from its own data: fresh
+    record_inputs(other, "diagnosis.json")  # diagnosed from its own data
     assert "diagnosis.json" not in stale_artefacts(other)
 
 
