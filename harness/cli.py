@@ -69,6 +69,7 @@ SchedulerOpt = Annotated[
 WorkersOpt = Annotated[
     int | None, typer.Option("--workers", min=1, help="local worker processes (default 2; 1: serial, in-process)")
 ]
+ForceOpt = Annotated[bool, typer.Option("--force", help="replace a run already in --out (every file of it removed)")]
 
 
 def _user_errors() -> tuple[type[BaseException], ...]:
@@ -230,15 +231,19 @@ def campaign(
     set_: SetOpt = None,
     scheduler: SchedulerOpt = None,
     workers: WorkersOpt = None,
+    force: ForceOpt = False,
 ) -> None:
     """Run a spec's experiments on the rig twin: writes manifest.json and data/<experiment>.parquet."""
     from . import spec as specmod
     from .rig.campaign import run_campaign
+    from .rundir import check_new_run
 
-    _out_dir(out_dir)
+    check_new_run(out_dir, force)
     s = specmod.load(spec, set_ or [])
     t0 = time.perf_counter()
-    manifest = run_campaign(s, out_dir, progress=_progress("simulated"), workers=workers, scheduler=scheduler)
+    manifest = run_campaign(
+        s, out_dir, progress=_progress("simulated"), workers=workers, scheduler=scheduler, force=force
+    )
     out.print(f"{len(manifest.experiments)} experiments -> {out_dir} ({time.perf_counter() - t0:.2f} s)")
 
 
@@ -284,6 +289,7 @@ def import_(
     zero_alpha: Annotated[
         bool, typer.Option(help="zero the deflection on each record's first 0.1 s at rest (the gauge's zero)")
     ] = False,
+    force: ForceOpt = False,
 ) -> None:
     """Bring real records into a run directory: data/<name>.parquet, calibration.json, manifest.json. A column
     mapped to ref (--columns theta_ref_deg=ref) makes a record closed loop, its controller given or identified.
@@ -305,7 +311,7 @@ def import_(
     def note(m: str) -> None:
         err.print(m if m.startswith("warning: ") else f"note: {m}", markup=False, soft_wrap=True)
 
-    written = import_records(files, out_dir, opts, note=note)
+    written = import_records(files, out_dir, opts, note=note, force=force)
     out.print(f"imported {len(written)} dataset(s) -> {out_dir}")
 
 
@@ -404,13 +410,16 @@ def diagnose(
     ] = "auto",
     scheduler: SchedulerOpt = None,
     workers: WorkersOpt = None,
+    force: Annotated[bool, typer.Option("--force", help="write into --out even when it is another run")] = False,
 ) -> None:
     """Where the sim-to-real gap lies, which unmodelled effect causes it, how far it shrinks: diagnosis.json."""
     from .diagnosis.diagnose import diagnose_run
 
     if out_dir is not None:
         _out_dir(out_dir)
-    d = diagnose_run(real, sim, out_dir, progress=_progress("diagnose"), replay=replay, **_parallel(workers, scheduler))
+    d = diagnose_run(
+        real, sim, out_dir, progress=_progress("diagnose"), replay=replay, force=force, **_parallel(workers, scheduler)
+    )
     out.print(diagnosis_summary(d))
 
 
@@ -583,21 +592,24 @@ def run(
     connect: Annotated[str | None, typer.Option("--connect", help="stream to a running viewer at URL")] = None,
     scheduler: SchedulerOpt = None,
     workers: WorkersOpt = None,
+    force: ForceOpt = False,
 ) -> None:
     """The whole pipeline: build, campaign, calibrate, identify, export, cross-fit, diagnose, report, Rerun."""
     from . import spec as specmod
     from .executor import session
     from .pipeline import run_pipeline
+    from .rundir import check_new_run
 
     if out_dir is None:
         out_dir = Path("runs") / time.strftime("%Y%m%d-%H%M%S")
-    _out_dir(out_dir)
+    check_new_run(out_dir, force)
     specmod.load(spec, set_ or [])  # a bad spec, or one too large for this machine, fails before any work
 
     with session(workers, scheduler):  # one cluster for every parallel step of the pipeline
         result = run_pipeline(
-            spec, out_dir, set_ or [], sim=sim, rrd=rrd, spawn=spawn, connect=connect, progress=_progress("run")
-        )
+            spec, out_dir, set_ or [], sim=sim, rrd=rrd, spawn=spawn, connect=connect, progress=_progress("run"),
+            force=force,
+        )  # fmt: skip
     out.print(result.summary)
     out.print("stages: " + ", ".join(f"{k} {v:.1f} s" for k, v in result.stages.items()))
 

@@ -21,20 +21,24 @@ from .render.load import load_results
 from .render.report import write_report
 from .render.viewer import log_run
 from .rig.campaign import run_campaign
-from .rundir import RunDir, load_run, recorded_spec, write_json
+from .rundir import DataError, Manifest, RunDir, load_run, new_run, recorded_spec, stale_artefacts, write_json
 
 Progress = Callable[[str], None]
 
 
 def identify_run(run: Path, identify: dict[str, Any] | None = None, progress: Progress | None = None):
-    """Grid, cross-validation and selection on a run's identification datasets; writes grid.csv and models/."""
+    """Grid, cross-validation and selection on a run's identification datasets; writes grid.csv and models/. A
+    calibration.json made from other data than the run holds is made again from its calibration experiments."""
 
     run = Path(run)
     spec = recorded_spec(run)
     ident = dict(specmod.IDENTIFY_DEFAULTS)
     ident.update(spec.identify if spec else {})
     ident.update(identify or {})
-    cal = load_calibration(run)
+    stale = stale_artefacts(run).get("calibration.json")
+    if stale and not Manifest.load(run).entries("calibration"):
+        raise DataError(stale.replace("re-run flexjoint identify", "import the records again"))
+    cal = calibrate_run(run) if stale else load_calibration(run)
     prepared = prepare(load_run(run), cal, float(ident["af"]), str(ident["output"]))
     res = run_grid(prepared, ident, progress=progress)
     write_grid(res, run, ident, cal)
@@ -64,10 +68,27 @@ def run_pipeline(
     spawn: bool = False,
     connect: str | None = None,
     progress: Progress | None = None,
+    force: bool = False,
 ) -> PipelineResult:
-    """``flexjoint run``: every step on one spec into run directory ``out``; returns its summary and the wall time
-    of each stage (written to ``run.timing.json`` too)."""
+    """``flexjoint run``: every step on one spec into run directory ``out``, written aside and moved into place when
+    complete (:func:`harness.rundir.new_run`; over an existing run only with ``force``); returns its summary and the
+    wall time of each stage (written to ``run.timing.json`` too)."""
+    with new_run(out, force) as work:
+        return _pipeline(spec_name, work, Path(out), overrides, sim, rrd, spawn, connect, progress)
 
+
+def _pipeline(
+    spec_name: str | Path,
+    out: Path,
+    shown: Path,
+    overrides: list[str] | None,
+    sim: str | Path,
+    rrd: Path | None,
+    spawn: bool,
+    connect: str | None,
+    progress: Progress | None,
+) -> PipelineResult:
+    """The pipeline into ``out`` (the aside of run directory ``shown``, the one the summary names)."""
     say = progress or (lambda _msg: None)
     stages: dict[str, float] = {}
     clock = [time.perf_counter()]
@@ -106,7 +127,7 @@ def run_pipeline(
     done("report", "report.md and run.rrd written")
     write_json(RunDir(out).run_timing, {"stages_s": stages, "total_s": sum(stages.values())})
     summary = (
-        f"{out}: selected ARMAX({sel.na},{sel.nb},{sel.nc},{sel.nk}); cross-fit average "
+        f"{shown}: selected ARMAX({sel.na},{sel.nb},{sel.nc},{sel.nk}); cross-fit average "
         f"{cf.loc['selected', 'average']:.2f} %; acceptance {'passed' if verdict.passed else 'FAILED'}; "
         f"diagnosis {found}; {sum(stages.values()):.0f} s"
     )

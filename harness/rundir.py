@@ -15,19 +15,29 @@ Layout::
     diagnosis.replays.parquet  its replays beside the record, per stage (harness.diagnosis.replays)
     report.md, figures/     the report;   run.rrd  the Rerun recording
     run.timing.json         flexjoint run's wall time per stage (timings apart: every other file is byte-stable)
+
+A new run (campaign, import, ``flexjoint run``) is written aside, in a hidden sibling directory, and moved into place
+when it is complete (:func:`new_run`); over an existing run only with ``force``, which removes every artefact of
+the old run first and lists them in the manifest's ``removed``. Each derived artefact records the sha256 of its
+inputs in the manifest's ``artefacts`` when it is written (:func:`record_inputs`), so that :func:`stale_artefacts`
+can tell which were made from other data than the directory now holds.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
+import hashlib
 import json
 import math
 import numbers
 import os
+import shutil
 import tempfile
 import types
 import typing
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
@@ -116,6 +126,12 @@ class RunDir:
     @property
     def recording(self) -> Path:
         return self.root / "run.rrd"
+
+    def derived(self) -> list[Path]:
+        """Every artefact made from the data (everything of the layout but manifest.json and data/)."""
+        return [self.calibration, self.models, self.grid, self.crossfit, self.doubled_rate, self.diagnosis,
+                self.diagnosis_replays, self.diagnosis_timing, self.run_timing, self.report, self.figures,
+                self.recording]  # fmt: skip
 
 
 class DataError(ValueError):
@@ -241,7 +257,9 @@ class Manifest:
     table as run, with its file name, sha256 and random ``seed``, the FMUs' files and sha256, the versions) or
     "import" (real records: their ``sources`` and whether the ``calibration`` was "given" or "assumed").
     ``sample_rate`` [Hz] is None for records at different rates; ``generator`` names a simulator other than the
-    twin (e.g. tests/indeprig.py, with its ``noise_seed``)."""
+    twin (e.g. tests/indeprig.py, with its ``noise_seed``). ``artefacts``: per derived artefact (calibration.json,
+    models, grid.csv, crossfit.csv, doubled_rate.json, diagnosis.json) the sha256 of each input it was made from
+    ("data" and the artefacts it read); ``removed``: what ``--force`` removed of the run this one replaced."""
 
     kind: str
     experiments: list[ExperimentEntry]
@@ -256,6 +274,8 @@ class Manifest:
     noise_seed: int | None = None
     sources: dict[str, dict[str, Any]] | None = None
     calibration: str | None = None
+    artefacts: dict[str, dict[str, str]] | None = None
+    removed: list[str] | None = None
 
     @classmethod
     def load(cls, run: Path) -> Manifest:
@@ -386,3 +406,176 @@ def load_run(run: Path, role: str | None = "identification") -> dict[str, pd.Dat
     if not out:
         raise DataError(f"{run}: no {role or ''} datasets in manifest.json")
     return out
+
+
+# ----------------------------------------------------------------------------------------------- provenance
+# each derived artefact: the inputs whose sha256 it records, how it is named, what it was done by, the command that
+# makes it again
+INPUTS: dict[str, tuple[str, ...]] = {
+    "calibration.json": ("data",),
+    "models": ("data", "calibration.json"),
+    "grid.csv": ("data", "calibration.json"),
+    "doubled_rate.json": ("data", "calibration.json", "models"),
+    "crossfit.csv": ("data", "models"),
+    "diagnosis.json": ("data", "calibration.json"),
+}
+_ARTEFACT = {
+    "calibration.json": ("calibration.json", "was made", "identify"),
+    "models": ("models/", "were identified", "identify"),
+    "grid.csv": ("grid.csv", "was computed", "identify"),
+    "doubled_rate.json": ("doubled_rate.json", "was computed", "identify"),
+    "crossfit.csv": ("crossfit.csv", "was computed", "crossfit"),
+    "diagnosis.json": ("diagnosis.json", "was made", "diagnose"),
+}
+_INPUT = {
+    "data": ("data", "data/"),
+    "calibration.json": ("calibration", "calibration.json"),
+    "models": ("models", "models/"),
+}
+
+
+def _file_sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def input_sha256(run: Path, name: str) -> str | None:
+    """sha256 of one input of the derived artefacts: "data" (the manifest's datasets, name and bytes, in manifest
+    order), "calibration.json" or "models" (models/*.json by name); None when the directory has none."""
+    paths = RunDir(run)
+    if name == "data":
+        if not paths.manifest.exists():
+            return None
+        h = hashlib.sha256()
+        for e in Manifest.load(run).experiments:
+            p = paths.dataset(e.name)
+            h.update(f"{e.name}\0{_file_sha256(p) if p.exists() else 'missing'}\n".encode())
+        return h.hexdigest()
+    if name == "models":
+        files = sorted(paths.models.glob("*.json")) if paths.models.is_dir() else []
+        if not files:
+            return None
+        h = hashlib.sha256()
+        for p in files:
+            h.update(f"{p.name}\0{_file_sha256(p)}\n".encode())
+        return h.hexdigest()
+    p = paths.root / name
+    return _file_sha256(p) if p.is_file() else None
+
+
+def record_inputs(run: Path, artefact: str, source: Path | None = None) -> None:
+    """Record in ``run``'s manifest the sha256 of the inputs ``artefact`` (a key of :data:`INPUTS`) was just made
+    from, read in ``source`` (default ``run``; a diagnosis written to another directory: the real run), with
+    ``source``'s path relative to ``run`` when it is another directory. Nothing when ``run`` is no run directory."""
+    run = Path(run)
+    if not RunDir(run).manifest.exists():
+        return
+    source = Path(source) if source is not None else run
+    entry = {k: input_sha256(source, k) or "none" for k in INPUTS[artefact]}
+    if source.resolve() != run.resolve():
+        entry["run"] = os.path.relpath(source, run)
+    m = Manifest.load(run)
+    m.artefacts = {**(m.artefacts or {}), artefact: entry}
+    m.write(run)
+
+
+def _exists(run: Path, artefact: str) -> bool:
+    p = RunDir(run).root / artefact
+    return p.is_dir() and any(p.glob("*.json")) if artefact == "models" else p.is_file()
+
+
+def stale_artefacts(run: Path) -> dict[str, str]:
+    """The derived artefacts of ``run`` made from other inputs than it now holds (a diagnosis of another run: from
+    other data than these), or from an input that is itself stale, each with one line saying so and which command
+    makes it again (an artefact whose inputs were not recorded, by an older version, is not judged)."""
+    run = Path(run)
+    recorded = Manifest.load(run).artefacts or {}
+    now: dict[str, str | None] = {}
+    out = {}
+    for artefact, inputs in INPUTS.items():
+        rec = recorded.get(artefact)
+        if rec is None or not _exists(run, artefact):
+            continue
+        label, verb, command = _ARTEFACT[artefact]
+        for name in inputs:
+            if name in out:  # made from an input that is itself stale
+                out[artefact] = (f"{label} {verb} from {_INPUT[name][1]}, which is stale: re-run flexjoint "
+                                 f"{_ARTEFACT[name][2]}")  # fmt: skip
+                break
+            if name not in now:
+                now[name] = input_sha256(run, name) or "none"
+            if rec.get(name) != now[name]:
+                what, where = _INPUT[name]
+                out[artefact] = (
+                    f"{label} {verb} from the data of another run ({rec['run']}), not from data/ here: re-run "
+                    f"flexjoint {command} on this directory"
+                    if "run" in rec
+                    else f"{label} {verb} from other {what} than {where} now holds: re-run flexjoint {command}"
+                )
+                break
+    return out
+
+
+def check_fresh(run: Path, artefacts: tuple[str, ...]) -> None:
+    """One :class:`DataError` line when one of ``artefacts`` was made from other inputs than ``run`` now holds."""
+    stale = stale_artefacts(run)
+    for a in artefacts:
+        if a in stale:
+            raise DataError(stale[a])
+
+
+# ----------------------------------------------------------------------------------------------- a new run
+def _held(out: Path) -> list[str]:
+    """The parts of the run layout an existing directory ``out`` holds (folders with a trailing /)."""
+    paths = RunDir(out)
+    parts = [paths.manifest, paths.data, *paths.derived()]
+    return [p.name + ("/" if p.is_dir() else "") for p in parts if p.exists()]
+
+
+def check_new_run(out: Path, force: bool = False) -> None:
+    """Refuse, before any work, to write a new run into ``out`` when it is a file or already holds a run (unless
+    ``force``): one line naming a fresh ``--out`` and ``--force``."""
+    out = Path(out)
+    for p in (out, *out.parents):
+        if p.exists() and not p.is_dir():
+            where = "" if p == out else f" ({p} is a file)"
+            raise NotADirectoryError(f"--out {out}: not a directory{where}; give a new or existing directory")
+    held = _held(out) if out.is_dir() else []
+    if held and not force:
+        raise FileExistsError(
+            f"--out {out} already holds a run ({', '.join(held[:4])}{', ...' if len(held) > 4 else ''}): give a fresh "
+            "--out, or --force (force=True) to replace it (every file of that run is removed)"
+        )
+
+
+@contextmanager
+def new_run(out: Path, force: bool = False) -> Iterator[Path]:
+    """Write a new run aside and move it into ``out`` when complete. Yields the directory to write into (a hidden
+    sibling of ``out``, the run under its own name); on success an existing run in ``out`` (only with ``force``,
+    :func:`check_new_run`) is removed first, layout entries only, and what was removed is listed in the new
+    manifest's ``removed``. On any error or Ctrl-C the aside is removed and ``out`` stays as it was."""
+    check_new_run(Path(out), force)
+    out = Path(out).resolve()  # ".", "..": the aside goes beside the directory itself
+    out.parent.mkdir(parents=True, exist_ok=True)
+    aside = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.", suffix=".new"))
+    work = aside / out.name
+    try:
+        work.mkdir()
+        yield work
+        held = _held(out) if out.is_dir() else []
+        if held:
+            m = Manifest.load(work)
+            m.removed = sorted(h for h in held if h != "manifest.json")
+            m.write(work)
+            paths = RunDir(out)
+            for p in (paths.manifest, paths.data, *paths.derived()):
+                if p.is_dir():
+                    shutil.rmtree(p)
+                else:
+                    p.unlink(missing_ok=True)
+        if out.is_dir():
+            for p in sorted(work.iterdir(), key=lambda q: (q.name == "manifest.json", q.name)):  # manifest last
+                os.replace(p, out / p.name)
+        else:
+            os.replace(work, out)
+    finally:
+        shutil.rmtree(aside, ignore_errors=True)

@@ -29,7 +29,7 @@ from typing import Any
 
 import tomllib
 
-from .fmu.modeldesc import source_model
+from .fmu.modeldesc import Variable, source_model
 from .fmu.sources import bundled_dir
 from .machine import default_workers, machine_memory
 from .rig.controller import Controller
@@ -61,14 +61,29 @@ class SpecError(ValueError):
     """A spec that cannot be run; the message is one line meant for the user."""
 
 
-def fmu_parameters(model: str) -> dict[str, tuple[str, Any]]:
-    """Parameters of an FMU source model as ``{name: (type, start)}`` (:func:`harness.fmu.modeldesc.source_model`:
-    the modelDescription.xml of ``$FLEXJOINT_FMU_SRC`` or the bundled sources)."""
+def _model_parameters(model: str) -> dict[str, Variable]:
+    """The parameters of an FMU source model (:func:`harness.fmu.modeldesc.source_model`: the modelDescription.xml
+    of ``$FLEXJOINT_FMU_SRC`` or the bundled sources)."""
     try:
-        params = source_model(model).parameters()
+        return source_model(model).parameters()
     except FileNotFoundError as e:
         raise SpecError(str(e)) from None
-    return {name: (v.type, v.start) for name, v in params.items()}
+
+
+def fmu_parameters(model: str) -> dict[str, tuple[str, Any]]:
+    """Parameters of an FMU source model as ``{name: (type, start)}``."""
+    return {name: (v.type, v.start) for name, v in _model_parameters(model).items()}
+
+
+def _check_range(where: str, v: Variable, value: float) -> None:
+    """One :class:`SpecError` line for a value outside the range the modelDescription.xml declares (inclusive)."""
+    lo = -math.inf if v.min is None else v.min
+    hi = math.inf if v.max is None else v.max
+    if not lo <= value <= hi:
+        unit = f" {v.unit}" if v.unit and v.unit != "1" else ""
+        bounds = f"[{lo:g}, {hi:g}]" if v.min is not None and v.max is not None else (
+            f">= {lo:g}" if v.max is None else f"<= {hi:g}")  # fmt: skip
+        raise SpecError(f"{where} = {value:g} is outside its physical range {bounds}{unit} ({v.description})")
 
 
 @dataclass(frozen=True)
@@ -122,6 +137,13 @@ class Spec:
         raise SpecError(f"no experiment named {name!r}; have {', '.join(e.name for e in self.all_experiments())}")
 
 
+def check_percent(where: str, value: Any) -> float:
+    """A fit threshold [%]: a number in 0..100, else one :class:`SpecError` line."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= 100:
+        raise SpecError(f"{where} = {value!r}: a fit threshold is a percentage in 0..100")
+    return float(value)
+
+
 def _check_keys(where: str, given: dict[str, Any], valid: set[str] | dict[str, Any]) -> None:
     unknown = sorted(set(given) - set(valid))
     if unknown:
@@ -129,11 +151,13 @@ def _check_keys(where: str, given: dict[str, Any], valid: set[str] | dict[str, A
 
 
 def _check_params(where: str, model: str, values: dict[str, Any]) -> dict[str, Any]:
-    valid = fmu_parameters(model)
+    """FMU parameter values checked against ``model``'s modelDescription.xml: known names, their types, their
+    declared ranges."""
+    valid = _model_parameters(model)
     _check_keys(where, values, valid)
     out = {}
     for k, v in values.items():
-        kind = valid[k][0]
+        kind = valid[k].type
         if kind == "Integer":
             if isinstance(v, bool) or not (isinstance(v, int) or (isinstance(v, float) and v.is_integer())):
                 raise SpecError(f"{where}.{k} must be an integer, got {v!r}")
@@ -146,6 +170,8 @@ def _check_params(where: str, model: str, values: dict[str, Any]) -> dict[str, A
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
                 raise SpecError(f"{where}.{k} must be a finite number, got {v!r}")
             out[k] = float(v)
+        if kind != "Boolean":
+            _check_range(f"{where}.{k}", valid[k], out[k])
     return out
 
 
@@ -198,9 +224,14 @@ def _controller(d: Any) -> Controller:
         raise SpecError(f"[controller].K must be a list of 4 numbers, got {d['K']!r}")
     kw = {k: [float(x) for x in v] if k == "K" else v for k, v in d.items()}
     try:
-        return Controller(**kw)
+        c = Controller(**kw)
     except (TypeError, ValueError) as err:
         raise SpecError(f"[controller]: {err}") from None
+    declared = _model_parameters("controller")
+    for k, v in c.fmu_parameters(float(c.sample_rate or 1.0)).items():
+        if k in declared:
+            _check_range(f"[controller] {k}", declared[k], v)
+    return c
 
 
 def parse_value(text: str) -> Any:
@@ -263,6 +294,10 @@ def from_dict(raw: dict[str, Any], path: str = "") -> Spec:
     accept = dict(ACCEPT_DEFAULTS)
     _check_keys("[accept]", raw.get("accept", {}), ACCEPT_DEFAULTS)
     accept.update(raw.get("accept", {}))
+    for k, v in accept.items():
+        check_percent(f"[accept].{k}", v)
+    for k in ("fit_threshold",):
+        check_percent(f"[identify].{k}", identify[k])
     spec = Spec(
         name=str(camp.get("name", Path(path).stem or "campaign")),
         sample_rate=float(rate),

@@ -636,6 +636,9 @@ def run_sweep(
     ident = dict(base.identify)
     if fixed is not None:
         ident.update(na=fixed[0], nb=fixed[1], nc=fixed[2])
+    if RunDir(out).manifest.exists():
+        raise FileExistsError(f"--out {out} holds a run: the sweep's report.md and figures/ would replace its own; "
+                              "give another --out")  # fmt: skip
     draws = draw(varies, n, seed, sampler)
     seeds = [rig_seed(seed, i) for i in range(n)]
     rig_spec(base, draws.iloc[0].to_dict(), seeds[0])  # a bad parameter value fails here, before any task

@@ -52,7 +52,7 @@ from .. import spec as specmod
 from ..executor import fmu_bytes
 from ..fmu.build import build_all
 from ..ident.calibration import load_calibration
-from ..rundir import RunDir, write_json
+from ..rundir import RunDir, record_inputs, write_json
 from . import recalibrate as recal
 from .effects import CandidateContext, candidates
 from .experiments import REPLAYS, RigExperiment, fold_experiments, load_experiments, masked_share
@@ -121,6 +121,7 @@ def diagnose_run(
     scheduler: str | None = None,
     fmus: dict[str, Path] | None = None,
     replay: str = "auto",
+    force: bool = False,
 ) -> Diagnosis:
     """Diagnose the gap between run directory ``real`` and the simulation spec ``sim`` (a path, a name in
     specs/ or a loaded Spec); the candidates are fitted as tasks of a :class:`harness.executor.Executor`
@@ -128,16 +129,24 @@ def diagnose_run(
     the built plant, DAQ and controller FMUs (default: built or taken from the cache); ``replay``: how each experiment
     is re-simulated (:func:`harness.diagnosis.experiments.load_experiments`); a lone record is cut in time into two
     halves, one per fold (:func:`harness.diagnosis.experiments.fold_experiments`; too short for that: a one-line
-    DataError, nothing written). Writes ``out/diagnosis.json`` (default out = real) and its replays beside the
-    record, per stage (as given, recalibrated, with the effects: ``diagnosis.replays.parquet``,
-    :mod:`harness.diagnosis.replays`), and returns it as a :class:`harness.diagnosis.result.Diagnosis`; the wall-clock
-    seconds go to ``diagnosis.timing.json``, so that diagnosis.json is byte-stable."""
+    DataError, nothing written). Writes ``out/diagnosis.json`` (default out = real; another run directory only with
+    ``force``: its report would read the diagnosis as one of its own data) and its replays beside the record, per
+    stage (as given, recalibrated, with the effects: ``diagnosis.replays.parquet``, :mod:`harness.diagnosis.replays`),
+    and returns it as a :class:`harness.diagnosis.result.Diagnosis`; the sha256 of the real run's data and calibration
+    go to out's manifest, the wall-clock seconds to ``diagnosis.timing.json``, so that diagnosis.json is
+    byte-stable."""
 
     t0 = time.perf_counter()
     say = progress or (lambda _m: None)
     real = Path(real)
     if not RunDir(real).manifest.exists():
         raise ValueError(f"{real}: not a run directory (no manifest.json)")
+    dest = Path(out) if out is not None else real
+    if RunDir(dest).manifest.exists() and dest.resolve() != real.resolve() and not force:
+        raise FileExistsError(
+            f"--out {dest} is another run (its own data/): a diagnosis of {real} there would be read as one of "
+            "that run; give a new --out directory, or --force"
+        )
     sim_spec = sim if isinstance(sim, specmod.Spec) else specmod.load(sim)
     cal = load_calibration(real)
     plant, daq = sim_rig(sim_spec)
@@ -181,7 +190,6 @@ def diagnose_run(
         noise = replace(
             noise, gap=math.sqrt(found.noise), fit_pct=fit_pct(found.noise), method=f"{noise.method}; {loop}"
         )
-    dest = Path(out) if out is not None else real
     diagnosis = Diagnosis(
         real=os.path.relpath(real, dest),  # relative to diagnosis.json, so a moved run dir stays the same bytes
         sim_spec=sim_spec.name if isinstance(sim, specmod.Spec) else str(sim),
@@ -203,6 +211,7 @@ def diagnose_run(
     ).rounded()
     diagnosis.write(RunDir(dest).diagnosis)
     write_replays(RunDir(dest).diagnosis_replays, experiments, dict(zip(stages, traces, strict=True)))
+    record_inputs(dest, "diagnosis.json", source=real)
     timing = time.perf_counter() - t0
     write_json(RunDir(dest).diagnosis_timing, {"timing_s": timing, "workers": workers, "scheduler": scheduler})
     say(f"verdict {diagnosis.verdict}")

@@ -17,8 +17,8 @@ from typing import Any
 
 import pandas as pd
 
-from ..rundir import DataError, Manifest
-from ..spec import ACCEPT_DEFAULTS
+from ..rundir import DataError, Manifest, check_fresh
+from ..spec import ACCEPT_DEFAULTS, check_percent
 
 
 @dataclass
@@ -37,8 +37,9 @@ def thresholds_of(run: Path, override: dict[str, Any] | None = None) -> dict[str
     """``[accept]`` thresholds of the run's spec (defaults where absent), with ``override`` on top."""
     th = dict(ACCEPT_DEFAULTS)
     th.update((Manifest.load(run).spec or {}).get("accept", {}))
-    th.update(override or {})
-    return {k: float(v) for k, v in th.items()}
+    for k, v in (override or {}).items():
+        th[k] = check_percent(f"--{k.replace('_', '-')}", v)
+    return {k: check_percent(f"[accept].{k}", v) for k, v in th.items()}
 
 
 def selected_fits(run: Path) -> tuple[dict[str, float], str]:
@@ -77,4 +78,5 @@ def accept(run: Path, override: dict[str, Any] | None = None) -> Verdict:
     """Gate the selected model of a run (:func:`judge` on its fits and its spec's thresholds)."""
     thresholds = thresholds_of(run, override)  # first: a malformed manifest is said before a missing model
     fits, source = selected_fits(run)
+    check_fresh(run, ("models", "crossfit.csv") if source.startswith("crossfit.csv") else ("models",))
     return judge(fits, thresholds, source)

@@ -20,7 +20,7 @@ import numpy as np
 import pandas as pd
 from scipy.optimize import minimize_scalar
 
-from ..rundir import ExperimentEntry, Manifest, RunDir, read_dataset, write_json
+from ..rundir import ExperimentEntry, Manifest, RunDir, read_dataset, record_inputs, write_json
 from .preprocess import as_signal, time_axis
 
 __all__ = [
@@ -649,6 +649,7 @@ def calibrate_run(run: Path) -> Calibration:
     data = {n: read_dataset(RunDir(run).dataset(n)) for n in (*pot, *comb, *ramps)}
     cal = calibrate(exps, data)
     cal.to_json(RunDir(run).calibration)
+    record_inputs(run, "calibration.json")
     return cal
 
 

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from ..rundir import atomic_write_text, load_run
+from ..rundir import atomic_write_text, check_fresh, load_run, record_inputs
 from . import armax
 from .calibration import load_calibration
 from .export import ModelFMU, export_model, model_records
@@ -119,8 +119,10 @@ def format_csv(matrix: pd.DataFrame) -> str:
 def crossfit_run(run: Path, progress: Callable[[str], None] | None = None) -> pd.DataFrame:
     """Export (when missing or stale) and run every ``models/<name>.fmu`` of a run on every identification
     dataset; write ``crossfit.csv`` atomically and return the matrix (index ``model``; dataset columns, then
-    ``average``). ``attrs["max_abs_diff"]`` holds the largest |FMU - Python| fit difference [fit points]."""
+    ``average``). ``attrs["max_abs_diff"]`` holds the largest |FMU - Python| fit difference [fit points]. Models
+    identified from other data than the run holds are refused (one :class:`harness.rundir.DataError` line)."""
     run = Path(run)
+    check_fresh(run, ("models",))
     datasets = load_run(run, role="identification")
     records = model_records(run)
     cal = load_calibration(run)
@@ -142,6 +144,7 @@ def crossfit_run(run: Path, progress: Callable[[str], None] | None = None) -> pd
             models[name] = (model, None)
     res = score_models(models, prepared, progress)
     atomic_write_text(run / "crossfit.csv", format_csv(res.fmu))
+    record_inputs(run, "crossfit.csv")
     out = res.fmu.copy()
     out["average"] = out.mean(axis=1, skipna=False)
     out.attrs["max_abs_diff"] = res.max_abs_diff

@@ -12,7 +12,7 @@ import pandas as pd
 from .. import spec as specmod
 from ..fmu.build import build_all
 from ..rig.campaign import simulate_spec
-from ..rundir import RunDir, recorded_spec, write_json
+from ..rundir import RunDir, record_inputs, recorded_spec, write_json
 from . import armax
 from .calibration import Calibration
 from .identify import prepare
@@ -52,4 +52,5 @@ def doubled_rate_check(
     out["fit_reidentified_100hz"] = armax.compare(refit, p.u_d, p.y_f, ic=ic)
     out["gain_ratio_as_is"] = float(np.sum(selected.B) / np.sum(selected.A)) / float(np.sum(refit.B) / np.sum(refit.A))
     write_json(RunDir(run).doubled_rate, out)
+    record_inputs(run, "doubled_rate.json")
     return out

@@ -21,7 +21,7 @@ import numpy as np
 import pandas as pd
 
 from ..executor import Executor
-from ..rundir import atomic_write_text, write_json
+from ..rundir import atomic_write_text, record_inputs, write_json
 from . import armax
 from .calibration import Calibration, alpha_deg, theta_deg, tip_deg
 from .preprocess import preprocess
@@ -249,6 +249,8 @@ def write_grid(res: GridResult, run: Path, spec_identify: dict[str, Any], cal: C
     for name, i in [*res.best.items(), ("selected", res.selected)]:
         paths[name] = run / "models" / f"{name}.json"
         write_json(paths[name], model_record(res, i, name, spec_identify, cal))
+    record_inputs(run, "grid.csv")
+    record_inputs(run, "models")
     return paths
 
 

@@ -21,7 +21,7 @@ from ..diagnosis.result import Diagnosis
 from ..ident import armax
 from ..ident.calibration import Calibration
 from ..ident.identify import PreparedExperiment, prepare
-from ..rundir import DataError, Manifest, RunDir, load_run
+from ..rundir import DataError, Manifest, RunDir, load_run, stale_artefacts
 from ..spec import IDENTIFY_DEFAULTS
 
 __all__ = ["GRID_COLUMNS", "RunResults", "load_results"]
@@ -40,6 +40,8 @@ class RunResults:
     ``records``: every experiment's dataset (all roles, manifest order); ``replays``: the diagnosis's replays beside
     the record per experiment (:mod:`harness.diagnosis.replays`). A directory that ``flexjoint diagnose --out``
     wrote holds a diagnosis only: its manifest is then a stand-in of kind "diagnosis" with no experiments.
+    ``stale``: the artefacts left out because they were made from other inputs than the directory holds
+    (:func:`harness.rundir.stale_artefacts`: artefact -> the line that says so).
     """
 
     run: Path
@@ -59,6 +61,7 @@ class RunResults:
     replays: dict[str, Replay] = field(default_factory=dict)
     af: float = float(IDENTIFY_DEFAULTS["af"])
     ic: str = str(IDENTIFY_DEFAULTS["ic"])
+    stale: dict[str, str] = field(default_factory=dict)
 
     @property
     def paths(self) -> RunDir:
@@ -126,11 +129,11 @@ def load_results(run: Path) -> RunResults:
         manifest = Manifest(kind="diagnosis", experiments=[], sample_rate=None)
     else:
         manifest = Manifest.load(run)
-    res = RunResults(run=run, manifest=manifest)
+    res = RunResults(run=run, manifest=manifest, stale=stale_artefacts(run) if paths.manifest.exists() else {})
     if manifest.experiments:
         res.records = load_run(run, role=None)
     names = [e.name for e in res.manifest.entries("identification")]
-    for name in [*names, "selected"]:
+    for name in [*names, "selected"] if "models" not in res.stale else []:
         p = paths.model(name)
         rec = _read_json(p)
         if rec is not None:
@@ -143,29 +146,31 @@ def load_results(run: Path) -> RunResults:
     pre = (sel_rec or {}).get("preprocessing", {})
     res.af = float(pre.get("af", res.af))
     res.ic = str(pre.get("ic", res.ic))
-    res.calibration, res.calibration_file = _calibration(paths, sel_rec)
+    if "calibration.json" not in res.stale or sel_rec is not None:
+        res.calibration, res.calibration_file = _calibration(paths, sel_rec)
     if names and res.calibration is not None:
         output = str(pre.get("output", "y"))
         res.prepared = prepare({n: res.records[n] for n in names}, res.calibration, res.af, output)
     if sel is not None and sel[0].stable:
         for name, p in res.prepared.items():
             res.simulated[name] = armax.simulate(sel[0], p.u_d, p.y_f, res.ic)
-    if paths.grid.exists():
+    if paths.grid.exists() and "grid.csv" not in res.stale:
         res.grid = pd.read_csv(paths.grid)
         missing = [c for c in GRID_COLUMNS if c not in res.grid.columns]
         if missing:
             raise ValueError(f"{paths.grid}: missing column(s) {', '.join(missing)}")
     _load_crossfit(res)
-    res.diagnosis = Diagnosis.load(paths.diagnosis) if paths.diagnosis.exists() else None
+    fresh = paths.diagnosis.exists() and "diagnosis.json" not in res.stale
+    res.diagnosis = Diagnosis.load(paths.diagnosis) if fresh else None
     if res.diagnosis is not None and paths.diagnosis_replays.exists():
         res.replays = read_replays(paths.diagnosis_replays)
-    res.doubled_rate = _read_json(paths.doubled_rate)
+    res.doubled_rate = _read_json(paths.doubled_rate) if "doubled_rate.json" not in res.stale else None
     return res
 
 
 def _load_crossfit(res: RunResults) -> None:
     path = res.paths.crossfit
-    if path.exists():
+    if path.exists() and "crossfit.csv" not in res.stale:
         df = pd.read_csv(path)
         if "model" not in df.columns:
             raise ValueError(f"{path}: first column must be 'model', got {list(df.columns)[:1]}")

@@ -129,6 +129,11 @@ def _section_header(res: RunResults) -> list[str]:
         d = res.diagnosis
         rows += [["real run", f"`{d.real}` (relative to this directory)"], ["simulation", f"`{d.sim_spec}`"]]
     lines += [*table(["item", "value"], [r for r in rows if r[1]]), ""]
+    if res.stale:
+        lines += ["Left out of this report, made from other inputs than the directory holds:", ""]
+        lines += [f"- {why}" for why in res.stale.values()] + [""]
+    if m.removed:
+        lines += [f"Replaced an earlier run here (`--force`), removing: {', '.join(f'`{r}`' for r in m.removed)}.", ""]
     sources = m.sources
     if m.kind == "import" and sources:
         units = {e.name: e.units or {} for e in m.experiments}
@@ -180,7 +185,7 @@ def _section_calibration(res: RunResults) -> list[str]:
     lines = ["## Calibration", ""]
     cal = res.calibration
     if cal is None:
-        return [*lines, "No `calibration.json` in this run.", ""]
+        return [*lines, res.stale.get("calibration.json", "No `calibration.json` in this run."), ""]
     rows = []
     for key, label, unit in (("Kp", "Kp", "deg/V"), ("Ke", "Ke", "deg/V"), ("dead_zone_v", "dead zone", "V")):
         v = float(getattr(cal, key))

@@ -60,6 +60,7 @@ from .analysis import (
 from .gap_text import diagnosis_markdown, gap_rows
 from .load import RunResults, load_results
 from .report import holds, title
+from .rrd import make_stable
 from .tables import crossfit_table
 
 __all__ = ["APPLICATION_ID", "bar_bounds", "log_bars", "log_run", "recording_id", "write_recording"]
@@ -581,7 +582,22 @@ def _check_url(url: str) -> None:
 def _log_with_blueprint(rec: rr.RecordingStream, res: RunResults) -> None:
     """Log everything, then the blueprint that lays it out (its 2D views are framed on what was logged)."""
     bounds = _log_all(rec, res)
-    rec.send_blueprint(_blueprint(res, bounds), make_active=True, make_default=True)
+    rec.send_blueprint(stable_ids(_blueprint(res, bounds)), make_active=True, make_default=True)
+
+
+def stable_ids(blueprint: rrb.Blueprint) -> rrb.Blueprint:
+    """``blueprint`` with every container and view id derived from its place in the layout (Rerun draws them at
+    random, and they are entity paths of the blueprint store: the same layout then gives the same recording)."""
+
+    def visit(part: Any, place: str) -> None:
+        if isinstance(part, (rrb.Container, rrb.View)):
+            part.id = uuid.uuid5(uuid.NAMESPACE_URL, f"flexjoint-blueprint:{place}")
+        for i, child in enumerate(getattr(part, "contents", None) or ()):
+            if isinstance(child, (rrb.Container, rrb.View)):
+                visit(child, f"{place}/{i}")
+
+    visit(blueprint.root_container, "root")
+    return blueprint
 
 
 def write_recording(
@@ -597,12 +613,17 @@ def write_recording(
     tmp = Path(tmp_name)
     rec = None
     try:
-        rec = rr.RecordingStream(APPLICATION_ID, recording_id=rec_id)
-        rec.set_sinks(rr.FileSink(str(tmp)), default_blueprint=blueprint)
+        # no start-time property (the recording's name is logged), chunks cut at the end, not by the clock: the
+        # same run gives the same data, and make_stable the same bytes
+        rec = rr.RecordingStream(
+            APPLICATION_ID, recording_id=rec_id, send_properties=False, batcher_config=rr.ChunkBatcherConfig.NEVER()
+        )
+        rec.set_sinks(rr.FileSink(str(tmp)), default_blueprint=stable_ids(blueprint) if blueprint else None)
         log(rec)
         rec.flush()
         rec.disconnect()  # closes the file sink and writes the RRD footer
         rec = None
+        make_stable(tmp)  # the same bytes for the same logging (harness.render.rrd)
         os.chmod(tmp, 0o644)  # mkstemp made it 0600
         os.replace(tmp, rrd)
     except BaseException:

@@ -25,7 +25,7 @@ from .._version import __version__
 from ..executor import Executor, FmuBytes, fmu_bytes, worker_rig
 from ..fmu.build import build_all
 from ..fmu.plant import PlantParams, mass_stiffness
-from ..rundir import ExperimentEntry, Manifest, RunDir, write_dataset
+from ..rundir import ExperimentEntry, Manifest, RunDir, new_run, write_dataset
 from ..spec import Experiment, Spec
 from .controller import delayed
 from .signals import generate
@@ -155,14 +155,26 @@ def run_campaign(
     workers: int | None = None,
     progress: Progress | None = None,
     scheduler: str | None = None,
+    force: bool = False,
 ) -> Manifest:
     """Run a spec's campaign into run directory ``out`` (simulated by :func:`simulate_spec`, written here, by
-    the client only); returns the manifest."""
+    the client only, aside and moved into place: :func:`harness.rundir.new_run`; over an existing run only with
+    ``force``); returns the manifest."""
+    with new_run(out, force) as work:
+        return _campaign(spec, work, fmus, workers, progress, scheduler)
 
+
+def _campaign(
+    spec: Spec,
+    out: Path,
+    fmus: dict[str, Path] | None,
+    workers: int | None,
+    progress: Progress | None,
+    scheduler: str | None,
+) -> Manifest:
     closed = any(e.loop == "closed" for e in spec.all_experiments())
     fmus = {k: v for k, v in (fmus or build_all()).items() if k != "controller" or closed}  # the FMUs it runs
     shipped = {k: fmu_bytes(v) for k, v in fmus.items()}  # read and hashed once: the tasks' bytes, the manifest's sha
-    out = Path(out)
     data = simulate_spec(spec, shipped, workers=workers, progress=progress, scheduler=scheduler)
     for name, cols in data.items():
         write_dataset(RunDir(out).dataset(name), cols)

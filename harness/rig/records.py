@@ -70,7 +70,17 @@ import scipy.io
 from ..diagnosis.experiments import MIN_FOLD_SAMPLES, MIN_FOLD_SECONDS
 from ..diagnosis.noise import decimal_resolution, value_step
 from ..ident.calibration import LAB1_CALIBRATION, Calibration, alpha_deg, theta_deg
-from ..rundir import DataError, ExperimentEntry, Manifest, RunDir, validate, write_dataset
+from ..rundir import (
+    DataError,
+    ExperimentEntry,
+    Manifest,
+    RunDir,
+    check_new_run,
+    new_run,
+    record_inputs,
+    validate,
+    write_dataset,
+)
 from .controller import KINDS, R2_MIN, Controller, command_r2, identify_controller
 
 __all__ = [
@@ -949,12 +959,17 @@ def _calibration(opts: ImportOptions) -> Calibration:
 
 
 def import_records(
-    paths: list[Path | str], out: Path, opts: ImportOptions | None = None, note: Note | None = None
+    paths: list[Path | str],
+    out: Path,
+    opts: ImportOptions | None = None,
+    note: Note | None = None,
+    force: bool = False,
 ) -> list[Path]:
     """Import records into run directory ``out``: ``data/<name>.parquet``, ``calibration.json`` and a
     ``manifest.json`` of kind "import". A record is a file, or ``[NAME=]FILE+FILE+...`` (:func:`record_files`);
     its ``sources`` entry names its files and their sha256 joined by "+". Every file is read and checked before
-    anything is written; returns the dataset paths. ``note`` receives one-line remarks (units taken, resampling,
+    anything is written, aside and moved into place (:func:`harness.rundir.new_run`; over an existing run only with
+    ``force``); returns the dataset paths. ``note`` receives one-line remarks (units taken, resampling,
     the calibration assumed)."""
     opts = opts or ImportOptions()
     say = note or (lambda _m: None)
@@ -967,20 +982,22 @@ def import_records(
         raise DataError(f"two records named {dup[0]!r}: dataset names come from the file names, rename one "
                         "(or name a record of several files: NAME=FILE+FILE)")  # fmt: skip
     out = Path(out)
-    for q in (out, *out.parents):
-        if q.exists() and not q.is_dir():
-            raise DataError(f"--out {out}: {q} is a file, not a directory")
+    check_new_run(out, force)
     _check_options(opts)
     cal = _calibration(opts)
     done = {name: (files, *normalise(read_record(files), opts, cal, say)) for name, files in records}
     if opts.calibration is None:
         say(f"calibration: none given; assumed lab 1's Kp {cal.Kp:g} deg/V, Ke {cal.Ke:g} deg/V, gauge offset 0 V "
             f"(give --kp/--ke or --calibration FILE)")  # fmt: skip
-    written = []
+    with new_run(out, force) as work:
+        _write_import(work, done, cal, opts, say)
+    return [RunDir(out).dataset(name) for name in done]
+
+
+def _write_import(out: Path, done: dict, cal: Calibration, opts: ImportOptions, say: Note) -> None:
+    """Write the normalised records ``done`` (name -> (files, columns, info)) as run directory ``out``."""
     for name, (_, cols, _) in done.items():
-        dest = RunDir(out).dataset(name)
-        write_dataset(dest, cols)
-        written.append(dest)
+        write_dataset(RunDir(out).dataset(name), cols)
     cal.to_json(RunDir(out).calibration)
     rates = sorted({info["entry"]["sample_rate"] for _, _, info in done.values()})
     if len(rates) > 1:
@@ -1000,7 +1017,7 @@ def import_records(
         calibration="assumed" if opts.calibration is None else "given",
         experiments=[ExperimentEntry(name=name, **info["entry"]) for name, (_, _, info) in done.items()],
     ).write(out)
-    return written
+    record_inputs(out, "calibration.json")
 
 
 def _check_options(opts: ImportOptions) -> None:
