@@ -3,9 +3,11 @@ and diagnosed against their own lab sheet (specs/cu_flexible_arm.toml)."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from harness.diagnosis.diagnose import diagnose_run
@@ -62,3 +64,56 @@ def test_cu_records_diagnosed_against_their_lab_sheet(cu_run):
     # which part of the sheet is wrong, said first: its drive (motor, gear, amplifier, hub), not its link
     assert bound <= {"plant.Beq", "plant.Jeq", "plant.kt"} and d.caveats[0].startswith("the spec's hub and drive")
     assert all(f"verdict {d.verdict!r} reached with {d.parameters[k].finding}" in d.caveats for k in bound)
+
+
+QUANSER = [REAL / "rfl_lqr_sqwave_pm30deg_500Hz.csv", REAL / "rfl_lqr_sqwave_pm30deg_500Hz_aux.csv"]
+QUANSER_COLUMNS = {"u": "u", "theta_deg": "theta", "alpha_deg": "alpha", "theta_ref_deg": "ref"}
+QUANSER_IMPORT = ImportOptions(  # the fixture README's import command: t is in both files, named by its file's
+    columns={f"{QUANSER[0].stem}:t": "t", **QUANSER_COLUMNS},
+    units={"theta": "deg", "alpha": "deg", "ref": "deg"},
+    theta_sensor="encoder",
+    counts_per_rev=4096,
+)
+
+
+def _quanser_halves(tmp: Path) -> list[Path]:
+    """The Quanser record cut at 2.5 s into two files, each with its reference (as a lab saves two runs)."""
+    rec = pd.read_csv(QUANSER[0], dtype=str).merge(pd.read_csv(QUANSER[1], dtype=str), on="t")
+    n = len(rec) // 2
+    out = [tmp / "first.csv", tmp / "second.csv"]
+    for path, part in zip(out, (rec.iloc[:n], rec.iloc[n:]), strict=True):
+        part.to_csv(path, index=False)
+    return out
+
+
+def test_quanser_record_diagnosed_against_the_datasheet(tmp_path):
+    """The README's Quanser figures, on the record itself: closed-loop replay through the identified LQR (R^2
+    0.980), held-out fit 85.0 % as given -> 90.0 % recalibrated (measured 90.04 %), Ks 16 % above the datasheet's
+    1.3 (1.506), no linear parameter at a bound; the encoder's and the gauge's lattices (0.0879, 0.00848 deg) found
+    from the values and in the noise floor."""
+    run = tmp_path / "quanser"
+    import_records([f"quanser={QUANSER[0]}+{QUANSER[1]}"], run, QUANSER_IMPORT)
+    (e,) = Manifest.load(run).experiments
+    assert e.controller["r2"] == pytest.approx(0.980, abs=0.005) and e.loop == "closed"
+    assert e.lattice_deg["theta"] == 360.0 / 4096
+    assert e.lattice_deg["alpha"] == pytest.approx(0.008478, rel=1e-3)
+    d = diagnose_run(run, "nominal", tmp_path / "diag", workers=1)
+    dec = d.gap.decomposition
+    assert 100 * (1 - dec.before) == pytest.approx(85.0, abs=0.1)
+    assert 100 * (1 - dec.after_recalibration) >= 89.9
+    assert 1.04 <= d.parameters["plant.Ks"].fitted <= 1.56
+    assert not [k for k, p in d.parameters.items() if p.at_bound]
+    assert 99.0 < d.noise_floor.fit_pct < 99.2
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="issue 23: the record cut in two files fits 87.3 % held out, Jeq -20 % where the whole record says +17 %",
+)
+def test_quanser_record_in_two_files_is_the_same_rig(tmp_path):
+    run = tmp_path / "halves"
+    halves = replace(QUANSER_IMPORT, columns={"t": "t", **QUANSER_COLUMNS})
+    import_records(_quanser_halves(tmp_path), run, halves)
+    d = diagnose_run(run, "nominal", tmp_path / "diag", workers=1)
+    assert 100 * (1 - d.gap.decomposition.after_recalibration) >= 90.0
+    assert d.parameters["plant.Jeq"].fitted == pytest.approx(0.00243, rel=0.05)  # the whole record's

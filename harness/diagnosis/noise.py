@@ -44,28 +44,38 @@ def decimal_resolution(v: np.ndarray, max_decimals: int = 9) -> float:
     return 0.0
 
 
-def value_step(v: np.ndarray, max_levels: float = 1e6) -> float:
+def value_step(v: np.ndarray, max_levels: float = 1e6, on_lattice: float = 0.95) -> float:
     """The common step of the values' differences: the lattice a record sits on (encoder counts, printed decimals, or
     either converted to another unit: 0.001 rad written in degrees), in the values' unit; 0 when they sit on none
     (continuous values, or a lattice of more than ``max_levels`` steps over their range).
 
-    The smallest difference between distinct values is the step's first guess; the step is then fitted by least
-    squares to every value's multiple of it and kept when each value lies within its printed rounding of the lattice.
+    The most common difference between neighbouring distinct values is the step's first guess; the step is then
+    fitted by least squares to the values' multiples of it from one of the most frequent values (the lattice may
+    have an offset), and kept when a share ``on_lattice`` of the samples lies within the printed rounding of that lattice (a
+    capture's first samples can be exact zeros off it).
     """
     v = np.asarray(v, dtype=float)
     v = v[np.isfinite(v)]
-    levels = np.unique(v)
+    levels, counts = np.unique(v, return_counts=True)
     if levels.size < 3:
         return 0.0
     span = float(levels[-1] - levels[0])
-    guess = float(np.min(np.diff(levels)))
+    diffs = np.diff(levels)
+    res = decimal_resolution(levels)
+    quantum = res or span / max_levels
+    values, seen = np.unique(np.round(diffs / quantum), return_counts=True)
+    guess = float(values[np.argmax(seen)]) * quantum
     if guess <= span / max_levels:
         return 0.0
-    k = np.round((levels - levels[0]) / guess)
-    step = float(np.dot(k, levels - levels[0]) / np.dot(k, k))
-    tol = 0.5 * decimal_resolution(levels) + 1e-9 * max(abs(levels[0]), abs(levels[-1]), step)
-    off = np.abs(levels - levels[0] - k * step)
-    return step if float(off.max()) <= tol + 1e-6 * step else 0.0
+    best, share = 0.0, 0.0
+    for ref in levels[np.argsort(-counts, kind="stable")[:5]]:  # the lattice through one of the most frequent values
+        k = np.round((levels - ref) / guess)
+        step = float(np.dot(k, levels - ref) / np.dot(k, k))
+        tol = res + 1e-9 * max(abs(levels[0]), abs(levels[-1]), step) + 1e-6 * step  # both ends printed rounded
+        on = float(np.sum(counts[np.abs(levels - ref - k * step) <= tol])) / v.size
+        if on > share:
+            best, share = step, on
+    return best if share >= on_lattice else 0.0
 
 
 def adc_lattice(experiments: dict[str, RigExperiment], adc_range: float, max_bits: int = 24) -> int:

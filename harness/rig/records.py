@@ -819,7 +819,8 @@ def normalise(table: RawTable, opts: ImportOptions, cal: Calibration, note: Note
     if sensor:  # an encoder's count is theta's step (its angle printed finer or not)
         step = 360.0 / sensor["counts_per_rev"]
         lattice = entry.setdefault("lattice_deg", {})
-        lattice["theta"] = max(step, lattice.get("theta", 0.0))
+        found = lattice.get("theta", 0.0)
+        lattice["theta"] = found if found > step * (1 + 1e-6) else step  # the count, unless printed coarser
         off = _off_lattice(cols["theta"], step)
         printed = _step_deg(chans["theta"], opts) if chans["theta"].unit in ("deg", "rad") else 0.0
         if off > 0.01 + 0.5 * printed / step:  # an angle printed to few decimals is that far off by its rounding
@@ -843,7 +844,7 @@ def _step_deg(c: Channel, opts: ImportOptions) -> float:
     if c.unit == "V":
         return 0.0
     res, step = decimal_resolution(c.values), value_step(c.values)
-    if res and abs(step - res) <= 1e-6 * res:
+    if res and (not step or abs(step - res) <= 1e-6 * res):
         step = res  # the printed decimal itself, exactly
     if not step:
         return 0.0
