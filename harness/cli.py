@@ -507,6 +507,11 @@ def diagnosis_summary(d: Diagnosis) -> str:
     fits = {"before": dec.before, "after recalibration": dec.after_recalibration,
             "after effects": dec.after_effects, "noise floor": dec.noise_floor}  # fmt: skip
     lines.append("held-out fit: " + ", ".join(f"{k} {100 * (1 - g):.2f} %" for k, g in fits.items()))
+    if dec.channels:
+        lines.append("held-out fit per channel: " + ", ".join(
+            f"{k.replace('_', ' ')} " + " ".join(f"{c} {v:.1f} %" for c, v in by.items())
+            for k, by in dec.channels.items()
+        ) + f"; the gap is in {dec.gap_channel()}")  # fmt: skip
     lines.append(
         f"gap: fit {d.gap.before.fit_pct:.2f} % -> {d.gap.after.fit_pct:.2f} %, total shrink {d.gap.shrink_pct:.1f} %"
     )

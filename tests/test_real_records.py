@@ -104,6 +104,13 @@ def test_quanser_record_diagnosed_against_the_datasheet(tmp_path):
     assert 1.04 <= d.parameters["plant.Ks"].fitted <= 1.56
     assert not [k for k, p in d.parameters.items() if p.at_bound]
     assert 99.0 < d.noise_floor.fit_pct < 99.2
+    # per channel: theta fits as given, alpha holds the gap (measured 93.5 / 79.8 % -> 95.7 / 86.6 %)
+    by = dec.channels
+    assert by["before"]["theta"] > 93.0 and by["before"]["alpha"] < 81.0 and dec.gap_channel() == "alpha"
+    for stage, gap in (("before", dec.before), ("after_recalibration", dec.after_recalibration)):
+        # both channels move in both halves: the pooled mean squared gap is the channels' mean
+        pooled = np.mean([(1 - by[stage][c] / 100) ** 2 for c in ("theta", "alpha")])
+        assert pooled == pytest.approx(gap**2, rel=1e-6)
 
 
 @pytest.mark.xfail(

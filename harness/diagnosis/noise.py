@@ -51,8 +51,8 @@ def value_step(v: np.ndarray, max_levels: float = 1e6, on_lattice: float = 0.95)
 
     The most common difference between neighbouring distinct values is the step's first guess; the step is then
     fitted by least squares to the values' multiples of it from one of the most frequent values (the lattice may
-    have an offset), and kept when a share ``on_lattice`` of the samples lies within the printed rounding of that lattice (a
-    capture's first samples can be exact zeros off it).
+    have an offset), and kept when a share ``on_lattice`` of the samples lies within the printed rounding of that
+    lattice (a capture's first samples can be exact zeros off it).
     """
     v = np.asarray(v, dtype=float)
     v = v[np.isfinite(v)]

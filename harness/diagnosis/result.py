@@ -204,7 +204,9 @@ class Step:
 @dataclass
 class Decomposition:
     """The held-out gap stage by stage: ``before`` (the simulation as given), ``after_recalibration``,
-    ``after_effects``, the ``noise_floor`` gap and the ``resolution``, the ``steps`` and their definition."""
+    ``after_effects``, the ``noise_floor`` gap and the ``resolution``, the ``steps`` and their definition;
+    ``channels``: the held-out fit [%] per channel (theta, alpha) as given ("before") and recalibrated
+    ("after_recalibration")."""
 
     before: float
     after_recalibration: float
@@ -213,6 +215,12 @@ class Decomposition:
     resolution: float
     steps: list[Step]
     definition: str
+    channels: dict[str, dict[str, float]] | None = None
+
+    def gap_channel(self, stage: str = "after_recalibration") -> str | None:
+        """The channel that holds the gap at ``stage``: the one that fits worse, None when neither is known."""
+        fits = {c: v for c, v in (self.channels or {}).get(stage, {}).items() if math.isfinite(v)}
+        return min(fits, key=lambda c: fits[c]) if fits else None
 
     def waterfall(self) -> list[tuple[str, float, float]]:
         """(stage, held-out gap after it, closed [%]) from ("simulation as given", before, NaN) on."""

@@ -42,7 +42,7 @@ from .effects import BY_PARAM, EFFECTS, SECONDARY, SELECTED_BY_SPREAD, Effect, e
 from .experiments import CHANNELS, RigExperiment
 from .noise import noise_mean_squared_gap
 from .result import Candidate, Decomposition, FittedParameter, FoundEffect, Gap, HeldOutGap, Step
-from .simulation import SSE, fit_pct, gap_summary, mean_squared_gap
+from .simulation import SSE, channel_fits, fit_pct, gap_summary, mean_squared_gap
 from .tasks import Pool
 
 __all__ = [
@@ -630,6 +630,10 @@ def search(
                 for i, (stage, m, applied) in enumerate(steps)
             ],
             definition=DECOMPOSITION_DEFINITION,
+            channels={
+                "before": channel_fits(sse0, experiments, names),
+                "after_recalibration": channel_fits({**rec[0]["sse"], **rec[1]["sse"]}, experiments, names),
+            },
         ),
         definition=GAP_DEFINITION,
     )

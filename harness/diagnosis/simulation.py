@@ -45,6 +45,7 @@ from .result import ExperimentGap, GapSummary
 __all__ = [
     "SSE",
     "Setup",
+    "channel_fits",
     "fit_pct",
     "fmu_value",
     "gap_summary",
@@ -213,6 +214,16 @@ def mean_squared_gap(sse: SSE, experiments: dict[str, RigExperiment], names: lis
     ssts = {n: experiments[n].window(window)[1] for n in names}
     qs = [sse[n][c] / ssts[n][c] for n in names for c in CHANNELS if ssts[n][c] > 0]
     return float(np.mean(qs)) if qs else math.nan
+
+
+def channel_fits(sse: SSE, experiments: dict[str, RigExperiment], names: list[str]) -> dict[str, float]:
+    """Fit % per channel: 100 (1 - sqrt(E_c)), E_c the mean over ``names`` of the channel's sse / sst (experiments
+    where it does not move skipped; NaN where it moves in none)."""
+    out = {}
+    for c in CHANNELS:
+        qs = [sse[n][c] / experiments[n].sst[c] for n in names if experiments[n].sst[c] > 0]
+        out[c] = fit_pct(float(np.mean(qs))) if qs else math.nan
+    return out
 
 
 def fit_pct(e: float) -> float:

@@ -231,12 +231,26 @@ def _overall_lines(diag: Diagnosis) -> list[str]:
         ],
         ["all experiments, final parameters", fmt(b.gap, 4), fmt(a.gap, 4), fmt(b.fit_pct), fmt(a.fit_pct)],
     ]
-    return [
+    lines = [
         *table(["gap", "before", "after", "fit before [%]", "fit after [%]"], rows),
         "",
         f"Held-out shrink {fmt(gap.shrink_pct, 1)} % (in sample {fmt(gap.shrink_pct_in_sample, 1)} %).",
         "",
     ]
+    dec = gap.decomposition
+    if dec.channels:
+        stages = {"before": "as given", "after_recalibration": "recalibrated"}
+        body = [
+            [stages.get(k, k), *(fmt(by.get(c, math.nan)) for c in ("theta", "alpha"))]
+            for k, by in dec.channels.items()
+        ]
+        lines += [
+            *table(["held-out fit [%]", "theta", "alpha"], body),
+            "",
+            f"After recalibration the gap is in {dec.gap_channel()}: the channel that fits worse.",
+            "",
+        ]
+    return lines
 
 
 def _channels(fit_pct: dict[str, float]) -> str:
