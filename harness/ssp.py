@@ -31,9 +31,10 @@ from .rig.campaign import experiment_inputs, reference_rad
 from .rundir import atomic_write_bytes
 from .spec import Experiment, Spec, SpecError
 
-__all__ = ["SUBSTEPS", "ssd_text", "ssp_bytes", "ssp_experiment", "write_ssp"]
+__all__ = ["PARAMETER_SET", "SUBSTEPS", "ssd_text", "ssp_bytes", "ssp_experiment", "write_ssp"]
 
 SUBSTEPS = 4  # master steps per sample: at least 3 carry a sample, the command and u_plant within one period
+PARAMETER_SET = "rig"  # every element's parameter set has this name: a master applies one set to all of them
 FMUS = {"plant": "flexjoint", "daq": "daq", "controller": "controller", "signal": "signal"}
 NS = {
     "ssd": "http://ssp-standard.org/SSP1/SystemStructureDescription",
@@ -112,7 +113,7 @@ def _value(kind: str, v: Any) -> str:
 
 
 def _parameter_set(element: str, values: dict[str, Any], md: modeldesc.ModelDescription) -> list[str]:
-    lines = [f'<ssv:ParameterSet version="1.0" name="{element}">', "<ssv:Parameters>"]
+    lines = [f'<ssv:ParameterSet version="1.0" name="{PARAMETER_SET}">', "<ssv:Parameters>"]
     for name, v in values.items():
         var = md.variables.get(name)
         if var is None or var.causality != "parameter":
