@@ -233,3 +233,20 @@ def test_reset_starts_a_fresh_run(fmu_runner):
             h.fmu.exitInitializationMode()
     np.testing.assert_array_equal(runs[0], runs[1])
     np.testing.assert_array_equal(runs[0][:, 0], [0.0, 1.0, 2.0, 3.0])  # after step k: u_(k-1)
+
+
+def test_readings_hold_between_sample_instants_whatever_is_set(fmu_runner):
+    """The preview of a sample (the feedthrough theta -> theta_v) happens at its instant only: a master that sets
+    the plant's angle mid-sample and then reads theta_v (Ecos transfers connection by connection) reads the held
+    sample, not one taken from the wrong instant."""
+    with fmu_runner["daq"].instance({"sample_rate": 50.0}) as h:
+        h.set(theta=0.1)
+        h.step(0.0, 0.005)
+        (held,) = h.get("theta_v")
+        assert held == pytest.approx(pot_volts(np.degrees(0.1)), abs=1e-12)
+        h.set(theta=0.5)  # at 0.005 s; the next sample is at 0.02 s
+        assert h.get("theta_v") == [held]
+        for k in (1, 2, 3):
+            h.step(k * 0.005, 0.005)
+        h.set(theta=0.5)  # at 0.02 s: the preview of sample 1
+        assert h.get("theta_v")[0] == pytest.approx(pot_volts(np.degrees(0.5)), abs=1e-12)

@@ -18,7 +18,7 @@ from harness import spec as specmod
 from harness.fmu.build import build_all, build_fmu
 from harness.fmu.cosim import Rig
 from harness.rig.campaign import simulate_experiment
-from harness.ssp import NS, PARAMETER_SET, ssp_bytes
+from harness.ssp import NS, PARAMETER_SET, SUBSTEPS, ssp_bytes
 
 SCHEMAS = Path(__file__).parent / "fixtures" / "ssp1"
 
@@ -115,6 +115,27 @@ def test_a_rig_without_command_delay_is_one_sample_late_in_a_master_that_steps_a
     got = _libcosim_theta(ssp, tmp_path, len(later), s.Ts)
     np.testing.assert_allclose(got, later[1:], rtol=0, atol=1e-9)
     assert np.abs(got - _campaign(s, "square_mid")["theta"][1:]).max() > 0.1
+
+
+def test_ecos_runs_the_ssp_to_the_campaigns_theta(tmp_path):
+    """Ecos (ecospy), a third master, stepping every FMU at once and passing values connection by connection."""
+    try:
+        from ecospy import EcosSimulation
+    except (ImportError, OSError) as e:  # pragma: no cover - without the test extras or libtbb.so.12
+        pytest.skip(f"ecospy cannot load here: {e}")
+    s = specmod.load("closed_loop", [])
+    want = _campaign(s, "square_30")["theta"]
+    path = tmp_path / "rig.ssp"
+    path.write_bytes(ssp_bytes(s, "square_30"))
+    sim = EcosSimulation(step_size=s.Ts / SUBSTEPS, ssp_path=str(path))
+    sim.init(parameter_set=PARAMETER_SET)
+    got = []
+    for _ in range(len(want) - 1):
+        sim.step(SUBSTEPS)
+        got.append(sim.get_real("plant::theta"))
+    sim.terminate()
+    sim.free()
+    np.testing.assert_allclose(np.degrees(got), want[1:], rtol=0, atol=1e-9)
 
 
 def test_fmutool_check_is_clean_on_every_fmu():

@@ -6,8 +6,9 @@
  * (set inputs at t_k -> daq.doStep(t_k) -> read outputs) the outputs are the samples taken at t_k.
  * fmi2ExitInitializationMode previews the first sample from the inputs set before it (without pushing
  * it into the delay line; the doStep at the start time takes it for real, with the same noise).  Likewise,
- * reading theta_v or alpha_v after theta or alpha_gauge were set and before the next doStep previews the
- * readings of the next sample (same noise, nothing committed): direct feedthrough at the sample instants.
+ * reading theta_v or alpha_v at a sample instant after theta or alpha_gauge were set and before the next doStep
+ * previews the readings of that sample (same noise, nothing committed): direct feedthrough at the sample instants;
+ * between them the readings hold, whatever is set.
  *
  * The command of sample k is the last u set before the sample ends (before t_(k+1)): at a communication step of
  * 1 / sample_rate the u set at t_k, at a finer step the controller's command written within the sample.  u_plant
@@ -263,8 +264,9 @@ fmi2Status getFloat64(ModelInstance *comp, fmi2ValueReference vr, double *value)
         *value = *p;
         return fmi2OK;
     }
-    if ((vr == vr_theta_v || vr == vr_alpha_v) && d->inputs_changed && comp->state == StateStepComplete)
-        sampleSensors(d, d->next_sample); /* preview of the next sample's readings */
+    if ((vr == vr_theta_v || vr == vr_alpha_v) && d->inputs_changed && comp->state == StateStepComplete &&
+        fabs(comp->time * d->sample_rate - (double)d->next_sample) < 1e-6)
+        sampleSensors(d, d->next_sample); /* at its instant: preview of the next sample's readings */
     switch (vr) {
         INPUTS(GET_CASE)
         OUTPUTS(GET_CASE)
