@@ -107,19 +107,8 @@ fmi2Status doStep(ModelInstance *comp, double t, double h) {
     const double fs = d->sample_rate;
     const double lag = d->compute_time * fs;      /* the computing instant after t_k, in samples */
     const double kEnd = (t + h) * fs - lag - 1e-6; /* computing instants strictly before t + h */
-    const double ratio = h * fs;
     int64_t k;
-    if (ratio > 1e7) {
-        logError(comp, "communication step %g s spans more than 1e7 samples", h);
-        return fmi2Error;
-    }
-    if (fabs(ratio - round(ratio)) > 1e-6 * ratio && fabs(1.0 / ratio - round(1.0 / ratio)) > 1e-6 / ratio) {
-        logError(comp,
-                 "communication step %g s does not fit sample_rate = %g Hz: step at 1/sample_rate = %g s or a whole "
-                 "fraction of it, so that every sample instant is a communication point",
-                 h, fs, 1.0 / fs);
-        return fmi2Error;
-    }
+    if (!stepFitsSampleRate(comp, h, fs)) return fmi2Error;
     if (!isfinite(d->ref) || !isfinite(d->theta_v) || !isfinite(d->alpha_v)) {
         logError(comp, "input ref, theta_v or alpha_v is not finite at t = %g s", t);
         return fmi2Error;

@@ -209,19 +209,8 @@ fmi2Status doStep(ModelInstance *comp, double t, double h) {
     ModelData *d = &comp->data;
     const double fs = d->sample_rate;
     const double kEnd = (t + h) * fs - 1e-6; /* sample instants strictly before t + h */
-    const double ratio = h * fs;
     int64_t k, kNext;
-    if (ratio > 1e7) {
-        logError(comp, "communication step %g s spans more than 1e7 samples", h);
-        return fmi2Error;
-    }
-    if (fabs(ratio - round(ratio)) > 1e-6 * ratio && fabs(1.0 / ratio - round(1.0 / ratio)) > 1e-6 / ratio) {
-        logError(comp,
-                 "communication step %g s does not fit sample_rate = %g Hz: step at 1/sample_rate = %g s or a whole "
-                 "fraction of it, so that every sample instant is a communication point",
-                 h, fs, 1.0 / fs);
-        return fmi2Error;
-    }
+    if (!stepFitsSampleRate(comp, h, fs)) return fmi2Error;
     if (!isfinite(d->u) || !isfinite(d->theta) || !isfinite(d->alpha_gauge)) {
         logError(comp, "input u, theta or alpha_gauge is not finite at t = %g s", t);
         return fmi2Error;
