@@ -7,11 +7,12 @@ each element's parameters from the spec and the experiment (the DAQ's noise seed
 an inline SSV parameter set.
 
 The master's step is a quarter of the sample period (``osp:FixedStepAlgorithm baseStepSize``) and the plant's a whole
-period (``osp:StepSizeHint``, so that its RK4 steps are the campaign's); the controller computes mid-sample
-(``compute_time``). A master that steps every FMU at once then reads the DAQ's samples of t_k one step after t_k and
-hands the command to the DAQ before the sample ends, which writes it ``delay_samples`` samples later: the loop of
-``flexjoint campaign``. A rig without a command delay (``daq.delay_samples = 0``) acts within the sample, which only
-a master that orders the FMUs by their feedthrough reproduces.
+period where a master reads ``osp:StepSizeHint`` (at a quarter its state stays on the grid of the campaign's RK4
+steps: the same numbers); the controller computes mid-sample (``compute_time``). A master that steps every FMU at
+once then reads the DAQ's samples of t_k one step after t_k and hands the command to the DAQ before the sample ends,
+which writes it ``delay_samples`` samples later: the loop of ``flexjoint campaign``. A rig without a command delay
+(``daq.delay_samples = 0``) acts within the sample, which only a master that orders the FMUs by their feedthrough
+reproduces.
 """
 
 from __future__ import annotations
