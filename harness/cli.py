@@ -247,6 +247,39 @@ def campaign(
     out.print(f"{len(manifest.experiments)} experiments -> {out_dir} ({time.perf_counter() - t0:.2f} s)")
 
 
+@app.command()
+def ssp(
+    spec: SpecArg,
+    out_file: Annotated[Path, typer.Option("--out", help="SSP archive to write (FILE.ssp)")],
+    experiment: Annotated[
+        str | None,
+        typer.Option(help="experiment to carry (default: the first closed-loop one of a spec with a controller)"),
+    ] = None,
+    loop: Annotated[str | None, typer.Option(help="open or closed: refuse an experiment of the other loop")] = None,
+    set_: SetOpt = None,
+) -> None:
+    """Write a spec's rig running one experiment as SSP 1.0 for other co-simulation masters: SystemStructure.ssd
+    (plant, daq, controller, signal, their connections and parameters) and the FMUs under resources/."""
+    from . import spec as specmod
+    from .ssp import SUBSTEPS, ssp_experiment, write_ssp
+
+    if out_file.is_dir():
+        raise IsADirectoryError(f"--out {out_file}: a directory; give the SSP file to write, e.g. rig.ssp")
+    s = specmod.load(spec, set_ or [])
+    exp = ssp_experiment(s, experiment, loop)
+    write_ssp(s, out_file, exp.name)
+    out.print(
+        f"{s.name} {exp.name} ({exp.loop} loop) -> {out_file}: master step {s.Ts / SUBSTEPS:g} s, plant {s.Ts:g} s",
+        soft_wrap=True,
+    )
+    if int({**s.daq, **exp.daq}.get("delay_samples", 0)) == 0 and exp.loop == "closed":
+        err.print(
+            "note: daq.delay_samples = 0: the controller acts within the sample, which only a master that orders the "
+            "FMUs by their feedthrough reproduces; one that steps them all at once adds a sample of delay",
+            soft_wrap=True,
+        )
+
+
 @app.command("import")
 def import_(
     files: Annotated[

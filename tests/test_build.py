@@ -20,8 +20,8 @@ from harness.fmu.build import BuildError, build_fmu, fmu_sha256, source_hash
 
 def test_fmus_validate_with_zero_problems(fmus):
     assert set(fmus) == {"flexjoint", "daq", "controller"}
-    for path in fmus.values():
-        assert validate_fmu(str(path)) == []
+    for path in (*fmus.values(), build_fmu("armax"), build_fmu("signal")):
+        assert validate_fmu(str(path)) == [], path.name
 
 
 def test_built_fmu_carries_the_source_xml_and_hash_in_name(fmus):
@@ -29,7 +29,7 @@ def test_built_fmu_carries_the_source_xml_and_hash_in_name(fmus):
         built, source = modeldesc.read(path), modeldesc.source_model(name)
         assert built.variables == source.variables and built.guid == source.guid
         assert built.variables["u"].value_reference == (40 if name == "controller" else 30)  # its output, their input
-        assert len(built.parameters()) == {"flexjoint": 25, "daq": 20, "controller": 15}[name]
+        assert len(built.parameters()) == {"flexjoint": 25, "daq": 20, "controller": 16}[name]
         assert path.name == f"{name}-{source_hash(name)[:12]}.fmu"
         assert fmu_sha256(path) == hashlib.sha256(path.read_bytes()).hexdigest()
 
@@ -173,7 +173,7 @@ def test_packaged_fmu_tree_lists_every_model_directory():
 def test_source_tree_is_the_bundled_one_unless_overridden(monkeypatch, tmp_path):
     monkeypatch.delenv("FLEXJOINT_FMU_SRC", raising=False)
     assert sources.fmu_source_dir() == sources.bundled_dir("fmus")
-    assert sources.available_models() == ["armax", "controller", "daq", "flexjoint"]
+    assert sources.available_models() == ["armax", "controller", "daq", "flexjoint", "signal"]
     monkeypatch.setenv("FLEXJOINT_FMU_SRC", str(tmp_path))
     assert sources.fmu_source_dir() == tmp_path and sources.available_models() == []
     with pytest.raises(ValueError, match=r"unknown FMU 'daq': expected one of \(none\)"):

@@ -235,8 +235,9 @@ def _stepped_one_by_one(fmus: dict, ref: np.ndarray | None, u: np.ndarray | None
             else:
                 cmd = u[k]
             dq.slave.setReal([vr["d", "u"], vr["d", "theta"], vr["d", "alpha_gauge"]], [cmd, th, ag])
+            (u_plant,) = dq.slave.getReal([vr["d", "u_plant"]])  # the command over [t_k, t_k+1)
             dq.slave.doStep(k * Ts, Ts)
-            u_plant, theta_v, alpha_v = dq.slave.getReal([vr["d", "u_plant"], vr["d", "theta_v"], vr["d", "alpha_v"]])
+            theta_v, alpha_v = dq.slave.getReal([vr["d", "theta_v"], vr["d", "alpha_v"]])
             pl.slave.setReal([vr["p", "u"], vr["p", "tau_tip"]], [u_plant, 0.0])
             pl.slave.doStep(k * Ts, Ts)
             rows.append((cmd, theta_v, alpha_v, th * (180.0 / np.pi)))

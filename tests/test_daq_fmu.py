@@ -84,17 +84,36 @@ def test_clamps(fmu_runner):
 
 
 def test_delay_in_samples(fmu_runner):
+    """u_plant after doStep(t, h) is the command over [t + h, ...): with delay_samples = d the command of d samples
+    before the sample holding t + h (zeros before the first), the command of a sample being the last u set within
+    it. So at h = Ts the command set at t_k reaches the plant over [t_k+d, t_k+d+1)."""
     rng = np.random.default_rng(3)
     u = rng.uniform(-5, 5, 50)
     res = fmu_runner["daq"].run({"delay_samples": 1}, {"u": u}, OUT, 0.02, len(u))
     assert res["init"]["u_plant"] == 0.0
+    np.testing.assert_array_equal(res["u_plant"], u)  # after the step at t_k: u_k, for [t_k+1, t_k+2)
+    res = fmu_runner["daq"].run({"delay_samples": 2}, {"u": u}, OUT, 0.02, len(u))
     assert res["u_plant"][0] == 0.0
     np.testing.assert_array_equal(res["u_plant"][1:], u[:-1])
-    # delay counts samples, not communication steps: 3 samples at comm step Ts/4 = 12 steps
-    uq = np.repeat(u, 4)
+    # delay counts samples, not communication steps; at Ts/4 a sample's command is the u set in its last quarter
+    uq = rng.uniform(-5, 5, 200)  # a new value at every communication step
     res = fmu_runner["daq"].run({"delay_samples": 3}, {"u": uq}, OUT, 0.005, len(uq))
-    np.testing.assert_array_equal(res["u_plant"][12:], uq[:-12])
-    assert np.all(res["u_plant"][:12] == 0.0)
+    k_end = np.arange(1, uq.size + 1) // 4  # the sample holding t + h after step j
+    want = np.where(k_end >= 3, uq[np.clip(4 * (k_end - 3) + 3, 0, None)], 0.0)
+    np.testing.assert_array_equal(res["u_plant"], want)
+    assert np.all(res["u_plant"][:11] == 0.0) and res["u_plant"][11] == uq[3]  # from t_3 = 12 steps on
+
+
+@pytest.mark.parametrize("model", ["daq", "controller"])
+def test_a_step_between_sample_instants_is_an_error(fmu_runner, model):
+    """Every sample instant must be a communication point: 0.015 s at 50 Hz is refused with the rates in the
+    message; whole fractions and multiples of the period run."""
+    inputs, out = ({"theta": 0.1}, ["theta_v"]) if model == "daq" else ({"ref": 0.1}, ["u"])
+    with pytest.raises(FMICallException):
+        fmu_runner[model].run({"sample_rate": 50.0}, inputs, out, 0.015, 3)
+    assert "communication step 0.015 s does not fit sample_rate = 50 Hz" in fmu_runner[model].messages[-1]
+    for h in (0.02, 0.005, 0.02 / 3, 0.04):
+        fmu_runner[model].run({"sample_rate": 50.0}, inputs, out, h, 3)
 
 
 def test_sample_and_hold_with_comm_step_quarter_period(fmu_runner):
@@ -107,7 +126,7 @@ def test_sample_and_hold_with_comm_step_quarter_period(fmu_runner):
     held = np.repeat(np.arange(0, n, 4), 4)  # index of the last sample instant k / 50 Hz at or before t
     np.testing.assert_allclose(res["theta_v"], pot_volts(deg[held]), atol=1e-12)
     np.testing.assert_allclose(res["alpha_v"], np.degrees(alpha[held]) / KE, atol=1e-12)
-    np.testing.assert_array_equal(res["u_plant"], u[held])
+    np.testing.assert_array_equal(res["u_plant"], u)  # without delay the DAC writes u as soon as it is set
     # ExitInitializationMode outputs the sample of the initial inputs
     assert res["init"]["theta_v"] == pytest.approx(pot_volts(deg[0]), abs=1e-12)
     assert res["init"]["alpha_v"] == pytest.approx(np.degrees(alpha[0]) / KE, abs=1e-12)
@@ -213,4 +232,21 @@ def test_reset_starts_a_fresh_run(fmu_runner):
             h.fmu.enterInitializationMode()
             h.fmu.exitInitializationMode()
     np.testing.assert_array_equal(runs[0], runs[1])
-    np.testing.assert_array_equal(runs[0][:, 0], [0.0, 0.0, 1.0, 2.0])
+    np.testing.assert_array_equal(runs[0][:, 0], [0.0, 1.0, 2.0, 3.0])  # after step k: u_(k-1)
+
+
+def test_readings_hold_between_sample_instants_whatever_is_set(fmu_runner):
+    """The preview of a sample (the feedthrough theta -> theta_v) happens at its instant only: a master that sets
+    the plant's angle mid-sample and then reads theta_v (Ecos transfers connection by connection) reads the held
+    sample, not one taken from the wrong instant."""
+    with fmu_runner["daq"].instance({"sample_rate": 50.0}) as h:
+        h.set(theta=0.1)
+        h.step(0.0, 0.005)
+        (held,) = h.get("theta_v")
+        assert held == pytest.approx(pot_volts(np.degrees(0.1)), abs=1e-12)
+        h.set(theta=0.5)  # at 0.005 s; the next sample is at 0.02 s
+        assert h.get("theta_v") == [held]
+        for k in (1, 2, 3):
+            h.step(k * 0.005, 0.005)
+        h.set(theta=0.5)  # at 0.02 s: the preview of sample 1
+        assert h.get("theta_v")[0] == pytest.approx(pot_volts(np.degrees(0.5)), abs=1e-12)

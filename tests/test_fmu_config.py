@@ -22,7 +22,7 @@ def config_lists(text: str) -> dict[str, list[tuple[str, ...]]]:
     return out
 
 
-@pytest.mark.parametrize("model", ["flexjoint", "daq", "controller"])
+@pytest.mark.parametrize("model", ["flexjoint", "daq", "controller", "signal"])
 def test_config_h_variable_lists_equal_the_xml(model):
     src = fmu_source_dir() / model
     md = modeldesc.read(src)

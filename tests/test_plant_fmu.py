@@ -501,3 +501,21 @@ def test_negative_tip_mass_is_refused(fmu_runner):
         PlantParams(m_tip=-1.0).validate()  # the range modelDescription.xml declares
     with pytest.raises(ValueError, match="invalid parameter theta_dot_start = 0.5: must be 0 with hub_locked = 1"):
         PlantParams(hub_locked=1, theta_dot_start=0.5).validate()
+
+
+@pytest.mark.parametrize("effects", [{}, {"coulomb_torque": 0.044, "backlash": 0.004}])
+def test_a_finer_communication_step_gives_the_same_numbers_on_the_grid(fmu_runner, effects):
+    """A master that steps every FMU at a quarter of the sample period: the plant keeps its state on the grid of
+    whole internal steps and previews the part past it, so at every sample theta and alpha are those of a step of a
+    whole sample, to the bit (linear fast path and with friction and backlash), while the command changes only at
+    the samples; in between the preview lies within RK4 of them."""
+    Ts, n, q = 0.002, 400, 4
+    params = {"n_modes": 2, "internal_step": 0.001, **effects}
+    u = np.repeat(np.random.default_rng(5).uniform(-3.0, 3.0, n // 20), 20)
+    whole = fmu_runner["flexjoint"].run(params, {"u": u}, ["theta", "alpha"], Ts, n)
+    fine = fmu_runner["flexjoint"].run(params, {"u": np.repeat(u, q)}, ["theta", "alpha"], Ts / q, n * q)
+    for name in ("theta", "alpha"):
+        np.testing.assert_array_equal(fine[name][q - 1 :: q], whole[name])
+        between = np.interp(np.arange(n * q) + 1.0, np.arange(1, n + 1) * q, whole[name])
+        assert np.abs(fine[name] - between).max() < 0.05 * np.ptp(whole[name])
+    assert np.ptp(whole["theta"]) > 0.2  # rad: the rig moves

@@ -145,6 +145,22 @@ static char *uriToPath(ModelInstance *comp, const char *uri) {
     return path;
 }
 
+bool stepFitsSampleRate(ModelInstance *comp, double h, double fs) {
+    const double ratio = h * fs;
+    if (ratio > 1e7) {
+        logError(comp, "communication step %g s spans more than 1e7 samples", h);
+        return false;
+    }
+    if (fabs(ratio - round(ratio)) > 1e-6 * ratio && fabs(1.0 / ratio - round(1.0 / ratio)) > 1e-6 / ratio) {
+        logError(comp,
+                 "communication step %g s does not fit sample_rate = %g Hz: step at 1/sample_rate = %g s or a whole "
+                 "fraction of it, so that every sample instant is a communication point",
+                 h, fs, 1.0 / fs);
+        return false;
+    }
+    return true;
+}
+
 bool resourceFile(const ModelInstance *comp, const char *name, char *buf, size_t len) {
     if (!comp->resourcePath || strlen(comp->resourcePath) + 1 + strlen(name) >= len) return false;
     snprintf(buf, len, "%s/%s", comp->resourcePath, name);

@@ -97,6 +97,10 @@ MODEL_API fmi2Status fixedAfterInit(ModelInstance *comp, const char *name);
 /* Path of file `name` in the FMU's resources folder into buf; false when the importer gave no file: URI. */
 MODEL_API bool resourceFile(const ModelInstance *comp, const char *name, char *buf, size_t len);
 
+/* A sampled model's check of a communication step h [s] at sample_rate fs [Hz]: h x fs a whole number (at most 1e7)
+   or the inverse of one, so that every sample instant is a communication point; else logs why and returns false. */
+MODEL_API bool stepFitsSampleRate(ModelInstance *comp, double h, double fs);
+
 MODEL_API void *allocateModelMemory(ModelInstance *comp, size_t nobj, size_t size);
 MODEL_API void freeModelMemory(ModelInstance *comp, void *p);
 

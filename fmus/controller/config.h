@@ -16,7 +16,7 @@
    variable table: they declare the ModelData fields and the value references, and drive the start values, the
    finiteness check and get/set in model.c.  tests/test_fmu_config.py checks them against modelDescription.xml. */
 #define REAL_PARAMETERS(X)        \
-    X(sample_rate, 0, 500.0)      \
+    X(sample_rate, 0, 50.0)       \
     X(k_theta, 2, 0.0)            \
     X(k_alpha, 3, 0.0)            \
     X(k_theta_dot, 4, 0.0)        \
@@ -29,7 +29,8 @@
     X(theta_gain, 11, 35.5145)    \
     X(theta_offset, 12, 0.0)      \
     X(alpha_gain, 13, -3.3636)    \
-    X(alpha_offset, 14, 0.0)
+    X(alpha_offset, 14, 0.0)      \
+    X(compute_time, 15, 0.0)
 #define INTEGER_PARAMETERS(X)     \
     X(kind, 1, 1)
 #define INPUTS(X)                 \

@@ -1,10 +1,14 @@
 /*
  * controller: a lab's digital controller, sampled at sample_rate [Hz], the loop's u = f(ref, measured angles).
  *
- * A sample is taken at every instant t_k = k / sample_rate with t_k in [t, t + h) of fmi2DoStep(t, h), from the
- * inputs set before that call; the outputs then hold it.  With the master's order (set ref and the DAQ's samples
- * at t_k -> controller.doStep(t_k) -> read u -> DAQ command) u_k acts over [t_k, t_k+1): direct feedthrough, as a
- * lab controller that computes and writes its command within the sample.
+ * Sample k is computed at t_k + compute_time (t_k = k / sample_rate), in the fmi2DoStep(t, h) whose [t, t + h)
+ * holds that instant, from the inputs set before that call; the outputs then hold it (no direct feedthrough: they
+ * change only in fmi2DoStep).  With compute_time = 0 and the master's order (set ref and the DAQ's samples at t_k ->
+ * controller.doStep(t_k) -> read u -> DAQ command) u_k acts over [t_k, t_k+1), as a lab controller that computes
+ * and writes its command within the sample.  A master that steps every FMU at once (Jacobi) at a quarter of the
+ * sample period with compute_time = half of it reads the DAQ's samples of t_k one step later and hands u_k to the
+ * DAQ before the sample ends: the same loop.  Every sample instant must be a communication point: a step h with
+ * h x sample_rate neither a whole number nor the inverse of one is an error.
  *
  * Angles from the DAQ's volts (the controller's own calibration, as the lab's script has it):
  *     theta = theta_gain (theta_v - theta_offset),  alpha = alpha_gain (alpha_v - alpha_offset)   [deg -> rad]
@@ -49,6 +53,8 @@ bool validate(ModelInstance *comp, char *msg, size_t len) {
     CHECK(d->u_limit >= 0, "invalid parameter u_limit = %g: must be >= 0 (0 = none)", d->u_limit);
     CHECK(d->theta_gain != 0, "invalid parameter theta_gain = %g: must be non-zero", d->theta_gain);
     CHECK(d->alpha_gain != 0, "invalid parameter alpha_gain = %g: must be non-zero", d->alpha_gain);
+    CHECK(d->compute_time >= 0 && d->compute_time * d->sample_rate < 1,
+          "invalid parameter compute_time = %g: must be in [0, 1/sample_rate)", d->compute_time);
     return true;
 }
 
@@ -99,17 +105,15 @@ void releaseModel(ModelInstance *comp) { (void)comp; }
 fmi2Status doStep(ModelInstance *comp, double t, double h) {
     ModelData *d = &comp->data;
     const double fs = d->sample_rate;
-    const double kEnd = (t + h) * fs - 1e-6; /* sample instants strictly before t + h */
+    const double lag = d->compute_time * fs;      /* the computing instant after t_k, in samples */
+    const double kEnd = (t + h) * fs - lag - 1e-6; /* computing instants strictly before t + h */
     int64_t k;
-    if (h * fs > 1e7) {
-        logError(comp, "communication step %g s spans more than 1e7 samples", h);
-        return fmi2Error;
-    }
+    if (!stepFitsSampleRate(comp, h, fs)) return fmi2Error;
     if (!isfinite(d->ref) || !isfinite(d->theta_v) || !isfinite(d->alpha_v)) {
         logError(comp, "input ref, theta_v or alpha_v is not finite at t = %g s", t);
         return fmi2Error;
     }
-    k = (int64_t)ceil(t * fs - 1e-6);
+    k = (int64_t)ceil(t * fs - lag - 1e-6);
     if (k < d->next_sample) k = d->next_sample;
     for (; (double)k < kEnd; k++) takeSample(d, 1);
     if (k > d->next_sample) d->next_sample = k;

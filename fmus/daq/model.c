@@ -6,9 +6,19 @@
  * (set inputs at t_k -> daq.doStep(t_k) -> read outputs) the outputs are the samples taken at t_k.
  * fmi2ExitInitializationMode previews the first sample from the inputs set before it (without pushing
  * it into the delay line; the doStep at the start time takes it for real, with the same noise).  Likewise,
- * reading theta_v or alpha_v after theta or alpha_gauge were set and before the next doStep previews the
- * readings of the next sample (same noise, nothing committed): the closed loop's master reads the samples at
- * t_k, lets the controller compute u_k, sets it and then steps the DAQ (direct feedthrough).
+ * reading theta_v or alpha_v at a sample instant after theta or alpha_gauge were set and before the next doStep
+ * previews the readings of that sample (same noise, nothing committed): direct feedthrough at the sample instants;
+ * between them the readings hold, whatever is set.
+ *
+ * The command of sample k is the last u set before the sample ends (before t_(k+1)): at a communication step of
+ * 1 / sample_rate the u set at t_k, at a finer step the controller's command written within the sample.  u_plant
+ * is the command over [t, next communication point): after fmi2DoStep(t, h) the command of the sample holding
+ * t + h.  With delay_samples = d >= 1 that is the command of d samples before, known since that sample ended: no
+ * direct feedthrough, the same in a master that steps every FMU at once (Jacobi) as in one that orders them.
+ * With d = 0 the DAC writes u as soon as it is set (u_plant follows u on fmi2SetReal: direct feedthrough), so only
+ * a master that sets u before it reads u_plant gives a loop without latency.
+ * Every sample instant must be a communication point: a step h with h x sample_rate neither a whole number nor
+ * the inverse of one is an error.
  *
  * Command path:  u -> DAC quantisation (dac_bits over +-dac_range, 0 = ideal) -> clamp +-out_limit
  *                -> delay by delay_samples samples (zeros before the first command) -> u_plant [V].
@@ -151,19 +161,17 @@ static void sampleSensors(ModelData *d, int64_t k) {
     d->inputs_changed = 0;
 }
 
-/* sample number k of the inputs; commit = push the command into the delay line */
-static void takeSample(ModelData *d, int64_t k, int commit) {
-    const double cmd = command(d, d->u);
+/* the end of sample k-1: its command (the last u set) enters the delay line */
+static void commitCommand(ModelData *d) {
     if (d->delay_samples > 0) {
-        d->u_plant = d->delay_line[d->delay_head];
-        if (commit) {
-            d->delay_line[d->delay_head] = cmd;
-            d->delay_head = (d->delay_head + 1) % d->delay_samples;
-        }
-    } else {
-        d->u_plant = cmd;
+        d->delay_line[d->delay_head] = command(d, d->u);
+        d->delay_head = (d->delay_head + 1) % d->delay_samples;
     }
-    sampleSensors(d, k);
+}
+
+/* u_plant: the command of delay_samples samples before (the oldest in the line), or u itself without delay */
+static void holdCommand(ModelData *d) {
+    d->u_plant = d->delay_samples > 0 ? d->delay_line[d->delay_head] : command(d, d->u);
 }
 
 /* ------------------------------------------------------------ life cycle */
@@ -184,7 +192,8 @@ fmi2Status initialize(ModelInstance *comp) {
     d->key_theta = mix64(s ^ 0x7468657461ULL); /* "theta" */
     d->key_alpha = mix64(s ^ 0x616c706861ULL); /* "alpha" */
     d->next_sample = (int64_t)ceil(comp->startTime * d->sample_rate - 1e-6);
-    takeSample(d, d->next_sample, 0); /* preview of the first sample */
+    holdCommand(d);
+    sampleSensors(d, d->next_sample); /* preview of the first sample */
     return fmi2OK;
 }
 
@@ -200,19 +209,20 @@ fmi2Status doStep(ModelInstance *comp, double t, double h) {
     ModelData *d = &comp->data;
     const double fs = d->sample_rate;
     const double kEnd = (t + h) * fs - 1e-6; /* sample instants strictly before t + h */
-    int64_t k;
-    if (h * fs > 1e7) {
-        logError(comp, "communication step %g s spans more than 1e7 samples", h);
-        return fmi2Error;
-    }
+    int64_t k, kNext;
+    if (!stepFitsSampleRate(comp, h, fs)) return fmi2Error;
     if (!isfinite(d->u) || !isfinite(d->theta) || !isfinite(d->alpha_gauge)) {
         logError(comp, "input u, theta or alpha_gauge is not finite at t = %g s", t);
         return fmi2Error;
     }
     k = (int64_t)ceil(t * fs - 1e-6);
     if (k < d->next_sample) k = d->next_sample;
-    for (; (double)k < kEnd; k++) takeSample(d, k, 1);
+    for (; (double)k < kEnd; k++) sampleSensors(d, k);
     if (k > d->next_sample) d->next_sample = k;
+    /* the samples that end within (t, t + h]: their command is the u set now */
+    kNext = (int64_t)floor((t + h) * fs + 1e-6);
+    for (k = (int64_t)floor(t * fs + 1e-6); k < kNext; k++) commitCommand(d);
+    holdCommand(d);
     d->inputs_changed = 0;
     return fmi2OK;
 }
@@ -243,8 +253,9 @@ fmi2Status getFloat64(ModelInstance *comp, fmi2ValueReference vr, double *value)
         *value = *p;
         return fmi2OK;
     }
-    if ((vr == vr_theta_v || vr == vr_alpha_v) && d->inputs_changed && comp->state == StateStepComplete)
-        sampleSensors(d, d->next_sample); /* preview of the next sample's readings */
+    if ((vr == vr_theta_v || vr == vr_alpha_v) && d->inputs_changed && comp->state == StateStepComplete &&
+        fabs(comp->time * d->sample_rate - (double)d->next_sample) < 1e-6)
+        sampleSensors(d, d->next_sample); /* at its instant: preview of the next sample's readings */
     switch (vr) {
         INPUTS(GET_CASE)
         OUTPUTS(GET_CASE)
@@ -262,7 +273,10 @@ fmi2Status setFloat64(ModelInstance *comp, fmi2ValueReference vr, double value) 
         return fmi2OK;
     }
     switch (vr) {
-    case vr_u: d->u = value; return fmi2OK;
+    case vr_u:
+        d->u = value;
+        if (d->delay_samples == 0 && comp->state == StateStepComplete) d->u_plant = command(d, value);
+        return fmi2OK;
     case vr_theta: d->theta = value; d->inputs_changed = 1; return fmi2OK;
     case vr_alpha_gauge: d->alpha_gauge = value; d->inputs_changed = 1; return fmi2OK;
     case vr_u_plant:

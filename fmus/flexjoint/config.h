@@ -90,6 +90,12 @@ typedef struct {
     int slip;        /* sign of the hub velocity while sliding with friction (0: no friction force) */
     double v_amp;    /* amplifier output held over the current step [V] */
 
+    /* communication steps finer than the internal step: X stays on the grid of whole internal steps (Xg, its
+       flags, lag the time integrated past it as a preview, lag_u and lag_tau the inputs over that part) */
+    double lag, lag_u, lag_tau;
+    double Xg[MAX_X];
+    int stuck_g, side_g, slip_g;
+
     /* linear fast path (no friction, no backlash, hub free): one RK4 step is X <- Phi X + h P3 f */
     int linear;                               /* 1 when the fast path applies */
     double lin_h;                             /* internal step Phi and P3 were computed for [s] */

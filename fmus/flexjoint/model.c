@@ -265,6 +265,7 @@ fmi2Status initialize(ModelInstance *comp) {
                 d->internal_step);
 
     memset(d->X, 0, sizeof(d->X));
+    d->lag = 0.0; /* on the grid of internal steps */
     d->X[0] = d->theta_start;
     d->X[1] = d->alpha_start; /* an initial deflection and deflection rate in mode 1 */
     d->X[d->N] = d->theta_dot_start;
@@ -580,18 +581,14 @@ static void linearSteps(ModelData *d, double hs, long nsub) {
     d->X[n + 1] = d->X[N];
 }
 
-fmi2Status doStep(ModelInstance *comp, double t, double h) {
+/* h [s] of integration with the inputs u, tau_tip: internal steps of equal size at most h_max */
+static fmi2Status integrate(ModelInstance *comp, double h, double u, double tau) {
     ModelData *d = &comp->data;
-    const int nx = 2 * d->N + 2;
-    double nsub_d, hs;
+    const double tau_now = d->tau_tip;
+    double nsub_d;
     long nsub, k;
-    int i;
-    if (!isfinite(d->u) || !isfinite(d->tau_tip)) {
-        logError(comp, "input u or tau_tip is not finite at t = %g s", t);
-        return fmi2Error;
-    }
-    d->v_amp = d->u;
-    if (d->amp_limit > 0) d->v_amp = fmin(fmax(d->u, -d->amp_limit), d->amp_limit);
+    d->v_amp = u;
+    if (d->amp_limit > 0) d->v_amp = fmin(fmax(u, -d->amp_limit), d->amp_limit);
     nsub_d = ceil(h / d->h_max - 1e-9);
     if (nsub_d < 1) nsub_d = 1;
     if (nsub_d > 1e9) {
@@ -599,11 +596,59 @@ fmi2Status doStep(ModelInstance *comp, double t, double h) {
         return fmi2Error;
     }
     nsub = (long)nsub_d;
-    hs = h / (double)nsub;
+    d->tau_tip = tau;
     if (d->linear)
-        linearSteps(d, hs, nsub);
+        linearSteps(d, h / (double)nsub, nsub);
     else
-        for (k = 0; k < nsub; k++) substep(d, hs);
+        for (k = 0; k < nsub; k++) substep(d, h / (double)nsub);
+    d->tau_tip = tau_now;
+    return fmi2OK;
+}
+
+static void saveGrid(ModelData *d) {
+    memcpy(d->Xg, d->X, sizeof(d->X));
+    d->stuck_g = d->stuck, d->side_g = d->side, d->slip_g = d->slip;
+}
+
+static void restoreGrid(ModelData *d) {
+    memcpy(d->X, d->Xg, sizeof(d->X));
+    d->stuck = d->stuck_g, d->side = d->side_g, d->slip = d->slip_g;
+}
+
+/* A step of at least the internal step integrates it in equal internal steps.  A finer step (a master that steps
+ * every FMU at a fraction of the sample period) keeps the state on the grid of whole internal steps, as a step of
+ * the sample period would integrate it, and previews the part of an internal step past it: the same numbers at the
+ * grid points whatever the master's step, while the inputs change only there. */
+fmi2Status doStep(ModelInstance *comp, double t, double h) {
+    ModelData *d = &comp->data;
+    const int nx = 2 * d->N + 2;
+    const double eps = 1e-9 * d->h_max;
+    fmi2Status s = fmi2OK;
+    int i;
+    if (!isfinite(d->u) || !isfinite(d->tau_tip)) {
+        logError(comp, "input u or tau_tip is not finite at t = %g s", t);
+        return fmi2Error;
+    }
+    if (d->lag == 0 && h >= d->h_max - eps) {
+        s = integrate(comp, h, d->u, d->tau_tip);
+    } else {
+        if (d->lag > 0) {
+            restoreGrid(d); /* undo the preview */
+            if (d->u != d->lag_u || d->tau_tip != d->lag_tau) { /* inputs changed within an internal step */
+                s = integrate(comp, d->lag, d->lag_u, d->lag_tau);
+                d->lag = 0;
+            }
+        }
+        d->lag_u = d->u, d->lag_tau = d->tau_tip;
+        d->lag += h;
+        while (s == fmi2OK && d->lag >= d->h_max - eps) {
+            s = integrate(comp, d->h_max, d->u, d->tau_tip);
+            d->lag = d->lag - d->h_max < eps ? 0.0 : d->lag - d->h_max;
+        }
+        saveGrid(d);
+        if (s == fmi2OK && d->lag > 0) s = integrate(comp, d->lag, d->u, d->tau_tip);
+    }
+    if (s != fmi2OK) return s;
     for (i = 0; i < nx; i++) {
         if (!isfinite(d->X[i])) {
             logError(comp, "state became non-finite at t = %g s (check parameters and internal_step)", t + h);

@@ -36,16 +36,18 @@ enum { DONE = 0, FAIL_PLANT = 1, FAIL_DAQ = 2, FAIL_CONTROLLER = 3, DIVERGED = 4
 EXPORT int run_open(const Unit *pl, const Unit *dq, const unsigned int *p_in, const unsigned int *p_out,
                     const unsigned int *d_in, const unsigned int *d_out, const double *u, const double *tau, long n,
                     double Ts, double *out, long *at, int *status) {
-    double pin[2], pout[4], din[3], dout[3];
+    double pin[2], pout[4], din[3], dout[3], up;
     for (long k = 0; k < n; k++) {
         double t = (double)k * Ts;
         pl->get(pl->component, p_out, 4, pout);
         din[0] = u[k]; din[1] = pout[0]; din[2] = pout[2];
         dq->set(dq->component, d_in, 3, din);
+        dq->get(dq->component, d_out, 1, &up); /* the command over [t_k, t_k+1) */
         int s = dq->step(dq->component, t, Ts, 1);
         if (s > 1) { *at = k; *status = s; return FAIL_DAQ; }
         dq->get(dq->component, d_out, 3, dout);
-        pin[0] = dout[0]; pin[1] = tau[k];
+        dout[0] = up;
+        pin[0] = up; pin[1] = tau[k];
         pl->set(pl->component, p_in, 2, pin);
         double *row = out + 6 * k;
         row[0] = dout[0]; row[1] = dout[1]; row[2] = dout[2]; row[3] = pout[0]; row[4] = pout[1]; row[5] = pout[3];
@@ -64,7 +66,7 @@ EXPORT int run_closed(const Unit *pl, const Unit *dq, const Unit *ct, const unsi
                       const unsigned int *d_u, const unsigned int *d_out, const unsigned int *c_in,
                       const unsigned int *c_out, const double *ref, long n, double Ts, double lim_alpha,
                       double lim_theta, double *out, long *at, int *status, double *div) {
-    double pin[2] = {0.0, 0.0}, pout[4], meas[2], samp[2], cin[3], cu[1], dout[3];
+    double pin[2] = {0.0, 0.0}, pout[4], meas[2], samp[2], cin[3], cu[1], dout[3], up;
     for (long k = 0; k < n; k++) {
         double t = (double)k * Ts;
         pl->get(pl->component, p_out, 4, pout);
@@ -81,10 +83,12 @@ EXPORT int run_closed(const Unit *pl, const Unit *dq, const Unit *ct, const unsi
         if (s > 1) { *at = k; *status = s; return FAIL_CONTROLLER; }
         ct->get(ct->component, c_out, 1, cu);
         dq->set(dq->component, d_u, 1, cu);
+        dq->get(dq->component, d_out, 1, &up); /* the command over [t_k, t_k+1) */
         s = dq->step(dq->component, t, Ts, 1);
         if (s > 1) { *at = k; *status = s; return FAIL_DAQ; }
         dq->get(dq->component, d_out, 3, dout);
-        pin[0] = dout[0];
+        dout[0] = up;
+        pin[0] = up;
         pl->set(pl->component, p_in, 2, pin);
         double *row = out + 7 * k;
         row[0] = cu[0]; row[1] = dout[0]; row[2] = dout[1]; row[3] = dout[2];

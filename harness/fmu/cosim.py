@@ -2,16 +2,17 @@
 
 Every communication step k (one sample, Ts = 1/sample_rate, or a divisor of it):
 
-1. DAQ inputs <- command u_k, plant theta and alpha_gauge at t_k; ``daq.doStep(t_k, h)``;
-2. read the DAQ outputs: u_plant (the command held over [t_k, t_k + h)) and the samples theta_v, alpha_v at t_k;
-3. plant input u <- u_plant (and the tip torque); ``plant.doStep(t_k, h)``.
+1. DAQ inputs <- command u_k, plant theta and alpha_gauge at t_k; read u_plant (the command over [t_k, t_k + h));
+   ``daq.doStep(t_k, h)``; read the samples theta_v, alpha_v taken at t_k;
+2. plant input u <- u_plant (and the tip torque); ``plant.doStep(t_k, h)``.
 
 Closed loop (:meth:`Rig.run_closed`, with the controller FMU): reference -> controller -> DAQ (DAC, delay) ->
 plant -> DAQ (ADC) -> controller. Every step k:
 
 1. DAQ inputs <- plant theta and alpha_gauge at t_k; read the DAQ's preview of the samples theta_v, alpha_v at t_k;
 2. controller inputs <- ref_k and those samples; ``controller.doStep(t_k, h)``; read its command u_k;
-3. DAQ input u <- u_k; ``daq.doStep(t_k, h)`` (takes the same samples, now with u_k); then the plant as above.
+3. DAQ input u <- u_k; read u_plant; ``daq.doStep(t_k, h)`` (takes the same samples, now with u_k); then the plant
+   as above.
 
 So u_k acts over [t_k, t_k+1) (direct feedthrough, as a lab controller that reads, computes and writes within the
 sample); a DAQ delay adds its samples on top.
@@ -36,7 +37,7 @@ from fmpy.fmi2 import fmi2Real, fmi2ValueReference
 from .binding import Instance, load
 from .build import build_master
 
-__all__ = ["DEG", "DIVERGED_ALPHA_DEG", "ClosedLoopError", "Rig"]
+__all__ = ["DEG", "DIVERGED_ALPHA_DEG", "ClosedLoopError", "Rig", "controller_parameters"]
 
 DEG = 180.0 / np.pi
 DIVERGED_ALPHA_DEG = 45.0  # a closed loop whose link deflects more has diverged (a real link would break)
@@ -73,6 +74,19 @@ def _doubles(a: np.ndarray) -> int:
     """The address of a C-contiguous float64 array's data (the loops read and write it in place)."""
     assert a.dtype == np.float64 and a.flags.c_contiguous
     return a.ctypes.data
+
+
+def controller_parameters(
+    controller: dict[str, Any], daq: dict[str, Any], daq_variables: dict[str, Any], Ts: float
+) -> dict[str, Any]:
+    """The controller FMU's parameters of a closed loop sampled at ``Ts`` [s]: ``controller`` (with its
+    ``alpha_bias`` [deg] folded into alpha_offset) on top of the angle calibration of the DAQ's parameters ``daq``
+    (their start values in ``daq_variables``, name -> variable with ``.start``)."""
+    params = {k: float(daq.get(v, daq_variables[v].start)) for k, v in CALIBRATION.items()}
+    params |= {"sample_rate": 1.0 / Ts, **controller}
+    bias = float(params.pop("alpha_bias", 0.0))  # deg the controller reads on top of alpha: its zero error
+    params["alpha_offset"] -= bias / params["alpha_gain"]
+    return params
 
 
 class ClosedLoopError(ValueError):
@@ -206,11 +220,7 @@ class Rig:
             raise ValueError("reference must be a 1-D array of at least 2 finite angles")
         n, stop = ref.size, ref.size * Ts
         daq_params = {"sample_rate": 1.0 / Ts, **(daq or {})}
-        dq_start = self.daq.description.variables
-        ctrl_params = {k: float(daq_params.get(v, dq_start[v].start)) for k, v in CALIBRATION.items()}
-        ctrl_params |= {"sample_rate": 1.0 / Ts, **controller}
-        bias = float(ctrl_params.pop("alpha_bias", 0.0))  # deg the controller reads on top of alpha: its zero error
-        ctrl_params["alpha_offset"] -= bias / ctrl_params["alpha_gain"]
+        ctrl_params = controller_parameters(controller, daq_params, self.daq.description.variables, Ts)
         pl, dq, ct = self.plant, self.daq, self.controller
         pl.initialize(plant or {}, stop)
         dq.initialize(daq_params, stop)

@@ -135,7 +135,7 @@ def _with_start_values(xml: str, params: dict[str, int | float], description: st
     return xml
 
 
-def _zip_bytes(files: dict[str, bytes]) -> bytes:
+def zip_bytes(files: dict[str, bytes]) -> bytes:
     """Deterministic zip: sorted entries, fixed timestamp and permissions, deflate level 9."""
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w") as zf:
@@ -167,7 +167,7 @@ def model_fmu_bytes(
     xml = _with_start_values(files["modelDescription.xml"].decode(), params, desc)
     files["modelDescription.xml"] = xml.encode()
     files[COEFFICIENT_FILE] = coefficient_file(params, desc).encode()
-    return _zip_bytes(files)
+    return zip_bytes(files)
 
 
 def export_model(

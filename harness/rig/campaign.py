@@ -27,7 +27,7 @@ from ..fmu.build import build_all
 from ..fmu.plant import PlantParams, mass_stiffness
 from ..rundir import ExperimentEntry, Manifest, RunDir, new_run, write_dataset
 from ..spec import Experiment, Spec
-from .controller import delayed
+from .controller import Controller, delayed
 from .signals import generate
 
 Progress = Callable[[str], None]
@@ -74,7 +74,9 @@ def comb_schedule(exp: Experiment, Ts: float, plant: dict[str, Any]) -> tuple[np
     return tau, comb
 
 
-def _experiment_inputs(spec: Spec, exp: Experiment) -> tuple[np.ndarray, dict, dict, np.ndarray | None, Any]:
+def experiment_inputs(spec: Spec, exp: Experiment) -> tuple[np.ndarray, dict, dict, np.ndarray | None, Any]:
+    """One experiment's signal (command [V], or the reference [deg] of a closed loop), plant and DAQ parameters (the
+    DAQ's seed drawn for the experiment), tip torque [N m] and comb angles [deg] of a comb calibration (else None)."""
     Ts = spec.Ts
     n = int(round(exp.duration * spec.sample_rate))
     seed = experiment_seed(spec, exp)
@@ -89,14 +91,20 @@ def _experiment_inputs(spec: Spec, exp: Experiment) -> tuple[np.ndarray, dict, d
     return u, plant, daq, None, None
 
 
+def reference_rad(controller: Controller, ref_deg: np.ndarray) -> np.ndarray:
+    """What the controller acts on [rad]: a closed-loop experiment's reference [deg] (the log's) delayed by the
+    controller's ref_delay samples."""
+    return np.radians(delayed(ref_deg, controller.ref_delay))
+
+
 def simulate_experiment(rig: Any, spec: Spec, exp: Experiment) -> dict[str, np.ndarray]:
     """Run one experiment of a spec on a loaded :class:`harness.fmu.cosim.Rig`; returns the dataset columns."""
-    u, plant, daq, tau, comb = _experiment_inputs(spec, exp)
+    u, plant, daq, tau, comb = experiment_inputs(spec, exp)
     if exp.loop == "closed":
         c = spec.controller
         if c is None:  # the spec refuses a closed-loop experiment without a [controller]
             raise ValueError(f"experiment {exp.name!r} runs closed loop but the spec has no [controller] table")
-        ref = np.radians(delayed(u, c.ref_delay))  # what the controller acts on; the log has u, the reference [deg]
+        ref = reference_rad(c, u)
         res = rig.run_closed(ref, spec.Ts, c.fmu_parameters(spec.sample_rate), plant=plant, daq=daq)
         return {**{k: res[k] for k in ("t", "u", "theta_v", "alpha_v", "theta", "alpha")}, "ref": u}
     res = rig.run(u, spec.Ts, plant=plant, daq=daq, tau_tip=tau)
