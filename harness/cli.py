@@ -536,6 +536,8 @@ def diagnosis_summary(d: Diagnosis) -> str:
     for e in d.effects:
         params = ", ".join(f"{k}={v:.4g}" for k, v in e.params.items())
         lines.append(f"  + {e.effect} ({params}): shrink {e.shrink_pct:.1f} % on held-out experiments")
+        if e.against_record:
+            lines.append(f"    {e.against_record}")
     dec = d.gap.decomposition
     fits = {"before": dec.before, "after recalibration": dec.after_recalibration,
             "after effects": dec.after_effects, "noise floor": dec.noise_floor}  # fmt: skip

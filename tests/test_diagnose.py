@@ -19,6 +19,7 @@ from harness.diagnosis.effects import EFFECTS, VERDICTS, CandidateContext, candi
 from harness.diagnosis.experiments import RigExperiment, pot_track_ends, split_folds, valid_samples
 from harness.diagnosis.noise import adc_lattice, decimal_resolution, noise_sigma
 from harness.diagnosis.result import Diagnosis
+from harness.diagnosis.search import against_record
 from harness.ident.calibration import daq_calibration, gauge_volts
 from harness.rig.campaign import run_campaign
 
@@ -243,6 +244,8 @@ def test_mismatched_twin_recalibrates_then_names_the_effect(tmp_path, fmus, name
             assert lo <= value <= hi
         # drop-one importance is a share of what the removals reopen: a lone effect has all of it
         assert d.effects[0].importance_pct == pytest.approx(100.0)
+        if param == "daq.delay_samples":  # said against the record: the blind campaign runs at 50 Hz
+            assert d.effects[0].against_record == "2 sample(s) of command delay: 40 ms at 50 Hz"
     truth = {"plant.Ks": 1.5, "plant.Beq": 0.0052, "plant.zeta_link": 0.02, "plant.Jeq": 0.00208, "plant.kt": 0.00768}
     for name_, value_ in truth.items():  # measured: Ks +0.02 %, Beq +0.05 %, Jeq +0.05 %, kt +0.04 %, zeta +0.3 %
         rel = 5 * TWIN_REL if name_ == "plant.zeta_link" else TWIN_REL
@@ -357,3 +360,21 @@ def test_candidate_rules_of_the_effect_table():
     assert "quantization" not in names(candidates(CandidateContext({}, {"adc_bits": 12}, 3.0, 12)))  # modelled
     assert EFFECTS["quantization"].skipped == "no ADC lattice in the data"
     assert EFFECTS["second_mode"].skipped == "already in the simulation"
+
+
+def test_an_effect_is_said_against_the_records_own_range():
+    """A saturation at 1.0 V on a record whose command spans +-3 V is said with both numbers and the share of the
+    record it clips, a delay in milliseconds at the record's rate, a gear play beside how far the hub moves."""
+    n = 1000
+    x = _exp("sq", np.zeros(n), np.zeros(n))
+    x.u = 3.0 * np.sign(np.sin(np.arange(n) * 2 * np.pi / 100)) * np.r_[np.ones(n // 2), np.full(n // 2, 0.5)]
+    x.theta = 20.0 * np.sin(np.arange(n) * 2 * np.pi / 500)
+    exps = {"sq": x}
+    assert against_record("plant.amp_limit", 1.0, exps) == (
+        "amplifier limit 1 V; the logged command reaches 3 V, 100 % of its samples beyond the limit"
+    )
+    assert against_record("plant.amp_limit", 2.0, exps).endswith("3 V, 50 % of its samples beyond the limit")
+    assert against_record("daq.delay_samples", 2, exps) == "2 sample(s) of command delay: 40 ms at 50 Hz"
+    play = against_record("plant.backlash", 0.006, exps)
+    assert play.startswith("gear play 0.344 deg; the hub moves up to 19.") and play.endswith("(95th percentile)")
+    assert against_record("plant.coulomb_torque", 0.03, exps) is None

@@ -116,7 +116,8 @@ class FoundEffect:
     ({"plant.coulomb_torque": 0.044}); ``params_folds``: fitted on fold A, on fold B; ``gap_before`` /
     ``gap_after``: held-out gap before and after it was added (with ``shrink_pct``, ``fit_pct_*``);
     ``importance_pct``: its share [%] of what removing each effect alone reopens (NaN for an effect found by its
-    signature); ``fitted_on`` / ``held_out``: the experiments of the two fits; ``selected_by``: how it entered."""
+    signature); ``fitted_on`` / ``held_out``: the experiments of the two fits; ``selected_by``: how it entered;
+    ``against_record``: its parameter beside the record's own range ("the logged command reaches 5.5 V")."""
 
     effect: str
     params: dict[str, float]
@@ -130,6 +131,7 @@ class FoundEffect:
     fitted_on: list[list[str]]
     held_out: list[list[str]]
     selected_by: str
+    against_record: str | None = None
 
 
 @dataclass

@@ -655,6 +655,24 @@ def search(
     )
 
 
+def against_record(param: str, value: float, experiments: dict[str, RigExperiment]) -> str | None:
+    """An effect's fitted parameter beside what the records themselves span, so that a value no record supports reads
+    as such ("amplifier limit 1.04 V; the logged command reaches 5.5 V, 62 % of its samples beyond the limit")."""
+    u = np.concatenate([x.u for x in experiments.values()])
+    if param == "plant.amp_limit":
+        beyond = 100.0 * float(np.mean(np.abs(u) > value))
+        return (f"amplifier limit {value:.3g} V; the logged command reaches {float(np.max(np.abs(u))):.3g} V, "
+                f"{beyond:.0f} % of its samples beyond the limit")  # fmt: skip
+    if param == "daq.delay_samples":
+        rates = sorted({round(1.0 / x.Ts, 6) for x in experiments.values()})
+        ms = ", ".join(f"{1e3 * value / r:.3g} ms at {r:g} Hz" for r in rates)
+        return f"{value:g} sample(s) of command delay: {ms}"
+    if param == "plant.backlash":
+        span = max(float(np.percentile(np.abs(x.theta - np.median(x.theta)), 95)) for x in experiments.values())
+        return f"gear play {math.degrees(value):.3g} deg; the hub moves up to {span:.3g} deg (95th percentile)"
+    return None
+
+
 def _found_effects(
     cf: CrossFit,
     bases: list[Overrides],
@@ -687,6 +705,7 @@ def _found_effects(
                 fitted_on=[cf.fits[0], cf.fits[1]],
                 held_out=[cf.helds[0], cf.helds[1]],
                 selected_by=SELECTED_BY_SPREAD if name in spread_kept else EFFECTS[name].selected_by,
+                against_record=against_record(p, final[p], cf.experiments),
             )
         )
         prev = m

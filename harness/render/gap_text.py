@@ -116,6 +116,8 @@ def _effects_lines(diag: Diagnosis) -> list[str]:
     ]
     header = ["effect", "fitted parameters", "importance [%]", "gap before", "gap after", "shrink [%]", "found by"]
     lines = ["Effects, in the order they were added (gaps on held-out experiments):", "", *table(header, rows), ""]
+    lines += [f"- `{e.effect}`: {e.against_record}." for e in diag.effects if e.against_record]
+    lines += [""] if any(e.against_record for e in diag.effects) else []
     lines += [
         "Importance: remove each effect alone from the final model and part of the gap reopens; an effect's "
         "importance is its share of what the removals reopen. Shrink: how much the held-out gap fell when the "
