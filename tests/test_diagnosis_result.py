@@ -10,7 +10,7 @@ from typing import Any
 
 import pytest
 
-from harness.diagnosis.result import Diagnosis, round_floats
+from harness.diagnosis.result import Diagnosis, FittedParameter, round_floats
 from harness.rundir import DataError, write_json
 
 
@@ -191,3 +191,12 @@ def test_a_missing_or_broken_file_is_one_line(tmp_path):
     with pytest.raises(DataError, match="not valid JSON") as err:
         Diagnosis.load(tmp_path)
     assert "\n" not in str(err.value)
+
+
+def test_folds_disagree_only_when_their_intervals_exclude_each_other():
+    row = FittedParameter(nominal=1.3, fitted=1.5, ci95=[1.49, 1.51], change_pct=15.4, unit="N m/rad")
+    assert not row.folds_disagree  # no per-fold fits
+    row.folds = [[1.50, 1.49, 1.51], [1.505, 1.50, 1.52]]
+    assert not row.folds_disagree  # overlapping: noise can separate them
+    row.folds = [[1.45, 1.44, 1.46], [1.55, 1.54, 1.56]]
+    assert row.folds_disagree

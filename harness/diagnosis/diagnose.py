@@ -58,7 +58,7 @@ from .effects import CandidateContext, candidates
 from .experiments import REPLAYS, RigExperiment, fold_experiments, load_experiments, masked_share
 from .noise import noise_floor
 from .replays import write_replays
-from .result import Diagnosis, FittedParameter, SensorCalibration, Thresholds
+from .result import Diagnosis, FittedParameter, Folds, SensorCalibration, Thresholds
 from .search import (
     EXPLAINED,
     GAP_RESOLUTION,
@@ -102,13 +102,26 @@ def _replays(experiments: dict[str, RigExperiment]) -> dict[str, dict[str, str]]
     return {n: {"replay": x.replay, "reason": x.replay_reason} for n, x in experiments.items()}
 
 
-def _caveats(parameters: dict[str, FittedParameter], verdict: str) -> list[str] | None:
+def _caveats(parameters: dict[str, FittedParameter], verdict: str, folds: Folds | None = None) -> list[str] | None:
     """What limits the verdict: which part of the spec does not describe the rig (:func:`recal.parts_at_bound`), each
     recalibrated parameter that ended at its bound (an effect's share of the gap may be a wrong linear part's), each
-    one the data do not determine."""
+    one the data do not determine; where nothing explains the gap, the linear parameters whose fits on the two folds
+    (records, where there are two or more) exclude each other."""
     out = recal.parts_at_bound({n: (p.nominal, p.fitted) for n, p in parameters.items() if n in recal.LINEAR})
     out += [f"verdict {verdict!r} reached with {p.finding}" for p in parameters.values() if p.at_bound]
     out += [f"{p.finding}" for p in parameters.values() if p.identifiable is False and p.finding and not p.at_bound]
+    apart = [n for n, p in parameters.items() if p.folds_disagree and not p.at_bound]
+    if verdict == "unexplained" and apart:
+        fits = "; ".join(
+            f"{recal.LINEAR[n].label} {a:.4g} [{lo_a:.4g}-{hi_a:.4g}] and {b:.4g} [{lo_b:.4g}-{hi_b:.4g}]"
+            for n in apart
+            for (a, lo_a, hi_a), (b, lo_b, hi_b) in [parameters[n].folds]
+        )
+        which = f" ({', '.join(folds.A)} | {', '.join(folds.B)})" if folds else ""
+        out.append(
+            f"recalibrated on each fold alone{which}, the 95 % intervals exclude each other ({fits}): the linear "
+            "model does not describe both as one rig (model error, not noise)"
+        )
     return out or None
 
 
@@ -207,7 +220,7 @@ def diagnose_run(
         thresholds=THRESHOLDS,
         where=where,
         replays=_replays(experiments),
-        caveats=_caveats(found.parameters, found.verdict),
+        caveats=_caveats(found.parameters, found.verdict, folds),
     ).rounded()
     diagnosis.write(RunDir(dest).diagnosis)
     write_replays(RunDir(dest).diagnosis_replays, experiments, dict(zip(stages, traces, strict=True)))

@@ -86,8 +86,10 @@ class FittedParameter:
     or None: the fit ended at its search bound), ``identifiable`` (False: the 95 % interval spans more than a
     factor 100; left out otherwise) and ``recalibrated``: what recalibration alone fitted, before any effect (the
     geometric mean of the two folds' fits, the model the waterfall's "recalibration" stage scores; ``fitted`` is
-    refitted jointly with the effects found, so the two differ where the recalibration compensated an effect). A
-    parameter kept at the spec's value, not fitted, has an interval of NaN (:attr:`kept`)."""
+    refitted jointly with the effects found, so the two differ where the recalibration compensated an effect),
+    ``folds``: recalibration alone on each fold, [fitted, lo, hi] (fold A, fold B: with two records or more, each
+    fold is records of its own). A parameter kept at the spec's value, not fitted, has an interval of NaN
+    (:attr:`kept`)."""
 
     nominal: float
     fitted: float
@@ -98,6 +100,15 @@ class FittedParameter:
     at_bound: str | None = None
     identifiable: bool | None = None
     recalibrated: float | None = None
+    folds: list[list[float]] | None = None
+
+    @property
+    def folds_disagree(self) -> bool:
+        """Do the two folds' own fits have 95 % intervals that exclude each other (model error, not noise)?"""
+        if not self.folds or len(self.folds) != 2:
+            return False
+        (_, lo_a, hi_a), (_, lo_b, hi_b) = self.folds
+        return hi_a < lo_b or hi_b < lo_a
 
     @property
     def kept(self) -> bool:

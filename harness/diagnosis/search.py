@@ -595,6 +595,7 @@ def search(
     final, table = final_params(cf, fw.bases, order, set(by_spread_kept))
     for prm, value in recalibrated_alone(rec).items():
         table[prm].recalibrated = value
+        table[prm].folds = [[float(r["params"][prm]), *map(float, r["ci95"].get(prm, (math.nan,) * 2))] for r in rec]
     sse_final, *sse_signature = pool.map(
         [("sse", final, names), *(("sse", {**fw.bases[0], c.param: c.values[0]}, names) for c in signature)]
     )

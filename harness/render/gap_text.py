@@ -8,7 +8,7 @@ import math
 from typing import Any
 
 from ..diagnosis.effects import SELECTED_BY_SPREAD
-from ..diagnosis.result import Diagnosis
+from ..diagnosis.result import Diagnosis, FittedParameter
 from .tables import fmt, fmt_any, num, table
 
 __all__ = ["LATTICE", "diagnosis_markdown", "gap_rows", "verdict_sentence"]
@@ -154,10 +154,18 @@ def _ci_halfwidth(ci95: list[float], fitted: float) -> str:
     return f"± {100.0 * half / abs(fitted):.2g} %" if fitted else f"± {half:.2g}"
 
 
+def _folds_text(p: FittedParameter) -> str:
+    """Recalibration alone on each fold, "a / b", with "(apart)" where their 95 % intervals exclude each other."""
+    if not p.folds:
+        return "—"
+    return " / ".join(fmt_any(f[0]) for f in p.folds) + (" (apart)" if p.folds_disagree else "")
+
+
 def _parameters_lines(diag: Diagnosis) -> list[str]:
     if not diag.parameters:
         return []
     alone = any(p.recalibrated is not None for p in diag.parameters.values())
+    per_fold = any(p.folds for p in diag.parameters.values())
     rows = [
         [
             name,
@@ -168,12 +176,14 @@ def _parameters_lines(diag: Diagnosis) -> list[str]:
             fmt(p.change_pct, 1),
             p.finding or "—",
             *([fmt_any(p.recalibrated) if p.recalibrated is not None else "—"] if alone else []),
+            *([_folds_text(p)] if per_fold else []),
         ]
         for name, p in diag.parameters.items()
     ]
     note = " It was applied." if diag.recalibration_applied else " It closed too little to be kept."
     header = ["parameter", "unit", "nominal", "fitted", "95 % interval", "change [%]", "finding"]
     header += ["recalibration alone"] if alone else []
+    header += ["each fold alone (A / B)"] if per_fold else []
     lines = [
         "Linear parameters of the simulation recalibrated against the data (within physical bounds): a linear "
         f"mismatch is a finding about the rig, not an unmodelled effect.{note}",
@@ -181,6 +191,13 @@ def _parameters_lines(diag: Diagnosis) -> list[str]:
         *table(header, rows),
         "",
     ]
+    if per_fold:
+        lines += [
+            'Each fold alone: recalibrated on that fold\'s experiments only; "(apart)" where the two 95 % intervals '
+            "exclude each other: the model, not the noise, separates the folds (with two records or more, each fold "
+            "is records of its own).",
+            "",
+        ]
     if alone:
         text = (
             "Fitted: with the effects found, jointly, on every experiment (the interval, change and finding are this "
