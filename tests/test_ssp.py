@@ -3,6 +3,7 @@ co-simulation master) to the campaign's numbers; every FMU clean under fmu-manip
 
 from __future__ import annotations
 
+import ctypes
 import io
 import shutil
 import subprocess
@@ -141,11 +142,20 @@ def test_a_rig_without_command_delay_is_one_sample_late_in_a_master_that_steps_a
     assert np.abs(got - _campaign(s, "square_mid")["theta"][1:]).max() > 0.1
 
 
+def _load_pypi_tbb() -> None:
+    """Ecos links libtbb.so.12, which a machine without Debian's libtbb12 lacks: the test extras' ``tbb`` wheel puts
+    it in the environment's lib/, which the loader does not search, so it is loaded here first, globally."""
+    lib = Path(sys.prefix) / "lib" / "libtbb.so.12"
+    if lib.exists():
+        ctypes.CDLL(str(lib), mode=ctypes.RTLD_GLOBAL)
+
+
 def test_ecos_runs_the_ssp_to_the_campaigns_theta(tmp_path):
     """Ecos (ecospy), a third master, stepping every FMU at once and passing values connection by connection."""
+    _load_pypi_tbb()
     try:
         from ecospy import EcosSimulation
-    except (ImportError, OSError) as e:  # pragma: no cover - without the test extras or libtbb.so.12
+    except (ImportError, OSError) as e:  # pragma: no cover - without the test extras
         pytest.skip(f"ecospy cannot load here: {e}")
     s = specmod.load("closed_loop", [])
     want = _campaign(s, "square_30")["theta"]
