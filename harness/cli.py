@@ -233,10 +233,13 @@ def campaign(
 ) -> None:
     """Run a spec's experiments on the rig twin: writes manifest.json and data/<experiment>.parquet."""
     from . import spec as specmod
-    from .rig.campaign import run_campaign
+    from .executor import prestart
 
     _out_dir(out_dir)
     s = specmod.load(spec, set_ or [])
+    prestart(workers, scheduler)  # the workers start while the campaign loads
+    from .rig.campaign import run_campaign
+
     t0 = time.perf_counter()
     manifest = run_campaign(s, out_dir, progress=_progress("simulated"), workers=workers, scheduler=scheduler)
     out.print(f"{len(manifest.experiments)} experiments -> {out_dir} ({time.perf_counter() - t0:.2f} s)")
@@ -587,13 +590,14 @@ def run(
 ) -> None:
     """The whole pipeline: build, campaign, calibrate, identify, export, cross-fit, diagnose, report, Rerun."""
     from . import spec as specmod
-    from .executor import session
-    from .pipeline import run_pipeline
+    from .executor import prestart, session
 
     if out_dir is None:
         out_dir = Path("runs") / time.strftime("%Y%m%d-%H%M%S")
     _out_dir(out_dir)
     specmod.load(spec, set_ or [])  # a bad spec, or one too large for this machine, fails before any work
+    prestart(workers, scheduler)  # the workers start while the pipeline loads
+    from .pipeline import run_pipeline
 
     with session(workers, scheduler):  # one cluster for every parallel step of the pipeline
         result = run_pipeline(
