@@ -79,9 +79,11 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from distributed import Client, as_completed, get_worker
+from distributed.diagnostics.plugin import WorkerPlugin
 from distributed.scheduler import KilledWorker
 from threadpoolctl import ThreadpoolController
 
+from .fmu.build import build_master, install_master
 from .fmu.cosim import Rig
 from .localcluster import CLUSTER_CONFIG
 from .machine import default_workers, env_workers
@@ -91,6 +93,7 @@ __all__ = [
     "Executor",
     "FmuBytes",
     "LocalProcessCluster",
+    "MasterLibrary",
     "fmu_bytes",
     "fmu_file",
     "in_worker",
@@ -161,6 +164,19 @@ def fmu_file(fmu: FmuBytes) -> Path:
         path.write_bytes(fmu.data)
         _FMU_FILES[fmu.sha256] = path
         return path
+
+
+class MasterLibrary(WorkerPlugin):
+    """The co-simulation's step loops (``fmus/master``, built by the client) as bytes for every worker of a remote
+    cluster, present and joining later: each installs them into its own cache (:func:`harness.fmu.build.install_master`)
+    instead of compiling them, so a worker needs no compiler, as the FMUs travel as bytes."""
+
+    def __init__(self, library: FmuBytes) -> None:
+        self.library = library
+        self.name = f"flexjoint-master-{library.sha256[:12]}"
+
+    def setup(self, worker: Any) -> None:
+        install_master(self.library.name, self.library.data)
 
 
 # ----------------------------------------------------------------------------------------------- per-process cache
@@ -431,6 +447,7 @@ class Executor:
                 first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
                 raise RuntimeError(f"cannot connect to the Dask scheduler at {scheduler}: {first}") from None
             self.kind = "remote"
+            self.client.register_plugin(MasterLibrary(fmu_bytes(build_master())))
         else:
             n = workers or default_workers()
             pre = _PRESTARTED.pop() if _PRESTARTED else None
