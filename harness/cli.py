@@ -28,6 +28,7 @@ app = typer.Typer(
     add_completion=False,
     no_args_is_help=True,
     pretty_exceptions_enable=False,
+    rich_markup_mode=None,  # click's help: wrapped to the terminal, never an option's text cut with "…"
     help="Flexible-joint rig twin, ARMAX identification, cross-fit and sim-to-real diagnosis.",
 )
 
@@ -54,7 +55,7 @@ class _LazyConsole:
 
 
 err = cast("Console", _LazyConsole(stderr=True, highlight=False))
-out = cast("Console", _LazyConsole(highlight=False, width=None if sys.stdout.isatty() else 140))
+out = cast("Console", _LazyConsole(highlight=False))  # the terminal's width; piped: $COLUMNS, else 80
 
 SpecArg = Annotated[str, typer.Argument(help="campaign spec: a path or a name in specs/ (lab, nominal)")]
 SetOpt = Annotated[list[str] | None, typer.Option("--set", help="override one parameter: table.name=value")]
@@ -97,6 +98,44 @@ def _out_dir(path: Path, option: str = "--out") -> Path:
             where = "" if p == path else f" ({p} is a file)"
             raise NotADirectoryError(f"{option} {path}: not a directory{where}; give a new or existing directory")
     return path
+
+
+def _fit(table: Any) -> Any:
+    """A rich table made to fit ``out``'s width without cutting a cell: every column folds instead of ending in "…"
+    (a column marked no_wrap keeps its widest cell whole); a table too wide for its borders loses them (one space
+    between columns); one still too wide is wrapped: its columns in parts, one under the other, each part with the
+    first column again (the title above the first, the caption under all, as wide as the terminal)."""
+    from rich import box
+    from rich.console import Group
+    from rich.measure import Measurement
+    from rich.table import Table
+    from rich.text import Text
+
+    for c in table.columns:
+        c.overflow = "fold"
+        if c.no_wrap:
+            c.min_width = max((len(str(x)) for x in (c.header, *c.cells)), default=0)
+    wide = out.options.update_width(10_000)
+    if Measurement.get(out, wide, table).maximum <= out.width:
+        return table
+    table.box, table.padding, table.show_edge = box.SIMPLE_HEAD, (0, 1), False
+    if Measurement.get(out, wide, table).minimum <= out.width:
+        return table
+    first, parts = table.columns[0], [[]]
+    for c in table.columns[1:]:
+        if parts[-1] and sum((x.min_width or 12) + 3 for x in (first, *parts[-1], c)) > out.width:  # pad, rule
+            parts.append([])
+        parts[-1].append(c)
+    tables = []
+    for i, cols in enumerate(parts):
+        t = Table(box=table.box, padding=table.padding, show_edge=False, title_justify=table.title_justify)
+        t.title = table.title if i == 0 else None
+        for c in (first, *cols):
+            t.add_column(c.header, justify=c.justify, no_wrap=c.no_wrap, min_width=c.min_width, overflow="fold")
+        for r in range(table.row_count):
+            t.add_row(*(c._cells[r] for c in (first, *cols)))
+        tables.append(t)
+    return Group(*tables, *([Text(str(table.caption), style="dim")] if table.caption else []))
 
 
 class _Elapsed:
@@ -200,6 +239,48 @@ def specs() -> None:
     for name, desc in found.items():
         out.print(f"{name:<{width}}  {desc}", markup=False)
     out.print(f"[dim]({SPEC_DIR}; `flexjoint init DIR --spec NAME` copies one to edit)[/]")
+
+
+@app.command()
+def info(
+    spec: Annotated[str | None, typer.Argument(help="a spec (path or bundled name) whose values to show")] = None,
+    set_: SetOpt = None,
+    as_json: Annotated[bool, typer.Option("--json", help="print the list as JSON")] = False,
+) -> None:
+    """List every plant, DAQ and controller parameter (a spec's table.name, for --set and the spec's tables) with
+    its unit, the SPEC's value, the FMU's default and its declared range."""
+    import json
+
+    from rich.table import Table
+    from rich.text import Text
+
+    from . import spec as specmod
+    from .parameters import parameters, value_text
+
+    s = specmod.load(spec, set_ or []) if spec is not None else None
+    rows = parameters(s)
+    if as_json:
+        out.print(json.dumps([r.to_dict() for r in rows], indent=1), markup=False, soft_wrap=True)
+        return
+    title = f"parameters of {s.name} (value: the spec's, else the default)" if s else "parameters"
+    t = Table(title=f"{title}; set one with --set table.name=value", title_justify="left")
+    narrow = out.width < 110  # the description under the name instead of a column squeezed to a word a line
+    t.add_column("parameter", no_wrap=not narrow)
+    t.add_column("unit", no_wrap=True)
+    if s is not None:
+        t.add_column("value", justify="right", no_wrap=True)
+    t.add_column("default", justify="right", no_wrap=True)
+    t.add_column("range", no_wrap=True)
+    if not narrow:
+        t.add_column("description", ratio=1)
+    for r in rows:
+        value = [value_text(r.default if r.spec is None else r.spec)] if s is not None else []
+        name = Text(r.key, style="bold" if r.spec is not None else "")
+        if narrow:
+            name.append("\n  " + r.description, style="dim")
+        cells = [name, r.unit, *value, value_text(r.default), r.range, *([] if narrow else [r.description])]
+        t.add_row(*cells)
+    out.print(_fit(t))
 
 
 @app.command()
@@ -333,7 +414,7 @@ def identify(
         f"Kp {cal.Kp:.4f} deg/V, Ke {cal.Ke:.4f} deg/V, dead zone {cal.dead_zone_v:.4f} V; "
         f"{len(g)} orders x datasets, {int(g['causal'].sum())} causal, {int(g['survivor'].sum())} survivors"
     )
-    out.print(crossval_table(res))
+    out.print(_fit(crossval_table(res)))
     sel = g.loc[res.selected]
     out.print(f"selected ARMAX({sel.na},{sel.nb},{sel.nc},{sel.nk}) from {sel.dataset}: {res.rule}")
     if ident.get("doubled_rate", True):
@@ -350,10 +431,10 @@ def crossval_table(res):
     from rich.table import Table
 
     t = Table(title="cross-validation fit % (rows: model of dataset i; columns: dataset j)")
-    t.add_column("model")
+    t.add_column("model", no_wrap=True)
     for j in range(1, len(res.datasets) + 1):
-        t.add_column(str(j), justify="right")
-    t.add_column("average", justify="right")
+        t.add_column(str(j), justify="right", no_wrap=True)
+    t.add_column("average", justify="right", no_wrap=True)
     t.caption = "datasets: " + ", ".join(f"{j} {n}" for j, n in enumerate(res.datasets, 1))
     for i, (name, row_i) in enumerate([*res.best.items(), ("selected", res.selected)], 1):
         r = res.grid.loc[row_i]
@@ -540,7 +621,7 @@ def blindtest(
         n, seed, out_dir, progress=_progress("case"), families=fams, quick=quick, keep=keep,
         **_parallel(workers, scheduler),
     )  # fmt: skip
-    out.print(blindtest_table(res["totals"]))
+    out.print(_fit(blindtest_table(res["totals"])))
     out.print(f"{res['n']} cases in {res['timing_s']:.0f} s -> {Path(out_dir) / 'blindtest.json'}")
     for why in res.get("skipped", []):
         out.print(f"skipped family {why}")
