@@ -1,0 +1,71 @@
+"""What the command line prints fits the terminal: an 80-column terminal and a pipe (no forced 140 columns), tables
+and help wrapped, never a number or an example cut with "…"; and flexjoint info's parameter list."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+
+def flexjoint(*args: object, columns: int = 80, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
+    """The command with stdout piped, as ``| less`` or a CI log sees it, in a terminal ``columns`` wide."""
+    return subprocess.run(
+        [sys.executable, "-m", "harness", *map(str, args)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env={**os.environ, "COLUMNS": str(columns), **(env or {})},
+    )
+
+
+def _fits(text: str, columns: int = 80) -> None:
+    too_wide = [x for x in text.splitlines() if len(x.rstrip()) > columns]
+    assert not too_wide, too_wide
+    assert "…" not in text
+
+
+def _row(text: str, key: str) -> list[str]:
+    line = next(x for x in text.splitlines() if x.split() and x.split()[0] == key)
+    return line.split()
+
+
+def test_info_lists_every_parameter_with_unit_value_default_and_range():
+    r = flexjoint("info", "lab")
+    assert r.returncode == 0, r.stderr
+    _fits(r.stdout)
+    assert _row(r.stdout, "plant.Ks") == ["plant.Ks", "N", "m/rad", "1.3", "1.3", ">=", "0"]
+    assert _row(r.stdout, "plant.coulomb_torque") == ["plant.coulomb_torque", "N", "m", "0.044", "0", ">=", "0"]
+    assert _row(r.stdout, "plant.n_modes") == ["plant.n_modes", "2", "1", "1..3"]
+    assert _row(r.stdout, "daq.sample_rate")[:4] == ["daq.sample_rate", "Hz", "50", "50"]
+    assert "armature resistance" in r.stdout  # the description, under the name at 80 columns
+    closed = flexjoint("info", "closed_loop", "--set", "plant.Ks=1.5")
+    assert _row(closed.stdout, "controller.k_theta")[:4] == ["controller.k_theta", "V/rad", "9.231", "0"]
+    assert _row(closed.stdout, "plant.Ks")[3:5] == ["1.5", "1.3"]
+    wide = flexjoint("info", columns=160)
+    assert _row(wide.stdout, "plant.Ks")[:6] == ["plant.Ks", "N", "m/rad", "1.3", ">=", "0"]  # no SPEC: no value
+    rows = {p["key"]: p for p in json.loads(flexjoint("info", "lab", "--json").stdout)}
+    ks = rows["plant.Ks"]
+    assert (ks["unit"], ks["default"], ks["min"], ks["max"], ks["spec"]) == ("N m/rad", 1.3, 0.0, None, None)
+    assert rows["plant.coulomb_torque"]["spec"] == 0.044 and rows["plant.eta_g"]["range"] == "0..1"
+    assert {k.split(".")[0] for k in rows} == {"plant", "daq", "controller"} and len(rows) > 55
+
+
+def test_help_wraps_its_examples_instead_of_cutting_them():
+    r = flexjoint("import", "--help")
+    assert r.returncode == 0, r.stderr
+    _fits(r.stdout)
+    assert "time=t,Vm=u,hub=theta,tip=alpha" in r.stdout and "theta=deg,alpha=rad,u=V,t=s" in r.stdout
+
+
+def test_identify_table_fits_80_columns_and_keeps_every_number(tmp_path):
+    one = {"FLEXJOINT_WORKERS": "1"}
+    assert flexjoint("campaign", "lab", "--out", tmp_path / "r", env=one).returncode == 0
+    r = flexjoint("identify", tmp_path / "r", env=one)
+    assert r.returncode == 0, r.stderr
+    _fits(r.stdout)
+    sel = [x.split() for x in r.stdout.splitlines() if x.strip().startswith("sel (")]
+    cells = [c for row in sel for c in row[2:]]
+    assert len(cells) == 10 and all(len(c.split(".")[1]) == 2 for c in cells), sel  # 9 datasets + average, whole
+    assert "9 square_050" in r.stdout  # the caption, not cut
