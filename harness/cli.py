@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import atexit
+import math
 import os
 import signal
 import sys
@@ -189,6 +190,10 @@ def _progress(label: str) -> Callable[[str], None]:
         live.item = item
         err.print(f"[dim]{label}[/] {item} [dim]({time.perf_counter() - start:.1f} s)[/]", soft_wrap=True)
 
+    def status(item: str) -> None:  # what runs now: the live line only, no line of its own
+        live.item = item
+
+    report.status = status  # type: ignore[attr-defined]
     return report
 
 
@@ -544,10 +549,14 @@ def sweep(
     )
     p, sens = doc["summary"]["pass"], doc["summary"]["sensitivity"]
     top = sens["ranking"][0]
+    most = (
+        f"most sensitive: {top['param']} (S1 {top['s1']:.2f})"
+        if math.isfinite(top["s1"])
+        else f"sensitivity indices: n = {p['n']} rigs too few"
+    )
     out.print(
         f"{p['n']} rigs: {p['passed']} pass = {100 * p['rate']:.1f} % (95 % CI {100 * p['ci95'][0]:.1f}-"
-        f"{100 * p['ci95'][1]:.1f} %); most sensitive: {top['param']} (S1 {top['s1']:.2f}); "
-        f"{doc['wall_s']:.1f} s -> {out_dir}"
+        f"{100 * p['ci95'][1]:.1f} %); {most}; {doc['wall_s']:.1f} s -> {out_dir}"
     )
 
 
@@ -569,13 +578,23 @@ def report(
     out.print(f"{path} ({path.stat().st_size / 1024:.1f} kB), {path.parent / 'figures'}, {recording}")
 
 
+def interval_text(lo: float, hi: float) -> str:
+    """An interval with enough significant digits (4 to 10) for its ends to differ: 0.49988..0.49992, not
+    0.4999..0.4999."""
+    for digits in range(4, 11):
+        a, b = f"{lo:.{digits}g}", f"{hi:.{digits}g}"
+        if a != b:
+            break
+    return f"{a}..{b}"
+
+
 def diagnosis_summary(d: Diagnosis) -> str:
     """A few lines for the terminal: verdict, effects in greedy order with their fitted parameters, the shrink."""
     lines = [f"verdict: {d.verdict}"]
     for name, p in d.parameters.items():
         if p.finding is not None:
             lo, hi = p.ci95
-            lines.append(f"  {name}: {p.finding}" + ("" if p.kept else f" (95 % interval {lo:.4g}..{hi:.4g})"))
+            lines.append(f"  {name}: {p.finding}" + ("" if p.kept else f" (95 % interval {interval_text(lo, hi)})"))
     for e in d.effects:
         params = ", ".join(f"{k}={v:.4g}" for k, v in e.params.items())
         lines.append(f"  + {e.effect} ({params}): shrink {e.shrink_pct:.1f} % on held-out experiments")
@@ -618,7 +637,7 @@ def blindtest(
 
     fams = tuple(family) if family else FAMILIES
     res = run_blind(
-        n, seed, out_dir, progress=_progress("case"), families=fams, quick=quick, keep=keep,
+        n, seed, out_dir, progress=_progress("blindtest"), families=fams, quick=quick, keep=keep,
         **_parallel(workers, scheduler),
     )  # fmt: skip
     out.print(_fit(blindtest_table(res["totals"])))
@@ -652,8 +671,15 @@ def blindtest_table(tot: dict):
         t.add_column(c, justify="right")
     for label, get in rows:
         t.add_row(label, *[cell(get(tot["families"][c] if c != "pooled" else tot)) for c in cols])
-    t.caption = "targets: " + "; ".join(f"{k} >= {v['target']:g} ({'met' if v['met'] else 'NOT met'})"
-                                        for k, v in tot["targets"].items())  # fmt: skip
+
+    def verdict(v: dict) -> str:
+        if not v.get("n"):
+            return "no cases"
+        if not v.get("enough", True):
+            return f"too few cases to tell: {v['n']}"
+        return "met" if v["met"] else "NOT met"
+
+    t.caption = "targets: " + "; ".join(f"{k} >= {v['target']:g} ({verdict(v)})" for k, v in tot["targets"].items())
     return t
 
 
@@ -681,9 +707,11 @@ def run(
     from .pipeline import run_pipeline
 
     with session(workers, scheduler):  # one cluster for every parallel step of the pipeline
+        progress = _progress("run")
         result = run_pipeline(
-            spec, out_dir, set_ or [], sim=sim, rrd=rrd, spawn=spawn, connect=connect, progress=_progress("run")
-        )
+            spec, out_dir, set_ or [], sim=sim, rrd=rrd, spawn=spawn, connect=connect, progress=progress,
+            status=progress.status,  # type: ignore[attr-defined]
+        )  # fmt: skip
     out.print(result.summary)
     out.print("stages: " + ", ".join(f"{k} {v:.1f} s" for k, v in result.stages.items()))
 

@@ -200,3 +200,14 @@ def test_sweep_same_bytes_serial_and_on_a_cluster_that_loses_a_worker(tmp_path, 
     bars = next(d for d in chunks["/sensitivity"] if "BarChart:values" in d)["BarChart:values"][0][0]["buffer"]
     assert bars == pytest.approx([r["s1"] for r in rank])
     assert "Pass rate" in (tmp_path / "serial" / "report.md").read_text()
+
+
+def test_two_rigs_say_n_is_too_small_for_sensitivity_not_nan(tmp_path, fmus, monkeypatch, capsys):
+    """n = 2 gives no first-order index (nan): the console said "S1 nan"; it now says n is too small."""
+    spec = tiny_spec(tmp_path)
+    model = _selected_model(tmp_path / "run", spec, fmus)
+    capsys.readouterr()
+    _cli(monkeypatch, "sweep", spec, "--vary", "plant.Ks=uniform(1.3,1.8)", "--n", 2, "--model", model,
+         "--out", tmp_path / "sw", "--workers", 1)  # fmt: skip
+    line = " ".join(capsys.readouterr().out.split())  # one line, however the terminal wrapped it
+    assert "S1 nan" not in line and "sensitivity indices: n = 2 rigs too few" in line, line

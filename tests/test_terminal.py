@@ -69,3 +69,26 @@ def test_identify_table_fits_80_columns_and_keeps_every_number(tmp_path):
     cells = [c for row in sel for c in row[2:]]
     assert len(cells) == 10 and all(len(c.split(".")[1]) == 2 for c in cells), sel  # 9 datasets + average, whole
     assert "9 square_050" in r.stdout  # the caption, not cut
+
+
+def test_an_interval_has_the_digits_to_tell_its_ends_apart():
+    from harness.cli import interval_text
+
+    assert interval_text(0.49988, 0.49992) == "0.49988..0.49992"  # was 0.4999..0.4999 for a fitted 0.5
+    assert interval_text(1.2345678, 1.2345679) == "1.2345678..1.2345679"
+    assert interval_text(0.0041, 0.0052) == "0.0041..0.0052"
+
+
+def test_the_progress_names_each_command_once(tmp_path):
+    """'diagnose diagnosis screen ...' and 'case case 0' said the command twice; each line now names it once."""
+    tiny = tmp_path / "tiny.toml"
+    from test_executor import TINY_SPEC
+
+    tiny.write_text(TINY_SPEC)
+    one = {"FLEXJOINT_WORKERS": "1"}
+    assert flexjoint("campaign", tiny, "--out", tmp_path / "r", env=one).returncode == 0
+    r = flexjoint("diagnose", "--real", tmp_path / "r", "--sim", tiny, env=one)
+    assert r.returncode == 0, r.stderr
+    lines = r.stderr.splitlines()
+    assert any(x.startswith("diagnose screen ") for x in lines), r.stderr
+    assert not any(x.startswith("diagnose diagnosis") for x in lines), r.stderr
