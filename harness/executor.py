@@ -339,6 +339,15 @@ class LocalProcessCluster:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
+    def _kill_group(self) -> None:
+        """SIGKILL to the cluster's session (its process group: scheduler, nannies, workers); the process alone where
+        there are no process groups (Windows)."""
+        with contextlib.suppress(ProcessLookupError, PermissionError, OSError):
+            if hasattr(os, "killpg"):
+                os.killpg(self._proc.pid, signal.SIGKILL)
+            elif self._proc.poll() is None:
+                self._proc.kill()
+
     def close(self, abort: bool = False, timeout: float = CLOSE_TIMEOUT_S) -> None:
         """Close its stdin (the cluster shuts down by itself; ``abort``: at once, its workers killed mid-task), wait
         ``timeout`` seconds, then end its whole process group (scheduler, nannies, workers)."""
@@ -350,11 +359,9 @@ class LocalProcessCluster:
         try:
             self._proc.wait(timeout)
         except subprocess.TimeoutExpired:
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(self._proc.pid, signal.SIGKILL)
+            self._kill_group()
             self._proc.wait()
-        with contextlib.suppress(ProcessLookupError, PermissionError):
-            os.killpg(self._proc.pid, signal.SIGKILL)  # a worker its nanny left behind
+        self._kill_group()  # a worker its nanny left behind
         if self._proc.stdout is not None:
             self._proc.stdout.close()
         self._log.close()
