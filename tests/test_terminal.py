@@ -92,3 +92,13 @@ def test_the_progress_names_each_command_once(tmp_path):
     lines = r.stderr.splitlines()
     assert any(x.startswith("diagnose screen ") for x in lines), r.stderr
     assert not any(x.startswith("diagnose diagnosis") for x in lines), r.stderr
+
+
+def test_a_share_of_the_gap_reads_as_a_share():
+    """A diagnosis round printed 'delay -40951.1 %' (a tiny excess left above the noise floor makes any misfit a huge
+    negative share) and 'closed 100.5 %' (a gap below the floor): each is said in words now."""
+    from harness.diagnosis.search import share_text
+
+    assert share_text(-40951.1) == "widens it 411x"
+    assert share_text(100.5) == "100 %, below the noise floor"
+    assert share_text(56.34) == "56.3 %" and share_text(-22.8) == "-22.8 %" and share_text(100.0) == "100.0 %"
