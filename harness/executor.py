@@ -49,7 +49,9 @@ processes, and 6.3 to 6.6 s once :func:`local_cluster` started the cluster witho
 and slow monitors (:data:`CLUSTER_CONFIG`); a remote cluster keeps its own configuration.
 
 No shared filesystem: built FMUs travel as :class:`FmuBytes` and :func:`fmu_file` writes each once per worker
-process; :func:`worker_cache` keeps per-process objects (a loaded :class:`harness.fmu.cosim.Rig`) between tasks.
+process; the co-simulation's step loops (``fmus/master``) reach a remote cluster's workers as bytes too
+(:class:`MasterLibrary`), so a worker needs no compiler; :func:`worker_cache` keeps per-process objects (a loaded
+:class:`harness.fmu.cosim.Rig`) between tasks.
 """
 
 from __future__ import annotations
