@@ -64,28 +64,31 @@ def serve(n_workers: int, dashboard: str | None = None, path: list[str] | None =
     os.dup2(sys.stderr.fileno(), sys.stdout.fileno())  # what the workers print goes to the log, not the pipe
     config = {**CLUSTER_CONFIG, "distributed.worker.profile.enabled": dashboard is not None}
     config["distributed.worker.preload"] = PRELOAD
-    with dask.config.set(config):  # the nannies take the config (and their pre-spawn environment) when created
-        cluster = LocalCluster(
-            n_workers=n_workers,
-            threads_per_worker=1,
-            processes=True,
-            dashboard_address=dashboard,
-            worker_dashboard_address=None,
-            silence_logs=logging.CRITICAL,
-            host="127.0.0.1",
-            # no dashboard: the scheduler's plain HTTP endpoints then take a free port, not 8787
-            scheduler_kwargs=None if dashboard else {"dashboard_address": "127.0.0.1:0"},
-        )
-    with cluster:
-        address_out.write(cluster.scheduler_address + "\n")
-        address_out.close()
-        if sys.stdin.buffer.read(1):  # a byte: end at once; nothing: closed (the parent is done, or died)
-            for p in psutil.Process().children(recursive=True):
-                with contextlib.suppress(psutil.Error):
-                    p.kill()
-            shutil.rmtree(scratch, ignore_errors=True)
-            os._exit(0)
-    shutil.rmtree(scratch, ignore_errors=True)
+    try:
+        with dask.config.set(config):  # the nannies take the config (and their pre-spawn environment) when created
+            cluster = LocalCluster(
+                n_workers=n_workers,
+                threads_per_worker=1,
+                processes=True,
+                dashboard_address=dashboard,
+                worker_dashboard_address=None,
+                silence_logs=logging.CRITICAL,
+                host="127.0.0.1",
+                # no dashboard: the scheduler's plain HTTP endpoints then take a free port, not 8787
+                scheduler_kwargs=None if dashboard else {"dashboard_address": "127.0.0.1:0"},
+            )
+        with cluster:
+            with contextlib.suppress(BrokenPipeError):  # the parent gave up on it while it started
+                address_out.write(cluster.scheduler_address + "\n")
+                address_out.close()
+            if sys.stdin.buffer.read(1):  # a byte: end at once; nothing: closed (the parent is done, or died)
+                for p in psutil.Process().children(recursive=True):
+                    with contextlib.suppress(psutil.Error):
+                        p.kill()
+                shutil.rmtree(scratch, ignore_errors=True)
+                os._exit(0)
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
 
 
 if __name__ == "__main__":
