@@ -102,3 +102,23 @@ def test_a_share_of_the_gap_reads_as_a_share():
     assert share_text(-40951.1) == "widens it 411x"
     assert share_text(100.5) == "100 %, below the noise floor"
     assert share_text(56.34) == "56.3 %" and share_text(-22.8) == "-22.8 %" and share_text(100.0) == "100.0 %"
+
+
+def test_run_says_which_stage_runs_before_it_ends(tmp_path, monkeypatch):
+    """The live status line of `flexjoint run` showed the previous stage's message ("calibration: Kp ...") for the
+    30 s of identification: the pipeline now says each stage as it starts (status), then its result (progress)."""
+    from test_executor import TINY_SPEC
+
+    from harness.pipeline import run_pipeline
+
+    monkeypatch.setenv("FLEXJOINT_WORKERS", "1")
+    tiny = tmp_path / "tiny.toml"
+    tiny.write_text(TINY_SPEC)
+    said: list[tuple[str, str]] = []
+    run_pipeline(tiny, tmp_path / "r", sim=tiny, progress=lambda m: said.append(("done", m)),
+                 status=lambda m: said.append(("now", m)))  # fmt: skip
+    kinds = [k for k, _ in said]
+    assert kinds == ["now", "done"] * (len(said) // 2), said  # every stage announced, then its result
+    now = dict(zip([m for k, m in said if k == "done"], [m for k, m in said if k == "now"], strict=True))
+    ident = next(m for m in now if m.startswith("identified"))
+    assert now[ident].startswith("identification: ARMAX grid"), said
