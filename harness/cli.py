@@ -323,7 +323,7 @@ def campaign(
 
     _out_dir(out_dir)
     s = specmod.load(spec, set_ or [])
-    prestart(workers, scheduler)  # the workers start while the campaign loads
+    prestart(workers, scheduler, ["harness.rig.campaign"])  # the workers start while the campaign loads
     from .rig.campaign import run_campaign
 
     t0 = time.perf_counter()
@@ -407,11 +407,13 @@ def identify(
 ) -> None:
     """Calibrate, then the ARMAX grid per dataset, cross-validation and selection: grid.csv, models/."""
     from . import spec as specmod
-    from .executor import session
+    from .executor import prestart, session
+
+    over = specmod.apply_overrides({}, set_ or []).get("identify", {})
+    prestart(workers, scheduler, ["harness.ident.identify"])  # the workers start while the identification loads
     from .ident.doubled_rate import doubled_rate_check
     from .pipeline import identify_run
 
-    over = specmod.apply_overrides({}, set_ or []).get("identify", {})
     with session(workers, scheduler):  # the grid's tasks run on this session's cluster
         res, _, cal, ident = identify_run(run_dir, over, progress=_progress("grid"))
     g = res.grid
@@ -495,10 +497,13 @@ def diagnose(
     workers: WorkersOpt = None,
 ) -> None:
     """Where the sim-to-real gap lies, which unmodelled effect causes it, how far it shrinks: diagnosis.json."""
-    from .diagnosis.diagnose import diagnose_run
+    from .executor import prestart
 
     if out_dir is not None:
         _out_dir(out_dir)
+    prestart(workers, scheduler, ["harness.diagnosis.tasks"])  # the workers start while the diagnosis loads
+    from .diagnosis.diagnose import diagnose_run
+
     d = diagnose_run(real, sim, out_dir, progress=_progress("diagnose"), replay=replay, **_parallel(workers, scheduler))
     out.print(diagnosis_summary(d))
 
@@ -703,7 +708,7 @@ def run(
         out_dir = Path("runs") / time.strftime("%Y%m%d-%H%M%S")
     _out_dir(out_dir)
     specmod.load(spec, set_ or [])  # a bad spec, or one too large for this machine, fails before any work
-    prestart(workers, scheduler)  # the workers start while the pipeline loads
+    prestart(workers, scheduler, ["harness.rig.campaign"])  # the workers start while the pipeline loads
     from .pipeline import run_pipeline
 
     with session(workers, scheduler):  # one cluster for every parallel step of the pipeline

@@ -31,7 +31,7 @@ import dask
 import psutil
 from distributed import LocalCluster
 
-__all__ = ["CLUSTER_CONFIG", "PRELOAD", "serve"]
+__all__ = ["CLUSTER_CONFIG", "serve"]
 
 # what every local cluster runs under (see harness.executor): the nanny's pre-spawn environment without its malloc
 # trim threshold (the one-thread BLAS variables it also sets stay; the tasks limit BLAS themselves anyway), and its
@@ -45,16 +45,14 @@ CLUSTER_CONFIG = {
     "distributed.admin.system-monitor.interval": "5s",
     "distributed.worker.memory.monitor-interval": "1s",
 }
-# imported by every worker as it starts (while the command loads what it runs, see executor.prestart), not by the
-# first task: the campaign's stack (fmpy, numpy, pandas, scipy) took a worker 1.0-2.2 s to import, ahead of its first
-# result
-PRELOAD = ["harness.rig.campaign"]
 
 
-def serve(n_workers: int, dashboard: str | None = None, path: list[str] | None = None) -> None:
+def serve(
+    n_workers: int, dashboard: str | None = None, path: list[str] | None = None, preload: list[str] | None = None
+) -> None:
     """Start ``n_workers`` processes of one thread on 127.0.0.1 (worker logs below CRITICAL silenced, the dashboard
-    only at ``dashboard``, ``sys.path`` set to ``path``), print the scheduler's address on the real stdout, run until
-    stdin closes, shut down."""
+    only at ``dashboard``, ``sys.path`` set to ``path``, the modules ``preload`` imported by each worker as it
+    starts), print the scheduler's address on the real stdout, run until stdin closes, shut down."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when the cluster ends
     if path is not None:
         sys.path[:] = path  # the spawned workers take this process's sys.path
@@ -63,7 +61,7 @@ def serve(n_workers: int, dashboard: str | None = None, path: list[str] | None =
     address_out = os.fdopen(os.dup(sys.stdout.fileno()), "w")
     os.dup2(sys.stderr.fileno(), sys.stdout.fileno())  # what the workers print goes to the log, not the pipe
     config = {**CLUSTER_CONFIG, "distributed.worker.profile.enabled": dashboard is not None}
-    config["distributed.worker.preload"] = PRELOAD
+    config["distributed.worker.preload"] = list(preload or [])
     try:
         with dask.config.set(config):  # the nannies take the config (and their pre-spawn environment) when created
             cluster = LocalCluster(
@@ -92,4 +90,4 @@ def serve(n_workers: int, dashboard: str | None = None, path: list[str] | None =
 
 
 if __name__ == "__main__":
-    serve(int(sys.argv[1]), sys.argv[2] or None, json.loads(sys.argv[3]) if len(sys.argv) > 3 else None)
+    serve(int(sys.argv[1]), sys.argv[2] or None, *(json.loads(a) for a in sys.argv[3:5]))
