@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import atexit
+import math
 import os
 import signal
 import sys
@@ -28,6 +29,7 @@ app = typer.Typer(
     add_completion=False,
     no_args_is_help=True,
     pretty_exceptions_enable=False,
+    rich_markup_mode=None,  # click's help: wrapped to the terminal, never an option's text cut with "…"
     help="Flexible-joint rig twin, ARMAX identification, cross-fit and sim-to-real diagnosis.",
 )
 
@@ -54,7 +56,7 @@ class _LazyConsole:
 
 
 err = cast("Console", _LazyConsole(stderr=True, highlight=False))
-out = cast("Console", _LazyConsole(highlight=False, width=None if sys.stdout.isatty() else 140))
+out = cast("Console", _LazyConsole(highlight=False))  # the terminal's width; piped: $COLUMNS, else 80
 
 SpecArg = Annotated[str, typer.Argument(help="campaign spec: a path or a name in specs/ (lab, nominal)")]
 SetOpt = Annotated[list[str] | None, typer.Option("--set", help="override one parameter: table.name=value")]
@@ -98,6 +100,44 @@ def _out_dir(path: Path, option: str = "--out") -> Path:
             where = "" if p == path else f" ({p} is a file)"
             raise NotADirectoryError(f"{option} {path}: not a directory{where}; give a new or existing directory")
     return path
+
+
+def _fit(table: Any) -> Any:
+    """A rich table made to fit ``out``'s width without cutting a cell: every column folds instead of ending in "…"
+    (a column marked no_wrap keeps its widest cell whole); a table too wide for its borders loses them (one space
+    between columns); one still too wide is wrapped: its columns in parts, one under the other, each part with the
+    first column again (the title above the first, the caption under all, as wide as the terminal)."""
+    from rich import box
+    from rich.console import Group
+    from rich.measure import Measurement
+    from rich.table import Table
+    from rich.text import Text
+
+    for c in table.columns:
+        c.overflow = "fold"
+        if c.no_wrap:
+            c.min_width = max((len(str(x)) for x in (c.header, *c.cells)), default=0)
+    wide = out.options.update_width(10_000)
+    if Measurement.get(out, wide, table).maximum <= out.width:
+        return table
+    table.box, table.padding, table.show_edge = box.SIMPLE_HEAD, (0, 1), False
+    if Measurement.get(out, wide, table).minimum <= out.width:
+        return table
+    first, parts = table.columns[0], [[]]
+    for c in table.columns[1:]:
+        if parts[-1] and sum((x.min_width or 12) + 3 for x in (first, *parts[-1], c)) > out.width:  # pad, rule
+            parts.append([])
+        parts[-1].append(c)
+    tables = []
+    for i, cols in enumerate(parts):
+        t = Table(box=table.box, padding=table.padding, show_edge=False, title_justify=table.title_justify)
+        t.title = table.title if i == 0 else None
+        for c in (first, *cols):
+            t.add_column(c.header, justify=c.justify, no_wrap=c.no_wrap, min_width=c.min_width, overflow="fold")
+        for r in range(table.row_count):
+            t.add_row(*(c._cells[r] for c in (first, *cols)))
+        tables.append(t)
+    return Group(*tables, *([Text(str(table.caption), style="dim")] if table.caption else []))
 
 
 class _Elapsed:
@@ -151,6 +191,10 @@ def _progress(label: str) -> Callable[[str], None]:
         live.item = item
         err.print(f"[dim]{label}[/] {item} [dim]({time.perf_counter() - start:.1f} s)[/]", soft_wrap=True)
 
+    def status(item: str) -> None:  # what runs now: the live line only, no line of its own
+        live.item = item
+
+    report.status = status  # type: ignore[attr-defined]
     return report
 
 
@@ -204,6 +248,48 @@ def specs() -> None:
 
 
 @app.command()
+def info(
+    spec: Annotated[str | None, typer.Argument(help="a spec (path or bundled name) whose values to show")] = None,
+    set_: SetOpt = None,
+    as_json: Annotated[bool, typer.Option("--json", help="print the list as JSON")] = False,
+) -> None:
+    """List every plant, DAQ and controller parameter (a spec's table.name, for --set and the spec's tables) with
+    its unit, the SPEC's value, the FMU's default and its declared range."""
+    import json
+
+    from rich.table import Table
+    from rich.text import Text
+
+    from . import spec as specmod
+    from .parameters import parameters, value_text
+
+    s = specmod.load(spec, set_ or []) if spec is not None else None
+    rows = parameters(s)
+    if as_json:
+        out.print(json.dumps([r.to_dict() for r in rows], indent=1), markup=False, soft_wrap=True)
+        return
+    title = f"parameters of {s.name} (value: the spec's, else the default)" if s else "parameters"
+    t = Table(title=f"{title}; set one with --set table.name=value", title_justify="left")
+    narrow = out.width < 110  # the description under the name instead of a column squeezed to a word a line
+    t.add_column("parameter", no_wrap=not narrow)
+    t.add_column("unit", no_wrap=True)
+    if s is not None:
+        t.add_column("value", justify="right", no_wrap=True)
+    t.add_column("default", justify="right", no_wrap=True)
+    t.add_column("range", no_wrap=True)
+    if not narrow:
+        t.add_column("description", ratio=1)
+    for r in rows:
+        value = [value_text(r.default if r.spec is None else r.spec)] if s is not None else []
+        name = Text(r.key, style="bold" if r.spec is not None else "")
+        if narrow:
+            name.append("\n  " + r.description, style="dim")
+        cells = [name, r.unit, *value, value_text(r.default), r.range, *([] if narrow else [r.description])]
+        t.add_row(*cells)
+    out.print(_fit(t))
+
+
+@app.command()
 def init(
     directory: Annotated[Path, typer.Argument(help="directory to copy the spec into (created if missing)")],
     spec: Annotated[str, typer.Option("--spec", help="bundled spec to copy (see `flexjoint specs`)")] = "lab",
@@ -235,11 +321,14 @@ def campaign(
 ) -> None:
     """Run a spec's experiments on the rig twin: writes manifest.json and data/<experiment>.parquet."""
     from . import spec as specmod
-    from .rig.campaign import run_campaign
+    from .executor import prestart
     from .rundir import check_new_run
 
     check_new_run(out_dir, force)
     s = specmod.load(spec, set_ or [])
+    prestart(workers, scheduler, ["harness.rig.campaign"])  # the workers start while the campaign loads
+    from .rig.campaign import run_campaign
+
     t0 = time.perf_counter()
     manifest = run_campaign(
         s, out_dir, progress=_progress("simulated"), workers=workers, scheduler=scheduler, force=force
@@ -357,11 +446,13 @@ def identify(
 ) -> None:
     """Calibrate, then the ARMAX grid per dataset, cross-validation and selection: grid.csv, models/."""
     from . import spec as specmod
-    from .executor import session
+    from .executor import prestart, session
+
+    over = specmod.apply_overrides({}, set_ or []).get("identify", {})
+    prestart(workers, scheduler, ["harness.ident.identify"])  # the workers start while the identification loads
     from .ident.doubled_rate import doubled_rate_check
     from .pipeline import identify_run
 
-    over = specmod.apply_overrides({}, set_ or []).get("identify", {})
     with session(workers, scheduler):  # the grid's tasks run on this session's cluster
         res, _, cal, ident = identify_run(run_dir, over, progress=_progress("grid"))
     g = res.grid
@@ -369,7 +460,7 @@ def identify(
         f"Kp {cal.Kp:.4f} deg/V, Ke {cal.Ke:.4f} deg/V, dead zone {cal.dead_zone_v:.4f} V; "
         f"{len(g)} orders x datasets, {int(g['causal'].sum())} causal, {int(g['survivor'].sum())} survivors"
     )
-    out.print(crossval_table(res))
+    out.print(_fit(crossval_table(res)))
     sel = g.loc[res.selected]
     out.print(f"selected ARMAX({sel.na},{sel.nb},{sel.nc},{sel.nk}) from {sel.dataset}: {res.rule}")
     if ident.get("doubled_rate", True):
@@ -386,10 +477,10 @@ def crossval_table(res):
     from rich.table import Table
 
     t = Table(title="cross-validation fit % (rows: model of dataset i; columns: dataset j)")
-    t.add_column("model")
+    t.add_column("model", no_wrap=True)
     for j in range(1, len(res.datasets) + 1):
-        t.add_column(str(j), justify="right")
-    t.add_column("average", justify="right")
+        t.add_column(str(j), justify="right", no_wrap=True)
+    t.add_column("average", justify="right", no_wrap=True)
     t.caption = "datasets: " + ", ".join(f"{j} {n}" for j, n in enumerate(res.datasets, 1))
     for i, (name, row_i) in enumerate([*res.best.items(), ("selected", res.selected)], 1):
         r = res.grid.loc[row_i]
@@ -446,10 +537,13 @@ def diagnose(
     force: Annotated[bool, typer.Option("--force", help="write into --out even when it is another run")] = False,
 ) -> None:
     """Where the sim-to-real gap lies, which unmodelled effect causes it, how far it shrinks: diagnosis.json."""
-    from .diagnosis.diagnose import diagnose_run
+    from .executor import prestart
 
     if out_dir is not None:
         _out_dir(out_dir)
+    prestart(workers, scheduler, ["harness.diagnosis.tasks"])  # the workers start while the diagnosis loads
+    from .diagnosis.diagnose import diagnose_run
+
     d = diagnose_run(
         real, sim, out_dir, progress=_progress("diagnose"), replay=replay, force=force, **_parallel(workers, scheduler)
     )
@@ -502,10 +596,14 @@ def sweep(
     )
     p, sens = doc["summary"]["pass"], doc["summary"]["sensitivity"]
     top = sens["ranking"][0]
+    most = (
+        f"most sensitive: {top['param']} (S1 {top['s1']:.2f})"
+        if math.isfinite(top["s1"])
+        else f"sensitivity indices: n = {p['n']} rigs too few"
+    )
     out.print(
         f"{p['n']} rigs: {p['passed']} pass = {100 * p['rate']:.1f} % (95 % CI {100 * p['ci95'][0]:.1f}-"
-        f"{100 * p['ci95'][1]:.1f} %); most sensitive: {top['param']} (S1 {top['s1']:.2f}); "
-        f"{doc['wall_s']:.1f} s -> {out_dir}"
+        f"{100 * p['ci95'][1]:.1f} %); {most}; {doc['wall_s']:.1f} s -> {out_dir}"
     )
 
 
@@ -526,13 +624,23 @@ def report(
     out.print(f"{path} ({path.stat().st_size / 1024:.1f} kB), {path.parent / 'figures'}, {recording}")
 
 
+def interval_text(lo: float, hi: float) -> str:
+    """An interval with enough significant digits (4 to 10) for its ends to differ: 0.49988..0.49992, not
+    0.4999..0.4999."""
+    for digits in range(4, 11):
+        a, b = f"{lo:.{digits}g}", f"{hi:.{digits}g}"
+        if a != b:
+            break
+    return f"{a}..{b}"
+
+
 def diagnosis_summary(d: Diagnosis) -> str:
     """A few lines for the terminal: verdict, effects in greedy order with their fitted parameters, the shrink."""
     lines = [f"verdict: {d.verdict}"]
     for name, p in d.parameters.items():
         if p.finding is not None:
             lo, hi = p.ci95
-            lines.append(f"  {name}: {p.finding}" + ("" if p.kept else f" (95 % interval {lo:.4g}..{hi:.4g})"))
+            lines.append(f"  {name}: {p.finding}" + ("" if p.kept else f" (95 % interval {interval_text(lo, hi)})"))
     for e in d.effects:
         params = ", ".join(f"{k}={v:.4g}" for k, v in e.params.items())
         lines.append(f"  + {e.effect} ({params}): shrink {e.shrink_pct:.1f} % on held-out experiments")
@@ -582,10 +690,10 @@ def blindtest(
 
     fams = tuple(family) if family else FAMILIES
     res = run_blind(
-        n, seed, out_dir, progress=_progress("case"), families=fams, quick=quick, keep=keep,
+        n, seed, out_dir, progress=_progress("blindtest"), families=fams, quick=quick, keep=keep,
         **_parallel(workers, scheduler),
     )  # fmt: skip
-    out.print(blindtest_table(res["totals"]))
+    out.print(_fit(blindtest_table(res["totals"])))
     out.print(f"{res['n']} cases in {res['timing_s']:.0f} s -> {Path(out_dir) / 'blindtest.json'}")
     for why in res.get("skipped", []):
         out.print(f"skipped family {why}")
@@ -616,8 +724,15 @@ def blindtest_table(tot: dict):
         t.add_column(c, justify="right")
     for label, get in rows:
         t.add_row(label, *[cell(get(tot["families"][c] if c != "pooled" else tot)) for c in cols])
-    t.caption = "targets: " + "; ".join(f"{k} >= {v['target']:g} ({'met' if v['met'] else 'NOT met'})"
-                                        for k, v in tot["targets"].items())  # fmt: skip
+
+    def verdict(v: dict) -> str:
+        if not v.get("n"):
+            return "no cases"
+        if not v.get("enough", True):
+            return f"too few cases to tell: {v['n']}"
+        return "met" if v["met"] else "NOT met"
+
+    t.caption = "targets: " + "; ".join(f"{k} >= {v['target']:g} ({verdict(v)})" for k, v in tot["targets"].items())
     return t
 
 
@@ -636,19 +751,21 @@ def run(
 ) -> None:
     """The whole pipeline: build, campaign, calibrate, identify, export, cross-fit, diagnose, report, Rerun."""
     from . import spec as specmod
-    from .executor import session
-    from .pipeline import run_pipeline
+    from .executor import prestart, session
     from .rundir import check_new_run
 
     if out_dir is None:
         out_dir = Path("runs") / time.strftime("%Y%m%d-%H%M%S")
     check_new_run(out_dir, force)
     specmod.load(spec, set_ or [])  # a bad spec, or one too large for this machine, fails before any work
+    prestart(workers, scheduler, ["harness.rig.campaign"])  # the workers start while the pipeline loads
+    from .pipeline import run_pipeline
 
     with session(workers, scheduler):  # one cluster for every parallel step of the pipeline
+        progress = _progress("run")
         result = run_pipeline(
-            spec, out_dir, set_ or [], sim=sim, rrd=rrd, spawn=spawn, connect=connect, progress=_progress("run"),
-            force=force,
+            spec, out_dir, set_ or [], sim=sim, rrd=rrd, spawn=spawn, connect=connect, progress=progress,
+            status=progress.status, force=force,  # type: ignore[attr-defined]
         )  # fmt: skip
     out.print(result.summary)
     out.print("stages: " + ", ".join(f"{k} {v:.1f} s" for k, v in result.stages.items()))

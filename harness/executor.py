@@ -11,7 +11,9 @@
 - ``scheduler`` (or env ``FLEXJOINT_SCHEDULER``), e.g. ``tcp://10.0.0.5:8786``: ``distributed.Client`` to it;
 - else an embedded ``LocalCluster``: ``workers`` (default :func:`harness.machine.default_workers`:
   ``FLEXJOINT_WORKERS``, else min(2, cpu count)) processes of one thread each, no dashboard unless ``dashboard``
-  gives an address, logs silenced below ERROR;
+  gives an address, logs silenced below ERROR; run by :mod:`harness.localcluster` in a process of its own, so that
+  its workers never re-import the caller's ``__main__`` (a plain script calling the library runs once) and a
+  terminal's Ctrl-C reaches the command alone, which shuts the cluster down quietly;
 - ``backend="processes"``: a plain ``multiprocessing`` pool of ``workers`` spawned processes, no Dask: the
   machine's own reference for the Dask backends (``flexjoint bench`` measures both on the same stage).
 
@@ -47,7 +49,9 @@ processes, and 6.3 to 6.6 s once :func:`local_cluster` started the cluster witho
 and slow monitors (:data:`CLUSTER_CONFIG`); a remote cluster keeps its own configuration.
 
 No shared filesystem: built FMUs travel as :class:`FmuBytes` and :func:`fmu_file` writes each once per worker
-process; :func:`worker_cache` keeps per-process objects (a loaded :class:`harness.fmu.cosim.Rig`) between tasks.
+process; the co-simulation's step loops (``fmus/master``) reach a remote cluster's workers as bytes too
+(:class:`MasterLibrary`), so a worker needs no compiler; :func:`worker_cache` keeps per-process objects (a loaded
+:class:`harness.fmu.cosim.Rig`) between tasks.
 """
 
 from __future__ import annotations
@@ -57,11 +61,13 @@ import contextlib
 import contextvars
 import ctypes
 import hashlib
-import logging
+import json
 import multiprocessing
 import os
 import pickle
 import shutil
+import signal
+import subprocess
 import sys
 import tempfile
 import threading
@@ -74,22 +80,28 @@ from multiprocessing.util import Finalize
 from pathlib import Path
 from typing import Any, TypeVar
 
-import dask
-from distributed import Client, LocalCluster, as_completed, get_worker
+from distributed import Client, as_completed, get_worker
+from distributed.diagnostics.plugin import WorkerPlugin
 from distributed.scheduler import KilledWorker
 from threadpoolctl import ThreadpoolController
 
+from .fmu.build import build_master, install_master
 from .fmu.cosim import Rig
+from .localcluster import CLUSTER_CONFIG
 from .machine import default_workers, env_workers
 
 __all__ = [
+    "CLUSTER_CONFIG",
     "Executor",
     "FmuBytes",
+    "LocalProcessCluster",
+    "MasterLibrary",
     "fmu_bytes",
     "fmu_file",
     "in_worker",
     "local_cluster",
     "one_blas_thread",
+    "prestart",
     "session",
     "use",
     "worker_cache",
@@ -101,25 +113,13 @@ Progress = Callable[[str], None]
 
 SCHEDULER_ENV = "FLEXJOINT_SCHEDULER"
 CONNECT_TIMEOUT_S = 10.0
+CLOSE_TIMEOUT_S = 10.0  # a local cluster not shut down by then is ended by signal
 CACHE_SIZE = 8  # worker_cache entries kept per process (least recently used dropped, and closed, first)
 BACKENDS = ("dask", "processes")
 # glibc's ceiling for its dynamic mmap threshold on 64-bit (DEFAULT_MMAP_THRESHOLD_MAX): what a plain process
 # reaches after its first large free; a worker whose thresholds were fixed by hand gets it back (see the module)
 MMAP_THRESHOLD = 32 << 20
 _MALLOC_ENV = ("MALLOC_TRIM_THRESHOLD_", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TOP_PAD_", "MALLOC_MMAP_MAX_")
-# what every LocalCluster this module starts runs under: the nanny's pre-spawn environment without its malloc trim
-# threshold (the one-thread BLAS variables it also sets stay; the tasks limit BLAS themselves anyway), and its
-# processes without the wake-ups that take the GIL from a task (see the module): no statistical profiler (a stack
-# sample every 10 ms; kept when a dashboard is asked for), the event loop's tick every 1 s (20 ms), the system and
-# memory monitors every 5 s and 1 s (0.5 s, 0.1 s)
-CLUSTER_CONFIG = {
-    "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
-    "distributed.worker.profile.enabled": False,
-    "distributed.admin.tick.interval": "1s",
-    "distributed.admin.system-monitor.interval": "5s",
-    "distributed.worker.memory.monitor-interval": "1s",
-}
-
 _SESSION: contextvars.ContextVar[Executor | None] = contextvars.ContextVar("flexjoint_executor", default=None)
 
 
@@ -166,6 +166,19 @@ def fmu_file(fmu: FmuBytes) -> Path:
         path.write_bytes(fmu.data)
         _FMU_FILES[fmu.sha256] = path
         return path
+
+
+class MasterLibrary(WorkerPlugin):
+    """The co-simulation's step loops (``fmus/master``, built by the client) as bytes for every worker of a remote
+    cluster, present and joining later: each installs them into its own cache (:func:`harness.fmu.build.install_master`)
+    instead of compiling them, so a worker needs no compiler, as the FMUs travel as bytes."""
+
+    def __init__(self, library: FmuBytes) -> None:
+        self.library = library
+        self.name = f"flexjoint-master-{library.sha256[:12]}"
+
+    def setup(self, worker: Any) -> None:
+        install_master(self.library.name, self.library.data)
 
 
 # ----------------------------------------------------------------------------------------------- per-process cache
@@ -287,25 +300,102 @@ def in_worker() -> bool:
 
 
 # ----------------------------------------------------------------------------------------------- executor
-def local_cluster(n_workers: int, dashboard: str | None = None) -> Any:
-    """The embedded ``distributed.LocalCluster``: ``n_workers`` processes of one thread on 127.0.0.1, worker
-    logs below CRITICAL silenced (a task's error reaches the client, not the terminal twice), the dashboard
-    only at ``dashboard`` (e.g. ``":8787"``) when given; the cluster started under :data:`CLUSTER_CONFIG` (no
-    malloc trim threshold, no profiler, slow ticks and monitors: see the module)."""
+class LocalProcessCluster:
+    """The embedded local cluster, run by :mod:`harness.localcluster` in a process (and session) of its own: its
+    workers never re-import the caller's ``__main__``, a terminal's Ctrl-C does not reach them, and their logs go to
+    a scratch file (read only to say why the cluster did not start). ``scheduler_address`` to connect a client;
+    :meth:`close` (or leaving the ``with``) shuts it down."""
 
-    config = {**CLUSTER_CONFIG, "distributed.worker.profile.enabled": dashboard is not None}
-    with dask.config.set(config):  # the nannies take the config (and their pre-spawn environment) when created
-        return LocalCluster(
-            n_workers=n_workers,
-            threads_per_worker=1,
-            processes=True,
-            dashboard_address=dashboard,
-            worker_dashboard_address=None,
-            silence_logs=logging.CRITICAL,
-            host="127.0.0.1",
-            # no dashboard: the scheduler's plain HTTP endpoints then take a free port, not 8787
-            scheduler_kwargs=None if dashboard else {"dashboard_address": "127.0.0.1:0"},
+    def __init__(self, n_workers: int, dashboard: str | None = None, preload: Sequence[str] = ()) -> None:
+        self.n_workers, self.dashboard = n_workers, dashboard
+        self._log = tempfile.TemporaryFile()
+        cmd = [sys.executable, "-m", "harness.localcluster", str(n_workers), dashboard or "", json.dumps(sys.path)]
+        cmd.append(json.dumps(list(preload)))
+        self._proc = subprocess.Popen(
+            cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=self._log, start_new_session=True
         )
+        self._address: str | None = None
+
+    @property
+    def scheduler_address(self) -> str:
+        """The scheduler's address, once every worker is up (waits for it the first time)."""
+        if self._address is None:
+            try:
+                line = self._proc.stdout.readline().decode().strip() if self._proc.stdout else ""
+            except BaseException:  # a Ctrl-C while it starts: nothing left behind
+                self.close()
+                raise
+            if not line.startswith("tcp://"):
+                self.close()
+                raise RuntimeError(f"the local Dask cluster did not start: {self._last_log_line()}")
+            self._address = line
+        return self._address
+
+    def _last_log_line(self) -> str:
+        self._log.seek(0)
+        lines = [x.strip() for x in self._log.read().decode(errors="replace").splitlines() if x.strip()]
+        return lines[-1] if lines else f"its process ended with code {self._proc.returncode}"
+
+    def __enter__(self) -> LocalProcessCluster:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _kill_group(self) -> None:
+        """SIGKILL to the cluster's session (its process group: scheduler, nannies, workers); the process alone where
+        there are no process groups (Windows)."""
+        with contextlib.suppress(ProcessLookupError, PermissionError, OSError):
+            if hasattr(os, "killpg"):
+                os.killpg(self._proc.pid, signal.SIGKILL)
+            elif self._proc.poll() is None:
+                self._proc.kill()
+
+    def close(self, abort: bool = False, timeout: float = CLOSE_TIMEOUT_S) -> None:
+        """Close its stdin (the cluster shuts down by itself; ``abort``: at once, its workers killed mid-task), wait
+        ``timeout`` seconds, then end its whole process group (scheduler, nannies, workers)."""
+        if self._proc.stdin is not None and not self._proc.stdin.closed:
+            with contextlib.suppress(OSError):
+                if abort:
+                    self._proc.stdin.write(b"k")
+                self._proc.stdin.close()
+        try:
+            self._proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            self._kill_group()
+            self._proc.wait()
+        self._kill_group()  # a worker its nanny left behind
+        if self._proc.stdout is not None:
+            self._proc.stdout.close()
+        self._log.close()
+
+
+_PRESTARTED: list[LocalProcessCluster] = []
+
+
+def prestart(workers: int | None = None, scheduler: str | None = None, preload: Sequence[str] = ()) -> None:
+    """Start, without waiting for it, the local cluster the next ``Executor(workers, scheduler)`` (or
+    :func:`session`) of this process would start; that executor adopts it, so a command imports what it runs while
+    the workers start, and each worker imports the modules ``preload`` meanwhile, not at its first task (the
+    campaign's stack took a worker 1.0-2.2 s before its first result). Does nothing where that executor would start
+    none (serially, on a scheduler, inside a worker or a session). A cluster never adopted ends with this process
+    (its stdin closes)."""
+    if workers is None:
+        workers = env_workers()
+    scheduler = scheduler or os.environ.get(SCHEDULER_ENV, "").strip() or None
+    if scheduler is not None or workers == 1 or _PRESTARTED or _SESSION.get() is not None or in_worker():
+        return
+    n = workers or default_workers()
+    if n > 1:
+        _PRESTARTED.append(LocalProcessCluster(n, preload=preload))
+
+
+def local_cluster(n_workers: int, dashboard: str | None = None) -> LocalProcessCluster:
+    """The embedded local cluster (:class:`LocalProcessCluster`): ``n_workers`` processes of one thread on
+    127.0.0.1, worker logs below CRITICAL silenced, the dashboard only at ``dashboard`` (e.g. ``":8787"``) when
+    given, started under :data:`harness.localcluster.CLUSTER_CONFIG` (no malloc trim threshold, no profiler, slow
+    ticks and monitors: see the module)."""
+    return LocalProcessCluster(n_workers, dashboard)
 
 
 class Executor:
@@ -369,17 +459,27 @@ class Executor:
                 first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
                 raise RuntimeError(f"cannot connect to the Dask scheduler at {scheduler}: {first}") from None
             self.kind = "remote"
+            self.client.register_plugin(MasterLibrary(fmu_bytes(build_master())))
         else:
-            self._cluster = local_cluster(workers or default_workers(), dashboard)
-            self.client = Client(self._cluster, set_as_default=False)
+            n = workers or default_workers()
+            pre = _PRESTARTED.pop() if _PRESTARTED else None
+            if pre is not None and (pre.n_workers, pre.dashboard) != (n, dashboard):
+                pre.close()
+                pre = None
+            self._cluster = pre or local_cluster(n, dashboard)
+            try:
+                self.client = Client(self._cluster.scheduler_address, set_as_default=False)
+            except BaseException:
+                self._cluster.close()
+                raise
             self.kind = "local"
         self._owns_client = True
 
     def __enter__(self) -> Executor:
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def __exit__(self, exc_type: type[BaseException] | None, *exc: object) -> None:
+        self.close(abort=exc_type is not None)
 
     @property
     def n_workers(self) -> int:
@@ -390,9 +490,10 @@ class Executor:
             return 1
         return max(len(self.client.nthreads()), 1)
 
-    def close(self) -> None:
+    def close(self, abort: bool = False) -> None:
         """Release the scattered data (and the processes backend's scratch files), and close the client, the process
-        pool and the local cluster if this executor started them."""
+        pool and the local cluster if this executor started them (``abort``, on an error or a Ctrl-C: a local cluster
+        ends at once, its running tasks killed, instead of after them)."""
         self._scattered.clear()
         self._blobs.clear()
         if self._scratch is not None:
@@ -406,7 +507,7 @@ class Executor:
                     self.client.close()
             if self._cluster is not None:
                 with contextlib.suppress(Exception):
-                    self._cluster.close()
+                    self._cluster.close(abort=abort)
         self.client, self.pool, self._cluster, self._owns_client = None, None, None, False
 
     def _scatter(self, obj: Any) -> Any:
@@ -550,5 +651,8 @@ def session(
     try:
         with use(ex):
             yield ex
+    except BaseException:
+        ex.close(abort=True)
+        raise
     finally:
         ex.close()

@@ -68,13 +68,15 @@ def run_pipeline(
     spawn: bool = False,
     connect: str | None = None,
     progress: Progress | None = None,
+    status: Progress | None = None,
     force: bool = False,
 ) -> PipelineResult:
     """``flexjoint run``: every step on one spec into run directory ``out``, written aside and moved into place when
     complete (:func:`harness.rundir.new_run`; over an existing run only with ``force``); returns its summary and the
-    wall time of each stage (written to ``run.timing.json`` too)."""
+    wall time of each stage (written to ``run.timing.json`` too). ``progress``: a message as each stage ends;
+    ``status``: what runs now, as each stage starts (a live status line's text)."""
     with new_run(out, force) as work:
-        return _pipeline(spec_name, work, Path(out), overrides, sim, rrd, spawn, connect, progress)
+        return _pipeline(spec_name, work, Path(out), overrides, sim, rrd, spawn, connect, progress, status)
 
 
 def _pipeline(
@@ -87,9 +89,11 @@ def _pipeline(
     spawn: bool,
     connect: str | None,
     progress: Progress | None,
+    status: Progress | None,
 ) -> PipelineResult:
     """The pipeline into ``out`` (the aside of run directory ``shown``, the one the summary names)."""
     say = progress or (lambda _msg: None)
+    now = status or (lambda _msg: None)
     stages: dict[str, float] = {}
     clock = [time.perf_counter()]
 
@@ -101,25 +105,33 @@ def _pipeline(
 
     spec = specmod.load(spec_name, overrides or [])
     out = Path(out)
+    now("FMUs: building (only when their sources changed)")
     fmus = build_all()
     done("build", "FMUs built")
+    now("campaign: simulating the experiments")
     run_campaign(spec, out, fmus=fmus)
     done("campaign", f"campaign: {len(spec.all_experiments())} experiments")
+    now("calibration: Kp, Ke and the dead zone")
     cal = calibrate_run(out)
     done("calibration", f"calibration: Kp {cal.Kp:.4f} deg/V, Ke {cal.Ke:.4f} deg/V, dead zone {cal.dead_zone_v:.4f} V")
+    now("identification: ARMAX grid, cross-validation, selection")
     res, _, cal, ident = identify_run(out)
     sel = res.grid.loc[res.selected]
     done("identification", f"identified: ARMAX({sel.na},{sel.nb},{sel.nc},{sel.nk}), mean cross-validation "
          f"{sel.cv_mean:.2f} %")  # fmt: skip
     if ident.get("doubled_rate", True):
+        now("doubled-rate check")
         doubled_rate_check(out, res.models[res.selected], ident, cal, fmus=fmus)
         done("doubled_rate", "doubled-rate check")
+    now("cross-fit: the models as FMUs on every dataset")
     cf = crossfit_run(out)
     done("crossfit", f"cross-fit through FMUs: selected average {cf.loc['selected', 'average']:.2f} %")
+    now(f"diagnosis against {sim}: recalibration, effects, where the gap lies")
     d = diagnose_run(out, sim, out, fmus=fmus)
     found = " + ".join(d.effect_names) or d.verdict
     done("diagnosis", f"diagnosis against {sim}: {found} (verdict {d.verdict}, held-out shrink "
          f"{d.gap.shrink_pct:.1f} %)")  # fmt: skip
+    now("report.md, figures and run.rrd")
     results = load_results(out)
     write_report(out, results)
     log_run(out, rrd=rrd, spawn=spawn, connect=connect, results=results)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -194,3 +195,16 @@ def test_compare_rejects_bad_ic():
     true, u, y = demo_problem(0, n=100)
     with pytest.raises(ValueError, match="ic must be"):
         ax.compare(true, u, y, ic="x")
+
+
+def test_estimate_warns_when_the_output_integrates_the_input():
+    """A raw angle integrates the command: its ARMAX has a pole at 1 and simulates a drift. estimate says so and
+    names the preprocessing; the same data differentiated (what harness.prepare does) fit without a warning."""
+    _, u, y = demo_problem(0)
+    angle = np.cumsum(y)  # the integrated output, as a hub angle integrates its rate
+    with pytest.warns(ax.IntegratorWarning, match=r"pole at (0\.999|1\.0).*differentiate and low-pass"):
+        m = ax.estimate(u, angle, 4, 3, 4, 1)
+    assert max(abs(m.poles)) >= ax.INTEGRATOR_POLE
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ax.estimate(u, y, 4, 3, 4, 1)

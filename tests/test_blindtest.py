@@ -153,3 +153,25 @@ def test_small_blind_run_scores(tmp_path, fmus):
     for c in doc["cases"]:
         m = json.loads((tmp_path / "blind_cases" / f"case_{c['case']:03d}" / "manifest.json").read_text())
         assert m["spec"]["plant"] == base["plant"] and m["spec"]["daq"] == base["daq"]
+
+
+def test_a_target_is_not_met_on_one_case_nor_on_none():
+    """The console said a target was "(met)" on 1 of 1 case and on no case at all: below MIN_TARGET_CASES a score's
+    interval is too wide to tell, and the caption says so with the count."""
+    from rich.console import Console
+
+    from harness.cli import blindtest_table
+
+    single = {"kind": "single", "truth_effects": ["backlash"], "truth_params": {"plant.backlash": 0.005}}
+    s = bt.score_case(single, _diag("backlash", [("backlash", {"plant.backlash": 0.0051})], 80.0))
+    tot = bt.totals([{**single, "family": "twin", "case": 0, "score": s}])
+    assert tot["targets"]["single top-1 %"]["n"] == 1 and not tot["targets"]["single top-1 %"]["enough"]
+    console = Console(width=200, record=True)
+    console.print(blindtest_table(tot))
+    text = console.export_text()
+    assert "single top-1 % >= 90 (too few cases to tell: 1)" in text
+    assert "none answered none % >= 90 (no cases)" in text and "(met)" not in text
+    many = bt.totals([{**single, "family": "twin", "case": i, "score": s} for i in range(bt.MIN_TARGET_CASES)])
+    console = Console(width=200, record=True)
+    console.print(blindtest_table(many))
+    assert "single top-1 % >= 90 (met)" in console.export_text()

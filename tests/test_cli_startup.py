@@ -124,3 +124,36 @@ def test_ctrl_c_during_the_work_is_one_line_and_exit_130(tmp_path):
     assert "Traceback" not in stderr and stderr.strip().splitlines()[-1] == "error: interrupted", stderr
     assert all(x.startswith("simulated") for x in stderr.strip().splitlines()[:-1]), stderr
     assert not (tmp_path / "r" / "manifest.json").exists()
+
+
+@pytest.mark.parametrize(
+    "args, busy",
+    [
+        (["campaign", "lab", "--out", "r"], "simulated"),  # after the first experiment: both workers simulating
+        (["run", "--out", "r"], "run calibration"),  # calibrated: both workers in the identification grid
+    ],
+)
+def test_ctrl_c_while_the_workers_are_busy_is_one_line(tmp_path, args, busy):
+    """SIGINT to the whole process group (a terminal's Ctrl-C) while the local cluster's workers run tasks: the
+    command's one line, no worker's traceback (the workers printed their KeyboardInterrupt, the client a
+    ``KeyError: 'tcp://...'``), exit 130, and no cluster process left behind."""
+    p = subprocess.Popen(
+        [sys.executable, "-m", "harness", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=tmp_path,
+        start_new_session=True,
+        env={**os.environ, "FLEXJOINT_WORKERS": "2"},
+    )
+    seen = []
+    for line in p.stderr:
+        seen.append(line)
+        if line.startswith(busy):
+            break
+    os.killpg(p.pid, signal.SIGINT)
+    _, rest = p.communicate(timeout=120)
+    assert p.returncode == 130, "".join(seen) + rest
+    assert rest == "error: interrupted\n", rest
+    left = subprocess.run(["pgrep", "-f", f"harness.localcluster.*{tmp_path}"], capture_output=True, text=True)
+    assert left.stdout == "", left.stdout

@@ -92,8 +92,8 @@ class DaskCluster:
     serial work meanwhile); :meth:`wait` blocks until the workers are up; everything is stopped on exit. The
     processes also stop by themselves: the scheduler after 5 idle minutes, the workers 30 s after it is gone."""
 
-    def __init__(self, n: int = 2) -> None:
-        self.n = n
+    def __init__(self, n: int = 2, env: dict[str, str] | None = None) -> None:
+        self.n, self.env = n, env
         self.address = f"tcp://127.0.0.1:{_free_port()}"
         self.scheduler: subprocess.Popen | None = None
         self.workers: list[subprocess.Popen] = []
@@ -107,7 +107,7 @@ class DaskCluster:
         self.scheduler = subprocess.Popen(cmd, **quiet)
         cmd = [*dask, "worker", self.address, "--nthreads", "1", "--no-nanny", "--host", "127.0.0.1", *http]
         cmd += ["--death-timeout", "30", "--preload", "harness.sweep"]
-        self.workers = [subprocess.Popen(cmd, **quiet) for _ in range(self.n)]
+        self.workers = [subprocess.Popen(cmd, **quiet, env=self.env) for _ in range(self.n)]
         return self
 
     def wait(self) -> str:
@@ -323,3 +323,40 @@ def test_blind_test_on_a_remote_cluster_gives_the_serial_bytes(tmp_path, fmus):
     assert serial == (tmp_path / "remote" / "blindtest.json").read_bytes()
     timing = json.loads((tmp_path / "remote" / "blindtest.timing.json").read_text())
     assert sorted(timing["cases_s"]) == ["0", "1", "2"] and timing["scheduler"].startswith("tcp://127.0.0.1:")
+
+
+CLOSED = """
+[controller]
+kind = "state_feedback"
+K = [9.231, -18.769, 1.203, -0.041]
+cutoff = 15.0
+u_limit = 10.0
+
+[[experiment]]
+name = "square_closed"
+loop = "closed"
+signal = "square"
+f = 0.4
+amplitude = 20.0
+duration = 6.0
+"""
+
+
+def test_a_remote_worker_without_a_compiler_runs_a_closed_loop(tmp_path, fmus):
+    """The co-simulation's step loops (fmus/master) travel to remote workers as bytes, as the FMUs do: workers
+    with an empty cache and no C compiler (CC=false, PATH without one) run a closed-loop campaign, the same bytes
+    as serially. Before, each worker compiled the loops itself and failed here."""
+    from harness import spec as specmod
+    from harness.rig.campaign import run_campaign
+
+    spec = tmp_path / "closed.toml"
+    spec.write_text(TINY_SPEC + CLOSED)
+    cache = tmp_path / "worker-cache"
+    env = {**os.environ, "FLEXJOINT_CACHE": str(cache), "CC": "false", "PATH": str(Path(sys.executable).parent)}
+    with DaskCluster(2, env=env) as cluster:
+        run_campaign(specmod.load(spec), tmp_path / "serial", workers=1)
+        run_campaign(specmod.load(spec), tmp_path / "remote", scheduler=cluster.wait())
+    assert [p.name for p in cache.iterdir() if p.name.startswith("master-")]  # installed, not built: no .lock dir
+    for f in ("square_closed", "prbs"):
+        data = f"data/{f}.parquet"
+        assert (tmp_path / "serial" / data).read_bytes() == (tmp_path / "remote" / data).read_bytes(), f

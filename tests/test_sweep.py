@@ -239,3 +239,14 @@ def test_report_of_a_sweep_rewrites_its_report_with_titled_figures(tmp_path, fmu
         "plant.Ks [N.m/rad]",
         "plant.Beq [N.m.s/rad]",
     }
+
+
+def test_two_rigs_say_n_is_too_small_for_sensitivity_not_nan(tmp_path, fmus, monkeypatch, capsys):
+    """n = 2 gives no first-order index (nan): the console said "S1 nan"; it now says n is too small."""
+    spec = tiny_spec(tmp_path)
+    model = _selected_model(tmp_path / "run", spec, fmus)
+    capsys.readouterr()
+    _cli(monkeypatch, "sweep", spec, "--vary", "plant.Ks=uniform(1.3,1.8)", "--n", 2, "--model", model,
+         "--out", tmp_path / "sw", "--workers", 1)  # fmt: skip
+    line = " ".join(capsys.readouterr().out.split())  # one line, however the terminal wrapped it
+    assert "S1 nan" not in line and "sensitivity indices: n = 2 rigs too few" in line, line

@@ -62,6 +62,7 @@ __all__ = [
     "loop_floor",
     "recalibrated_alone",
     "search",
+    "share_text",
     "spread_divergence",
     "spread_round",
 ]
@@ -100,6 +101,17 @@ def closure(msg_before: float, msg_after: float, msg_floor: float) -> float:
     """Share of the excess mean squared gap (above the floor) closed: (E_before - E_after) / (E_before - E_floor)."""
     excess = msg_before - msg_floor
     return (msg_before - msg_after) / excess if excess > 0 else 0.0
+
+
+def share_text(pct: float) -> str:
+    """A share of the excess gap closed [%] as a person reads it: beyond 100 % the gap went below the noise floor
+    ("100 %, below the noise floor", not "100.5 %"); below -100 % the excess grew more than twofold ("widens it
+    410x", not "-40951.1 %", which a tiny excess left after earlier rounds makes of any misfit)."""
+    if pct > 100.0:
+        return "100 %, below the noise floor"
+    if pct < -100.0:
+        return f"widens it {1.0 - pct / 100.0:.0f}x"
+    return f"{pct:.1f} %"
 
 
 @dataclass
@@ -286,7 +298,8 @@ def forward_selection(
         say(
             f"round {len(fw.rounds)}: "
             + ", ".join(
-                f"{r['effect']} {r['held_out_share_pct']:.1f} %{' (joint)' if 'refit' in r else ''}" for r in ranked
+                f"{r['effect']} {share_text(r['held_out_share_pct'])}{' (joint)' if 'refit' in r else ''}"
+                for r in ranked
             )
         )
         if _closes(best) < MIN_CLOSURE or best["gap_after"] ** 2 >= fw.msg:

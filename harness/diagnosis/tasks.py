@@ -313,7 +313,7 @@ class Pool:
         self.ex = Executor(workers, scheduler, progress)
 
     def map(self, calls: list[tuple[Any, ...]]) -> list[Any]:
-        return self.ex.map(_run_call, calls, self.setup, desc="diagnosis", labels=[_label(c) for c in calls])
+        return self.ex.map(_run_call, calls, self.setup, desc="", labels=[_label(c) for c in calls])
 
     def refit(
         self, base: dict[str, Any], free: list[str], names: list[str], max_nfev: int, linear: bool = True
@@ -332,7 +332,7 @@ class Pool:
         with one_blas_thread():  # as in a task: the same BLAS, the same numbers in every backend
             res = least_squares_refit(self.setup, resid, base, free, names, max_nfev, linear)
         if self.progress is not None:
-            self.progress(f"diagnosis {_label(('refit', base, free))} on every experiment")
+            self.progress(f"{_label(('refit', base, free))} on every experiment")
         return res
 
     def close(self) -> None:

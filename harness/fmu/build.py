@@ -317,6 +317,22 @@ def build_master(out_dir: Path | None = None, force: bool = False) -> Path:
     return target
 
 
+def install_master(name: str, data: bytes) -> Path:
+    """Put a master library built elsewhere (it travelled as bytes to a worker without a compiler) into this
+    machine's cache as ``name`` (``master-<digest>.so``), atomically, unless it is there already: :func:`build_master`
+    then finds it when this machine's source has the same digest, and builds its own otherwise."""
+    if not re.fullmatch(r"master-[0-9a-f]{12}\.(so|dll|dylib)", name):
+        raise ValueError(f"not a master library's name: {name!r}")
+    target_dir = _target_dir(None)
+    target = target_dir / name
+    if target.is_file():
+        return target
+    with _file_lock(target_dir / ".master.lock"), tempfile.NamedTemporaryFile(dir=target_dir, delete=False) as f:
+        f.write(data)
+    os.replace(f.name, target)
+    return target
+
+
 def build_all(out_dir: Path | None = None, force: bool = False) -> dict[str, Path]:
     """Build the rig twin: ``{"flexjoint": Path, "daq": Path, "controller": Path}``."""
     return {name: build_fmu(name, out_dir=out_dir, force=force) for name in MODELS}

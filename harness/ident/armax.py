@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import warnings
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -31,6 +32,7 @@ from scipy.signal import lfilter
 __all__ = [
     "ArmaxModel",
     "FitResult",
+    "IntegratorWarning",
     "ResidTest",
     "compare",
     "compare_report",
@@ -43,6 +45,7 @@ __all__ = [
     "simulate",
 ]
 
+INTEGRATOR_POLE = 0.999  # a real pole of A at or beyond this: the data integrate (estimate warns)
 _C_RADIUS_MAX = 0.999  # roots of C reflected/clipped to this radius (predictor filter 1/C stays stable)
 
 
@@ -368,6 +371,15 @@ def estimate(
     fit1 = _fit(y, predict(model, u, y, 1))
     model.loss, model.noise_variance, model.cov, model.fit_onestep = V, lam, cov, fit1
     model.n_iter, model.converged = n_iter, converged
+    integrator = [z.real for z in model.poles if abs(z.imag) < 1e-6 and z.real >= INTEGRATOR_POLE]
+    if integrator:
+        warnings.warn(
+            f"ARMAX({na},{nb},{nc},{nk}) has a pole at {max(integrator):.8f}: y integrates u (a raw angle?), and "
+            "such a model simulates a drift (compare gives nan or a meaningless fit); differentiate and low-pass y "
+            "first (harness.prepare on a run, or harness.ident.preprocess.preprocess)",
+            IntegratorWarning,
+            stacklevel=2,
+        )
     return model
 
 
@@ -557,6 +569,10 @@ def compare_report(model: ArmaxModel, u: Any, y: Any, ic: str = "z") -> FitResul
 def compare(model: ArmaxModel, u: Any, y: Any, ic: str = "z") -> float:
     """Simulation fit in percent like MATLAB ``compare``; ``math.nan`` for a model with unstable A."""
     return compare_report(model, u, y, ic).fit
+
+
+class IntegratorWarning(UserWarning):
+    """An estimated A has a real pole at 1 or beyond: the output integrates the input, unprocessed."""
 
 
 @dataclass

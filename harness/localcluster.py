@@ -1,0 +1,93 @@
+"""The embedded local Dask cluster as a process of its own: ``python -m harness.localcluster N DASHBOARD SYS_PATH``.
+
+A ``LocalCluster`` started in the caller's process spawns its workers from there, and multiprocessing's spawn
+re-imports the parent's ``__main__`` in every child: a library call from a plain script (no ``if __name__ ==
+"__main__"`` guard) re-ran the script in each worker, which then failed to start ("Nanny failed to start"). Here the
+scheduler and the nannies live in this module's process, so the workers re-import this module (whose work is
+guarded), never the caller's. The process is a session of its own: a Ctrl-C at the terminal reaches only the
+command, which closes the cluster; the cluster's logs go to the file its parent gives as stderr, never the terminal.
+
+The caller's ``sys.path`` comes as an argument and the workers get it (as spawned workers get their parent's), so
+a task's function from a module beside the caller's script (or a test module) imports on them as before.
+
+Protocol: the scheduler's address on the first line of stdout once every worker is up; then the cluster runs until
+stdin closes (its parent closed it, or died) and shuts down; a byte on stdin instead ends it at once (its workers
+killed mid-task: the command was interrupted, or failed, and waits for nothing). The workers' scratch files (FMUs
+written as files) live in a directory of the cluster's own (their ``TMPDIR``), removed either way.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import shutil
+import signal
+import sys
+import tempfile
+
+import dask
+import psutil
+from distributed import LocalCluster
+
+__all__ = ["CLUSTER_CONFIG", "serve"]
+
+# what every local cluster runs under (see harness.executor): the nanny's pre-spawn environment without its malloc
+# trim threshold (the one-thread BLAS variables it also sets stay; the tasks limit BLAS themselves anyway), and its
+# processes without the wake-ups that take the GIL from a task: no statistical profiler (a stack sample every 10 ms;
+# kept when a dashboard is asked for), the event loop's tick every 1 s (20 ms), the system and memory monitors every
+# 5 s and 1 s (0.5 s, 0.1 s)
+CLUSTER_CONFIG = {
+    "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
+    "distributed.worker.profile.enabled": False,
+    "distributed.admin.tick.interval": "1s",
+    "distributed.admin.system-monitor.interval": "5s",
+    "distributed.worker.memory.monitor-interval": "1s",
+}
+
+
+def serve(
+    n_workers: int, dashboard: str | None = None, path: list[str] | None = None, preload: list[str] | None = None
+) -> None:
+    """Start ``n_workers`` processes of one thread on 127.0.0.1 (worker logs below CRITICAL silenced, the dashboard
+    only at ``dashboard``, ``sys.path`` set to ``path``, the modules ``preload`` imported by each worker as it
+    starts), print the scheduler's address on the real stdout, run until stdin closes, shut down."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when the cluster ends
+    if path is not None:
+        sys.path[:] = path  # the spawned workers take this process's sys.path
+    scratch = tempfile.mkdtemp(prefix="flexjoint-cluster-")
+    os.environ["TMPDIR"] = scratch  # the workers' scratch files, removed with the cluster
+    address_out = os.fdopen(os.dup(sys.stdout.fileno()), "w")
+    os.dup2(sys.stderr.fileno(), sys.stdout.fileno())  # what the workers print goes to the log, not the pipe
+    config = {**CLUSTER_CONFIG, "distributed.worker.profile.enabled": dashboard is not None}
+    config["distributed.worker.preload"] = list(preload or [])
+    try:
+        with dask.config.set(config):  # the nannies take the config (and their pre-spawn environment) when created
+            cluster = LocalCluster(
+                n_workers=n_workers,
+                threads_per_worker=1,
+                processes=True,
+                dashboard_address=dashboard,
+                worker_dashboard_address=None,
+                silence_logs=logging.CRITICAL,
+                host="127.0.0.1",
+                # no dashboard: the scheduler's plain HTTP endpoints then take a free port, not 8787
+                scheduler_kwargs=None if dashboard else {"dashboard_address": "127.0.0.1:0"},
+            )
+        with cluster:
+            with contextlib.suppress(BrokenPipeError):  # the parent gave up on it while it started
+                address_out.write(cluster.scheduler_address + "\n")
+                address_out.close()
+            if sys.stdin.buffer.read(1):  # a byte: end at once; nothing: closed (the parent is done, or died)
+                for p in psutil.Process().children(recursive=True):
+                    with contextlib.suppress(psutil.Error):
+                        p.kill()
+                shutil.rmtree(scratch, ignore_errors=True)
+                os._exit(0)
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    serve(int(sys.argv[1]), sys.argv[2] or None, *(json.loads(a) for a in sys.argv[3:5]))
