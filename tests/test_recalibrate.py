@@ -14,15 +14,18 @@ def _second_order(k: float, wn: float, zeta: float, t: np.ndarray) -> np.ndarray
     return k * (1 - np.exp(-zeta * wn * t) * (np.cos(wd * t) + zeta * wn / wd * np.sin(wd * t)))
 
 
+TRUTH = {"k": 2.0, "wn": 6.0, "zeta": 0.15}
+BOUNDS = {
+    "k": recal.Bound(0.5, 2.0, "1", "gain"),
+    "wn": recal.Bound(0.5, 2.0, "rad/s", "natural frequency"),
+    "zeta": recal.Bound(0.2, 10.0, "1", "damping"),
+}
+NOMINAL = {"k": 1.6, "wn": 5.0, "zeta": 0.1}  # the "datasheet": 20-33 % off
+
+
 def test_fit_recovers_parameters_with_covering_intervals():
     t = np.linspace(0, 4, 800)
-    truth = {"k": 2.0, "wn": 6.0, "zeta": 0.15}
-    bounds = {
-        "k": recal.Bound(0.5, 2.0, "1", "gain"),
-        "wn": recal.Bound(0.5, 2.0, "rad/s", "natural frequency"),
-        "zeta": recal.Bound(0.2, 10.0, "1", "damping"),
-    }
-    nominal = {"k": 1.6, "wn": 5.0, "zeta": 0.1}  # the "datasheet": 20-33 % off
+    truth, bounds, nominal = TRUTH, BOUNDS, NOMINAL
     covered = dict.fromkeys(truth, 0)
     for seed in range(40):
         y = _second_order(**truth, t=t) + 0.01 * np.random.default_rng(seed).standard_normal(t.size)
@@ -41,13 +44,7 @@ def test_a_calibrated_gains_error_is_in_the_intervals():
     its error, which the residuals' own intervals (noise 0.01 on a step of 2) know nothing of. Given how the
     residuals move with the gain (the measured signal) and its standard error, the intervals hold it."""
     t = np.linspace(0, 4, 800)
-    truth = {"k": 2.0, "wn": 6.0, "zeta": 0.15}
-    bounds = {
-        "k": recal.Bound(0.5, 2.0, "1", "gain"),
-        "wn": recal.Bound(0.5, 2.0, "rad/s", "natural frequency"),
-        "zeta": recal.Bound(0.2, 10.0, "1", "damping"),
-    }
-    nominal = {"k": 1.6, "wn": 5.0, "zeta": 0.1}
+    truth, bounds, nominal = TRUTH, BOUNDS, NOMINAL
     covered = {"alone": 0, "with the gain": 0}
     for seed in range(40):
         rng = np.random.default_rng(100 + seed)
