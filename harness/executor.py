@@ -98,6 +98,7 @@ __all__ = [
     "MasterLibrary",
     "fmu_bytes",
     "fmu_file",
+    "in_session",
     "in_worker",
     "local_cluster",
     "one_blas_thread",
@@ -286,6 +287,11 @@ def _pool_call(fn: Callable[..., T], item: Any, token: str, blob: Path | None) -
         while len(_SHARED) > 2:
             _SHARED.popitem(last=False)
     return _call(fn, item, *_SHARED[token])
+
+
+def in_session() -> bool:
+    """True inside :func:`session` (or :func:`use`): an ``Executor()`` then runs on that command's cluster."""
+    return _SESSION.get() is not None
 
 
 def in_worker() -> bool:

@@ -688,3 +688,23 @@ def test_report_of_nothing_names_what_it_needs(tmp_path):
     )
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
     assert "no manifest.json" in r.stderr and "sweep.json" in r.stderr and "blindtest.json" in r.stderr
+
+
+def test_figures_drawn_over_a_cluster_are_the_figures_drawn_here(real, tmp_path):
+    """Inside a command's session (flexjoint run) the data and replay figures are drawn as tasks on its workers and
+    written here: the same report.md and the same PNG bytes as a report drawn in this process alone."""
+    from harness.executor import session
+
+    path, _ = real
+    here, there = tmp_path / "here", tmp_path / "there"
+    for dest in (here, there):
+        shutil.copytree(path, dest)
+    write_report(here)
+    with session(workers=2):
+        write_report(there)
+    drawn = sorted(p.name for p in (there / "figures").glob("*.png"))
+    assert any(n.startswith("replay") for n in drawn) and any(n.startswith("data") for n in drawn), drawn
+    assert drawn == sorted(p.name for p in (here / "figures").glob("*.png"))
+    for name in drawn:
+        assert (there / "figures" / name).read_bytes() == (here / "figures" / name).read_bytes(), name
+    assert (there / "report.md").read_bytes() == (here / "report.md").read_bytes()

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import io
 import math
-from collections.abc import Mapping
+import tempfile
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -73,6 +74,19 @@ def png_bytes(fig: Figure) -> bytes:
 def save_figure(fig: Figure, path: Path) -> None:
     """Write ``fig`` as PNG atomically (:func:`png_bytes`)."""
     atomic_write_bytes(path, png_bytes(fig))
+
+
+FigureJob = tuple[Callable[..., None], tuple, dict]
+
+
+def figure_png(job: FigureJob) -> bytes:
+    """The PNG bytes that ``fn(*args, path, **kwargs)`` saves (``job`` = (fn, args, kwargs)): a figure drawn where
+    it runs (a worker that shares no files with the client) and written by the caller."""
+    fn, args, kwargs = job
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "figure.png"
+        fn(*args, path, **kwargs)
+        return path.read_bytes()
 
 
 def filter_responses(afs: tuple[float, ...], af_used: float, f_hz: np.ndarray, Ts: float, path: Path) -> None:

@@ -17,6 +17,7 @@ import pandas as pd
 import tomllib
 
 from ..diagnosis.replays import STAGES
+from ..executor import Executor, in_session
 from ..ident import armax, lti
 from ..ident.calibration import LAB1_CALIBRATION
 from ..ident.preprocess import filter_response
@@ -157,6 +158,8 @@ def _section_data(res: RunResults, figdir: Path) -> list[str]:
     if not res.records:
         return []
     rows, links = [], []
+    jobs: list[figures.FigureJob] = []
+    paths: list[Path] = []
     for e in res.manifest.experiments:
         df = res.records.get(e.name)
         if df is None:
@@ -166,9 +169,11 @@ def _section_data(res: RunResults, figdir: Path) -> list[str]:
         link = figure_name("data", e.name)
         ref = df["ref"].to_numpy(dtype=float) if "ref" in df.columns and unit == "deg" else None
         u = df["u"].to_numpy(dtype=float)
-        figures.experiment_data(e.name, t - t[0], u, theta, alpha, unit, figdir / Path(link).name, ref)
+        jobs.append((figures.experiment_data, (e.name, t - t[0], u, theta, alpha, unit), {"ref": ref}))
+        paths.append(figdir / Path(link).name)
         rows.append([e.name, e.role, e.signal or "—", str(t.size), fmt(float(t[-1] - t[0]), 2)])
         links += [f"![data of {e.name}]({link})", ""]
+    draw(jobs, paths)
     how = "through the run's calibration" if res.calibration is not None else "in volts (no calibration yet)"
     return [
         "## Data",
@@ -541,13 +546,30 @@ def _replay_lines(res: RunResults, figdir: Path) -> list[str]:
         *table(["experiment", *(f"{label} [%]" for label in STAGES.values())], body),
         "",
     ]
+    jobs: list[figures.FigureJob] = []
+    paths: list[Path] = []
     for name, rp in res.replays.items():
         link = figure_name("replay", name)
         miss = np.nan_to_num(rp.record["theta"] - rp.sim["given"]["theta"])  # where the simulation as given misses
         zoom = zoom_window(rp.t, miss, ZOOM_S)
-        figures.replay(name, rp.t, rp.record, rp.sim, STAGES, fits[name], zoom, figdir / Path(link).name)
+        jobs.append((figures.replay, (name, rp.t, rp.record, rp.sim, dict(STAGES), fits[name], zoom), {}))
+        paths.append(figdir / Path(link).name)
         lines += [f"![replays of {name}]({link})", ""]
+    draw(jobs, paths)
     return lines
+
+
+def draw(jobs: list[figures.FigureJob], paths: list[Path]) -> None:
+    """Draw the figures ``jobs`` (:func:`harness.render.figures.figure_png`) into ``paths``: over the command's
+    cluster where one runs (``flexjoint run``: a figure a task), else here, one after the other (a report alone does
+    not start a cluster for its figures)."""
+    if not in_session():
+        for (fn, args, kwargs), path in zip(jobs, paths, strict=True):
+            fn(*args, path, **kwargs)
+        return
+    pngs = Executor().map(figures.figure_png, jobs, desc="report figures", quiet=True)
+    for png, path in zip(pngs, paths, strict=True):
+        atomic_write_bytes(path, png)
 
 
 # ----------------------------------------------------------------------------------------------- entry point
