@@ -8,9 +8,13 @@ The run is loaded by :mod:`harness.render.load`, the numbers are computed by :mo
 
 from __future__ import annotations
 
+import contextvars
 import math
 import re
+import threading
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -153,8 +157,9 @@ def _section_header(res: RunResults) -> list[str]:
     return lines
 
 
-def _section_data(res: RunResults, figdir: Path) -> list[str]:
-    """Every experiment's data as measured (command, shaft angle, deflection over time), one figure each."""
+def _section_data(res: RunResults, figdir: Path, waits: list[Callable[[], None]]) -> list[str]:
+    """Every experiment's data as measured (command, shaft angle, deflection over time), one figure each (drawn by
+    :func:`draw`: its ``wait`` appended to ``waits``)."""
     if not res.records:
         return []
     rows, links = [], []
@@ -173,7 +178,7 @@ def _section_data(res: RunResults, figdir: Path) -> list[str]:
         paths.append(figdir / Path(link).name)
         rows.append([e.name, e.role, e.signal or "—", str(t.size), fmt(float(t[-1] - t[0]), 2)])
         links += [f"![data of {e.name}]({link})", ""]
-    draw(jobs, paths)
+    waits.append(draw(jobs, paths))
     how = "through the run's calibration" if res.calibration is not None else "in volts (no calibration yet)"
     return [
         "## Data",
@@ -417,7 +422,7 @@ def _section_model(res: RunResults, figdir: Path) -> list[str]:
     ]
 
 
-def _section_time(res: RunResults, figdir: Path) -> list[str]:
+def _section_time(res: RunResults, figdir: Path, waits: list[Callable[[], None]]) -> list[str]:
     if not res.prepared:
         return []
     panels = []
@@ -451,10 +456,14 @@ def _section_time(res: RunResults, figdir: Path) -> list[str]:
             f"identification domain), the whole record and its first {ZOOM_S:g} s.",
             "",
         ]
+    jobs: list[figures.FigureJob] = []
+    paths: list[Path] = []
     for pnl in panels:
         link = figure_name("time", pnl.name)
-        figures.time_response(pnl, ZOOM_S, figdir / Path(link).name)
+        jobs.append((figures.time_response, (pnl, ZOOM_S), {}))
+        paths.append(figdir / Path(link).name)
         lines += [f"![time response of {pnl.name}]({link})", ""]
+    waits.append(draw(jobs, paths))
     return lines
 
 
@@ -515,7 +524,7 @@ def _section_doubled(res: RunResults) -> list[str]:
     ]
 
 
-def _section_diagnosis(res: RunResults, figdir: Path) -> list[str]:
+def _section_diagnosis(res: RunResults, figdir: Path, waits: list[Callable[[], None]]) -> list[str]:
     d = res.diagnosis
     if d is None:
         return []
@@ -527,10 +536,10 @@ def _section_diagnosis(res: RunResults, figdir: Path) -> list[str]:
     if rows:
         figures.diagnosis_bars(rows, figdir / "diagnosis.png")
         lines += ["![gap per experiment](figures/diagnosis.png)", ""]
-    return lines + _replay_lines(res, figdir)
+    return lines + _replay_lines(res, figdir, waits)
 
 
-def _replay_lines(res: RunResults, figdir: Path) -> list[str]:
+def _replay_lines(res: RunResults, figdir: Path, waits: list[Callable[[], None]]) -> list[str]:
     """Each experiment's replays (as given, recalibrated, with the effects) against its record, per channel."""
     if not res.replays:
         return []
@@ -555,21 +564,38 @@ def _replay_lines(res: RunResults, figdir: Path) -> list[str]:
         jobs.append((figures.replay, (name, rp.t, rp.record, rp.sim, dict(STAGES), fits[name], zoom), {}))
         paths.append(figdir / Path(link).name)
         lines += [f"![replays of {name}]({link})", ""]
-    draw(jobs, paths)
+    waits.append(draw(jobs, paths))
     return lines
 
 
-def draw(jobs: list[figures.FigureJob], paths: list[Path]) -> None:
-    """Draw the figures ``jobs`` (:func:`harness.render.figures.figure_png`) into ``paths``: over the command's
-    cluster where one runs (``flexjoint run``: a figure a task), else here, one after the other (a report alone does
-    not start a cluster for its figures)."""
-    if not in_session():
+def draw(jobs: list[figures.FigureJob], paths: list[Path]) -> Callable[[], None]:
+    """Draw the figures ``jobs`` (:func:`harness.render.figures.figure_png`) into ``paths``; returns ``wait()``, which
+    returns when they are written. Over the command's cluster where one runs (``flexjoint run``: a figure a task),
+    drawn while the caller goes on with its own figures; else here, at once (a report alone does not start a cluster
+    for its figures)."""
+    if not jobs or not in_session():
         for (fn, args, kwargs), path in zip(jobs, paths, strict=True):
             fn(*args, path, **kwargs)
-        return
-    pngs = Executor().map(figures.figure_png, jobs, desc="report figures", quiet=True)
-    for png, path in zip(pngs, paths, strict=True):
-        atomic_write_bytes(path, png)
+        return lambda: None
+    drawn: dict[str, Any] = {}
+
+    def remote() -> None:
+        try:
+            drawn["pngs"] = Executor().map(figures.figure_png, jobs, desc="report figures", quiet=True)
+        except BaseException as e:  # raised again by wait(), in the caller's thread
+            drawn["error"] = e
+
+    thread = threading.Thread(target=contextvars.copy_context().run, args=(remote,), daemon=True)
+    thread.start()
+
+    def wait() -> None:
+        thread.join()
+        if "error" in drawn:
+            raise drawn["error"]
+        for png, path in zip(drawn["pngs"], paths, strict=True):
+            atomic_write_bytes(path, png)
+
+    return wait
 
 
 # ----------------------------------------------------------------------------------------------- entry point
@@ -592,17 +618,20 @@ def write_report(run: Path, results: RunResults | None = None) -> Path:
     figdir = res.paths.figures
     figdir.mkdir(parents=True, exist_ok=True)
     lines = _section_header(res)
+    waits: list[Callable[[], None]] = []  # figures drawn over a cluster while the rest is written (draw)
     if res.manifest.kind != "diagnosis":
-        lines += _section_data(res, figdir)
+        lines += _section_data(res, figdir, waits)
         lines += _section_calibration(res)
         lines += _section_filter(res, figdir)
         lines += _section_grid(res)
         lines += _section_crossfit(res, figdir)
         lines += _section_model(res, figdir)
-        lines += _section_time(res, figdir)
+        lines += _section_time(res, figdir, waits)
         lines += _section_resid(res, figdir)
         lines += _section_doubled(res)
-    lines += _section_diagnosis(res, figdir)
+    lines += _section_diagnosis(res, figdir, waits)
+    for wait in waits:
+        wait()
     text = "\n".join(lines).rstrip() + "\n"
     linked = {Path(x).name for x in re.findall(r"!\[[^\]]*\]\(figures/([^)]+)\)", text)}
     for old in figdir.glob("*.png"):
