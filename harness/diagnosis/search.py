@@ -571,9 +571,10 @@ def search(
     e0 = cf.msg(sse0)
     e_recal = cf.held_out(rec)
     recal_paid = e_recal < e0
+    alone = recalibrated_alone(rec)
     signature = [c for c in cands if c.signature]
     if loop_sigma is not None:  # the noise a closed loop feeds back, on the rig as recalibrated
-        cf.noise = e_noise = loop_floor(cf, e_noise, loop_sigma, recalibrated_alone(rec) if recal_paid else {})
+        cf.noise = e_noise = loop_floor(cf, e_noise, loop_sigma, alone if recal_paid else {})
         if not signature and cf.all_closed:
             cf.none_ratio = NONE_RATIO_LOOP
     say(f"gap before: fit {fit_pct(e0):.2f} %, noise floor {fit_pct(e_noise):.3f} %")
@@ -606,7 +607,7 @@ def search(
 
     explained = share(e_left)
     final, table = final_params(cf, fw.bases, order, set(by_spread_kept))
-    for prm, value in recalibrated_alone(rec).items():
+    for prm, value in alone.items():
         table[prm].recalibrated = value
         table[prm].folds = [[float(r["params"][prm]), *map(float, r["ci95"].get(prm, (math.nan,) * 2))] for r in rec]
     sse_final, *sse_signature = pool.map(
@@ -663,7 +664,7 @@ def search(
         parameters=table,
         recalibration_applied=recal_paid,
         final=final,
-        recalibrated=recalibrated_alone(rec) if recal_paid else {},
+        recalibrated=alone if recal_paid else {},
         noise=e_noise,
         none_ratio=cf.none_ratio,
     )
@@ -671,7 +672,8 @@ def search(
 
 def against_record(param: str, value: float, experiments: dict[str, RigExperiment]) -> str | None:
     """An effect's fitted parameter beside what the records themselves span, so that a value no record supports reads
-    as such ("amplifier limit 1.04 V; the logged command reaches 5.5 V, 62 % of its samples beyond the limit")."""
+    as such (the CU records: "amplifier limit 1.05 V; the logged command reaches 5.53 V, 4 % of its samples beyond the
+    limit")."""
     u = np.concatenate([x.u for x in experiments.values()])
     if param == "plant.amp_limit":
         beyond = 100.0 * float(np.mean(np.abs(u) > value))

@@ -98,7 +98,7 @@ def residual_vector(over: dict[str, Any], names: list[str], k: int | None = None
     return np.concatenate(parts)
 
 
-def gain_columns(setup: Setup, names: list[str], k: int | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+def gain_columns(setup: Setup, names: list[str]) -> tuple[np.ndarray, np.ndarray] | None:
     """How :func:`residual_vector` of ``names`` moves with the log of each sensor's calibration gain (the measured
     channel, masked and scaled alike; an open-loop replay's theta less its mean, which the replay's offset takes),
     and each gain's relative standard error (:attr:`Setup.gain_rel_se`): (columns, se), None when no gain's error
@@ -106,7 +106,7 @@ def gain_columns(setup: Setup, names: list[str], k: int | None = None) -> tuple[
     se = np.array([setup.gain_rel_se.get(c, 0.0) for c in CHANNELS])
     if not np.any(se > 0):
         return None
-    k = moving_channels(setup, names) if k is None else k
+    k = moving_channels(setup, names)
     blocks = []
     for n in names:
         x = setup.experiments[n]

@@ -68,7 +68,7 @@ class PotCalibration:
     with the command step at t[0], the time after t[0] at which the steady-speed asymptote passes the start
     angle (command delay + mechanical time constant; the ``lag_s`` of :func:`dead_zone_estimate`); NaN when
     the start lies in the dead band or too few tracks are seen. rel_se: Kp's relative standard error from the
-    spread of its per-revolution values (NaN from one revolution).
+    spread of its per-revolution values after the first (NaN from fewer than four revolutions).
     """
 
     Kp: float
@@ -289,15 +289,18 @@ def _hold_masks(t: np.ndarray, holds: list[tuple[float, float]]) -> list[np.ndar
     return out
 
 
-def ke_rel_se(t: Any, alpha_v: Any, angles_deg: Any, holds: list[tuple[float, float]]) -> float:
-    """Ke's relative standard error from a comb: the larger of the line's (its residuals, n - 2 of freedom) and what
-    the gauge's noise in each hold's mean [V] leaves on the slope (the hold's samples, many of freedom)."""
+def hold_sem(t: Any, alpha_v: Any, holds: list[tuple[float, float]]) -> np.ndarray:
+    """The standard error [V] of each comb hold's mean voltage (the windows :func:`comb_table` averages)."""
     t = time_axis(t)
     av = as_signal("alpha_v", alpha_v, t.size)
-    a = np.asarray(angles_deg, dtype=float)
-    masks = _hold_masks(t, holds)
-    v = np.array([av[m].mean() for m in masks])
-    sem = np.array([av[m].std(ddof=1) / math.sqrt(m.sum()) if m.sum() > 1 else 0.0 for m in masks])
+    return np.array([av[m].std(ddof=1) / math.sqrt(m.sum()) if m.sum() > 1 else 0.0 for m in _hold_masks(t, holds)])
+
+
+def ke_rel_se(angles_deg: Any, volts: Any, sem_v: Any) -> float:
+    """Ke's relative standard error from a comb table (angle [deg], mean voltage [V] and its standard error [V] per
+    hold): the larger of the line's (its residuals, n - 2 of freedom) and what the holds' noise leaves on the slope
+    (many samples of freedom); NaN from fewer than 3 angles."""
+    a, v, sem = (np.asarray(x, dtype=float) for x in (angles_deg, volts, sem_v))
     saa = float(np.sum((a - a.mean()) ** 2))
     if a.size < 3 or saa <= 0:
         return float("nan")
@@ -619,7 +622,7 @@ def calibrate(
             "angles_deg": ang.tolist(),
             "volts": volts.tolist(),
             "r2": gc.r2,
-            "rel_se": ke_rel_se(t, col(comb[0], "alpha_v"), ang, holds),
+            "rel_se": ke_rel_se(ang, volts, hold_sem(t, col(comb[0], "alpha_v"), holds)),
         }
     else:
         source["Ke"] = {"method": "lab 1's value (no comb in this run)"}
