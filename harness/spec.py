@@ -13,6 +13,9 @@ A spec has these tables (everything but ``[campaign]`` and one experiment is opt
     [[experiment]] with ``loop = "closed"``: run under the controller, its signal the theta reference [deg]
     [identify]   na, nb, nc ranges, nk, af, output, fit_threshold [%], selection tolerance [fit points]
     [accept]     min_fit [%] per dataset, min_average_fit [%] for the selected model
+    [uncertainty] how far the sheet's numbers can be trusted: ``sheet`` = "datasheet" (default), "lab" or
+                 "measured" sets the default of every parameter, and a parameter's own (``Ks = "x2"``, a factor;
+                 ``kt = "10 %"``), both as 95 % ranges: the priors of the diagnosis's recalibration
 
 Unknown keys anywhere are an error that lists the valid ones.
 """
@@ -55,6 +58,16 @@ IDENTIFY_DEFAULTS: dict[str, Any] = {
     "doubled_rate": True,
 }
 ACCEPT_DEFAULTS: dict[str, Any] = {"min_fit": 80.0, "min_average_fit": 85.0}
+# 95 % factors by kind of sheet: what a maker measured (datasheet), what a lab wrote down or derived (lab), what was
+# measured on this unit (measured). Nobody's sheet knows damping: Beq and zeta_link a factor 3 on every sheet.
+SHEETS: dict[str, dict[str, float]] = {
+    "datasheet": {"default": 1.1, "Ks": 1.2, "gauge_gain": 1.1, "pot_gain": 1.02, "Kg": 1.01},
+    "lab": {"default": 2.0, "m_link": 1.1, "L_link": 1.05, "m_tip": 1.1, "Kg": 1.01, "pot_gain": 1.05},
+    "measured": {"default": 1.02, "Ks": 1.05, "gauge_gain": 1.05},
+}
+UNDAMPED = {"Beq": 3.0, "zeta_link": 3.0}
+UNCERTAIN = ("Kg", "kt", "km", "Rm", "eta_g", "eta_m", "Jeq", "Beq", "m_link", "L_link", "m_tip", "Ks", "zeta_link",
+             "pot_gain", "gauge_gain")  # fmt: skip
 
 
 class SpecError(ValueError):
@@ -117,6 +130,15 @@ class Spec:
     raw: dict[str, Any]
     path: str = ""
     controller: Controller | None = None
+    uncertainty: dict[str, float] = field(default_factory=dict)
+
+    def factor(self, name: str) -> float:
+        """The 95 % factor within which the sheet's value of ``name`` (:data:`UNCERTAIN`) holds on the rig: the
+        spec's ``[uncertainty]``, else its sheet's default for that kind of parameter."""
+        if name in self.uncertainty:
+            return self.uncertainty[name]
+        sheet = SHEETS[str(self.raw.get("uncertainty", {}).get("sheet", "datasheet"))]
+        return UNDAMPED.get(name, sheet.get(name, sheet["default"]))
 
     @property
     def Ts(self) -> float:
@@ -234,6 +256,40 @@ def _controller(d: Any) -> Controller:
     return c
 
 
+def _uncertainty(d: Any) -> dict[str, float]:
+    """The ``[uncertainty]`` table as 95 % factors per parameter ("x2" -> 2.0, "10 %" -> 1.1); one
+    :class:`SpecError` line for a malformed one."""
+    if not isinstance(d, dict):
+        raise SpecError("[uncertainty] must be a table")
+    _check_keys("[uncertainty]", d, {"sheet", *UNCERTAIN})
+    if "sheet" in d and d["sheet"] not in SHEETS:
+        raise SpecError(f"[uncertainty].sheet = {d['sheet']!r} unknown; valid: {', '.join(SHEETS)}")
+    out = {}
+    for k, v in d.items():
+        if k == "sheet":
+            continue
+        text = str(v).strip().replace(" ", "") if isinstance(v, str) else ""
+        factor = math.nan
+        if text[:1] in ("x", "*") or text[-1:] == "x":
+            factor = _number(text.strip("x*"))
+        elif text.endswith("%"):
+            factor = 1.0 + _number(text[:-1]) / 100.0
+        if not (math.isfinite(factor) and factor > 1.0):
+            raise SpecError(
+                f'[uncertainty].{k} = {v!r}: give a factor ("x2", more than 1) or a percentage ("10 %", more '
+                "than 0), the 95 % range of the sheet's value"
+            )
+        out[k] = factor
+    return out
+
+
+def _number(text: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        return math.nan
+
+
 def parse_value(text: str) -> Any:
     """Parse a ``--set`` value as a TOML literal (number, bool, string, array); bare words are strings."""
     try:
@@ -250,8 +306,10 @@ def apply_overrides(raw: dict[str, Any], overrides: list[str]) -> dict[str, Any]
             raise SpecError(f"--set {item!r}: expected table.name=value, e.g. plant.backlash=0.004")
         key, value = item.split("=", 1)
         table, name = key.strip().split(".", 1)
-        if table not in ("campaign", "plant", "daq", "controller", "identify", "accept"):
-            raise SpecError(f"--set {item!r}: table must be one of campaign, plant, daq, controller, identify, accept")
+        if table not in ("campaign", "plant", "daq", "controller", "identify", "accept", "uncertainty"):
+            raise SpecError(
+                f"--set {item!r}: table must be one of campaign, plant, daq, controller, identify, accept, uncertainty"
+            )
         raw.setdefault(table, {})[name.strip()] = parse_value(value.strip())
     return raw
 
@@ -259,7 +317,9 @@ def apply_overrides(raw: dict[str, Any], overrides: list[str]) -> dict[str, Any]
 def from_dict(raw: dict[str, Any], path: str = "") -> Spec:
     """Validate a raw spec dict (as read from TOML) into a :class:`Spec`."""
     _check_keys(
-        "spec", raw, {"campaign", "plant", "daq", "controller", "calibration", "experiment", "identify", "accept"}
+        "spec",
+        raw,
+        {"campaign", "plant", "daq", "controller", "calibration", "experiment", "identify", "accept", "uncertainty"},
     )
     camp = raw.get("campaign", {})
     _check_keys("[campaign]", camp, CAMPAIGN_KEYS)
@@ -312,6 +372,7 @@ def from_dict(raw: dict[str, Any], path: str = "") -> Spec:
         raw=raw,
         path=path,
         controller=controller,
+        uncertainty=_uncertainty(raw.get("uncertainty", {})),
     )
     check_memory(spec)  # before the signal checks below generate any signal at this rate
     for e in spec.all_experiments():

@@ -29,22 +29,24 @@ from harness.rig import records
 from harness.rig.records import ImportOptions, import_records
 from harness.rundir import DataError, write_json
 
-JEQ = 2.087e-3  # a hub inertia [kg m^2] to scale from
+RATIO = 0.5468  # a hub-to-link inertia ratio to scale from (the Quanser datasheet's)
 
 
 # ----------------------------------------------------------------------------------------------- bounds, intervals
 
 
 def test_a_parameter_at_its_bound_is_flagged_and_said_in_words():
-    assert recal.at_bound("plant.Jeq", JEQ, 1.6 * JEQ) == "upper"
-    assert recal.at_bound("plant.Jeq", JEQ, 1.59 * JEQ) == "upper"  # within 2 % (in log) of the bound
-    assert recal.at_bound("plant.Jeq", JEQ, 1.5 * JEQ) is None
-    assert recal.at_bound("plant.kt", 0.00768, 0.6 * 0.00768) == "lower"
+    """The walls are far (a factor 20 on the drive's combos): a fit that ends there says the spec does not describe
+    the rig."""
+    assert recal.at_bound("rig.inertia_ratio", RATIO, 20 * RATIO) == "upper"
+    assert recal.at_bound("rig.inertia_ratio", RATIO, 19.8 * RATIO) == "upper"  # within 2 % (in log) of the bound
+    assert recal.at_bound("rig.inertia_ratio", RATIO, 15 * RATIO) is None
+    assert recal.at_bound("rig.drive_gain", 1.758, 0.05 * 1.758) == "lower"
     assert recal.at_bound("plant.backlash", 0.0, 0.006) is None  # not a linear parameter
-    text = recal.finding("plant.Jeq", JEQ, 1.6 * JEQ, (1.5 * JEQ, 1.7 * JEQ))
+    text = recal.finding("rig.inertia_ratio", RATIO, 20 * RATIO, (15 * RATIO, 25 * RATIO))
     assert text == (
-        "hub inertia at its upper bound (1.6x the spec: 0.002087 -> 0.003339 kg m^2): "
-        "the spec may not describe this rig"
+        "hub-to-link inertia ratio at its upper bound (20x the spec: 0.5468 -> 10.94): the spec may not describe this "
+        "rig"
     )
 
 
@@ -58,42 +60,42 @@ def test_an_interval_over_orders_of_magnitude_is_not_identifiable():
     assert text == (
         "link damping ratio is not identifiable from these data (fitted 0.012, 95 % interval 1.85e-08..216; spec 0.01)"
     )
-    # the issue's own case ended at the lower bound (0.2x): said as a bound, and still flagged unidentifiable
-    assert recal.finding("plant.zeta_link", 0.01, 0.002, ci).startswith("link damping ratio at its lower bound (0.2x")
+    # at its lower bound (0.05x): said as a bound, and still flagged unidentifiable
+    assert recal.finding("plant.zeta_link", 0.01, 5e-4, ci).startswith("link damping ratio at its lower bound (0.05x")
     row = FittedParameter(0.01, 0.012, list(ci), 20.0, "1", text, identifiable=False)
     assert not row.off_spec  # not a finding that the rig differs from the spec
 
 
 def test_a_verdict_reached_at_a_bound_carries_caveats():
-    words = recal.finding("plant.Jeq", JEQ, 1.6 * JEQ, (1.5 * JEQ, 1.7 * JEQ))
-    jeq = FittedParameter(JEQ, 1.6 * JEQ, [1.5 * JEQ, 1.7 * JEQ], 60.0, "kg m^2", words, at_bound="upper")
+    words = recal.finding("rig.inertia_ratio", RATIO, 20 * RATIO, (15 * RATIO, 25 * RATIO))
+    ratio = FittedParameter(RATIO, 20 * RATIO, [15 * RATIO, 25 * RATIO], 1900.0, "1", words, at_bound="upper")
     words = recal.finding("plant.zeta_link", 0.01, 0.012, (1e-6, 1.0))
     zeta = FittedParameter(0.01, 0.012, [1e-6, 1.0], 20.0, "1", words, identifiable=False)
     ks = FittedParameter(1.3, 1.31, [1.28, 1.34], 0.8, "N m/rad", recal.finding("plant.Ks", 1.3, 1.31, (1.28, 1.34)))
-    caveats = dg._caveats({"plant.Jeq": jeq, "plant.zeta_link": zeta, "plant.Ks": ks}, "coulomb_friction")
+    caveats = dg._caveats({"rig.inertia_ratio": ratio, "plant.zeta_link": zeta, "plant.Ks": ks}, "coulomb_friction")
     assert caveats == [
-        f"the spec's {recal.DRIVE} does not describe this rig: hub inertia (1.6x the spec, upper) ends at its search "
-        "bound; measure it before trusting an effect's share of the gap",
-        "verdict 'coulomb_friction' reached with hub inertia at its upper bound (1.6x the spec: 0.002087 -> 0.003339 "
-        "kg m^2): the spec may not describe this rig",
+        f"the spec's {recal.DRIVE} does not describe this rig: hub-to-link inertia ratio (20x the spec, upper) ends at "
+        "its search bound; measure it before trusting an effect's share of the gap",
+        "verdict 'coulomb_friction' reached with hub-to-link inertia ratio at its upper bound (20x the spec: 0.5468 -> "
+        "10.94): the spec may not describe this rig",
         "link damping ratio is not identifiable from these data (fitted 0.012, 95 % interval 1e-06..1; spec 0.01)",
     ]
     assert dg._caveats({"plant.Ks": ks}, "none") is None  # nothing limits it: the key is left out
 
 
 def test_which_part_of_the_spec_is_wrong_is_said_once_per_part():
-    """Another lab's rig whose drive the sheet gets wrong (three drive parameters at their bounds, the link fine): one
-    sentence names the drive and its three parameters; a link at its bound gets its own."""
-    rows = {"plant.Beq": (0.004, 0.02), "plant.Jeq": (0.002, 0.0032), "plant.kt": (0.0107, 0.01605),
-            "plant.Ks": (2.2448, 2.3), "plant.zeta_link": (0.01, 0.05)}  # fmt: skip
+    """A rig whose drive the sheet gets wrong beyond the walls (two drive combos at their bounds, the link fine): one
+    sentence names the drive and its two parameters; a link at its bound gets its own."""
+    rows = {"rig.drive_tau": (0.189, 3.78), "rig.inertia_ratio": (0.141, 2.82), "plant.Ks": (2.2448, 2.3),
+            "plant.zeta_link": (0.01, 0.05)}  # fmt: skip
     assert recal.parts_at_bound(rows) == [
-        f"the spec's {recal.DRIVE} does not describe this rig: viscous damping (5x the spec, upper), hub inertia (1.6x "
-        "the spec, upper) and motor gain (kt eta_g eta_m) (1.5x the spec, upper) end at their search bounds; measure "
-        "them before trusting an effect's share of the gap"
+        f"the spec's {recal.DRIVE} does not describe this rig: drive time constant (20x the spec, upper) and "
+        "hub-to-link inertia ratio (20x the spec, upper) end at their search bounds; measure them before trusting an "
+        "effect's share of the gap"
     ]
-    rows["plant.Ks"] = (1.3, 0.65)
+    rows["plant.Ks"] = (1.3, 0.13)
     assert recal.parts_at_bound(rows)[1] == (
-        f"the spec's {recal.LINK} does not describe this rig: link stiffness (0.5x the spec, lower) ends at its search "
+        f"the spec's {recal.LINK} does not describe this rig: link stiffness (0.1x the spec, lower) ends at its search "
         "bound; measure it before trusting an effect's share of the gap"
     )
     assert recal.parts_at_bound({"plant.Ks": (1.3, 1.5)}) == []
@@ -241,9 +243,9 @@ def test_value_step_is_the_common_step_of_the_values():
 
 
 def test_recalibration_alone_is_the_folds_geometric_mean():
-    rec = [{"params": {"plant.Ks": 1.2, "plant.Beq": 0.006}}, {"params": {"plant.Ks": 1.5, "plant.Beq": 0.0096}}]
+    rec = [{"params": {"plant.Ks": 1.2, "rig.drive_tau": 0.06}}, {"params": {"plant.Ks": 1.5, "rig.drive_tau": 0.096}}]
     alone = recalibrated_alone(rec)
-    assert alone == {"plant.Ks": pytest.approx(math.sqrt(1.2 * 1.5)), "plant.Beq": pytest.approx(0.00758947)}
+    assert alone == {"plant.Ks": pytest.approx(math.sqrt(1.2 * 1.5)), "rig.drive_tau": pytest.approx(0.0758947)}
 
 
 def _honest_doc() -> dict:
@@ -319,8 +321,9 @@ def test_the_report_says_caveats_replays_and_recalibration_alone():
 
 def test_a_lone_real_record_is_diagnosed_on_its_halves(tmp_path):
     """One of the lab's closed-loop records alone (10 s at 1 kHz, theta printed to 0.001 rad): cut in time, fitted
-    on one half and scored on the other, the record's step in the floor, the parameters at their bounds flagged and
-    carried into the caveats, and what recalibration alone fitted beside the joint fit."""
+    on one half and scored on the other, the record's step in the floor, no parameter held by a wall (the rig
+    identified in its combos under the lab sheet's priors), and what recalibration alone fitted beside the joint
+    fit."""
     from test_real_records import CU, CU_IMPORT
 
     run = tmp_path / "run"
@@ -335,10 +338,8 @@ def test_a_lone_real_record_is_diagnosed_on_its_halves(tmp_path):
     assert 100 * (1 - dec.after_effects) >= 70.0  # measured 75.4 % held out (35.9 % as given)
     assert d.noise_floor.theta_deg == pytest.approx(math.degrees(0.001) / math.sqrt(12.0), rel=0.10)
     assert d.noise_floor.fit_pct < 99.5
-    bound = {k for k, p in d.parameters.items() if p.at_bound}
-    assert bound and all(f"at its {d.parameters[k].at_bound} bound" in d.parameters[k].finding for k in bound)
-    assert len(d.caveats) >= len(bound)
-    assert all(d.parameters[k].recalibrated is not None for k in recal.LINEAR)
+    assert not [k for k, p in d.parameters.items() if p.at_bound]
+    assert all(p.recalibrated is not None for k, p in d.parameters.items() if k in recal.LINEAR)
     d.write(tmp_path / "returned.json")  # what diagnose_run returns is what the file holds
     assert (tmp_path / "returned.json").read_bytes() == (run / "diagnosis.json").read_bytes()
 

@@ -49,21 +49,23 @@ def test_cu_records_import_closed_loop_with_the_labs_controller(cu_run):
 
 
 def test_cu_records_diagnosed_against_their_lab_sheet(cu_run):
-    """Closed-loop replay through the identified controller; held-out fit >= 70 % after recalibration and the
-    effects; the linear parameters that end at their bounds are flagged and the verdict carries the caveat."""
+    """Closed-loop replay through the identified controller, the rig identified in what the data determine (the
+    drive's gain and time constant, the link, the sensors' gains) under the lab sheet's priors: held-out fit 35.9 %
+    as given -> 81.4 % recalibrated (61.9 % when Jeq, Beq and kt were fitted in boxes around the sheet, all three at
+    a wall), alpha 9.5 -> 75.3 %, nothing held by a wall; the link is 35 % softer than the sheet's 1.8 Hz says on
+    both records alone."""
     run, _ = cu_run
     d = diagnose_run(run, "cu_flexible_arm", workers=1)
     assert {r["replay"] for r in d.replays.values()} == {"closed"}
     assert d.folds.A != d.folds.B
     dec = d.gap.decomposition
-    assert 100 * (1 - dec.before) < 50.0 < 100 * (1 - dec.after_recalibration) < 100 * (1 - dec.after_effects)
-    assert 100 * (1 - dec.after_effects) >= 70.0
+    assert 100 * (1 - dec.before) < 40.0 and 100 * (1 - dec.after_recalibration) > 80.0
+    assert dec.channels["after_recalibration"]["alpha"] > 74.0 and dec.gap_channel() == "alpha"
     assert d.noise_floor.fit_pct < 100.0  # the records' 0.001 steps are in the floor
-    bound = {k for k, p in d.parameters.items() if p.at_bound}
-    assert bound and all("at its upper bound" in d.parameters[k].finding for k in bound)
-    # which part of the sheet is wrong, said first: its drive (motor, gear, amplifier, hub), not its link
-    assert bound <= {"plant.Beq", "plant.Jeq", "plant.kt"} and d.caveats[0].startswith("the spec's hub and drive")
-    assert all(f"verdict {d.verdict!r} reached with {d.parameters[k].finding}" in d.caveats for k in bound)
+    assert not [k for k, p in d.parameters.items() if p.at_bound]
+    for fitted, lo, hi in d.parameters["plant.Ks"].folds:  # each record alone: 1.45 N m/rad, the sheet 2.24
+        assert 1.35 < lo <= fitted <= hi < 1.55
+    assert "not at a bound" not in " ".join(d.caveats or [])
 
 
 QUANSER = [REAL / "rfl_lqr_sqwave_pm30deg_500Hz.csv", REAL / "rfl_lqr_sqwave_pm30deg_500Hz_aux.csv"]
@@ -88,8 +90,9 @@ def _quanser_halves(tmp: Path) -> list[Path]:
 
 def test_quanser_record_diagnosed_against_the_datasheet(tmp_path):
     """The README's Quanser figures, on the record itself: closed-loop replay through the identified LQR (R^2
-    0.980), held-out fit 85.0 % as given -> 90.0 % recalibrated (measured 90.04 %), Ks 16 % above the datasheet's
-    1.3 (1.506), no linear parameter at a bound; the encoder's and the gauge's lattices (0.0879, 0.00848 deg) found
+    0.980), held-out fit 85.0 % as given -> 90.0 % recalibrated (measured 91.33 %: the rig identified in its combos
+    under the datasheet's priors; 90.04 % with Jeq, Beq and kt in boxes), Ks 10 % above the datasheet's 1.3 (1.425),
+    no linear parameter at a bound; the encoder's and the gauge's lattices (0.0879, 0.00848 deg) found
     from the values and in the noise floor."""
     run = tmp_path / "quanser"
     import_records([f"quanser={QUANSER[0]}+{QUANSER[1]}"], run, QUANSER_IMPORT)
@@ -100,11 +103,11 @@ def test_quanser_record_diagnosed_against_the_datasheet(tmp_path):
     d = diagnose_run(run, "nominal", tmp_path / "diag", workers=1)
     dec = d.gap.decomposition
     assert 100 * (1 - dec.before) == pytest.approx(85.0, abs=0.1)
-    assert 100 * (1 - dec.after_recalibration) >= 89.9
+    assert 100 * (1 - dec.after_recalibration) >= 91.0
     assert 1.04 <= d.parameters["plant.Ks"].fitted <= 1.56
     assert not [k for k, p in d.parameters.items() if p.at_bound]
     assert 99.0 < d.noise_floor.fit_pct < 99.2
-    # per channel: theta fits as given, alpha holds the gap (measured 93.5 / 79.8 % -> 95.7 / 86.6 %)
+    # per channel: theta fits as given, alpha holds the gap (measured 93.5 / 79.8 % -> 96.5 / 88.2 %)
     by = dec.channels
     assert by["before"]["theta"] > 93.0 and by["before"]["alpha"] < 81.0 and dec.gap_channel() == "alpha"
     for stage, gap in (("before", dec.before), ("after_recalibration", dec.after_recalibration)):
@@ -122,22 +125,23 @@ def quanser_halves(tmp_path_factory):
 
 
 def test_records_that_are_not_one_rig_are_said_to_disagree(quanser_halves):
-    """Each half recalibrated alone: viscous damping 0.0012 and 0.0046 N m s/rad, intervals far apart. The
-    diagnosis says the linear model does not describe both records as one rig, and names the parameters."""
+    """Each half recalibrated alone: drive gain 1.74 and 1.30 rad/(V s), intervals far apart. The diagnosis says the
+    linear model does not describe both records as one rig, and names the parameters."""
     d = quanser_halves
-    beq = d.parameters["plant.Beq"]
-    (a, lo_a, hi_a), (b, lo_b, hi_b) = beq.folds
-    assert beq.folds_disagree and (hi_a < lo_b or hi_b < lo_a) and max(a, b) > 3 * min(a, b)
+    gain = d.parameters["rig.drive_gain"]
+    (a, lo_a, hi_a), (b, lo_b, hi_b) = gain.folds
+    assert gain.folds_disagree and (hi_a < lo_b or hi_b < lo_a) and max(a, b) > 1.2 * min(a, b)
     (apart,) = [c for c in d.caveats if "exclude each other" in c]
-    assert "viscous damping" in apart and "model error, not noise" in apart
+    assert "drive gain" in apart and "model error, not noise" in apart
     assert d.verdict == "unexplained"
 
 
 @pytest.mark.xfail(
     strict=True,
-    reason="issue 23: the record cut in two files fits 87.3 % held out, Jeq -20 % where the whole record says +17 %",
+    reason="issue 23: the record cut in two files fits 87.5 % held out (the whole record 91.3 %); the hub inertia "
+    "they imply agrees (0.00178 kg m^2 both) but the drive gain and Ks of each half do not",
 )
 def test_quanser_record_in_two_files_is_the_same_rig(quanser_halves):
     d = quanser_halves
+    assert d.parameters["plant.Jeq"].fitted == pytest.approx(0.00178, rel=0.05)  # the whole record's
     assert 100 * (1 - d.gap.decomposition.after_recalibration) >= 90.0
-    assert d.parameters["plant.Jeq"].fitted == pytest.approx(0.00243, rel=0.05)  # the whole record's

@@ -59,6 +59,7 @@ from .experiments import REPLAYS, RigExperiment, fold_experiments, load_experime
 from .noise import noise_floor
 from .replays import write_replays
 from .result import Diagnosis, FittedParameter, Folds, SensorCalibration, Thresholds
+from .rigmodel import prior_sd
 from .search import (
     EXPLAINED,
     GAP_RESOLUTION,
@@ -70,7 +71,7 @@ from .search import (
     search,
 )
 from .simulation import Setup, fit_pct, fmu_value, lattice_in_loop, replay_noise, sim_rig
-from .tasks import Pool
+from .tasks import SENSOR_CHANNELS, Pool
 
 __all__ = ["EXPLAINED", "GAP_RESOLUTION", "MIN_CLOSURE", "NONE_RATIO", "NONE_RATIO_LOOP", "THRESHOLDS", "diagnose_run"]
 
@@ -125,6 +126,16 @@ def _caveats(parameters: dict[str, FittedParameter], verdict: str, folds: Folds 
     return out or None
 
 
+def priors(sim: specmod.Spec, gain_rel_se: dict[str, float]) -> dict[str, float]:
+    """The prior sd [log] of each linear parameter recalibration fits (:func:`harness.diagnosis.rigmodel.prior_sd` of
+    the sim spec's uncertainty); a sensor whose calibration was measured with the data has that error instead."""
+    sd = prior_sd(sim.plant, sim.factor)
+    for c, s in SENSOR_CHANNELS.items():
+        if gain_rel_se.get(c, 0.0) > 0:
+            sd[s] = gain_rel_se[c]
+    return sd
+
+
 def diagnose_run(
     real: Path,
     sim: str | Path | specmod.Spec = "nominal",
@@ -175,7 +186,15 @@ def diagnose_run(
     sigma = {"theta": noise.theta_deg, "alpha": noise.alpha_deg}  # [deg], an ADC's quantisation included
     lattice = replay_noise(daq, noise.estimated_deg) if noise.adc_lattice_bits and noise.estimated_deg else {}
     setup = Setup(
-        plant, daq, cal.comb_angles, experiments, shipped, replay_noise(daq, sigma), lattice, cal.gain_rel_se()
+        plant,
+        daq,
+        cal.comb_angles,
+        experiments,
+        shipped,
+        replay_noise(daq, sigma),
+        lattice,
+        cal.gain_rel_se(),
+        priors(sim_spec, cal.gain_rel_se()),
     )
     top = max(x.peak_command_v for x in experiments.values())
     cands = candidates(CandidateContext(plant, daq, top, noise.adc_lattice_bits))

@@ -51,15 +51,26 @@ class Bound:
     part: str = ""
 
 
-# linear physical parameters of the plant, recalibrated before any effect is tried
+# the rig's linear parameters as the data determine them (harness.diagnosis.rigmodel), recalibrated before any effect
+# is tried; the bounds are far walls (a factor 20 on the drive), the spec's uncertainty is a prior inside them
 DRIVE = "hub and drive (motor, gear and amplifier: Kg, kt, km, Rm, efficiencies, Jeq, Beq)"
 LINK = "link (Ks, zeta_link, its length, mass and tip mass)"
+SENSOR = "sensors (the pot's or encoder's and the strain gauge's calibration)"
 LINEAR: dict[str, Bound] = {
-    "plant.Beq": Bound(0.2, 5.0, "N m s/rad", "viscous damping", part=DRIVE),
-    "plant.Ks": Bound(0.5, 2.0, "N m/rad", "link stiffness", part=LINK),
-    "plant.zeta_link": Bound(0.2, 10.0, "1", "link damping ratio", part=LINK),
-    "plant.Jeq": Bound(0.6, 1.6, "kg m^2", "hub inertia", part=DRIVE),
-    "plant.kt": Bound(0.6, 1.5, "N m/A", "motor gain (kt eta_g eta_m)", part=DRIVE),
+    "rig.drive_gain": Bound(0.05, 20.0, "rad/(V s)", "drive gain (hub speed per volt)", part=DRIVE),
+    "rig.drive_tau": Bound(0.05, 20.0, "s", "drive time constant", part=DRIVE),
+    "rig.inertia_ratio": Bound(0.05, 20.0, "1", "hub-to-link inertia ratio", part=DRIVE),
+    "plant.Ks": Bound(0.1, 10.0, "N m/rad", "link stiffness", part=LINK),
+    "plant.zeta_link": Bound(0.05, 30.0, "1", "link damping ratio", part=LINK),
+    "sensor.theta_gain": Bound(0.25, 4.0, "1", "hub angle sensor's gain (reading per true angle)", part=SENSOR),
+    "sensor.alpha_gauge_gain": Bound(0.1, 10.0, "1", "strain gauge's gain (reading per true angle)", part=SENSOR),
+}
+# the physical values the fitted combos imply (rigmodel.to_plant), reported beside them
+IMPLIED: dict[str, Bound] = {
+    "plant.Jeq": Bound(0.05, 20.0, "kg m^2", "hub inertia", part=DRIVE),
+    "plant.Beq": Bound(0.05, 20.0, "N m s/rad", "viscous damping", part=DRIVE),
+    "plant.kt": Bound(0.05, 20.0, "N m/A", "motor gain (kt eta_g eta_m)", part=DRIVE),
+    "plant.km": Bound(0.05, 20.0, "V s/rad", "back-EMF constant", part=DRIVE),
 }
 
 Residuals = Callable[[dict[str, float]], np.ndarray]
@@ -68,6 +79,9 @@ UNIDENTIFIABLE = 100.0  # a 95 % interval wider than this factor (hi / lo) says 
 HOLD_TOLERANCE = 0.02  # an undetermined parameter keeps the spec's value when that costs < 2 % more squared error
 SE_CAP = 50.0  # standard error [log of the factor] of a parameter the residuals do not determine: no interval
 STAIRCASE_STEP = 0.05  # a Jacobian column that a 0.1 % step left at zero is taken again with a 5 % step (log)
+PRIOR_PASSES = (
+    3  # fits again from the solution while its residual variance is under half the one that weighed the prior
+)
 POWELL_XTOL = 0.01  # a derivative-free fit's smallest step: 1 % of a parameter (log)
 
 
@@ -107,15 +121,19 @@ def fit(
     hold: Collection[str] = (),
     derivative_free: bool = False,
     calibration: tuple[np.ndarray, np.ndarray] | None = None,
+    prior: Mapping[str, float] | None = None,
+    max_rho: float = 0.999,
 ) -> Fit:
     """Fit the parameters of ``bounds`` (FMU names, "plant.Ks") by bounded least squares on ``residuals``
     (parameter dict -> residual vector; ``fixed`` overrides are added to every call), from ``start`` (default
     ``nominal``), bounds relative to ``nominal``; ``derivative_free``: by Powell's search (a closed loop through a
     lattice, see the module; up to (parameters + 1) ``max_nfev`` evaluations); ``calibration``: how the residuals
     move with the log of each sensor gain (residuals x gains) and the gains' standard errors, which the intervals
-    hold. Returns the fit with 95 % intervals from the Jacobian; those of ``hold`` that the data do not determine are
+    hold; ``prior``: a parameter's prior standard deviation [log] about ``nominal``, weighed against the residuals'
+    variance per independent sample (:func:`effective_samples` up to ``max_rho``; see the module). Returns the fit
+    with 95 % intervals from the Jacobian (and the priors); those of ``hold`` that the data do not determine are
     kept at ``nominal`` (see the module)."""
-    f = _fit(residuals, bounds, nominal, start, fixed, max_nfev, derivative_free, calibration)
+    f = _fit(residuals, bounds, nominal, start, fixed, max_nfev, derivative_free, calibration, prior, max_rho)
     loose = [n for n in bounds if n in hold and not identifiable(f.ci95[n])]
     if not loose:
         return f
@@ -124,7 +142,16 @@ def fit(
     if rest:
         start_rest = {n: v for n, v in f.values.items() if n in rest}
         g = _fit(
-            residuals, rest, nominal, start_rest, {**(fixed or {}), **at_spec}, max_nfev, derivative_free, calibration
+            residuals,
+            rest,
+            nominal,
+            start_rest,
+            {**(fixed or {}), **at_spec},
+            max_nfev,
+            derivative_free,
+            calibration,
+            prior,
+            max_rho,
         )
     else:  # nothing left to fit: the cost at the spec's values
         r = residuals({**(fixed or {}), **at_spec})
@@ -145,6 +172,8 @@ def _fit(
     max_nfev: int,
     derivative_free: bool = False,
     calibration: tuple[np.ndarray, np.ndarray] | None = None,
+    prior: Mapping[str, float] | None = None,
+    max_rho: float = 0.999,
 ) -> Fit:
     """:func:`fit`'s one bounded least squares (or Powell search)."""
     names = list(bounds)
@@ -161,39 +190,76 @@ def _fit(
     def params(x: np.ndarray) -> dict[str, float]:
         return {**fixed, **{n: _from_x(float(v), nominal[n], bounds[n]) for n, v in zip(names, x, strict=True)}}
 
-    if derivative_free:
-        res = _powell(lambda x: residuals(params(x)), x0, lo_hi, max_nfev * (len(names) + 1))
-    else:
-        res = least_squares(
-            lambda x: residuals(params(x)),
-            x0,
-            bounds=([b[0] for b in lo_hi], [b[1] for b in lo_hi]),
-            method="trf",
-            diff_step=1e-3,
-            x_scale=1.0,
-            max_nfev=max_nfev,
-            xtol=1e-3,
-            ftol=1e-4,
-        )
-    r = res.fun
+    last: list[tuple[bytes, np.ndarray]] = []
+
+    def data(x: np.ndarray) -> np.ndarray:  # the residuals, the last ones kept (least squares starts at x0 again)
+        if not last or last[0][0] != x.tobytes():
+            last[:] = [(x.tobytes(), residuals(params(x)))]
+        return last[0][1]
+
+    sel = np.array([bool(prior) and n in prior and bounds[n].log for n in names])
+    sd = np.array([prior[n] if s else 1.0 for n, s in zip(names, sel, strict=True)]) if prior else np.ones(len(names))
+
+    def variance(x: np.ndarray) -> float:  # a prior's weight: the residual variance per independent sample
+        r = data(x)
+        return float(np.sum(r**2)) / max(effective_samples(r, max_rho) - len(names), 1.0)
+
+    w2 = variance(x0) if sel.any() else 0.0
+
+    def full(x: np.ndarray) -> np.ndarray:
+        return np.concatenate([data(x), math.sqrt(w2) * x[sel] / sd[sel]]) if sel.any() else data(x)
+
+    nfev = 0
+    for _ in range(PRIOR_PASSES):  # the start's variance overweights the prior: again with the solution's
+        if derivative_free:
+            res = _powell(full, x0, lo_hi, max_nfev * (len(names) + 1))
+        else:
+            res = least_squares(
+                full,
+                x0,
+                bounds=([b[0] for b in lo_hi], [b[1] for b in lo_hi]),
+                method="trf",
+                diff_step=1e-3,
+                x_scale=1.0,
+                max_nfev=max_nfev,
+                xtol=1e-3,
+                ftol=1e-4,
+            )
+        nfev += int(res.nfev)
+        if not sel.any() or variance(res.x) > 0.5 * w2:
+            break
+        x0, w2 = res.x, variance(res.x)
+    r = data(res.x)
     n_eff = int(np.count_nonzero(r))
     dof = max(n_eff - len(names), 1)
-    s2 = 2.0 * float(res.cost) / dof
-    jac = _felt(lambda x: residuals(params(x)), res.x, r, np.array(res.jac, dtype=float), lo_hi)
-    cov = s2 * np.linalg.pinv(jac.T @ jac)
+    s2 = float(np.sum(r**2)) / dof
+    jac = _felt(data, res.x, r, np.array(res.jac, dtype=float)[: r.size], lo_hi)
+    info = jac.T @ jac / max(s2, 1e-300) + np.diag(np.where(sel, 1.0 / sd**2, 0.0))
+    cov = np.linalg.pinv(info)
     if calibration is not None:  # what the sensor gains' errors move the fit by (see the module)
         g, g_se = calibration
         shift = np.linalg.pinv(jac) @ g
         cov = cov + shift @ np.diag(np.asarray(g_se, dtype=float) ** 2) @ shift.T
     se = np.minimum(np.sqrt(np.clip(np.diag(cov), 0.0, None)), SE_CAP)  # an unidentifiable direction: no bound
-    se[_in_null_space(jac)] = SE_CAP  # pinv gives a direction the residuals do not feel zero variance, not infinite
+    se[_in_null_space(jac) & ~sel] = SE_CAP  # pinv gives a direction the residuals do not feel zero variance
     values = params(res.x)
     ci = {}
     for i, n in enumerate(names):
         lo = _from_x(float(res.x[i] - 1.96 * se[i]), nominal[n], bounds[n])
         hi = _from_x(float(res.x[i] + 1.96 * se[i]), nominal[n], bounds[n])
         ci[n] = (min(lo, hi), max(lo, hi))
-    return Fit({n: values[n] for n in names}, ci, float(2.0 * res.cost), int(res.nfev), n_eff)
+    return Fit({n: values[n] for n in names}, ci, float(np.sum(r**2)), nfev, n_eff)
+
+
+def effective_samples(r: np.ndarray, max_rho: float = 0.999) -> float:
+    """How many independent samples the residuals ``r`` are worth: n (1 - rho) / (1 + rho), rho their lag-one
+    autocorrelation (an AR(1) residual's; model error makes residuals smooth, rho near 1) up to ``max_rho``, zeros
+    left out."""
+    v = r[r != 0.0]
+    if v.size < 3:
+        return float(v.size)
+    rho = float(np.clip(np.dot(v[1:], v[:-1]) / max(float(np.dot(v, v)), 1e-300), 0.0, max_rho))
+    return v.size * (1.0 - rho) / (1.0 + rho)
 
 
 def _powell(
@@ -285,7 +351,7 @@ def identifiable(ci95: tuple[float, float]) -> bool:
 
 def _label_unit(name: str) -> tuple[str, str]:
     """A parameter's plain name and its unit as a sentence ends a value with (" N m/rad"; "" for a ratio)."""
-    b = LINEAR.get(name)
+    b = LINEAR.get(name) or IMPLIED.get(name)
     return (b.label if b else name), (f" {b.unit}" if b and b.unit != "1" else "")
 
 

@@ -21,12 +21,13 @@ one to one with (kt, Beq, Jeq).
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import math
+from collections.abc import Callable, Mapping
 from typing import Any
 
 from .. import spec as specmod
 
-__all__ = ["COMBOS", "SENSORS", "combos", "link_inertia", "plant_value", "to_plant"]
+__all__ = ["COMBOS", "SENSORS", "combos", "link_inertia", "plant_value", "prior_sd", "to_plant"]
 
 COMBOS = ("rig.drive_gain", "rig.drive_tau", "rig.inertia_ratio")
 SENSORS = {"sensor.theta_gain": "pot_gain", "sensor.alpha_gauge_gain": "gauge_gain"}  # -> the DAQ's parameter
@@ -74,3 +75,27 @@ def to_plant(values: Mapping[str, float], plant: Mapping[str, Any]) -> dict[str,
         Beq = MIN_BEQ_SHARE * D
         km = (D - Beq) / (G * Kg)
     return {"kt": kt, "km": km, "Beq": Beq, "Jeq": Jeq}
+
+
+def prior_sd(plant: Mapping[str, Any], factor: Callable[[str], float]) -> dict[str, float]:
+    """The prior standard deviation [log] of each linear parameter the diagnosis fits (:data:`COMBOS`, plant.Ks,
+    plant.zeta_link, :data:`SENSORS`), from the 95 % factor within which each sheet parameter holds
+    (``factor(name)``, :meth:`harness.spec.Spec.factor`): a combo's by first-order propagation in log (the sheet's
+    parameters independent), sd = ln(factor) / 1.96."""
+    sd = {p: math.log(factor(p)) / 1.96 for p in SHEET}
+    base = {p: plant_value(plant, p) for p in SHEET if p not in ("pot_gain", "gauge_gain")}
+    c0 = combos(base)
+    var = dict.fromkeys(COMBOS, 0.0)
+    for p in base:
+        if base[p] <= 0:
+            continue
+        c1 = combos({**base, p: base[p] * math.exp(1e-4)})
+        for k in COMBOS:
+            var[k] += (math.log(c1[k] / c0[k]) / 1e-4 * sd[p]) ** 2
+    out = {k: math.sqrt(v) for k, v in var.items()}
+    out |= {"plant.Ks": sd["Ks"], "plant.zeta_link": sd["zeta_link"]}
+    return out | {s: sd[d] for s, d in SENSORS.items()}
+
+
+SHEET = ("Kg", "kt", "km", "Rm", "eta_g", "eta_m", "Jeq", "Beq", "m_link", "L_link", "m_tip", "Ks", "zeta_link",
+         "pot_gain", "gauge_gain")  # fmt: skip

@@ -42,6 +42,7 @@ from .effects import BY_PARAM, EFFECTS, SECONDARY, SELECTED_BY_SPREAD, Effect, e
 from .experiments import CHANNELS, RigExperiment
 from .noise import noise_mean_squared_gap
 from .result import Candidate, Decomposition, FittedParameter, FoundEffect, Gap, HeldOutGap, Step
+from .rigmodel import COMBOS, plant_value, to_plant
 from .simulation import SSE, channel_fits, fit_pct, gap_summary, mean_squared_gap
 from .tasks import Pool
 
@@ -392,7 +393,8 @@ def final_params(
     final = res["params"]
     table = {}
     extras = [x for p in free for x in BY_PARAM[p].extra]
-    for prm in [*recal.LINEAR, *free, *extras]:
+    fitted_linear = cf.pool.setup.linear(any(x.encoder for x in cf.experiments.values()))
+    for prm in [*fitted_linear, *free, *extras]:
         nom = cf.pool.setup.nominal(prm)
         val, ci = float(final.get(prm, nom)), res["ci95"].get(prm, (math.nan, math.nan))
         row = FittedParameter(nominal=nom, fitted=val, ci95=[float(ci[0]), float(ci[1])], change_pct=math.nan, unit="")
@@ -411,7 +413,44 @@ def final_params(
         else:
             row.unit = BY_PARAM[prm].unit
         table[prm] = row
+    if linear:
+        table |= implied(cf.pool.setup.plant, final, res["ci95"])
     return final, table
+
+
+def implied(
+    sheet: dict[str, Any], final: Overrides, ci95: dict[str, tuple[float, float]]
+) -> dict[str, FittedParameter]:
+    """The physical values (:data:`harness.diagnosis.recalibrate.IMPLIED`) the fitted combos ``final`` imply on the
+    sheet's plant (:func:`harness.diagnosis.rigmodel.to_plant`), their intervals from the combos' (each end taken
+    alone, the log deviations added in quadrature)."""
+    combos = {p: float(final[p]) for p in COMBOS if p in final}
+    mid = to_plant(combos, sheet)
+    dev: dict[str, list[float]] = {k: [0.0, 0.0] for k in mid}
+    for p in combos:
+        for end in ci95.get(p, (math.nan, math.nan)):
+            if not (math.isfinite(end) and end > 0):
+                continue
+            moved = to_plant({**combos, p: end}, sheet)
+            for k in mid:
+                d = math.log(moved[k] / mid[k])
+                lo_hi = 0 if d < 0 else 1
+                dev[k][lo_hi] += d * d
+    out = {}
+    for k, v in mid.items():
+        name = f"plant.{k}"
+        b = recal.IMPLIED[name]
+        nom = plant_value(sheet, k)
+        lo, hi = v * math.exp(-math.sqrt(dev[k][0])), v * math.exp(math.sqrt(dev[k][1]))
+        out[name] = FittedParameter(
+            nominal=nom,
+            fitted=v,
+            ci95=[lo, hi],
+            change_pct=100.0 * (v / nom - 1.0),
+            unit=b.unit,
+            finding=f"implied by the drive's fit: {recal.finding(name, nom, v, (lo, hi))}",
+        )
+    return out
 
 
 def recalibrated_alone(rec: list[dict[str, Any]]) -> dict[str, float]:
@@ -567,7 +606,7 @@ def search(
     names = list(experiments)
     cf = CrossFit(pool, experiments, names, [folds[0], folds[1]], [folds[1], folds[0]], e_noise)
     # the simulation recalibrated, and as given (in one map, the long tasks first)
-    *rec, sse0 = pool.map([*(("refit", {}, [], cf.fits[k], cf.helds[k]) for k in (0, 1)), ("sse", {}, names)])
+    *rec, sse0 = pool.map([*(("recal", cf.fits[k], cf.helds[k]) for k in (0, 1)), ("sse", {}, names)])
     e0 = cf.msg(sse0)
     e_recal = cf.held_out(rec)
     recal_paid = e_recal < e0

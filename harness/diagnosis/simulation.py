@@ -37,10 +37,13 @@ import numpy as np
 
 from .. import spec as specmod
 from ..executor import FmuBytes
+from ..fmu.cosim import CALIBRATION
 from ..ident.calibration import Calibration, alpha_deg, daq_calibration, theta_deg
 from ..rig.controller import Controller, delayed
 from .experiments import CHANNELS, DEADBAND_GUARD, SHOOTING_SECONDS, RigExperiment, measured_state
+from .recalibrate import LINEAR
 from .result import ExperimentGap, GapSummary
+from .rigmodel import COMBOS, SENSORS, combos, to_plant
 
 __all__ = [
     "SSE",
@@ -62,6 +65,7 @@ __all__ = [
 
 SSE = dict[str, dict[str, float]]  # experiment -> channel -> sum of squared residuals [deg^2]
 MODELS = {"plant": "flexjoint", "daq": "daq"}  # the FMU behind each rig table
+SENSOR_KNOWN = 0.01  # a sensor gain known to 1 % (sd, log) is not fitted: its error goes into the intervals
 REPLAY_NOISE_SEED = 7  # noise seed of every closed-loop replay (:attr:`Setup.loop_noise`)
 LOOP_NOISE_SEEDS = (1, 2)  # other seeds, whose replays against it measure what noise fed back leaves
 SPREAD_SECONDS = 0.25  # s: the windows in which a closed-loop replay's gap is set beside its spread (loop_spread)
@@ -91,11 +95,27 @@ class Setup:
     loop_noise: dict[str, float] = field(default_factory=dict)
     lattice_noise: dict[str, float] = field(default_factory=dict)
     gain_rel_se: dict[str, float] = field(default_factory=dict)
+    prior_sd: dict[str, float] = field(default_factory=dict)
 
     def nominal(self, param: str) -> float:
-        """The simulation's own value of an FMU parameter ("plant.Ks"): the sim spec's, else the FMU default."""
+        """The simulation's own value of a parameter: an FMU parameter's ("plant.Ks": the sim spec's, else the FMU
+        default), a combo's of the sim's plant (:data:`harness.diagnosis.rigmodel.COMBOS`), 1 for a sensor's gain."""
         table, name = param.split(".", 1)
+        if table == "rig":
+            return combos(self.plant)[param]
+        if table == "sensor":
+            return 1.0
         return fmu_value(self.plant if table == "plant" else self.daq, MODELS[table], name)
+
+    def linear(self, encoder: bool = False) -> list[str]:
+        """The linear parameters recalibration fits (:data:`harness.diagnosis.recalibrate.LINEAR`): the drive's and
+        the link's, and a sensor's gain where its prior is wider than SENSOR_KNOWN (not an encoder's count)."""
+        out = []
+        for p in LINEAR:
+            if p in SENSORS and (self.prior_sd.get(p, 0.0) < SENSOR_KNOWN or (p == "sensor.theta_gain" and encoder)):
+                continue
+            out.append(p)
+        return out
 
 
 def sim_rig(sim: specmod.Spec) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -106,12 +126,31 @@ def sim_rig(sim: specmod.Spec) -> tuple[dict[str, Any], dict[str, Any]]:
 
 
 def _split_overrides(over: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
-    """{"plant.x": v, "daq.y": w} -> ({"x": v}, {"y": w})."""
+    """{"plant.x": v, "daq.y": w} -> ({"x": v}, {"y": w}); the combos and sensor gains left out."""
     plant, daq = {}, {}
     for k, v in over.items():
         table, name = k.split(".", 1)
-        (plant if table == "plant" else daq)[name] = v
+        if table in ("plant", "daq"):
+            (plant if table == "plant" else daq)[name] = v
     return plant, daq
+
+
+def rig_tables(
+    setup: Setup, exp: RigExperiment, over: Mapping[str, Any]
+) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
+    """The plant and DAQ parameters of ``exp``'s replay with overrides ``over`` (combos mapped onto the plant by
+    :func:`harness.diagnosis.rigmodel.to_plant`, a sensor's gain onto the DAQ's: reading = gain x true angle), and
+    the DAQ as the data's calibration believes it (the sensor gains as given): (plant, daq, calibrated daq)."""
+    p_over, d_over = _split_overrides(over)
+    sheet = {**setup.plant, **exp.plant}
+    drive = {k: float(v) for k, v in over.items() if k in COMBOS}
+    plant = {**sheet, **(to_plant(drive, sheet) if drive else {}), **p_over}
+    believed = {**setup.daq, **exp.daq, **d_over}
+    daq = dict(believed)
+    for s, name in SENSORS.items():
+        if s in over:
+            daq[name] = fmu_value(believed, "daq", name) / float(over[s])
+    return plant, daq, believed
 
 
 def sim_calibration(daq: Mapping[str, Any], comb_angles: np.ndarray | None) -> Calibration:
@@ -128,22 +167,24 @@ def simulate(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Simulated (theta, alpha) [deg] of one experiment (its first ``n`` samples) on the sim rig with ``over``
     ({"plant.x": v, ...}), and the mask of the theta samples where the simulated pot is on its track."""
-    p_over, d_over = _split_overrides(over)
-    plant = {**setup.plant, **exp.plant, **p_over}
+    d_over = _split_overrides(over)[1]
+    plant, daq, believed = rig_tables(setup, exp, over)
     noise = setup.lattice_noise if setup.lattice_noise and _quantises(setup, exp, d_over) else setup.loop_noise
-    loop = {**noise, "seed": REPLAY_NOISE_SEED} if exp.replay == "closed" and noise else {}
-    daq = {**setup.daq, **exp.daq, **loop, **d_over}
+    if exp.replay == "closed" and noise:
+        daq = {**daq, **{k: v for k, v in noise.items() if k not in d_over}}
+        daq["seed"] = d_over.get("seed", REPLAY_NOISE_SEED)
     plant.setdefault("theta_start", math.radians(float(exp.theta[0])))
     if exp.replay == "closed":
         c = Controller(**exp.controller)  # type: ignore[arg-type]
         ctrl = c.fmu_parameters(1.0 / exp.Ts)
+        ctrl |= {k: fmu_value(believed, "daq", v) for k, v in CALIBRATION.items()}  # the lab's calibration
         ref = np.radians(delayed(exp.ref, c.ref_delay)[:n])  # type: ignore[arg-type]  # what the controller acted on
         res = rig.run_closed(ref, exp.Ts, ctrl, plant=plant, daq=daq, diverged="hold")
     elif exp.replay == "shooting":
         res = _shooting(rig, exp, plant, daq, n)
     else:
         res = rig.run(exp.u[:n], exp.Ts, plant=plant, daq=daq)
-    cal = sim_calibration(daq, setup.comb_angles)
+    cal = sim_calibration(believed, setup.comb_angles)
     reading = theta_deg(res["theta_v"], cal, unwrap=False)
     if exp.encoder:
         on_track = np.ones(reading.size, dtype=bool)

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from typing import Any
 
 import numpy as np
@@ -40,6 +40,8 @@ from .simulation import (
     residuals,
 )
 from .where import where_gap
+
+SENSOR_CHANNELS = {"theta": "sensor.theta_gain", "alpha": "sensor.alpha_gauge_gain"}
 
 __all__ = [
     "Pool",
@@ -98,12 +100,12 @@ def residual_vector(over: dict[str, Any], names: list[str], k: int | None = None
     return np.concatenate(parts)
 
 
-def gain_columns(setup: Setup, names: list[str]) -> tuple[np.ndarray, np.ndarray] | None:
+def gain_columns(setup: Setup, names: list[str], fitted: Collection[str] = ()) -> tuple[np.ndarray, np.ndarray] | None:
     """How :func:`residual_vector` of ``names`` moves with the log of each sensor's calibration gain (the measured
     channel, masked and scaled alike; an open-loop replay's theta less its mean, which the replay's offset takes),
     and each gain's relative standard error (:attr:`Setup.gain_rel_se`): (columns, se), None when no gain's error
-    is known."""
-    se = np.array([setup.gain_rel_se.get(c, 0.0) for c in CHANNELS])
+    is known; the channels ``fitted`` (their sensor's gain is fitted) have none."""
+    se = np.array([0.0 if c in fitted else setup.gain_rel_se.get(c, 0.0) for c in CHANNELS])
     if not np.any(se > 0):
         return None
     k = moving_channels(setup, names)
@@ -181,6 +183,38 @@ def joint_refit(
     return {**res, "sse": squared_errors(res["params"], every) if every else {}}
 
 
+# the global search's grids, factors of the sheet's value, one plane after the other: the drive within a factor 3,
+# then the link within a factor 2 and the inertia ratio within 3
+GRIDS: tuple[dict[str, tuple[float, ...]], ...] = (
+    {"rig.drive_gain": (1 / 3, 3**-0.5, 1.0, 3**0.5, 3.0), "rig.drive_tau": (1 / 3, 3**-0.5, 1.0, 3**0.5, 3.0)},
+    {"plant.Ks": (0.5, 2**-0.5, 1.0, 2**0.5, 2.0), "rig.inertia_ratio": (1 / 3, 1.0, 3.0)},
+)
+
+
+CORRELATION_SECONDS = 0.05  # s: the longest a residual's correlation time counts (smoother: model error, not noise)
+RECAL_NFEV = 60  # least squares steps from a grid point: a factor sqrt(3) from the truth takes more than a refit
+
+
+def recalibrate(fit: list[str], every: list[str]) -> dict[str, Any]:
+    """Recalibration of the linear parameters on ``fit`` that does not hinge on the sheet being close: the residuals
+    on each grid of :data:`GRIDS` in turn (the best point of one kept for the next), then :func:`joint_refit` from
+    the best point (squared errors on ``every``). Returns what :func:`joint_refit` returns, ``evaluations`` in
+    all."""
+    setup: Setup = _CTX["setup"]
+    best: dict[str, Any] = {}
+    evaluations = 0
+    for grid in GRIDS:
+        axes = [p for p in grid if p in setup.linear()]
+        scored = []
+        for factors in itertools.product(*(grid[p] for p in axes)):
+            over = {**best, **{p: setup.nominal(p) * f for p, f in zip(axes, factors, strict=True)}}
+            scored.append((float(np.sum(residual_vector(over, fit) ** 2)), over))
+        evaluations += len(scored)
+        best = min(scored, key=lambda c: c[0])[1]
+    res = joint_refit(best, [], fit, every, RECAL_NFEV)
+    return {**res, "evaluations": evaluations + res["evaluations"]}
+
+
 def least_squares_refit(
     setup: Setup,
     resid: Callable[[dict[str, Any]], np.ndarray],
@@ -197,15 +231,17 @@ def least_squares_refit(
     the effects' are fitted. Returns params, ci95, fit_msg, evaluations."""
     bounds: dict[str, recal.Bound] = {}
     nominal: dict[str, float] = {}
-    for prm, b in recal.LINEAR.items() if linear else ():
-        bounds[prm], nominal[prm] = b, setup.nominal(prm)
+    encoder = any(setup.experiments[n].encoder for n in names)
+    for prm in setup.linear(encoder) if linear else ():
+        bounds[prm], nominal[prm] = recal.LINEAR[prm], setup.nominal(prm)
     for prm in free:
         eff = BY_PARAM[prm]
         bounds[prm], nominal[prm] = eff.bound(float(base[prm])), float(base[prm])
         for x, b in eff.extra.items():
             bounds[x], nominal[x] = b, setup.nominal(x)
     fixed = {k: v for k, v in base.items() if k not in bounds}
-    gains = gain_columns(setup, names)
+    gains = gain_columns(setup, names, [c for c, s in SENSOR_CHANNELS.items() if s in bounds])
+    prior = {p: sd for p, sd in setup.prior_sd.items() if p in bounds}
 
     def refit(fixed: dict[str, Any], start: dict[str, Any]) -> recal.Fit:
         if not bounds:  # nothing to fit: the cost as given
@@ -218,9 +254,11 @@ def least_squares_refit(
             start={k: float(v) for k, v in start.items() if k in bounds},
             fixed=fixed,
             max_nfev=max_nfev,
-            hold=recal.LINEAR,
+            hold=() if prior else recal.LINEAR,
             derivative_free=lattice_in_loop(setup, fixed, names),
             calibration=gains,
+            prior=prior,
+            max_rho=math.exp(-min(setup.experiments[n].Ts for n in names) / CORRELATION_SECONDS),
         )
 
     f = refit(fixed, base)
@@ -269,6 +307,7 @@ TASKS: dict[str, Callable[..., Any]] = {
     "sse": squared_errors,
     "fit": screen_effect,
     "refit": joint_refit,
+    "recal": recalibrate,
     "resid": residual_vector,
     "where": where,
     "loopnoise": loop_noise,
@@ -290,6 +329,8 @@ def _label(call: tuple[Any, ...]) -> str:
         return f"screen {call[1].name}"
     if kind == "refit":
         return "refit linear" + "".join(f" + {p.split('.', 1)[1]}" for p in call[2])
+    if kind == "recal":
+        return "recalibrate"
     return {"where": "where", "loopnoise": "loop noise", "spread": "loop spread", "replay": "replay"}.get(kind, "score")
 
 
