@@ -655,6 +655,9 @@ def diagnosis_summary(d: Diagnosis) -> str:
             f"{k.replace('_', ' ')} " + " ".join(f"{c} {v:.1f} %" for c, v in by.items())
             for k, by in dec.channels.items()
         ) + f"; the gap is in {dec.gap_channel()}")  # fmt: skip
+    if d.gap.records:
+        lines.append("each record's fit, recalibrated alone -> with the joint parameters: " + ", ".join(
+            f"{n} {r['own']:.1f} -> {r['joint']:.1f} %" for n, r in d.gap.records.items()))  # fmt: skip
     lines.append(
         f"gap: fit {d.gap.before.fit_pct:.2f} % -> {d.gap.after.fit_pct:.2f} %, total shrink {d.gap.shrink_pct:.1f} %"
     )

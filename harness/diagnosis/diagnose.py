@@ -52,7 +52,7 @@ from .. import spec as specmod
 from ..executor import fmu_bytes
 from ..fmu.build import build_all
 from ..ident.calibration import load_calibration
-from ..rundir import RunDir, record_inputs, write_json
+from ..rundir import Manifest, RunDir, record_inputs, write_json
 from . import recalibrate as recal
 from .effects import CandidateContext, candidates
 from .experiments import REPLAYS, RigExperiment, fold_experiments, load_experiments, masked_share
@@ -76,6 +76,7 @@ from .tasks import SENSOR_CHANNELS, Pool
 __all__ = ["EXPLAINED", "GAP_RESOLUTION", "MIN_CLOSURE", "NONE_RATIO", "NONE_RATIO_LOOP", "THRESHOLDS", "diagnose_run"]
 
 Progress = Callable[[str], None]
+MIN_RECORDS = 3  # an import of this many records or more: each also recalibrated alone (two: the folds are they)
 
 THRESHOLDS = Thresholds(
     none_ratio=NONE_RATIO,
@@ -103,6 +104,12 @@ def _replays(experiments: dict[str, RigExperiment]) -> dict[str, dict[str, str]]
     return {n: {"replay": x.replay, "reason": x.replay_reason} for n, x in experiments.items()}
 
 
+def _own(p: FittedParameter, record: str) -> str:
+    """A record's own fit of a parameter: "name 1.23 [1.2-1.26]"."""
+    v, lo, hi = (p.records or {})[record]
+    return f"{record} {v:.4g} [{lo:.4g}-{hi:.4g}]"
+
+
 def _caveats(parameters: dict[str, FittedParameter], verdict: str, folds: Folds | None = None) -> list[str] | None:
     """What limits the verdict: which part of the spec does not describe the rig (:func:`recal.parts_at_bound`), each
     recalibrated parameter that ended at its bound (an effect's share of the gap may be a wrong linear part's), each
@@ -111,6 +118,17 @@ def _caveats(parameters: dict[str, FittedParameter], verdict: str, folds: Folds 
     out = recal.parts_at_bound({n: (p.nominal, p.fitted) for n, p in parameters.items() if n in recal.LINEAR})
     out += [f"verdict {verdict!r} reached with {p.finding}" for p in parameters.values() if p.at_bound]
     out += [f"{p.finding}" for p in parameters.values() if p.identifiable is False and p.finding and not p.at_bound]
+    by_record = [
+        f"{recal.LINEAR[n].label} " + " and ".join(f"{_own(p, a)} / {_own(p, b)}" for a, b in p.records_apart)
+        for n, p in parameters.items()
+        if n in recal.LINEAR and p.records_apart and not p.at_bound
+    ]
+    if by_record:
+        out.append(
+            "recalibrated on each record alone, the 95 % intervals exclude each other ("
+            + "; ".join(by_record)
+            + "): the linear model does not describe these records as one rig (model error, not noise)"
+        )
     apart = [n for n, p in parameters.items() if p.folds_disagree and not p.at_bound]
     if verdict == "unexplained" and apart:
         fits = "; ".join(
@@ -200,7 +218,8 @@ def diagnose_run(
     cands = candidates(CandidateContext(plant, daq, top, noise.adc_lattice_bits))
     pool = Pool(setup, workers, scheduler, progress)
     try:
-        found = search(pool, experiments, (folds.A, folds.B), cands, e_noise, say, sigma)
+        unit = list(experiments) if Manifest.load(real).kind == "import" and len(records) >= MIN_RECORDS else None
+        found = search(pool, experiments, (folds.A, folds.B), cands, e_noise, say, sigma, unit)
         # after recalibration: what recalibration alone fitted (the waterfall's stage), not the final joint refit
         stages = {"given": {}, "recalibrated": found.recalibrated, "effects": found.final}
         before, after, *traces = pool.map(

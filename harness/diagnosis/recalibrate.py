@@ -1,30 +1,28 @@
 """Recalibrate a simulation's linear physical parameters against measured data (output-error least squares).
 
-A real rig never matches its datasheet: viscous damping, link stiffness, link damping, inertia and motor gain
-are 10 to 50 % off. Before any unmodelled effect is blamed for a sim-to-real gap, those parameters are fitted
-to the data by simulating the rig (the caller supplies the residual function: it runs the plant FMU) with
-:func:`scipy.optimize.least_squares` (trust-region reflective, bounded), each parameter as the log of its ratio
-to the spec's value (so bounds are factors and steps are relative). Standard errors come from the Jacobian at
-the solution, cov = s^2 (J^T J)^-1 with s^2 = SSE / (N - p): the usual output-error intervals, which assume
-white residuals and are therefore optimistic when model error, not noise, dominates (said in the report). The data
-were converted to angles with calibrated sensor gains whose own errors move the fit too: given how the residuals
-move with each gain (``calibration``: columns G and standard errors s_g), the intervals hold A diag(s_g^2) A^T,
-A = J^+ G, the fit's shift per gain error.
+A real rig never matches its sheet. Before any unmodelled effect is blamed for a sim-to-real gap, the linear
+parameters the data determine (:data:`LINEAR`: the drive's gain and time constant, the inertia ratio, the link, the
+sensors' gains; :mod:`harness.diagnosis.rigmodel`) are fitted to the data by simulating the rig (the caller supplies
+the residual function: it runs the plant FMU) with :func:`scipy.optimize.least_squares` (trust-region reflective),
+each parameter as the log of its ratio to the spec's value. The bounds are far walls; inside them the spec's
+uncertainty is a prior (``prior``: sd in log about the spec's value), a residual row w x / sd per parameter, w^2 the
+residual variance per independent sample at the solution (taken again from it while it falls: the start's
+variance would overweight the prior). Residuals that model error makes smooth are worth fewer samples than they
+have: n (1 - rho) / (1 + rho) (:func:`effective_samples`, rho their lag-one autocorrelation up to ``max_rho``).
+
+Intervals: cov = (J^T J / s^2 + P)^-1, s^2 = SSE / (N - p) x n / n_eff (residuals as correlated as they are, not
+white), P the priors' precisions: a parameter the data do not determine keeps its prior's interval. The data were
+converted to angles with calibrated sensor gains whose own errors move the fit too: given how the residuals move
+with each gain (``calibration``: columns G and standard errors s_g), the intervals hold A diag(s_g^2) A^T, A = J^+ G.
 
 A closed loop through an ADC lattice is fitted without derivatives (``derivative_free``: Powell's search on the
 same sum of squares, steps down to :data:`POWELL_XTOL`). The controller acts on the quantised angles, so the whole
 trajectory is a staircase in the parameters: flat to a 0.1 % step, jumping at the next, and least squares stops
 at its start. The intervals then come from a Jacobian taken with steps of :data:`STAIRCASE_STEP`.
 
-A parameter the data do not determine (its 95 % interval wider than a factor :data:`UNIDENTIFIABLE`) drifts along a
-flat valley of the cost, on real records often to a search bound, where it would read as "the spec may not
-describe this rig" although the spec's value fits as well. Such a parameter (of those the caller names ``hold``)
-keeps the spec's value: the fit is made again with it held there, and kept when its cost is within
-:data:`HOLD_TOLERANCE` of the free fit's (:attr:`Fit.held` names it; its interval is the free fit's).
-
-:data:`LINEAR` is the table of what is recalibrated and within which physical bounds. The motor gain is one
-factor on kt * eta_g * eta_m: kt carries it (drive torque and back-EMF damping both scale with it, as they do
-with the efficiencies, and kt has no upper bound of 1).
+Without priors, a parameter the data do not determine (its 95 % interval wider than a factor
+:data:`UNIDENTIFIABLE`) drifts along a flat valley of the cost; such a parameter (of those the caller names
+``hold``) keeps the spec's value when that costs less than :data:`HOLD_TOLERANCE` more (:attr:`Fit.held`).
 """
 
 from __future__ import annotations
@@ -232,7 +230,7 @@ def _fit(
     r = data(res.x)
     n_eff = int(np.count_nonzero(r))
     dof = max(n_eff - len(names), 1)
-    s2 = float(np.sum(r**2)) / dof
+    s2 = float(np.sum(r**2)) / dof * n_eff / max(effective_samples(r, max_rho), 1.0)  # smooth residuals: fewer samples
     jac = _felt(data, res.x, r, np.array(res.jac, dtype=float)[: r.size], lo_hi)
     info = jac.T @ jac / max(s2, 1e-300) + np.diag(np.where(sel, 1.0 / sd**2, 0.0))
     cov = np.linalg.pinv(info)

@@ -88,7 +88,8 @@ class FittedParameter:
     geometric mean of the two folds' fits, the model the waterfall's "recalibration" stage scores; ``fitted`` is
     refitted jointly with the effects found, so the two differ where the recalibration compensated an effect),
     ``folds``: recalibration alone on each fold, [fitted, lo, hi] (fold A, fold B: with two records or more, each
-    fold is records of its own). A parameter kept at the spec's value, not fitted, has an interval of NaN
+    fold is records of its own); ``records``: recalibration alone on each record of a unit of three or more, record ->
+    [fitted, lo, hi]. A parameter kept at the spec's value, not fitted, has an interval of NaN
     (:attr:`kept`)."""
 
     nominal: float
@@ -101,6 +102,14 @@ class FittedParameter:
     identifiable: bool | None = None
     recalibrated: float | None = None
     folds: list[list[float]] | None = None
+    records: dict[str, list[float]] | None = None
+
+    @property
+    def records_apart(self) -> list[tuple[str, str]]:
+        """The pairs of records whose own fits (:attr:`records`) have 95 % intervals that exclude each other."""
+        r = self.records or {}
+        names = list(r)
+        return [(a, b) for i, a in enumerate(names) for b in names[i + 1 :] if r[a][2] < r[b][1] or r[b][2] < r[a][1]]
 
     @property
     def folds_disagree(self) -> bool:
@@ -255,6 +264,7 @@ class Gap:
     explained_pct: float
     decomposition: Decomposition
     definition: str
+    records: dict[str, dict[str, float]] | None = None  # a unit's record -> {"own": its fit alone, "joint": ...}
 
     def per_experiment(self) -> list[tuple[str, float, float]]:
         """(experiment, gap before, gap after) with the final parameters, in the diagnoser's order."""

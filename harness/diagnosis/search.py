@@ -597,15 +597,18 @@ def search(
     e_noise: float,
     say: Progress,
     loop_sigma: dict[str, float] | None = None,
+    records: list[str] | None = None,
 ) -> SearchResult:
     """Recalibration, then greedy selection of the candidate effects ``cands`` on top of it, with 2-fold
     cross-fitting; verdict, effects, candidates, the parameter table and the gap decomposition (see the module).
     ``e_noise``: the floor of the measurement noise; with ``loop_sigma`` (the data's noise RMS [deg] per channel) the
     floor of the closed-loop replays is measured on the recalibrated rig (:func:`loop_floor`) before anything is
-    judged against it."""
+    judged against it. ``records``: a unit's records (three or more), each also recalibrated alone, so that the table
+    shows each record's own parameters beside the joint fit."""
     names = list(experiments)
     cf = CrossFit(pool, experiments, names, [folds[0], folds[1]], [folds[1], folds[0]], e_noise)
     # the simulation recalibrated, and as given (in one map, the long tasks first)
+    singles = list(records or [])
     *rec, sse0 = pool.map([*(("recal", cf.fits[k], cf.helds[k]) for k in (0, 1)), ("sse", {}, names)])
     e0 = cf.msg(sse0)
     e_recal = cf.held_out(rec)
@@ -646,9 +649,15 @@ def search(
 
     explained = share(e_left)
     final, table = final_params(cf, fw.bases, order, set(by_spread_kept))
+    # each record of a unit alone, from the grid and from the joint fit (so that its own fit is at least as good)
+    own = dict(zip(singles, pool.map([("recal", [r], [], final) for r in singles]), strict=True))
     for prm, value in alone.items():
         table[prm].recalibrated = value
         table[prm].folds = [[float(r["params"][prm]), *map(float, r["ci95"].get(prm, (math.nan,) * 2))] for r in rec]
+        if own:
+            table[prm].records = {
+                n: [float(r["params"][prm]), *map(float, r["ci95"].get(prm, (math.nan,) * 2))] for n, r in own.items()
+            }
     sse_final, *sse_signature = pool.map(
         [("sse", final, names), *(("sse", {**fw.bases[0], c.param: c.values[0]}, names) for c in signature)]
     )
@@ -690,6 +699,11 @@ def search(
             },
         ),
         definition=GAP_DEFINITION,
+        records={
+            n: {"own": fit_pct(r["fit_msg"]), "joint": fit_pct(mean_squared_gap(sse_final, experiments, [n]))}
+            for n, r in own.items()
+        }
+        or None,
     )
     return SearchResult(
         verdict=verdict,

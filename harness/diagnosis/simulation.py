@@ -177,7 +177,7 @@ def simulate(
     if exp.replay == "closed":
         c = Controller(**exp.controller)  # type: ignore[arg-type]
         ctrl = c.fmu_parameters(1.0 / exp.Ts)
-        ctrl |= {k: fmu_value(believed, "daq", v) for k, v in CALIBRATION.items()}  # the lab's calibration
+        ctrl = {k: fmu_value(believed, "daq", v) for k, v in CALIBRATION.items()} | ctrl  # the lab's calibration
         ref = np.radians(delayed(exp.ref, c.ref_delay)[:n])  # type: ignore[arg-type]  # what the controller acted on
         res = rig.run_closed(ref, exp.Ts, ctrl, plant=plant, daq=daq, diverged="hold")
     elif exp.replay == "shooting":

@@ -195,13 +195,14 @@ CORRELATION_SECONDS = 0.05  # s: the longest a residual's correlation time count
 RECAL_NFEV = 60  # least squares steps from a grid point: a factor sqrt(3) from the truth takes more than a refit
 
 
-def recalibrate(fit: list[str], every: list[str]) -> dict[str, Any]:
+def recalibrate(fit: list[str], every: list[str], start: dict[str, Any] | None = None) -> dict[str, Any]:
     """Recalibration of the linear parameters on ``fit`` that does not hinge on the sheet being close: the residuals
     on each grid of :data:`GRIDS` in turn (the best point of one kept for the next), then :func:`joint_refit` from
-    the best point (squared errors on ``every``). Returns what :func:`joint_refit` returns, ``evaluations`` in
-    all."""
+    the best point and from ``start`` (another fit's parameters; its effects stay as they are there), the lower cost
+    kept (squared errors on ``every``). Returns what :func:`joint_refit` returns, ``evaluations`` in all."""
     setup: Setup = _CTX["setup"]
-    best: dict[str, Any] = {}
+    kept = {p: v for p, v in (start or {}).items() if p not in recal.LINEAR}  # another fit's effects, kept as fitted
+    best: dict[str, Any] = dict(kept)
     evaluations = 0
     for grid in GRIDS:
         axes = [p for p in grid if p in setup.linear()]
@@ -212,6 +213,10 @@ def recalibrate(fit: list[str], every: list[str]) -> dict[str, Any]:
         evaluations += len(scored)
         best = min(scored, key=lambda c: c[0])[1]
     res = joint_refit(best, [], fit, every, RECAL_NFEV)
+    if start:
+        other = joint_refit(dict(start), [], fit, every, RECAL_NFEV)
+        evaluations += res["evaluations"]
+        res = min(res, other, key=lambda r: r["fit_msg"])
     return {**res, "evaluations": evaluations + res["evaluations"]}
 
 
