@@ -677,7 +677,9 @@ def blindtest(
         typer.Option(
             "--family",
             help="twin, nuisance, independent, closed (the nuisance rigs under state feedback, 500 Hz and 1 kHz "
-            "records replayed in closed loop); repeat; default all four",
+            "records replayed in closed loop), wrong_sheet (closed-loop rigs whose drive, Ks and gauge gain are off "
+            "their sheet, the data converted with the sheet's gauge gain; only when named); repeat; default the "
+            "first four",
         ),
     ] = None,
     quick: Annotated[bool, typer.Option("--quick", help="the shortened blind campaign (12 s experiments)")] = False,
@@ -687,8 +689,8 @@ def blindtest(
 ) -> None:
     """Score the diagnoser on rigs with hidden effects (none, one, two, outside the library), on our twin, on the
     twin with its linear parameters off the datasheet, on an independent simulator and on the off-datasheet twin in
-    closed loop: blindtest.json."""
-    from .diagnosis.blindtest import FAMILIES
+    closed loop (and, when named, on closed-loop rigs off their sheet): blindtest.json."""
+    from .diagnosis.blindtest import FAMILIES, not_fitted_line
     from .diagnosis.blindtest import blindtest as run_blind
 
     fams = tuple(family) if family else FAMILIES
@@ -697,6 +699,8 @@ def blindtest(
         **_parallel(workers, scheduler),
     )  # fmt: skip
     out.print(_fit(blindtest_table(res["totals"])))
+    if line := not_fitted_line(res["totals"]):
+        out.print(line)
     out.print(f"{res['n']} cases in {res['timing_s']:.0f} s -> {Path(out_dir) / 'blindtest.json'}")
     for why in res.get("skipped", []):
         out.print(f"skipped family {why}")
@@ -712,21 +716,15 @@ def blindtest_table(tot: dict):
         lo, hi = share["ci95"]
         return f"{share['pct']:.0f} % [{lo:.0f}-{hi:.0f}] ({share['k']}/{share['n']})"
 
-    rows = (
-        ("single: top-1", lambda t: t["single"]["top1"]),
-        ("single: magnitude within 25 %", lambda t: t["single"]["param_within_25pct"]),
-        ("none answered none", lambda t: t["none"]["correct"]),
-        ("two: both found", lambda t: t["two"]["both_found"]),
-        ("recalibrated Ks +-10 % and Beq +-25 %", lambda t: t["recalibration"]["ks_within_10pct_and_beq_within_25pct"]),
-        ("out of library: unexplained", lambda t: t["out_of_library"]["unexplained"]),
-    )
+    from .diagnosis.blindtest import score_share, shown_rows
+
     cols = [*tot.get("families", {}), "pooled"]
     t = Table(title="blind test (share, 95 % Wilson interval, count)")
     t.add_column("score")
     for c in cols:
         t.add_column(c, justify="right")
-    for label, get in rows:
-        t.add_row(label, *[cell(get(tot["families"][c] if c != "pooled" else tot)) for c in cols])
+    for label in shown_rows(tot):
+        t.add_row(label, *[cell(score_share(tot["families"][c] if c != "pooled" else tot, label)) for c in cols])
 
     def verdict(v: dict) -> str:
         if not v.get("n"):

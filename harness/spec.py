@@ -9,7 +9,8 @@ A spec has these tables (everything but ``[campaign]`` and one experiment is opt
     [[experiment]]   identification experiments: name, signal, duration [s] and the signal's parameters,
                      optional ``plant = {...}`` / ``daq = {...}`` overrides for that experiment only
     [controller] the closed loop's controller: kind ("state_feedback" or "pid"), K = [4 gains] or kp, ki, kd,
-                 cutoff [Hz] of its velocity filter, u_limit [V], sample_rate [Hz] (default the campaign's)
+                 cutoff [Hz] of its velocity filter, u_limit [V], sample_rate [Hz] (default the campaign's),
+                 alpha_gain [deg/V] the gauge calibration it reads alpha with (default the DAQ's gauge_gain)
     [[experiment]] with ``loop = "closed"``: run under the controller, its signal the theta reference [deg]
     [identify]   na, nb, nc ranges, nk, af, output, fit_threshold [%], selection tolerance [fit points]
     [accept]     min_fit [%] per dataset, min_average_fit [%] for the selected model
@@ -42,7 +43,7 @@ SPEC_DIR = bundled_dir("specs")  # the bundled specs: harness/_specs in a wheel,
 
 CAMPAIGN_KEYS = {"name", "sample_rate", "seed", "internal_step", "description"}
 EXPERIMENT_KEYS = {"name", "signal", "duration", "plant", "daq", "role", "loop"}
-CONTROLLER_KEYS = {"kind", "K", "kp", "ki", "kd", "cutoff", "u_limit", "sample_rate", "ref_delay"}
+CONTROLLER_KEYS = {"kind", "K", "kp", "ki", "kd", "cutoff", "u_limit", "sample_rate", "ref_delay", "alpha_gain"}
 LOOPS = ("open", "closed")
 COMB_PARAMS = {"deflections_cm", "D_cm", "hold", "ramp"}
 IDENTIFY_DEFAULTS: dict[str, Any] = {

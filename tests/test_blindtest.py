@@ -175,3 +175,159 @@ def test_a_target_is_not_met_on_one_case_nor_on_none():
     console = Console(width=200, record=True)
     console.print(blindtest_table(many))
     assert "single top-1 % >= 90 (met)" in console.export_text()
+
+
+# --- the wrong_sheet family: closed-loop rigs off their sheet, the data converted with the sheet's calibration
+
+
+def test_wrong_sheet_rigs_are_off_their_sheet_within_the_stated_ranges():
+    """Half the rigs carry one library effect, half none; the drive's gain and time constant are off by x1/3..3, Ks
+    and the gauge gain by x0.5..2, and the truth scored is what those plant and DAQ parameters give."""
+    from harness.diagnosis.rigmodel import combos
+
+    cases = bt.plan(30, 4, ("wrong_sheet",))
+    assert cases == bt.plan(30, 4, ("wrong_sheet",)) and [c["case"] for c in cases] == list(range(30))
+    assert [c["kind"] for c in cases].count("single") == 15 and [c["kind"] for c in cases].count("none") == 15
+    assert {c["truth_effects"][0] for c in cases if c["kind"] == "single"} == set(EFFECTS)
+    sheet = bt.campaign_spec(family="wrong_sheet")
+    c0 = combos(sheet.plant)
+    gauge0 = bt.fmu_value(sheet.daq, "daq", "gauge_gain")
+    f = np.array([[c["sheet_factors"][p] for p in bt.WRONG_SHEET] for c in cases])
+    assert np.all(f[:, :2] >= 1 / 3 - 1e-12) and np.all(f[:, :2] <= 3.0) and np.all((f[:, 2:] >= 0.5) & (f[:, 2:] <= 2))
+    assert f.min(axis=0)[0] < 0.6 and f.max(axis=0)[0] > 1.7  # spread over the range, not stuck at 1
+    for c in cases:
+        t, k = c["sheet_truth"], c["sheet_factors"]
+        plant = {p.split(".")[1]: v for p, v in c["nuisance"].items() if p.startswith("plant.")}
+        rig = combos({**sheet.plant, **plant})
+        assert rig["rig.drive_gain"] == pytest.approx(t["rig.drive_gain"], rel=1e-12)
+        assert rig["rig.drive_gain"] / c0["rig.drive_gain"] == pytest.approx(k["rig.drive_gain"], rel=1e-9)
+        assert rig["rig.drive_tau"] / c0["rig.drive_tau"] == pytest.approx(k["rig.drive_tau"], rel=1e-9)
+        assert rig["rig.inertia_ratio"] == pytest.approx(c0["rig.inertia_ratio"], rel=1e-12)
+        assert t["plant.Ks"] == pytest.approx(bt._textbook("plant.Ks") * k["plant.Ks"], rel=1e-12)
+        assert c["nuisance"]["daq.gauge_gain"] == pytest.approx(gauge0 * k["daq.gauge_gain"], rel=1e-12)
+        assert t["sensor.alpha_gauge_gain"] == pytest.approx(1.0 / k["daq.gauge_gain"], rel=1e-12)
+    mixed = bt.plan(8, 5, ("twin", "wrong_sheet"))
+    assert [c["family"] for c in mixed] == ["twin", "wrong_sheet"] * 4 and [c["case"] for c in mixed] == list(range(8))
+    assert "wrong_sheet" not in bt.FAMILIES  # run when named, not by default
+
+
+def test_wrong_sheet_data_read_the_gauge_through_the_sheets_calibration(tmp_path, fmus):
+    """A rig whose gauge gain is twice its sheet's: no comb in its campaign, its calibration.json is the sheet's, so its
+    alpha data are half the true deflection, and its controller acted on those halved readings."""
+    from harness.ident.calibration import alpha_deg, load_calibration, theta_deg
+    from harness.rig.controller import Controller, command_r2
+
+    sheet = bt.campaign_spec(quick=True, family="wrong_sheet")
+    gauge0 = bt.fmu_value(sheet.daq, "daq", "gauge_gain")
+    case = {"case": 0, "family": "wrong_sheet", "kind": "none", "truth_effects": [], "truth_params": {},
+            "nuisance": {"daq.gauge_gain": 2.0 * gauge0}, "sensor": {}, "campaign_seed": 11}  # fmt: skip
+    run = bt.make_rig_run(case, tmp_path / "x2", quick=True)
+    m = json.loads((run / "manifest.json").read_text())
+    assert [e["role"] for e in m["experiments"]].count("calibration") == 0 and "gauge_gain" not in json.dumps(m)
+    cal = load_calibration(run)
+    assert cal.Ke == gauge0 and cal.gauge_offset_v == 0.0 and "sheet" in cal.source["Ke"]["method"]
+    d = pd.read_parquet(run / "data" / "square_large.parquet")
+    alpha = alpha_deg(d["alpha_v"], cal)
+    assert np.abs(d["alpha"]).max() > 3.0  # the link deflects by degrees
+    np.testing.assert_allclose(alpha, 0.5 * d["alpha"], rtol=0, atol=0.05)  # 2 mV of noise: ~7 mdeg rms
+    c, Ts = Controller(**m["experiments"][0]["controller"]), 1.0 / sheet.sample_rate
+    assert c.alpha_gain == gauge0
+    theta = np.radians(theta_deg(d["theta_v"], cal))
+    args = (np.radians(d["ref"]), theta, d["u"].to_numpy(), Ts)
+    read = command_r2(c, args[0], theta, np.radians(alpha), args[2], Ts)
+    true = command_r2(c, args[0], theta, np.radians(d["alpha"]), args[2], Ts)
+    assert read > 0.9999 and true < 0.999  # the command is the law on the sheet-calibrated readings
+
+
+def _sheet_diag(rows):
+    """A diagnosis whose parameter table has these (row, fitted) and nothing else of the sheet's rows."""
+    return _diag("none", [], 0.0, rows)
+
+
+TRUTH = {"rig.drive_gain": 2.0, "rig.drive_tau": 0.1, "plant.Ks": 1.0, "sensor.alpha_gauge_gain": 0.5}
+
+
+def test_wrong_sheet_scoring_reads_the_rows_when_present_and_says_not_fitted_otherwise():
+    case = {"case": 0, "family": "wrong_sheet", "kind": "none", "truth_effects": [], "truth_params": {},
+            "nuisance": {"plant.Ks": 1.0}, "sheet_truth": TRUTH}  # fmt: skip
+    inside = {"rig.drive_gain": 2.19, "rig.drive_tau": 0.091, "plant.Ks": 1.09, "sensor.alpha_gauge_gain": 0.546}
+    s = bt.score_case(case, _sheet_diag(inside))
+    assert s["sheet_all_ok"] and set(s["sheet_status"].values()) == {"fitted"} and s["correct"]
+    assert s["sheet_errors"]["rig.drive_gain"] == pytest.approx(0.095) and "recal_ok" not in s
+    s = bt.score_case(case, _sheet_diag({**inside, "sensor.alpha_gauge_gain": 0.556}))  # 11.2 % off
+    assert not s["sheet_all_ok"] and not s["sheet_ok"]["sensor.alpha_gauge_gain"] and s["sheet_ok"]["plant.Ks"]
+    diag = _sheet_diag({**inside, "sensor.alpha_gauge_gain": 1.0})
+    diag.parameters["sensor.alpha_gauge_gain"].ci95 = [math.nan, math.nan]  # kept at the sheet's value
+    assert bt.score_case(case, diag)["sheet_status"]["sensor.alpha_gauge_gain"] == "kept"
+    # today's diagnosis: plant rows only, no rig.* nor sensor.* row
+    s = bt.score_case(case, _sheet_diag({"plant.Ks": 1.05, "plant.kt": 0.00768, "plant.Beq": 0.004}))
+    assert s["sheet_status"] == {"rig.drive_gain": "not fitted", "rig.drive_tau": "not fitted", "plant.Ks": "fitted",
+                                 "sensor.alpha_gauge_gain": "not fitted"}  # fmt: skip
+    assert s["sheet_errors"]["rig.drive_gain"] is None and s["sheet_ok"]["plant.Ks"] and not s["sheet_all_ok"]
+    # the textbook plant's drive gain, 1.758 rad/(V s), against a truth of 2: 12.1 % off (not scored)
+    assert s["sheet_implied_errors"]["rig.drive_gain"] == pytest.approx(0.1209, abs=1e-4)
+    diags = [_sheet_diag(inside), _sheet_diag({"plant.Ks": 1.5})]
+    cases = [{**case, "case": i, "score": bt.score_case(case, d)} for i, d in enumerate(diags)]
+    tot = bt.totals(cases)
+    ws = tot["families"]["wrong_sheet"]["wrong_sheet"]
+    assert ws["all_four_within_10pct"]["k"] == 1 and ws["all_four_within_10pct"]["n"] == 2
+    assert ws["rows"]["rig.drive_gain"]["not_fitted"] == 1 and ws["rows"]["plant.Ks"]["not_fitted"] == 0
+    assert ws["rows"]["plant.Ks"]["median_error_pct"] == pytest.approx(29.5) and ws["none_correct"]["pct"] == 100.0
+    assert tot["targets"]["wrong sheet: all four within 10 % %"]["got"] == 50.0
+    assert not tot["targets"]["wrong sheet: all four within 10 % %"]["met"] and not tot["passed"]
+    assert bt.not_fitted_line(tot) == (
+        "wrong sheet: not fitted by the diagnoser: rig.drive_gain 1/2, rig.drive_tau 1/2, sensor.alpha_gauge_gain 1/2"
+    )
+
+
+def test_wrong_sheet_report_and_console(tmp_path, monkeypatch):
+    """The report's score table and figure gain the wrong-sheet rows (only when such rigs ran) and a section per rig,
+    a row not fitted said so; the console's table likewise."""
+    from rich.console import Console
+
+    from harness.cli import blindtest_table
+    from harness.render import figures
+    from harness.render.blindtest import report_blindtest
+
+    seen = {}
+    save = figures.save_figure
+    monkeypatch.setattr(figures, "save_figure", lambda fig, path: (seen.setdefault("fig", fig), save(fig, path)))
+
+    case = {"case": 0, "family": "wrong_sheet", "kind": "none", "truth_effects": [], "truth_params": {},
+            "nuisance": {}, "sheet_truth": TRUTH, "campaign_seed": 1, "sheet_factors": {
+                "rig.drive_gain": 1.1, "rig.drive_tau": 1.0, "plant.Ks": 0.8, "daq.gauge_gain": 2.0}}  # fmt: skip
+    case["score"] = bt.score_case(case, _sheet_diag({"plant.Ks": 1.03}))
+    doc = {"n": 1, "seed": 0, "spec": "blind.toml", "quick": True, "families": ["wrong_sheet"], "skipped": [],
+           "cases": [case], "totals": bt.totals([case])}  # fmt: skip
+    (tmp_path / "blindtest.json").write_text(json.dumps(doc))
+    report, _ = report_blindtest(tmp_path)
+    text = report.read_text()
+    assert "| wrong sheet: Ks +-10 % | 100 % [21-100] (1/1) | 100 % [21-100] (1/1) |" in text
+    assert "| wrong sheet: all four +-10 % | 0 % [0-79] (0/1) |" in text
+    sec = text.split("## Wrong sheet")[1]
+    row = "| 0 | none | K x1.10 tau x1.00 Ks x0.80 gauge x2.00 | not fitted | not fitted | 3.0 ok | not fitted |"
+    assert row in sec
+    assert "not fitted by the diagnoser: rig.drive_gain 1/1" in sec
+    ax = seen["fig"].axes[0]
+    assert [t.get_text() for t in ax.get_yticklabels()][-5:] == [r for r in bt.SCORE_ROWS if r.startswith("wrong")]
+    assert [t.get_text() for t in ax.texts].count("not fitted (1/1)") == 2 * 3  # family and pooled, 3 rows
+    console = Console(width=200, record=True)
+    console.print(blindtest_table(doc["totals"]))
+    assert "wrong sheet: drive gain +-10 %" in console.export_text()
+    none = {"verdict": "none", "correct": True, "turned_into_effect": False, "shrink_pct": 0.0, "fitted": {}}
+    plain = bt.totals([{"case": 0, "family": "twin", "kind": "none", "truth_effects": [], "score": none}])
+    assert not any(r.startswith("wrong sheet") for r in bt.shown_rows(plain)) and bt.not_fitted_line(plain) is None
+
+
+def test_cli_runs_the_wrong_sheet_family(tmp_path, fmus):
+    from test_cli import flexjoint
+
+    r = flexjoint("blindtest", "--n", 1, "--seed", 2, "--quick", "--workers", 1, "--family", "wrong_sheet",
+                  "--out", tmp_path)  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    doc = json.loads((tmp_path / "blindtest.json").read_text())
+    assert doc["families"] == ["wrong_sheet"] and doc["cases"][0]["family"] == "wrong_sheet"
+    assert set(doc["cases"][0]["score"]["sheet_status"]) == set(bt.SHEET_ROWS)
+    assert "wrong sheet: all four" in r.stdout and doc["totals"]["wrong_sheet"]["n"] == 1
+    bad = flexjoint("blindtest", "--n", 1, "--family", "wrong_sheets", "--out", tmp_path / "bad")
+    assert bad.returncode != 0 and "unknown family wrong_sheets" in bad.stderr and "wrong_sheet" in bad.stderr

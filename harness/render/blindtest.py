@@ -14,27 +14,13 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
+from ..diagnosis.blindtest import SCORE_ROWS, SHEET_ROWS, not_fitted_line, score_share, shown_rows
 from ..rundir import DataError, RunDir, atomic_write_text
 from . import figures
 from .tables import fmt, table
 from .viewer import write_recording
 
-__all__ = ["SCORES", "report_blindtest"]
-
-# score row -> where its share sits in a family's (or the pooled) scores
-SCORES = {
-    "single: top-1": ("single", "top1"),
-    "single: magnitude within 25 %": ("single", "param_within_25pct"),
-    "none answered none": ("none", "correct"),
-    "two: both found": ("two", "both_found"),
-    "recalibrated Ks +-10 % and Beq +-25 %": ("recalibration", "ks_within_10pct_and_beq_within_25pct"),
-    "out of library: unexplained": ("out_of_library", "unexplained"),
-}
-
-
-def _share(scores: dict[str, Any], row: str) -> dict[str, Any]:
-    group, key = SCORES[row]
-    return scores[group][key]
+__all__ = ["report_blindtest"]
 
 
 def _cell(share: dict[str, Any]) -> str:
@@ -57,7 +43,10 @@ def _target_line(name: str, t: dict[str, Any]) -> str:
 def _markdown(doc: dict[str, Any], figure: str) -> str:
     tot = doc["totals"]
     cols = [*tot.get("families", {}), "pooled"]
-    rows = [[row, *(_cell(_share(tot["families"][c] if c != "pooled" else tot, row)) for c in cols)] for row in SCORES]
+    rows = [
+        [row, *(_cell(score_share(tot["families"][c] if c != "pooled" else tot, row)) for c in cols)]
+        for row in shown_rows(tot)
+    ]
     cases = [
         [
             str(c["case"]),
@@ -88,29 +77,80 @@ def _markdown(doc: dict[str, Any], figure: str) -> str:
         "",
         *table(["case", "family", "kind", "hidden effects", "verdict", "fitted", "shrink [%]"], cases),
         "",
+        *_sheet_section(doc),
     ]
     lines += [f"Skipped: {why}." for why in doc.get("skipped") or []]
     return "\n".join(lines).rstrip() + "\n"
 
 
+def _sheet_error(case: dict[str, Any], row: str) -> str:
+    """A wrong-sheet row's error [%] with "ok" within 10 %, "not fitted" (no row), or "kept" at the sheet's value."""
+    sc = case["score"]
+    err = sc["sheet_errors"][row]
+    if err is None:
+        return "not fitted"
+    text = f"{fmt(100.0 * err, 1)}{' ok' if sc['sheet_ok'][row] else ''}"
+    return f"{text} (kept)" if sc["sheet_status"][row] == "kept" else text
+
+
+def _sheet_section(doc: dict[str, Any]) -> list[str]:
+    """The wrong_sheet rigs: how far each sheet was off (the rig's value / the sheet's), the diagnosis's error on each
+    sheet quantity [%], and the drive the plant rows imply (not scored); nothing without such rigs."""
+    cases = [c for c in doc["cases"] if c.get("sheet_truth") and "sheet_errors" in c["score"]]
+    if not cases:
+        return []
+    short = {"rig.drive_gain": "K", "rig.drive_tau": "tau", "plant.Ks": "Ks", "daq.gauge_gain": "gauge"}
+    rows = [
+        [
+            str(c["case"]),
+            ", ".join(c["truth_effects"]) or "none",
+            " ".join(f"{short[k]} x{c['sheet_factors'][k]:.2f}" for k in short),
+            *(_sheet_error(c, r) for r in SHEET_ROWS),
+            " / ".join(fmt(100.0 * c["score"]["sheet_implied_errors"][r], 1) for r in SHEET_ROWS[:2]),
+            c["score"].get("verdict", "—"),
+        ]
+        for c in cases
+    ]
+    line = not_fitted_line(doc["totals"])
+    return [
+        "## Wrong sheet",
+        "",
+        "Each rig off its sheet (the rig's value / the sheet's; gauge: the DAQ's gauge gain, the data converted with "
+        "the sheet's, so the data read 1 / that of the true deflection: the truth of `sensor.alpha_gauge_gain`). "
+        "The diagnosis's error on each [%], ok within 10 %; the drive's gain and time constant its fitted plant "
+        "parameters imply beside them (not scored).",
+        "",
+        *table(["case", "hidden effect", "sheet off by", *SHEET_ROWS, "implied K / tau [%]", "verdict"], rows),
+        "",
+        *([line, ""] if line else []),
+    ]
+
+
 def _figure(doc: dict[str, Any], path: Path) -> None:
-    """Each score per family as a bar [%] with its 95 % interval, the rows of :data:`SCORES`."""
+    """Each score per family as a bar [%] with its 95 % interval, the rows of :func:`shown_rows`."""
     tot = doc["totals"]
     fams = [*tot.get("families", {}), "pooled"]
-    fig = figures.new_figure(9, 0.55 * len(SCORES) * max(1, len(fams)) / 2 + 2.0)
+    rows = shown_rows(tot)
+    fig = figures.new_figure(9, 0.55 * len(rows) * max(1, len(fams)) / 2 + 2.0)
     ax = fig.subplots()
     h = 0.8 / len(fams)
-    y = np.arange(len(SCORES))
+    y = np.arange(len(rows))
     for j, fam in enumerate(fams):
         scores = tot["families"][fam] if fam != "pooled" else tot
-        shares = [_share(scores, row) for row in SCORES]
+        shares = [score_share(scores, row) for row in rows]
         pct = np.array([s["pct"] if s["n"] else np.nan for s in shares], dtype=float)
         lo = np.array([s["ci95"][0] if s["n"] else np.nan for s in shares], dtype=float)
         hi = np.array([s["ci95"][1] if s["n"] else np.nan for s in shares], dtype=float)
         yy = y - 0.4 + (j + 0.5) * h
         ax.barh(yy, np.nan_to_num(pct), h, label=fam, color=f"C{j}")
         ax.errorbar(pct, yy, xerr=[pct - lo, hi - pct], fmt="none", ecolor="k", elinewidth=0.8, capsize=2)
-    ax.set_yticks(y, list(SCORES))
+        for i, row in enumerate(rows):  # a sheet quantity the diagnosis has no row for: said, not a bare 0 %
+            where = SCORE_ROWS[row]
+            missing = scores["wrong_sheet"]["rows"][where[2]]["not_fitted"] if where[1:2] == ("rows",) else 0
+            if missing:
+                box = {"facecolor": "white", "edgecolor": "none", "pad": 0.5}
+                ax.text(1.0, yy[i], f"not fitted ({missing}/{shares[i]['n']})", va="center", fontsize=7, bbox=box)
+    ax.set_yticks(y, rows)
     ax.invert_yaxis()
     ax.set_xlim(0, 105)
     ax.set_xlabel("share of the cases [%] (bar) with its 95 % Wilson interval")

@@ -52,9 +52,9 @@ class Controller:
     """A controller as a spec or a record names it. ``K`` (state feedback) or ``kp``/``ki``/``kd`` (PID) as in
     the module docstring; ``cutoff`` [Hz] of the velocity filter; ``u_limit`` [V] (0: none); ``sample_rate``
     [Hz] (None: the data's); ``ref_delay`` [samples] of the reference it acts on behind the logged one; ``alpha_bias``
-    [deg] the zero error of the deflection it reads (a record's gauge offset, removed from its data); ``source``
-    "spec", "given" or "identified" (then ``r2`` of the least-squares fit
-    of the logged command)."""
+    [deg] the zero error of the deflection it reads (a record's gauge offset, removed from its data); ``alpha_gain``
+    [deg/V] the gauge calibration it converts alpha_v with (None: the DAQ's gauge_gain, a calibration that is right);
+    ``source`` "spec", "given" or "identified" (then ``r2`` of the least-squares fit of the logged command)."""
 
     kind: str = "state_feedback"
     K: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0, 0.0])
@@ -66,6 +66,7 @@ class Controller:
     sample_rate: float | None = None
     ref_delay: int = 0
     alpha_bias: float = 0.0
+    alpha_gain: float | None = None
     source: str = "spec"
     r2: float | None = None
 
@@ -77,6 +78,8 @@ class Controller:
         vals = [*self.K, self.kp, self.ki, self.kd, self.cutoff, self.u_limit, self.alpha_bias]
         if not all(math.isfinite(float(v)) for v in vals):
             raise ValueError("controller gains, cutoff and u_limit must be finite numbers")
+        if self.alpha_gain is not None and not (math.isfinite(float(self.alpha_gain)) and self.alpha_gain != 0):
+            raise ValueError(f"controller alpha_gain must be a finite, nonzero deg/V, got {self.alpha_gain}")
         if not self.cutoff > 0:
             raise ValueError(f"controller cutoff must be > 0 Hz, got {self.cutoff}")
         if self.u_limit < 0:
@@ -86,9 +89,11 @@ class Controller:
 
     def fmu_parameters(self, sample_rate: float) -> dict[str, Any]:
         """Parameters of the controller FMU (fmus/controller) at ``sample_rate`` [Hz] unless the controller
-        has its own; the angle calibration (theta_gain ...) is the caller's to add, and with it ``alpha_bias`` (returned
-        as such: :meth:`harness.fmu.cosim.Rig.run_closed` turns it into the FMU's alpha_offset)."""
+        has its own; the angle calibration (theta_gain ...) is the caller's to add (``alpha_gain`` when the controller
+        has its own), and with it ``alpha_bias`` (returned as such: :meth:`harness.fmu.cosim.Rig.run_closed` turns it
+        into the FMU's alpha_offset)."""
         k = [float(v) for v in self.K]
+        own = {"alpha_gain": float(self.alpha_gain)} if self.alpha_gain is not None else {}
         return {
             "kind": KINDS[self.kind],
             "sample_rate": float(self.sample_rate or sample_rate),
@@ -102,6 +107,7 @@ class Controller:
             "cutoff": float(self.cutoff),
             "u_limit": float(self.u_limit),
             "alpha_bias": float(self.alpha_bias),
+            **own,
         }
 
     def to_dict(self) -> dict[str, Any]:
