@@ -62,7 +62,7 @@ ACCEPT_DEFAULTS: dict[str, Any] = {"min_fit": 80.0, "min_average_fit": 85.0}
 # 95 % factors by kind of sheet: what a maker measured (datasheet), what a lab wrote down or derived (lab), what was
 # measured on this unit (measured). Nobody's sheet knows damping: Beq and zeta_link a factor 3 on every sheet.
 SHEETS: dict[str, dict[str, float]] = {
-    "datasheet": {"default": 1.1, "Ks": 1.2, "gauge_gain": 1.1, "pot_gain": 1.02, "Kg": 1.01},
+    "datasheet": {"default": 1.1, "Ks": 1.2, "gauge_gain": 1.1, "pot_gain": 1.01, "Kg": 1.01},
     "lab": {"default": 2.0, "m_link": 1.1, "L_link": 1.05, "m_tip": 1.1, "Kg": 1.01, "pot_gain": 1.05},
     "measured": {"default": 1.02, "Ks": 1.05, "gauge_gain": 1.05},
 }

@@ -145,3 +145,30 @@ def test_quanser_record_in_two_files_is_the_same_rig(quanser_halves):
     d = quanser_halves
     assert d.parameters["plant.Jeq"].fitted == pytest.approx(0.00178, rel=0.05)  # the whole record's
     assert 100 * (1 - d.gap.decomposition.after_recalibration) >= 90.0
+
+
+def test_a_units_records_each_fitted_alone_beside_the_joint_fit(tmp_path):
+    """Three records of one unit (test_3 cut in two files, and test_4): each recalibrated alone, from the grid and
+    from the joint fit, so its own fit is at least the joint parameters' on it (measured 84.0 / 88.5 / 83.6 % alone,
+    83.3 / 87.2 / 83.1 % jointly); every fitted parameter per record; the summary says both."""
+    from harness.cli import diagnosis_summary
+
+    lines = CU[0].read_text().splitlines(keepends=True)
+    half = (len(lines) + 1) // 2
+    files = [tmp_path / "test_3a.txt", tmp_path / "test_3b.txt", CU[1]]
+    files[0].write_text("".join(lines[:half]))
+    files[1].write_text("".join(lines[:1] + lines[half:]))
+    import_records(files, tmp_path / "run", CU_IMPORT)
+    d = diagnose_run(tmp_path / "run", "cu_flexible_arm", workers=2)
+    names = ["test_3a", "test_3b", "flexibleArm_test_4"]
+    assert list(d.gap.records) == names
+    for r in d.gap.records.values():
+        assert r["own"] >= r["joint"] - 1e-6 and r["joint"] > 80.0
+    fitted = [k for k, p in d.parameters.items() if p.records]
+    assert {"rig.drive_gain", "rig.drive_tau", "plant.Ks", "sensor.alpha_gauge_gain"} <= set(fitted)
+    for k in fitted:
+        for v, lo, hi in d.parameters[k].records.values():
+            assert lo <= v <= hi
+    assert "each record's fit, recalibrated alone -> with the joint parameters: test_3a" in " ".join(
+        diagnosis_summary(d).split()
+    )

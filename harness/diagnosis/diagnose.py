@@ -144,14 +144,22 @@ def _caveats(parameters: dict[str, FittedParameter], verdict: str, folds: Folds 
     return out or None
 
 
-def priors(sim: specmod.Spec, gain_rel_se: dict[str, float]) -> dict[str, float]:
+def priors(
+    sim: specmod.Spec, gain_rel_se: dict[str, float], encoder: bool = False
+) -> tuple[dict[str, float], dict[str, float]]:
     """The prior sd [log] of each linear parameter recalibration fits (:func:`harness.diagnosis.rigmodel.prior_sd` of
-    the sim spec's uncertainty); a sensor whose calibration was measured with the data has that error instead."""
+    the sim spec's uncertainty), a sensor whose calibration was measured with the data with that error instead; and
+    each channel's calibration error, the spec's where the data's was not measured (a sensor known to 1 % is not
+    fitted: its error goes into the intervals; an ``encoder``'s count has none)."""
     sd = prior_sd(sim.plant, sim.factor)
+    rel = dict(gain_rel_se)
+    if encoder and not gain_rel_se.get("theta"):
+        sd["sensor.theta_gain"] = 0.0
     for c, s in SENSOR_CHANNELS.items():
         if gain_rel_se.get(c, 0.0) > 0:
             sd[s] = gain_rel_se[c]
-    return sd
+        rel[c] = sd[s]
+    return sd, rel
 
 
 def diagnose_run(
@@ -203,17 +211,8 @@ def diagnose_run(
     closed = any(x.replay == "closed" for x in experiments.values())
     sigma = {"theta": noise.theta_deg, "alpha": noise.alpha_deg}  # [deg], an ADC's quantisation included
     lattice = replay_noise(daq, noise.estimated_deg) if noise.adc_lattice_bits and noise.estimated_deg else {}
-    setup = Setup(
-        plant,
-        daq,
-        cal.comb_angles,
-        experiments,
-        shipped,
-        replay_noise(daq, sigma),
-        lattice,
-        cal.gain_rel_se(),
-        priors(sim_spec, cal.gain_rel_se()),
-    )
+    prior, rel_se = priors(sim_spec, cal.gain_rel_se(), all(x.encoder for x in experiments.values()))
+    setup = Setup(plant, daq, cal.comb_angles, experiments, shipped, replay_noise(daq, sigma), lattice, rel_se, prior)
     top = max(x.peak_command_v for x in experiments.values())
     cands = candidates(CandidateContext(plant, daq, top, noise.adc_lattice_bits))
     pool = Pool(setup, workers, scheduler, progress)
