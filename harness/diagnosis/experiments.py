@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -111,6 +112,19 @@ class RigExperiment:
     def _sst(self, n: int) -> dict[str, float]:
         ys = (self.theta[:n], self.alpha[:n])
         return {c: float(np.sum((y - y.mean()) ** 2)) for c, y in zip(CHANNELS, ys, strict=True)}
+
+    @cached_property
+    def start_state(self) -> dict[str, float]:
+        """The measured state a replay of a record that starts in motion starts from (its hub or tip rate over its
+        first SMOOTH_SECONDS above half the rate's RMS over the record: a record cut from a longer run), as plant
+        parameters (alpha_start [rad], theta_dot_start, alpha_dot_start [rad/s]); {} for one that starts at rest (it
+        would read its noise there)."""
+        x = measured_state(self)
+        head = max(5, int(round(SMOOTH_SECONDS / self.Ts)))
+        rms = np.sqrt(np.mean(x[:, 2:] ** 2, axis=0))
+        if not np.any(np.abs(np.mean(x[:head, 2:], axis=0)) > 0.5 * rms):
+            return {}
+        return dict(zip(("alpha_start", "theta_dot_start", "alpha_dot_start"), map(float, x[0, 1:]), strict=True))
 
     def window(self, which: str) -> tuple[int, dict[str, float]]:
         """(samples, sst per channel) of a window: "all", "fit" (first FIT_SECONDS), "screen" (SCREEN_SECONDS)."""
