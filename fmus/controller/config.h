@@ -30,7 +30,9 @@
     X(theta_offset, 12, 0.0)      \
     X(alpha_gain, 13, -3.3636)    \
     X(alpha_offset, 14, 0.0)      \
-    X(compute_time, 15, 0.0)
+    X(compute_time, 15, 0.0)      \
+    X(theta_dot_start, 16, 0.0)   \
+    X(alpha_dot_start, 17, 0.0)
 #define INTEGER_PARAMETERS(X)     \
     X(kind, 1, 1)
 #define INPUTS(X)                 \

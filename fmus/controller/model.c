@@ -65,8 +65,8 @@ static void takeSample(ModelData *d, int commit) {
     const double lim = d->u_limit > 0 ? d->u_limit : INFINITY;
     const double th = d->theta_gain * (d->theta_v - d->theta_offset) * DEG2RAD;
     const double al = d->alpha_gain * (d->alpha_v - d->alpha_offset) * DEG2RAD;
-    const double dth = d->have_last ? (th - d->last_theta) / Ts : 0.0;
-    const double dal = d->have_last ? (al - d->last_alpha) / Ts : 0.0;
+    const double dth = d->have_last ? (th - d->last_theta) / Ts : d->theta_dot_start;
+    const double dal = d->have_last ? (al - d->last_alpha) / Ts : d->alpha_dot_start;
     const double vth = a * d->v_theta + (1.0 - a) * dth;
     const double val = a * d->v_alpha + (1.0 - a) * dal;
     double raw, u;
@@ -94,7 +94,9 @@ static void takeSample(ModelData *d, int commit) {
 fmi2Status initialize(ModelInstance *comp) {
     ModelData *d = &comp->data;
     d->have_last = 0;
-    d->v_theta = d->v_alpha = d->integral = 0.0;
+    d->v_theta = d->theta_dot_start; /* the velocity filter starts at the rates given (0: at rest) */
+    d->v_alpha = d->alpha_dot_start;
+    d->integral = 0.0;
     d->next_sample = (int64_t)ceil(comp->startTime * d->sample_rate - 1e-6);
     takeSample(d, 0); /* preview of the first sample */
     return fmi2OK;

@@ -115,14 +115,18 @@ class RigExperiment:
 
     @cached_property
     def start_state(self) -> dict[str, float]:
-        """The measured state a replay of a record that starts in motion starts from (its hub or tip rate over its
-        first SMOOTH_SECONDS above half the rate's RMS over the record: a record cut from a longer run), as plant
-        parameters (alpha_start [rad], theta_dot_start, alpha_dot_start [rad/s]); {} for one that starts at rest (it
-        would read its noise there)."""
-        x = measured_state(self)
+        """The measured state a replay of a record that starts in motion starts from, as plant parameters
+        (alpha_start [rad], theta_dot_start, alpha_dot_start [rad/s]): a record cut from a longer run, whose hub rate
+        at its first sample (a parabola through its first SMOOTH_SECONDS) is above the hub rate's RMS over the record;
+        {} for one that starts at rest (one driven from rest, by its reference's step, has no rate at its first
+        sample: the parabola's slope there is its noise)."""
         head = max(5, int(round(SMOOTH_SECONDS / self.Ts)))
-        rms = np.sqrt(np.mean(x[:, 2:] ** 2, axis=0))
-        if not np.any(np.abs(np.mean(x[:head, 2:], axis=0)) > 0.5 * rms):
+        if self.u.size < 4 * head:
+            return {}
+        t = np.arange(head) * self.Ts
+        th = np.radians(self.theta[:head])
+        x = measured_state(self)
+        if abs(float(np.polyfit(t, th, 2)[1])) <= float(np.sqrt(np.mean(x[:, 2] ** 2))):
             return {}
         return dict(zip(("alpha_start", "theta_dot_start", "alpha_dot_start"), map(float, x[0, 1:]), strict=True))
 

@@ -180,6 +180,7 @@ def simulate(
         c = Controller(**exp.controller)  # type: ignore[arg-type]
         ctrl = c.fmu_parameters(1.0 / exp.Ts)
         ctrl = {k: fmu_value(believed, "daq", v) for k, v in CALIBRATION.items()} | ctrl  # the lab's calibration
+        ctrl |= {k: v for k, v in exp.start_state.items() if k.endswith("_dot_start")}  # its velocity filter too
         ref = np.radians(delayed(exp.ref, c.ref_delay)[:n])  # type: ignore[arg-type]  # what the controller acted on
         res = rig.run_closed(ref, exp.Ts, ctrl, plant=plant, daq=daq, diverged="hold")
     elif exp.replay == "shooting":
