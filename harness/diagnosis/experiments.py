@@ -28,12 +28,17 @@ __all__ = [
     "CHANNELS",
     "DEADBAND_GUARD",
     "FIT_SECONDS",
+    "MAX_BLOCKS",
     "MIN_FOLD_SAMPLES",
     "MIN_FOLD_SECONDS",
     "REPLAYS",
     "SHOOTING_SECONDS",
     "SCREEN_SECONDS",
     "RigExperiment",
+    "block_count",
+    "block_cuts",
+    "block_length",
+    "blocks",
     "command_period",
     "fold_experiments",
     "halves",
@@ -42,10 +47,6 @@ __all__ = [
     "measured_state",
     "one_rate",
     "pot_track_ends",
-    "block_count",
-    "block_cuts",
-    "block_length",
-    "blocks",
     "shown_period",
     "signal_period",
     "split_folds",
@@ -318,8 +319,8 @@ def measured_state(exp: RigExperiment) -> np.ndarray:
     return np.column_stack([th, al, *rates])
 
 
-MIN_FOLD_SECONDS = 1.0  # s: each half of a lone record, one multiple-shooting window (import refuses shorter records)
-MIN_FOLD_SAMPLES = 50  # samples in each half of a lone record, whatever the rate
+MIN_FOLD_SECONDS = 1.0  # s: each half or block of a lone record, a multiple-shooting window (import: 2x it at least)
+MIN_FOLD_SAMPLES = 50  # samples in each half or block of a lone record, whatever the rate
 SPLIT_ZONE = (0.4, 0.6)  # a lone record is split in this share of its length, at its quietest point
 QUIET_SECONDS = 0.1  # s: the motion measure that picks the split point is averaged over this window
 MAX_BLOCKS = 6  # a lone record is cut into at most this many blocks, 3 per fold
@@ -378,8 +379,7 @@ def signal_period(y: np.ndarray) -> int:
     y[k + p] - y[k] >= its variance), the first run of lags p whose mean squared change is within PERIOD_MISMATCH x
     its variance, and of those the one with the least; 0 when none."""
     n = y.size
-    span = float(np.ptp(y)) if n else 0.0
-    if n < 32 or span <= 0:
+    if n < 32 or np.ptp(y) <= 0:
         return 0
     z = y - y.mean()
     f = np.fft.rfft(z, 2 * n)
@@ -512,8 +512,8 @@ def blocks(x: RigExperiment) -> tuple[dict[str, RigExperiment], list[int]]:
 def fold_experiments(experiments: dict[str, RigExperiment]) -> tuple[dict[str, RigExperiment], Folds]:
     """The experiments the diagnosis scores and its 2-fold cross-fit (:func:`split_folds`); a lone record is
     cut in time into blocks (:func:`blocks`) that alternate between the folds (A the 1st, 3rd, ...; B the 2nd,
-    4th, ...), so that its held-out figures are held out and do not hinge on one cut; too short for four blocks,
-    into two halves, one per fold."""
+    4th, ...), so that its held-out figures are held out and do not hinge on one cut; where it shows no period, is
+    replayed open loop or is too short for four blocks, into two halves, one per fold."""
     scheme = "2-fold cross-fit: fit on A score on B, and back"
     if len(experiments) != 1:
         a, b = split_folds(experiments)
