@@ -4,8 +4,10 @@ The data flow, one module per step:
 
 1. :mod:`harness.diagnosis.experiments`: every non-calibration experiment of the REAL run, converted to degrees
    with the real run's calibration, its invalid samples masked (pot dead band, ADC clipping), split into two
-   folds for 2-fold cross-fitting (stratified by signal kind and command level; a lone record is cut in time into
-   two halves, at its quietest point near the middle, so that what is reported as held out is held out);
+   folds for 2-fold cross-fitting (stratified by signal kind and command level; a lone record is cut in time, so
+   that what is reported as held out is held out: into blocks at quiet points that alternate between the folds
+   where it shows a period and its replay follows the record (closed loop, multiple shooting), else into two
+   halves at its quietest point near the middle); records at different sample rates are refused;
 2. :mod:`harness.diagnosis.noise`: the noise floor of the data and the ADC lattice it sits on;
 3. :mod:`harness.diagnosis.simulation`: each experiment re-simulated on the SIM spec's rig with the real command,
    both sides calibrated alike; the gap g = sqrt(E), E the mean squared gap (per experiment and channel
@@ -55,7 +57,7 @@ from ..ident.calibration import load_calibration
 from ..rundir import Manifest, RunDir, record_inputs, write_json
 from . import recalibrate as recal
 from .effects import CandidateContext, candidates
-from .experiments import REPLAYS, RigExperiment, fold_experiments, load_experiments, masked_share
+from .experiments import REPLAYS, RigExperiment, fold_experiments, load_experiments, masked_share, one_rate
 from .noise import noise_floor
 from .replays import write_replays
 from .result import Diagnosis, FittedParameter, Folds, SensorCalibration, Thresholds
@@ -173,18 +175,18 @@ def diagnose_run(
     replay: str = "auto",
     force: bool = False,
 ) -> Diagnosis:
-    """Diagnose the gap between run directory ``real`` and the simulation spec ``sim`` (a path, a name in
-    specs/ or a loaded Spec); the candidates are fitted as tasks of a :class:`harness.executor.Executor`
-    (``workers`` processes of the default local cluster, 1 = serial, or the Dask cluster at ``scheduler``); ``fmus``:
-    the built plant, DAQ and controller FMUs (default: built or taken from the cache); ``replay``: how each experiment
-    is re-simulated (:func:`harness.diagnosis.experiments.load_experiments`); a lone record is cut in time into two
-    halves, one per fold (:func:`harness.diagnosis.experiments.fold_experiments`; too short for that: a one-line
-    DataError, nothing written). Writes ``out/diagnosis.json`` (default out = real; another run directory only with
-    ``force``: its report would read the diagnosis as one of its own data) and its replays beside the record, per
-    stage (as given, recalibrated, with the effects: ``diagnosis.replays.parquet``, :mod:`harness.diagnosis.replays`),
-    and returns it as a :class:`harness.diagnosis.result.Diagnosis`; the sha256 of the real run's data and calibration
-    go to out's manifest, the wall-clock seconds to ``diagnosis.timing.json``, so that diagnosis.json is
-    byte-stable."""
+    """Diagnose the gap between run directory ``real`` and the simulation spec ``sim`` (a path, a name in specs/ or a
+    loaded Spec); the candidates are fitted as tasks of a :class:`harness.executor.Executor` (``workers`` processes of
+    the default local cluster, 1 = serial, or the Dask cluster at ``scheduler``); ``fmus``: the built plant, DAQ and
+    controller FMUs (default: built or taken from the cache); ``replay``: how each experiment is re-simulated
+    (:func:`harness.diagnosis.experiments.load_experiments`); a lone record is cut in time into blocks or two halves,
+    alternating between the folds (:func:`harness.diagnosis.experiments.fold_experiments`; too short for that, or
+    records at different sample rates: a one-line DataError, nothing written). Writes ``out/diagnosis.json`` (default
+    out = real; another run directory only with ``force``: its report would read the diagnosis as one of its own data)
+    and its replays beside the record, per stage (as given, recalibrated, with the effects:
+    ``diagnosis.replays.parquet``, :mod:`harness.diagnosis.replays`), and returns it as a
+    :class:`harness.diagnosis.result.Diagnosis`; the sha256 of the real run's data and calibration go to out's manifest,
+    the wall-clock seconds to ``diagnosis.timing.json``, so that diagnosis.json is byte-stable."""
 
     t0 = time.perf_counter()
     say = progress or (lambda _m: None)
@@ -204,6 +206,7 @@ def diagnose_run(
     if replay != "auto" and replay not in REPLAYS:
         raise ValueError(f"replay {replay!r} unknown; valid: auto, {', '.join(REPLAYS)}")
     records = load_experiments(real, cal, sim_spec, adc_range, replay)
+    one_rate(records)  # records at different rates: one line, nothing written
     experiments, folds = fold_experiments(records)
     fmus = fmus or build_all()
     shipped = {k: fmu_bytes(fmus[k]) for k in ("flexjoint", "daq", "controller") if k in fmus}

@@ -29,19 +29,27 @@ __all__ = [
     "CHANNELS",
     "DEADBAND_GUARD",
     "FIT_SECONDS",
+    "MAX_BLOCKS",
     "MIN_FOLD_SAMPLES",
     "MIN_FOLD_SECONDS",
     "REPLAYS",
     "SHOOTING_SECONDS",
     "SCREEN_SECONDS",
     "RigExperiment",
+    "block_count",
+    "block_cuts",
+    "block_length",
+    "blocks",
     "command_period",
     "fold_experiments",
     "halves",
     "load_experiments",
     "masked_share",
     "measured_state",
+    "one_rate",
     "pot_track_ends",
+    "shown_period",
+    "signal_period",
     "split_folds",
     "split_point",
     "valid_samples",
@@ -272,6 +280,23 @@ def load_experiments(
     return out
 
 
+def one_rate(experiments: dict[str, RigExperiment]) -> float:
+    """The one sample interval [s] of the experiments; records at different rates raise a one-line DataError that
+    names them with their rates (the diagnosis fits one rig to every record at one rate: one DAQ, a delay in samples,
+    a noise floor per sample)."""
+    rates: dict[float, list[str]] = {}
+    for n, x in experiments.items():
+        rate = next((r for r in rates if abs(r * x.Ts - 1.0) <= 1e-6), 1.0 / x.Ts)
+        rates.setdefault(rate, []).append(n)
+    if len(rates) > 1:
+        said = "; ".join(f"{', '.join(repr(n) for n in names)} at {r:.6g} Hz" for r, names in sorted(rates.items()))
+        raise DataError(
+            f"records at different sample rates ({said}): the diagnosis replays every record on one rig at one rate; "
+            "import and diagnose each rate's records as a run of its own"
+        )
+    return 1.0 / next(iter(rates))
+
+
 def masked_share(experiments: dict[str, RigExperiment]) -> dict[str, float]:
     """Share of the real samples per channel not compared (pot dead band, ADC clipping)."""
     n = sum(x.u.size for x in experiments.values())
@@ -312,10 +337,34 @@ def measured_state(exp: RigExperiment) -> np.ndarray:
     return np.column_stack([th, al, *rates])
 
 
-MIN_FOLD_SECONDS = 1.0  # s: each half of a lone record, one multiple-shooting window (import refuses shorter records)
-MIN_FOLD_SAMPLES = 50  # samples in each half of a lone record, whatever the rate
+MIN_FOLD_SECONDS = 1.0  # s: each half or block of a lone record, a multiple-shooting window (import: 2x it at least)
+MIN_FOLD_SAMPLES = 50  # samples in each half or block of a lone record, whatever the rate
 SPLIT_ZONE = (0.4, 0.6)  # a lone record is split in this share of its length, at its quietest point
 QUIET_SECONDS = 0.1  # s: the motion measure that picks the split point is averaged over this window
+MAX_BLOCKS = 6  # a lone record is cut into at most this many blocks, 3 per fold
+BLOCK_ZONE = 0.2  # a cut between a lone record's blocks is sought within this share of a block of its even place
+START_STATE = ("theta_start", "alpha_start", "theta_dot_start", "alpha_dot_start")  # the plant's, [rad], [rad/s]
+PERIOD_MISMATCH = 0.2  # a signal repeats with period p when its mean squared change over p is <= this x its variance
+
+
+def _min_fold(x: RigExperiment) -> int:
+    """The fewest samples a fold's part of a lone record holds: MIN_FOLD_SECONDS and MIN_FOLD_SAMPLES."""
+    return max(MIN_FOLD_SAMPLES, math.ceil(MIN_FOLD_SECONDS / x.Ts - 1e-6))
+
+
+def _quietness(x: RigExperiment) -> np.ndarray:
+    """Per sample how far the rig is from rest: the rates of theta and alpha and the deflection alpha, each in
+    units of its RMS, squared, summed and averaged over QUIET_SECONDS (small: a replay started there from the
+    measured angle starts near rest)."""
+    state = measured_state(x)
+    alpha = state[:, 1] - np.median(state[:, 1])
+    score = np.zeros(x.u.size)
+    for z in (state[:, 2], alpha, state[:, 3]):
+        rms = float(np.sqrt(np.mean(z**2)))
+        if rms > 0:
+            score += (z / rms) ** 2
+    w = max(1, int(round(QUIET_SECONDS / x.Ts)))
+    return np.convolve(score, np.ones(w) / w, mode="same")
 
 
 def split_point(x: RigExperiment) -> int:
@@ -325,7 +374,7 @@ def split_point(x: RigExperiment) -> int:
     so the second half's replay, started from the measured angle, starts near rest; each half keeps at least
     MIN_FOLD_SECONDS and MIN_FOLD_SAMPLES. A record too short for that raises a one-line DataError."""
     n = x.u.size
-    n_min = max(MIN_FOLD_SAMPLES, math.ceil(MIN_FOLD_SECONDS / x.Ts - 1e-6))
+    n_min = _min_fold(x)
     if n < 2 * n_min:
         raise DataError(
             f"experiment {x.name!r}: one record of {n} samples ({n * x.Ts:.4g} s) is too short for two folds; the "
@@ -339,59 +388,165 @@ def split_point(x: RigExperiment) -> int:
         whole = [m for m in range(x.period, n, x.period) if lo <= m <= hi]
         if whole:
             return min(whole, key=lambda m: (abs(2 * m - n), m))
+    return lo + int(np.argmin(_quietness(x)[lo : hi + 1]))
+
+
+def signal_period(y: np.ndarray) -> int:
+    """Period [samples] of a signal that repeats at least twice, up to noise, jitter or a different first stretch
+    (a reference's lead-in): past the first lag where the signal no longer resembles itself (mean squared change
+    y[k + p] - y[k] >= its variance), the first run of lags p whose mean squared change is within PERIOD_MISMATCH x
+    its variance, and of those the one with the least; 0 when none."""
+    n = y.size
+    if n < 32 or np.ptp(y) <= 0:
+        return 0
+    z = y - y.mean()
+    f = np.fft.rfft(z, 2 * n)
+    r = np.fft.irfft(f * np.conj(f))[:n]  # sum_k z[k] z[k + p]
+    c = np.r_[0.0, np.cumsum(z**2)]
+    p = np.arange(n // 2 + 1)
+    d = (c[n - p] + c[n] - c[p] - 2.0 * r[p]) / (n - p)  # mean (z[k + p] - z[k])^2 over the overlap
+    apart = np.nonzero(d >= c[n] / n)[0]
+    if not apart.size:
+        return 0
+    ok = np.nonzero((p > max(apart[0], 15)) & (d <= PERIOD_MISMATCH * c[n] / n))[0]
+    if not ok.size:
+        return 0
+    run = ok[: int(np.argmax(np.diff(np.r_[ok, n]) > 1)) + 1]  # the first run of consecutive lags
+    return int(run[np.argmin(d[run])])
+
+
+def shown_period(x: RigExperiment) -> int:
+    """The period [samples] a lone record shows: its periodic command's, else its reference's (closed loop) or its
+    command's up to noise and jitter (:func:`signal_period`); 0 when it shows none."""
+    if x.period:
+        return x.period
+    return signal_period(x.ref if x.ref is not None else x.u)
+
+
+def block_cuts(x: RigExperiment, blocks: int) -> list[int]:
+    """Where a lone record is cut into ``blocks`` blocks of about equal length: the first sample of each block
+    after the first. A periodic command is cut at whole periods (its periods shared out evenly); otherwise each cut
+    is the quietest sample (:func:`_quietness`) within BLOCK_ZONE of a block of its even place, every block keeping
+    at least :func:`block_length` samples."""
+    n = x.u.size
+    if x.period:
+        whole = n // x.period
+        return [x.period * round(k * whole / blocks) for k in range(1, blocks)]
+    short = block_length(x)
+    zone = BLOCK_ZONE * n / blocks
+    quiet = _quietness(x)
+    cuts: list[int] = []
+    for k in range(1, blocks):
+        even = k * n / blocks
+        lo = max(math.ceil(even - zone), (cuts[-1] if cuts else 0) + short)
+        hi = min(math.floor(even + zone), n - (blocks - k) * short)
+        cuts.append(lo + int(np.argmin(quiet[lo : hi + 1])))
+    return cuts
+
+
+def block_length(x: RigExperiment) -> int:
+    """The fewest samples a block of a lone record holds: MIN_FOLD_SECONDS, MIN_FOLD_SAMPLES and a whole period
+    of what it shows (:func:`shown_period`)."""
+    return max(_min_fold(x), shown_period(x))
+
+
+def block_count(x: RigExperiment) -> int:
+    """How many blocks a lone record is cut into for its folds: the most, an even number up to MAX_BLOCKS, that
+    each hold :func:`block_length` samples (whole periods of a periodic command), where the record shows a period
+    and its replay is pulled back to the record (closed loop, multiple shooting); else 2, two halves. A block
+    without a period may hold no excitation (the CU record's 2.3 s between two reference steps: the replay's
+    offset against a shaft at rest); an open-loop block starts without the states the record does not measure
+    (a second mode, the friction's stick, the play), so each cut adds a start transient."""
+    n = x.u.size
+    if x.replay == "open" or not shown_period(x):
+        return 2
+    if x.period:
+        most = (n // x.period) // max(1, math.ceil(_min_fold(x) / x.period))
+    else:
+        most = n // block_length(x)
+    most = min(most, MAX_BLOCKS)
+    return max(2, most - most % 2)
+
+
+def _part(x: RigExperiment, a: int, b: int, bla: bool, state: np.ndarray) -> RigExperiment:
+    """Samples a..b of a lone record as a pseudo-experiment named "<name> (0-4.87 s)": every array sliced alike
+    (command, angles, volts, valid samples, reference), the replay, controller and sensor kept. Its replay starts
+    at the measured angle (the simulation's own default); an open-loop part after the first starts from the
+    measured state (``state``: :func:`measured_state` of the record: theta, alpha and their rates as the plant's
+    start values), since the rig may be moving there and nothing pulls an open-loop replay back; a closed-loop one
+    at rest (its feedback does, and the measured rates at a quiet point are the noise's), a multiple-shooting one
+    from the measured state at each window (its own restarts). A periodic command's period is kept when the part
+    starts on a whole period and holds >= 2, its multisine lines when ``bla`` too (its BLA)."""
+    s = slice(a, b)
+    start = dict(zip(START_STATE, (float(v) for v in state[a]), strict=True)) if a > 0 and x.replay == "open" else {}
+    name = f"{x.name} ({a * x.Ts:.4g}-{b * x.Ts:.4g} s)"
+    periodic = x.period > 0 and a % x.period == 0 and (b - a) // x.period >= 2
+    return replace(
+        x,
+        name=name,
+        t=x.t[s],
+        u=x.u[s],
+        theta=x.theta[s],
+        alpha=x.alpha[s],
+        theta_v=x.theta_v[s],
+        alpha_v=x.alpha_v[s],
+        plant={**x.plant, **start},
+        daq=dict(x.daq),
+        period=x.period if periodic else 0,
+        lines=x.lines if periodic and bla else None,
+        valid={c: v[s] for c, v in x.valid.items()},
+        ref=None if x.ref is None else x.ref[s],
+    )
+
+
+def _parts(x: RigExperiment, cuts: list[int]) -> dict[str, RigExperiment]:
+    """A lone record cut at ``cuts`` into parts (:func:`_part`); a periodic command keeps its multisine lines
+    when every part holds >= 3 whole periods."""
+    edges = [0, *cuts, x.u.size]
+    bla = x.lines is not None and x.period > 0 and min(np.diff(edges)) // x.period >= 3
     state = measured_state(x)
-    alpha = state[:, 1] - np.median(state[:, 1])
-    score = np.zeros(n)
-    for z in (state[:, 2], alpha, state[:, 3]):
-        rms = float(np.sqrt(np.mean(z**2)))
-        if rms > 0:
-            score += (z / rms) ** 2
-    w = max(1, int(round(QUIET_SECONDS / x.Ts)))
-    smooth = np.convolve(score, np.ones(w) / w, mode="same")
-    return lo + int(np.argmin(smooth[lo : hi + 1]))
+    return {p.name: p for p in (_part(x, a, b, bla, state) for a, b in zip(edges[:-1], edges[1:], strict=True))}
 
 
 def halves(x: RigExperiment) -> tuple[dict[str, RigExperiment], int]:
     """A lone record as two pseudo-experiments, its halves in time cut at :func:`split_point`, named
-    "<name> (0-4.87 s)" and "<name> (4.87-10 s)": every array sliced alike (command, angles, volts, valid
-    samples, reference), the replay, controller and sensor kept; a periodic command keeps its multisine lines when
+    "<name> (0-4.87 s)" and "<name> (4.87-10 s)" (:func:`_part`); a periodic command keeps its multisine lines when
     each half holds >= 3 whole periods (its BLA), else only its period. Returns (halves, split sample)."""
     m = split_point(x)
-    n = x.u.size
-    bla = x.lines is not None and x.period > 0 and min(m, n - m) // x.period >= 3
-    out = {}
-    for a, b in ((0, m), (m, n)):
-        s = slice(a, b)
-        name = f"{x.name} ({a * x.Ts:.4g}-{b * x.Ts:.4g} s)"
-        periodic = x.period > 0 and a % x.period == 0 and (b - a) // x.period >= 2
-        out[name] = replace(
-            x,
-            name=name,
-            t=x.t[s],
-            u=x.u[s],
-            theta=x.theta[s],
-            alpha=x.alpha[s],
-            theta_v=x.theta_v[s],
-            alpha_v=x.alpha_v[s],
-            plant=dict(x.plant),
-            daq=dict(x.daq),
-            period=x.period if periodic else 0,
-            lines=x.lines if periodic and bla else None,
-            valid={c: v[s] for c, v in x.valid.items()},
-            ref=None if x.ref is None else x.ref[s],
-        )
-    return out, m
+    return _parts(x, [m]), m
+
+
+def blocks(x: RigExperiment) -> tuple[dict[str, RigExperiment], list[int]]:
+    """A lone record as :func:`block_count` pseudo-experiments, blocks in time cut at :func:`block_cuts`
+    (:func:`_part`; two: :func:`halves`). Returns (blocks in time order, cut samples)."""
+    count = block_count(x)
+    if count == 2:
+        parts, m = halves(x)
+        return parts, [m]
+    cuts = block_cuts(x, count)
+    return _parts(x, cuts), cuts
 
 
 def fold_experiments(experiments: dict[str, RigExperiment]) -> tuple[dict[str, RigExperiment], Folds]:
     """The experiments the diagnosis scores and its 2-fold cross-fit (:func:`split_folds`); a lone record is
-    split in time (:func:`halves`), one half per fold, so that its held-out figures are held out."""
+    cut in time into blocks (:func:`blocks`) that alternate between the folds (A the 1st, 3rd, ...; B the 2nd,
+    4th, ...), so that its held-out figures are held out and do not hinge on one cut; where it shows no period, is
+    replayed open loop or is too short for four blocks, into two halves, one per fold."""
     scheme = "2-fold cross-fit: fit on A score on B, and back"
     if len(experiments) != 1:
         a, b = split_folds(experiments)
         return experiments, Folds(A=a, B=b, scheme=scheme)
     (x,) = experiments.values()
-    parts, m = halves(x)
-    first, second = parts
-    scheme += f"; the lone record {x.name!r} split in time at {m * x.Ts:.4g} s into two halves, one per fold"
-    return parts, Folds(A=[first], B=[second], scheme=scheme)
+    parts, cuts = blocks(x)
+    names = list(parts)
+    if len(names) == 2:
+        scheme += f"; the lone record {x.name!r} split in time at {cuts[0] * x.Ts:.4g} s into two halves, one per fold"
+        return parts, Folds(A=[names[0]], B=[names[1]], scheme=scheme)
+    lengths = np.diff([0, *cuts, x.u.size]) * x.Ts
+    at = "whole periods of its command" if x.period else "quiet points"
+    scheme += (
+        f"; the lone record {x.name!r} cut in time at {at} into {len(names)} blocks of "
+        f"{lengths.min():.3g}-{lengths.max():.3g} s, alternating between the folds (A the 1st, 3rd, ...; B the "
+        "2nd, 4th, ...)"
+    )
+    return parts, Folds(A=names[0::2], B=names[1::2], scheme=scheme)
