@@ -263,9 +263,6 @@ fmi2Status initialize(ModelInstance *comp) {
         rho = fmax(rho, hubRadius(d, d->Minv_f, d->Bh));
         rho = fmax(rho, (d->Bm + d->Bemf) / d->Jm);
     }
-    if (d->stribeck_speed > 0) /* the Stribeck drop's negative damping, steepest at v = vs / sqrt(2) */
-        rho = fmax(rho, sqrt(2.0 * exp(-1.0)) * (d->Fs - d->coulomb_torque) / d->stribeck_speed *
-                            (d->backlash > 0 ? d->Minv_f[0][0] : d->Minv_r[0][0]));
     r = rho > 0 ? 2.0 / rho : d->internal_step;
     d->h_max = fmin(d->internal_step, r);
     if (d->h_max < d->internal_step)
