@@ -22,7 +22,9 @@ Physics (SI, angles in rad, all torques at the load shaft):
 - Friction on the motor side (gear train): Stribeck law with a smooth sign,
   ``F(v) = (Fc + (Fs - Fc) exp(-(v/vs)^2)) tanh(v/eps)``, ``Fc = coulomb_torque``, ``Fs = 1.3 Fc``,
   ``vs = 0.05 rad/s``, ``eps = 1e-4 rad/s`` (creep below breakaway ~ eps atanh(drive/Fs): hundredths of a degree
-  in seconds, invisible to the pot). The tanh makes stiction stiff (dF/dv = Fs/eps, 3e5 1/s on Jeq).
+  in seconds, invisible to the pot). The tanh makes stiction stiff (dF/dv = Fs/eps, 3e5 1/s on Jeq). The twin's hub
+  friction has the same law as a hybrid stuck/sliding model (``stiction_ratio``, ``stribeck_speed``; 0 there is no
+  drop), so the two are checked against each other on a stick-slip record.
 - Link: Euler-Bernoulli beam (EI, rhoA = m/L), clamped at the hub, assumed modes = the clamped-free shapes
   ``psi_i`` normalised to a unit tip deflection (``psi_i(L) = 1``, so q_i is mode i's tip deflection [m]).
   Displacement ``w(x) = x theta + sum psi_i(x) q_i``; mass matrix entries ``rhoA int x^2``, ``rhoA int x psi_i``,

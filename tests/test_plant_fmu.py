@@ -18,6 +18,7 @@ from harness.fmu.plant import (
     gauge_weights,
     mass_stiffness,
     mode_frequencies,
+    motor_constants,
     state_space,
     steady_speed,
 )
@@ -235,6 +236,40 @@ def test_coulomb_stops_without_creep_or_chatter(fmu_runner):
     assert np.count_nonzero(td == 0.0) > 50  # it does stick around each reversal
 
 
+def test_stribeck_drop_slows_the_steady_speed_and_keeps_exact_stops(fmu_runner):
+    """With a Stribeck speed the sliding friction falls from the breakaway level Fs to Fc: the hub breaks away only
+    above Fs, slides at the speed where drive = friction + damping (harness.fmu.plant.steady_speed, a root of the
+    Stribeck law), slower than at the Coulomb level alone, and still stops exactly, without creep."""
+    fric = {"coulomb_torque": 0.044, "stiction_ratio": 2.0, "stribeck_speed": 1.0, "n_modes": 2, "zeta_link": 0.2}
+    p = PlantParams(**fric)
+    run = fmu_runner["flexjoint"].run
+    w = steady_speed(p, 1.0)
+    karnopp = steady_speed(PlantParams(**{**fric, "stribeck_speed": 0.0}), 1.0)
+    assert 0.7 * karnopp < w < 0.85 * karnopp  # the drop's friction at the steady speed is well above Fc
+    res = run(fric, {"u": 1.0}, ["theta_dot"], 0.02, 250)
+    assert res["theta_dot"][-1] == pytest.approx(w, rel=1e-6)
+    assert run(fric, {"u": -1.0}, ["theta_dot"], 0.02, 250)["theta_dot"][-1] == pytest.approx(-w, rel=1e-6)
+    vth = 2.0 * 0.044 / motor_constants(p)[0]  # breakaway voltage Fs / G
+    assert np.all(run({**fric, "theta_start": 0.3}, {"u": 0.98 * vth}, ["theta"], 0.02, 100)["theta"] == 0.3)
+    u = np.r_[np.full(100, 2.0), np.zeros(400)]
+    res = run({**fric, "stribeck_speed": 0.05}, {"u": u}, ["theta", "theta_dot"], 0.01, 500)
+    assert np.all(res["theta"][-250:] == res["theta"][-1]) and np.all(res["theta_dot"][-250:] == 0.0)
+    assert res["theta"][-1] > 0.5  # it did slide
+
+
+def test_stribeck_speed_zero_is_the_karnopp_law_bit_for_bit(fmu_runner):
+    t = np.arange(500) * 0.01
+    u = 1.5 * np.sin(2 * np.pi * 0.5 * t)
+    fric = {"coulomb_torque": 0.044, "stiction_ratio": 1.5, "n_modes": 2}
+    run = fmu_runner["flexjoint"].run
+    a = run(fric, {"u": u}, ["theta", "alpha"], 0.01, 500)
+    b = run({**fric, "stribeck_speed": 0.0}, {"u": u}, ["theta", "alpha"], 0.01, 500)
+    c = run({**fric, "stribeck_speed": 0.05}, {"u": u}, ["theta", "alpha"], 0.01, 500)
+    np.testing.assert_array_equal(a["theta"], b["theta"])
+    np.testing.assert_array_equal(a["alpha"], b["alpha"])
+    assert np.max(np.abs(c["theta"] - a["theta"])) > 1e-3  # rad: the drop changes the motion
+
+
 def test_backlash_hysteresis(fmu_runner):
     b = 0.004
     n, dt = 1000, 0.01
@@ -298,6 +333,7 @@ def test_large_internal_step_stays_stable(fmu_runner):
         ({"backlash": -0.01}, "backlash"),
         ({"coulomb_torque": -0.1}, "coulomb_torque"),
         ({"stiction_ratio": 0.5}, "stiction_ratio"),
+        ({"stribeck_speed": -0.1}, "stribeck_speed"),
         ({"hub_locked": 2}, "hub_locked"),
         ({"internal_step": 0.0}, "internal_step"),
         ({"m_tip": -1.0}, "m_tip"),

@@ -32,7 +32,10 @@
  * applied, and the rest of the step is integrated in the new mode.
  *  - Coulomb friction at the hub (Karnopp): the hub is stuck while the friction torque needed to keep
  *    it at rest is within Fs = stiction_ratio * coulomb_torque (the link still vibrates clamped);
- *    otherwise it slides with -coulomb_torque * sign(theta_dot).  A sliding hub whose velocity
+ *    otherwise it slides with -tau_f(theta_dot) * sign, the sliding friction
+ *      tau_f(v) = Fc + (Fs - Fc) exp(-(v / stribeck_speed)^2),  Fc = coulomb_torque
+ *    (Stribeck: from the breakaway level Fs at rest down to Fc; stribeck_speed = 0: Fc at any speed).
+ *    The sign is the sliding direction, fixed over a step as the mode is.  A sliding hub whose velocity
  *    reaches zero is set exactly to rest and re-checked: no chattering, no creep.
  *  - Backlash: impact / dead-zone hybrid.  The gear splits Jeq into a motor side (Jm_share Jeq, with the
  *    motor torque and back-EMF) and a hub side (the rest + link).  In contact the two sides move as one
@@ -88,6 +91,8 @@ bool validate(ModelInstance *comp, char *msg, size_t len) {
     CHECK(d->coulomb_torque >= 0, "invalid parameter coulomb_torque = %g: must be >= 0", d->coulomb_torque);
     CHECK(d->stiction_ratio >= 1, "invalid parameter stiction_ratio = %g: static/Coulomb ratio must be >= 1",
           d->stiction_ratio);
+    CHECK(d->stribeck_speed >= 0, "invalid parameter stribeck_speed = %g: must be >= 0 (0 = no Stribeck drop)",
+          d->stribeck_speed);
     CHECK(d->backlash >= 0, "invalid parameter backlash = %g: must be >= 0", d->backlash);
     CHECK(d->Jm_share >= 0.05 && d->Jm_share <= 0.95, "invalid parameter Jm_share = %g: must be in [0.05, 0.95]",
           d->Jm_share);
@@ -288,6 +293,16 @@ static inline int isCoupled(const ModelData *d) { return d->backlash == 0.0 || d
 
 static inline double motorTorque(const ModelData *d, double w) { return d->G * d->v_amp - d->Bemf * w; }
 
+/* friction torque on the hub sliding in the direction slip at speed v [N.m] (0 when not sliding):
+   slip (Fc + (Fs - Fc) exp(-(v / stribeck_speed)^2)), the Coulomb level Fc alone when stribeck_speed = 0 */
+static inline double slidingFriction(const ModelData *d, double v) {
+    if (d->stribeck_speed > 0) {
+        const double r = v / d->stribeck_speed;
+        return d->slip * (d->coulomb_torque + (d->Fs - d->coulomb_torque) * exp(-r * r));
+    }
+    return d->coulomb_torque * d->slip;
+}
+
 /* modal generalised forces Q_i, i = 1..n */
 static inline void modalForces(const ModelData *d, const double *X, double *Q) {
     const int N = d->N;
@@ -316,9 +331,9 @@ static void deriv(const ModelData *d, const double *X, double *dX) {
         const double v0 = X[N];
         const double (*Minv)[MAX_DOF] = coupled ? d->Minv_r : d->Minv_f;
         if (coupled) /* rigid gear or teeth in contact: motor and hub as one body, Jeq on the hub */
-            Q[0] = motorTorque(d, v0) - d->Beq * v0 + d->tau_tip - d->coulomb_torque * d->slip;
+            Q[0] = motorTorque(d, v0) - d->Beq * v0 + d->tau_tip - slidingFriction(d, v0);
         else /* in the play: hub side alone */
-            Q[0] = -d->Bh * v0 + d->tau_tip - d->coulomb_torque * d->slip;
+            Q[0] = -d->Bh * v0 + d->tau_tip - slidingFriction(d, v0);
         for (i = 0; i < N; i++) {
             double s = 0.0;
             for (j = 0; j < N; j++) s += Minv[i][j] * Q[j];
@@ -373,7 +388,7 @@ static double gearTorque(const ModelData *d) {
     int j;
     if (d->stuck) return motorTorque(d, 0.0);
     modalForces(d, d->X, Q);
-    Q[0] = motorTorque(d, v0) - d->Beq * v0 + d->tau_tip - d->coulomb_torque * d->slip;
+    Q[0] = motorTorque(d, v0) - d->Beq * v0 + d->tau_tip - slidingFriction(d, v0);
     for (j = 0; j < N; j++) acc0 += d->Minv_r[0][j] * Q[j];
     return motorTorque(d, v0) - d->Bm * v0 - d->Jm * acc0;
 }

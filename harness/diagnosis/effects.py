@@ -149,7 +149,20 @@ class Effect:
 
 EFFECTS: dict[str, Effect] = {
     "coulomb_friction": Effect(
-        "coulomb_friction", "plant.coulomb_torque", "N m", "log", 1e-3, 0.5, 8, blind=(0.02, 0.08)
+        "coulomb_friction",
+        "plant.coulomb_torque",
+        "N m",
+        "log",
+        1e-3,
+        0.5,
+        8,
+        # breakaway and Stribeck drop: where a loop stops short of a small reference. The fit starts them at the
+        # sim's values clipped into range; a drop narrower than 0.005 rad/s is Karnopp's, and at 0 it has no slope
+        extra={
+            "plant.stiction_ratio": Bound(1.0, 3.0, "1", "breakaway over Coulomb friction", log=False),
+            "plant.stribeck_speed": Bound(0.005, 0.5, "rad/s", "Stribeck speed of the friction drop", log=False),
+        },
+        blind=(0.02, 0.08),
     ),
     "backlash": Effect(
         "backlash",

@@ -254,21 +254,40 @@ def ks_for_first_mode(p: PlantParams, f1_hz: float) -> float:
     return float(p.Ks * (f1_hz / f0) ** 2)
 
 
+def sliding_friction(p: PlantParams, w: float) -> float:
+    """Friction torque [N.m] against a hub sliding at the speed ``w`` [rad/s] (its magnitude; the sign is the
+    sliding direction's): Fc + (Fs - Fc) exp(-(w / stribeck_speed)^2), Fc alone when stribeck_speed is 0."""
+    fc = p.coulomb_torque
+    if p.stribeck_speed == 0:
+        return fc
+    return fc + (p.stiction_ratio - 1.0) * fc * math.exp(-((w / p.stribeck_speed) ** 2))
+
+
 def steady_speed(p: PlantParams, V: float) -> float:
     """Steady hub speed [rad/s] for a constant command V [V], starting from rest.
 
     Effects off this is eta_g Kg eta_m kt V / (Rm Beq + eta_g eta_m kt km Kg^2); the amplifier limit and
-    Coulomb friction are applied when set (zero if the hub cannot break away).
+    the friction (breakaway, Coulomb level and Stribeck drop) are applied when set (zero if the hub cannot break
+    away; with a Stribeck drop, the first speed from rest where the drive equals friction and damping).
     """
     p.validate()
     v = float(V)
     if p.amp_limit > 0:
         v = min(max(v, -p.amp_limit), p.amp_limit)
     G, Bemf = motor_constants(p)
-    drive = G * v
-    if abs(drive) <= p.stiction_ratio * p.coulomb_torque:
+    drive, damping = abs(G * v), p.Beq + Bemf
+    if drive <= p.stiction_ratio * p.coulomb_torque:
         return 0.0
-    return math.copysign(abs(drive) - p.coulomb_torque, drive) / (p.Beq + Bemf)
+    w = (drive - p.coulomb_torque) / damping  # the Coulomb level's speed, where the net torque is <= 0
+
+    def net(s: float) -> float:
+        return drive - sliding_friction(p, s) - damping * s
+
+    if p.stribeck_speed > 0:
+        grid = np.linspace(0.0, w, 4001)
+        first = int(np.argmax([net(s) <= 0.0 for s in grid[1:]])) + 1  # the first grid speed past the root
+        w = float(brentq(net, grid[first - 1], grid[first], xtol=1e-15)) if net(grid[first]) < 0 else grid[first]
+    return math.copysign(w, G * v)
 
 
 def dead_zone_voltage(p: PlantParams) -> float:
