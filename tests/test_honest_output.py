@@ -67,6 +67,16 @@ def test_an_interval_over_orders_of_magnitude_is_not_identifiable():
     assert recal.finding("plant.zeta_link", 0.01, 5e-4, ci).startswith("link damping ratio at its lower bound (0.05x")
     row = FittedParameter(0.01, 0.012, list(ci), 20.0, "1", text, identifiable=False)
     assert not row.off_spec  # not a finding that the rig differs from the spec
+    # a prior: an interval about as wide as the prior's (damping, a factor 3 on every sheet) is said to be the prior's
+    sd = math.log(3.0) / 1.96
+    held = recal.finding("plant.zeta_link", 0.01, 0.011, (0.00345, 0.031), sd)
+    assert held == (
+        "link damping ratio is not determined by these data: it stays near the spec's 0.01 within its prior (fitted "
+        "0.011, 95 % interval 0.00345..0.031)"
+    )
+    assert recal.finding("plant.zeta_link", 0.01, 0.02, (0.018, 0.022), sd) == (
+        "link damping ratio is 100 % higher than the spec (0.01 -> 0.02)"
+    )
 
 
 def test_a_verdict_reached_at_a_bound_carries_caveats():

@@ -74,6 +74,7 @@ IMPLIED: dict[str, Bound] = {
 Residuals = Callable[[dict[str, float]], np.ndarray]
 AT_BOUND = 0.02  # a fitted factor within 2 % (in log) of a bound sits at it
 UNIDENTIFIABLE = 100.0  # a 95 % interval wider than this factor (hi / lo) says the data do not determine it
+PRIOR_HELD = 0.8  # an interval at least 0.8x its prior's wide: the data did not determine the parameter
 HOLD_TOLERANCE = 0.02  # an undetermined parameter keeps the spec's value when that costs < 2 % more squared error
 SE_CAP = 50.0  # standard error [log of the factor] of a parameter the residuals do not determine: no interval
 STAIRCASE_STEP = 0.05  # a Jacobian column that a 0.1 % step left at zero is taken again with a 5 % step (log)
@@ -360,12 +361,13 @@ def kept_finding(name: str, nominal: float) -> str:
     return f"{label} kept at the spec's {nominal:.4g}{unit}: recalibrating did not improve the held-out fit"
 
 
-def finding(name: str, nominal: float, fitted: float, ci95: tuple[float, float]) -> str:
+def finding(name: str, nominal: float, fitted: float, ci95: tuple[float, float], prior: float | None = None) -> str:
     """One sentence a lab report would print: "the link stiffness is 15 % higher than the spec (1.3 -> 1.5 N
     m/rad)", or "matches the spec" when the spec's value lies inside the 95 % interval or within 3 %; "at its upper
     bound (1.6x the spec): the spec may not describe this rig" when the fit ended at a bound of :data:`LINEAR`;
     "not identifiable from these data" when its interval spans more than UNIDENTIFIABLE (", kept at the spec's value"
-    when the fit held it there)."""
+    when the fit held it there); "not determined by these data" when its interval is nearly its ``prior``'s (sd [log]:
+    the data narrowed it by less than PRIOR_HELD)."""
     label, unit = _label_unit(name)
     side = at_bound(name, nominal, fitted)
     if side is not None:
@@ -378,6 +380,9 @@ def finding(name: str, nominal: float, fitted: float, ci95: tuple[float, float])
         return (
             f"{label} is not identifiable from these data (fitted {fitted:.4g}{unit}, {interval}; spec {nominal:.4g})"
         )
+    if prior and ci95[0] > 0 and math.log(ci95[1] / ci95[0]) > PRIOR_HELD * 2 * 1.96 * prior:
+        return (f"{label} is not determined by these data: it stays near the spec's {nominal:.4g}{unit} within its "
+                f"prior (fitted {fitted:.4g}, 95 % interval {ci95[0]:.3g}..{ci95[1]:.3g})")  # fmt: skip
     change = 100.0 * (fitted / nominal - 1.0) if nominal else math.nan
     if (ci95[0] <= nominal <= ci95[1]) or abs(change) < 3.0:
         return f"{label} matches the spec ({nominal:.4g}{unit}, fitted {fitted:.4g})"

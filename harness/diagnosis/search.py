@@ -414,7 +414,7 @@ def final_params(
         elif prm in recal.LINEAR:
             row.change_pct = 100.0 * (val / nom - 1.0)
             row.unit = recal.LINEAR[prm].unit
-            row.finding = recal.finding(prm, nom, val, ci)
+            row.finding = recal.finding(prm, nom, val, ci, cf.pool.setup.prior_sd.get(prm))
             row.at_bound = recal.at_bound(prm, nom, val)
             row.identifiable = None if recal.identifiable(ci) else False
         elif prm in SECONDARY:
