@@ -65,6 +65,7 @@ SHOOTING_SECONDS = 1.0  # s: window of the multiple-shooting replay
 FIT_SECONDS = 20.0  # s: parameters are fitted on the first 20 s of each experiment (scored on all of it)
 SCREEN_SECONDS = 12.0  # s: candidates are screened on the first 12 s of each experiment
 DEADBAND_GUARD = 1.5  # deg: samples this close to a pot track end (its dead band) are not compared
+START_SE = 5.0  # a record starts in motion when its first hub rate is this many of its standard errors (and more)
 SMOOTH_SECONDS = 0.02  # s: window of the smoothed rates of the measured state (a multiple-shooting start)
 
 
@@ -134,7 +135,11 @@ class RigExperiment:
         t = np.arange(head) * self.Ts
         th = np.radians(self.theta[:head])
         x = measured_state(self)
-        if abs(float(np.polyfit(t, th, 2)[1])) <= float(np.sqrt(np.mean(x[:, 2] ** 2))):
+        coef, cov = np.polyfit(t, th, 2, cov="unscaled")
+        resid = th - np.polyval(coef, t)
+        se = math.sqrt(max(float(cov[1, 1]) * float(np.sum(resid**2)) / (head - 3), 0.0))
+        v0 = abs(float(coef[1]))
+        if v0 <= float(np.sqrt(np.mean(x[:, 2] ** 2))) or v0 <= START_SE * se:
             return {}
         return dict(zip(("alpha_start", "theta_dot_start", "alpha_dot_start"), map(float, x[0, 1:]), strict=True))
 
