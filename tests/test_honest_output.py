@@ -499,3 +499,26 @@ def test_linear_parameters_a_recalibration_that_did_not_pay_leaves_at_the_spec(t
     assert Diagnosis.load(tmp_path / "out" / "diagnosis.json").parameters["plant.Ks"].kept  # NaN interval round-trips
     text = "\n".join(diagnosis_markdown(d))
     assert "The linear parameters keep the spec's values" in text and "traded off against the effects" not in text
+
+
+def test_a_record_starts_in_motion_only_when_its_first_rate_stands_out_of_its_noise():
+    """A closed-loop record at rest at its start (its hub still, 0.05 deg of noise, a slow square whose rate RMS is
+    small) keeps the rest start; one whose hub turns at 1 rad/s from its first sample starts from its measured state;
+    one driven from rest by its reference's step at t = 0 keeps the rest start."""
+    rate, n = 500.0, 5000
+    t = np.arange(n) / rate
+    rng = np.random.default_rng(3)
+    ref = np.where((t % 8.0) < 4.0, 10.0, -10.0)
+    slow = np.where(t < 4.0, 0.0, -10.0 * np.minimum((t - 4.0) / 2.0, 1.0)) + rng.normal(0, 0.05, n)
+    moving = np.degrees(1.0) * t[:n] * (t < 0.5) + np.degrees(0.5) * (t >= 0.5) + rng.normal(0, 0.05, n)
+    stepped = 10.0 * np.minimum(t / 0.3, 1.0) ** 2 + rng.normal(0, 0.05, n)
+
+    def rec(theta: np.ndarray, r: np.ndarray) -> RigExperiment:
+        return RigExperiment(name="r", kind="square", Ts=1 / rate, t=t, u=np.zeros(n), theta=theta,
+                             alpha=rng.normal(0, 0.01, n), theta_v=theta / 35.5, alpha_v=np.zeros(n), ref=r,
+                             replay="closed")  # fmt: skip
+
+    assert rec(slow, ref).start_state == {}
+    state = rec(moving, np.full(n, 30.0)).start_state
+    assert state["theta_dot_start"] == pytest.approx(1.0, rel=0.05)
+    assert rec(stepped, np.full(n, 10.0)).start_state == {}
