@@ -27,7 +27,7 @@ from typing import Any
 
 from .. import spec as specmod
 
-__all__ = ["COMBOS", "SENSORS", "combos", "link_inertia", "plant_value", "prior_sd", "to_plant"]
+__all__ = ["COMBOS", "SENSORS", "combos", "link_inertia", "physical", "plant_value", "prior_sd", "to_plant"]
 
 COMBOS = ("rig.drive_gain", "rig.drive_tau", "rig.inertia_ratio")
 SENSORS = {"sensor.theta_gain": "pot_gain", "sensor.alpha_gauge_gain": "gauge_gain"}  # -> the DAQ's parameter
@@ -99,3 +99,10 @@ def prior_sd(plant: Mapping[str, Any], factor: Callable[[str], float]) -> dict[s
 
 SHEET = ("Kg", "kt", "km", "Rm", "eta_g", "eta_m", "Jeq", "Beq", "m_link", "L_link", "m_tip", "Ks", "zeta_link",
          "pot_gain", "gauge_gain")  # fmt: skip
+
+
+def physical(over: Mapping[str, Any], plant: Mapping[str, Any]) -> dict[str, Any]:
+    """Overrides ``over`` ({"rig.drive_gain": ..., "plant.Ks": ...}) with the plant parameters their combos imply on
+    ``plant`` (the sheet) added as "plant.kt", "plant.km", "plant.Beq", "plant.Jeq"."""
+    drive = {k: float(v) for k, v in over.items() if k in COMBOS}
+    return {**over, **{f"plant.{k}": v for k, v in to_plant(drive, plant).items()}} if drive else dict(over)

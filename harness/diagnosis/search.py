@@ -230,10 +230,9 @@ def refit_leaders(
     bases: list[Overrides],
 ) -> None:
     """The leaders of a screening (the JOINT_TOP best with half of MIN_CLOSURE, and every ``joint`` candidate)
-    refitted jointly with the linear parameters and the continuous parameters of the effects ``chosen``, from the
-    current rig ``bases`` (per fold: its recalibration found the linear parameters' basin, which a start from the
-    spec's values may not) with the effect's screened values; an entry of ``ranked`` is updated in place when its
-    joint refit closes more on held-out data."""
+    refitted jointly with the linear parameters and the continuous parameters of the effects ``chosen``, from the rig
+    of its best screening and from that rig with the linear parameters of the current rig ``bases`` (per fold), the
+    better kept; an entry of ``ranked`` is updated in place when its joint refit closes more on held-out data."""
     leaders = [r for r in ranked[:JOINT_TOP] if r["screen_score"] >= 0.5 * MIN_CLOSURE]
     leaders += [r for r in ranked[JOINT_TOP:] if by_name[r["effect"]].joint]
     free_before = [EFFECTS[e].param for e in chosen if EFFECTS[e].continuous]
@@ -243,10 +242,11 @@ def refit_leaders(
         free = free_before + ([c.param] if c.continuous else [])
         for k in (0, 1):
             # an integer is not moved by least squares: every value a screening proposed is refitted
+            # from the screening's rig, and from it with the recalibrated linear parameters: the first is far when
+            # the sheet is off, the second when the recalibration absorbed the effect (friction as damping)
             lin = {q: v for q, v in bases[k].items() if q in recal.LINEAR}
-            starts = [{**r["start"][k], **lin}]
-            if not c.continuous:
-                starts = list({st[k][c.param]: {**st[k], **lin} for st in r["starts"]}.values())
+            pool = [r["start"][k]] if c.continuous else list({st[k][c.param]: st[k] for st in r["starts"]}.values())
+            starts = pool + [{**st, **lin} for st in pool if {**st, **lin} != st]
             slots.append((len(calls), len(starts)))
             calls += [("refit", st, free, cf.fits[k], cf.helds[k]) for st in starts]
     joint = cf.pool.map(calls)
@@ -305,7 +305,9 @@ def forward_selection(
             break
         refit_leaders(cf, ranked, by_name, fw.chosen, fw.msg, fw.bases)
         ranked.sort(key=lambda r: (-r["held_out_share_pct"], r["effect"]))
-        best = max(ranked, key=lambda r: (_closes(r), -ranked.index(r)))
+        # of the candidates that beat the model without them on held-out data, the one that closes most
+        lower = [r for r in ranked if r["gap_after"] ** 2 < fw.msg]
+        best = max(lower, key=lambda r: (_closes(r), -ranked.index(r)), default=None)
         say(
             f"round {len(fw.rounds)}: "
             + ", ".join(
@@ -313,7 +315,7 @@ def forward_selection(
                 for r in ranked
             )
         )
-        if _closes(best) < MIN_CLOSURE or best["gap_after"] ** 2 >= fw.msg:
+        if best is None or _closes(best) < MIN_CLOSURE:
             break
         fw.bases = [dict(b) for b in best["fold_params"]]
         fw.chosen.append(best["effect"])
