@@ -1,12 +1,14 @@
 """The diagnosis's simulations as tasks of a :class:`harness.executor.Executor`.
 
 The setup (simulation, real experiments, FMU bytes) is sent to every worker once and each worker loads the rig
-once. Eight tasks, given as ``(kind, *args)`` calls to :meth:`Pool.map`:
+once. Nine tasks, given as ``(kind, *args)`` calls to :meth:`Pool.map`:
 
 - ``("sse", over, names[, window])``: squared errors per experiment and channel with overrides ``over``;
 - ``("fit", effect, base, fit, every)``: :func:`screen_effect`, one effect's parameter alone on top of ``base``;
 - ``("refit", base, free, fit, every[, max_nfev])``: :func:`joint_refit`, the linear parameters (and the
   continuous effect parameters ``free``) by output-error least squares;
+- ``("recal", fit, every[, start])``: :func:`recalibrate`, the linear parameters from a grid of the sheet's values
+  (and from ``start``);
 - ``("resid", over, names, k)``: :func:`residual_vector`, a stretch of a residual vector, for a least squares run
   by the client (:meth:`Pool.refit`);
 - ``("where", over)``: :func:`where`, where the gap lies;
@@ -212,12 +214,11 @@ def recalibrate(fit: list[str], every: list[str], start: dict[str, Any] | None =
             scored.append((float(np.sum(residual_vector(over, fit) ** 2)), over))
         evaluations += len(scored)
         best = min(scored, key=lambda c: c[0])[1]
-    res = joint_refit(best, [], fit, every, RECAL_NFEV)
+    fits = [joint_refit(best, [], fit, every, RECAL_NFEV)]
     if start:
-        other = joint_refit(dict(start), [], fit, every, RECAL_NFEV)
-        evaluations += res["evaluations"]
-        res = min(res, other, key=lambda r: r["fit_msg"])
-    return {**res, "evaluations": evaluations + res["evaluations"]}
+        fits.append(joint_refit(dict(start), [], fit, every, RECAL_NFEV))
+    res = min(fits, key=lambda r: r["fit_msg"])
+    return {**res, "evaluations": evaluations + sum(r["evaluations"] for r in fits)}
 
 
 def least_squares_refit(
