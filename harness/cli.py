@@ -254,7 +254,8 @@ def info(
     as_json: Annotated[bool, typer.Option("--json", help="print the list as JSON")] = False,
 ) -> None:
     """List every plant, DAQ and controller parameter (a spec's table.name, for --set and the spec's tables) with
-    its unit, the SPEC's value, the FMU's default and its declared range."""
+    its unit, the SPEC's value, the FMU's default, its declared range and, for a sheet value the diagnosis
+    recalibrates, the SPEC's 95 % uncertainty on it ([uncertainty])."""
     import json
 
     from rich.table import Table
@@ -269,22 +270,27 @@ def info(
         out.print(json.dumps([r.to_dict() for r in rows], indent=1), markup=False, soft_wrap=True)
         return
     title = f"parameters of {s.name} (value: the spec's, else the default)" if s else "parameters"
-    t = Table(title=f"{title}; set one with --set table.name=value", title_justify="left")
     narrow = out.width < 110  # the description under the name instead of a column squeezed to a word a line
+    if s is not None and narrow:
+        title += "; in brackets the spec's 95 % uncertainty on a sheet value"
+    t = Table(title=f"{title}; set one with --set table.name=value", title_justify="left")
     t.add_column("parameter", no_wrap=not narrow)
     t.add_column("unit", no_wrap=True)
     if s is not None:
         t.add_column("value", justify="right", no_wrap=True)
     t.add_column("default", justify="right", no_wrap=True)
     t.add_column("range", no_wrap=True)
+    if s is not None and not narrow:
+        t.add_column("95 %", no_wrap=True)  # the spec's uncertainty on a sheet value: the diagnosis's prior
     if not narrow:
         t.add_column("description", ratio=1)
     for r in rows:
         value = [value_text(r.default if r.spec is None else r.spec)] if s is not None else []
         name = Text(r.key, style="bold" if r.spec is not None else "")
-        if narrow:
-            name.append("\n  " + r.description, style="dim")
-        cells = [name, r.unit, *value, value_text(r.default), r.range, *([] if narrow else [r.description])]
+        if narrow:  # the description (and the uncertainty) under the name
+            name.append("\n  " + r.description + (f" ({r.within})" if r.within else ""), style="dim")
+        within = [r.within] if s is not None and not narrow else []
+        cells = [name, r.unit, *value, value_text(r.default), r.range, *within, *([] if narrow else [r.description])]
         t.add_row(*cells)
     out.print(_fit(t))
 

@@ -8,7 +8,7 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 from .fmu.modeldesc import source_model
-from .spec import Spec
+from .spec import UNCERTAIN, Spec
 
 __all__ = ["TABLES", "Parameter", "parameters", "value_text"]
 
@@ -19,7 +19,8 @@ TABLES = {"plant": "flexjoint", "daq": "daq", "controller": "controller"}  # spe
 class Parameter:
     """One FMU parameter as a spec names it (``table.name``): unit (SI, spaces between factors, "" when
     dimensionless), the FMU's start value, its declared range (None: unbounded), the spec's value (None: the spec
-    leaves it at the default) and the description of the modelDescription.xml."""
+    leaves it at the default), the description of the modelDescription.xml and, for a sheet parameter the diagnosis
+    recalibrates, the spec's 95 % factor on it (:meth:`harness.spec.Spec.factor`)."""
 
     key: str
     unit: str
@@ -28,6 +29,9 @@ class Parameter:
     max: float | int | None
     spec: float | int | bool | None
     description: str
+    uncertainty: float | None = (
+        None  # the spec's 95 % factor on the sheet's value (its [uncertainty]), where it has one
+    )
 
     @property
     def range(self) -> str:
@@ -37,6 +41,14 @@ class Parameter:
         if self.min is not None:
             return f">= {value_text(self.min)}"
         return f"<= {value_text(self.max)}" if self.max is not None else ""
+
+    @property
+    def within(self) -> str:
+        """The uncertainty as text: ``10 %`` below a factor 1.5, else ``x2``; "" when the spec gives none."""
+        u = self.uncertainty
+        if u is None:
+            return ""
+        return f"{100 * (u - 1):.3g} %" if u < 1.5 else f"x{u:.3g}"
 
     def to_dict(self) -> dict[str, Any]:
         return {**asdict(self), "range": self.range}
@@ -87,6 +99,7 @@ def parameters(spec: Spec | None = None) -> list[Parameter]:
                     v.max,
                     given.get(table, {}).get(name),
                     v.description,
+                    spec.factor(name) if spec is not None and name in UNCERTAIN and table != "controller" else None,
                 )
             )
     return out

@@ -49,6 +49,12 @@ def test_info_lists_every_parameter_with_unit_value_default_and_range():
     ks = rows["plant.Ks"]
     assert (ks["unit"], ks["default"], ks["min"], ks["max"], ks["spec"]) == ("N m/rad", 1.3, 0.0, 1000.0, None)
     assert rows["plant.coulomb_torque"]["spec"] == 0.044 and rows["plant.eta_g"]["range"] == "0..1"
+    # the spec's uncertainty on a sheet value (the diagnosis's prior): the lab spec is a datasheet, the CU arm a lab's
+    assert rows["plant.Ks"]["uncertainty"] == 1.2 and rows["plant.Beq"]["uncertainty"] == 3.0
+    assert rows["plant.coulomb_torque"]["uncertainty"] is None and rows["controller.k_theta"]["uncertainty"] is None
+    assert "armature resistance (10 %)" in " ".join(r.stdout.split())
+    cu = flexjoint("info", "cu_flexible_arm", columns=160)
+    assert _row(cu.stdout, "plant.Ks")[3:7] == ["2.2448", "1.3", "0..1000", "x2"]
     assert {k.split(".")[0] for k in rows} == {"plant", "daq", "controller"} and len(rows) > 55
 
 
