@@ -63,12 +63,12 @@ LINEAR: dict[str, Bound] = {
     "sensor.theta_gain": Bound(0.25, 4.0, "1", "hub angle sensor's gain (reading per true angle)", part=SENSOR),
     "sensor.alpha_gauge_gain": Bound(0.1, 10.0, "1", "strain gauge's gain (reading per true angle)", part=SENSOR),
 }
-# the physical values the fitted combos imply (rigmodel.to_plant), reported beside them
-IMPLIED: dict[str, Bound] = {
-    "plant.Jeq": Bound(0.05, 20.0, "kg m^2", "hub inertia", part=DRIVE),
-    "plant.Beq": Bound(0.05, 20.0, "N m s/rad", "viscous damping", part=DRIVE),
-    "plant.kt": Bound(0.05, 20.0, "N m/A", "motor gain (kt eta_g eta_m)", part=DRIVE),
-    "plant.km": Bound(0.05, 20.0, "V s/rad", "back-EMF constant", part=DRIVE),
+# the physical values the fitted combos imply (rigmodel.to_plant), reported beside them: (plain name, unit)
+IMPLIED: dict[str, tuple[str, str]] = {
+    "plant.Jeq": ("hub inertia", "kg m^2"),
+    "plant.Beq": ("viscous damping", "N m s/rad"),
+    "plant.kt": ("motor gain (kt eta_g eta_m)", "N m/A"),
+    "plant.km": ("back-EMF constant", "V s/rad"),
 }
 
 Residuals = Callable[[dict[str, float]], np.ndarray]
@@ -350,8 +350,9 @@ def identifiable(ci95: tuple[float, float]) -> bool:
 
 def _label_unit(name: str) -> tuple[str, str]:
     """A parameter's plain name and its unit as a sentence ends a value with (" N m/rad"; "" for a ratio)."""
-    b = LINEAR.get(name) or IMPLIED.get(name)
-    return (b.label if b else name), (f" {b.unit}" if b and b.unit != "1" else "")
+    b = LINEAR.get(name)
+    label, unit = (b.label, b.unit) if b else IMPLIED.get(name, (name, "1"))
+    return label, (f" {unit}" if unit != "1" else "")
 
 
 def kept_finding(name: str, nominal: float) -> str:

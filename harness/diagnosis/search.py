@@ -451,7 +451,6 @@ def implied(
     out = {}
     for k, v in mid.items():
         name = f"plant.{k}"
-        b = recal.IMPLIED[name]
         nom = plant_value(sheet, k)
         lo, hi = v * math.exp(-math.sqrt(dev[k][0])), v * math.exp(math.sqrt(dev[k][1]))
         out[name] = FittedParameter(
@@ -459,10 +458,15 @@ def implied(
             fitted=v,
             ci95=[lo, hi],
             change_pct=100.0 * (v / nom - 1.0),
-            unit=b.unit,
+            unit=recal.IMPLIED[name][1],
             finding=f"implied by the drive's fit: {recal.finding(name, nom, v, (lo, hi))}",
         )
     return out
+
+
+def _fit_row(res: dict[str, Any], prm: str) -> list[float]:
+    """A recalibration's fit of ``prm`` as the table's folds and records give it: [fitted, lo, hi]."""
+    return [float(res["params"][prm]), *map(float, res["ci95"].get(prm, (math.nan,) * 2))]
 
 
 def recalibrated_alone(rec: list[dict[str, Any]]) -> dict[str, float]:
@@ -665,11 +669,9 @@ def search(
     own = dict(zip(singles, pool.map([("recal", [r], [], final) for r in singles]), strict=True))
     for prm, value in alone.items():
         table[prm].recalibrated = value
-        table[prm].folds = [[float(r["params"][prm]), *map(float, r["ci95"].get(prm, (math.nan,) * 2))] for r in rec]
+        table[prm].folds = [_fit_row(r, prm) for r in rec]
         if own:
-            table[prm].records = {
-                n: [float(r["params"][prm]), *map(float, r["ci95"].get(prm, (math.nan,) * 2))] for n, r in own.items()
-            }
+            table[prm].records = {n: _fit_row(r, prm) for n, r in own.items()}
     sse_final, *sse_signature = pool.map(
         [("sse", final, names), *(("sse", {**fw.bases[0], c.param: c.values[0]}, names) for c in signature)]
     )
