@@ -83,6 +83,7 @@ typedef struct {
     double M0[MAX_DOF];             /* hub row of the mass matrix: hub-mode coupling [kg.m2], index 1..n */
     double h_max;                   /* largest internal step [s]: internal_step, limited for RK4 stability */
     double Fs;                      /* static friction torque [N.m] */
+    double r2_flat;                 /* (v / stribeck_speed)^2 beyond which the Stribeck term is below Fc's last bit */
 
     /* state */
     double X[MAX_X]; /* [theta, a_1..a_n, theta_dot, a_dot_1..n, theta_m, omega_m] */

@@ -243,6 +243,8 @@ fmi2Status initialize(ModelInstance *comp) {
     d->Bm = d->Jm_share * d->Beq;
     d->Bh = d->Beq - d->Bm;
     d->Fs = d->stiction_ratio * d->coulomb_torque;
+    /* (Fs - Fc) exp(-r^2) < Fc 2^-55 leaves Fc + it = Fc to the last bit: the exponential need not be taken */
+    d->r2_flat = d->Fs > d->coulomb_torque ? log((d->Fs - d->coulomb_torque) / d->coulomb_torque) + 55.0 * log(2.0) : 0.0;
     massInverse(d, d->Jeq + Jl, d->Minv_r);
     massInverse(d, d->Jh + Jl, d->Minv_f);
     {   /* the clamped link (hub at rest): modal mass J I + mt and the hub row b + mt */
@@ -298,6 +300,7 @@ static inline double motorTorque(const ModelData *d, double w) { return d->G * d
 static inline double slidingFriction(const ModelData *d, double v) {
     if (d->stribeck_speed > 0) {
         const double r = v / d->stribeck_speed;
+        if (r * r > d->r2_flat) return d->coulomb_torque * d->slip;
         return d->slip * (d->coulomb_torque + (d->Fs - d->coulomb_torque) * exp(-r * r));
     }
     return d->coulomb_torque * d->slip;

@@ -31,6 +31,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -43,7 +44,7 @@ from ..rig.controller import Controller, delayed
 from .experiments import CHANNELS, DEADBAND_GUARD, SHOOTING_SECONDS, RigExperiment, measured_state
 from .recalibrate import LINEAR
 from .result import ExperimentGap, GapSummary
-from .rigmodel import COMBOS, SENSORS, combos, to_plant
+from .rigmodel import COMBOS, SENSORS, SHEET, combos, to_plant
 
 __all__ = [
     "SSE",
@@ -63,6 +64,7 @@ __all__ = [
     "simulate",
 ]
 
+SENSOR_DAQ = ("pot_gain", "pot_offset", "gauge_gain", "gauge_offset", "gauge_cubic")  # the calibration's DAQ parameters
 SSE = dict[str, dict[str, float]]  # experiment -> channel -> sum of squared residuals [deg^2]
 MODELS = {"plant": "flexjoint", "daq": "daq"}  # the FMU behind each rig table
 SENSOR_KNOWN = 0.01  # a sensor gain known to 1 % (sd, log) is not fitted: its error goes into the intervals
@@ -73,7 +75,7 @@ SPREAD_SECONDS = 0.25  # s: the windows in which a closed-loop replay's gap is s
 
 def fmu_value(table: Mapping[str, Any], model: str, name: str) -> float:
     """Parameter ``name`` of FMU ``model`` ("flexjoint", "daq"): its value in ``table``, else the FMU's default."""
-    return float(table.get(name, specmod.fmu_parameters(model)[name][1]))
+    return float(table[name] if name in table else specmod.fmu_parameters(model)[name][1])
 
 
 @dataclass
@@ -96,6 +98,15 @@ class Setup:
     lattice_noise: dict[str, float] = field(default_factory=dict)
     gain_rel_se: dict[str, float] = field(default_factory=dict)
     prior_sd: dict[str, float] = field(default_factory=dict)
+
+    @cached_property
+    def sheet(self) -> tuple[dict[str, Any], dict[str, Any]]:
+        """The plant and DAQ tables with the FMU defaults filled in where a replay reads them itself (the sheet's
+        parameters :func:`harness.diagnosis.rigmodel.to_plant` maps the combos with; the DAQ's calibration and dead
+        band): looked up once, not in every simulation. The same values the FMUs default to."""
+        plant = {p: fmu_value(self.plant, "flexjoint", p) for p in SHEET if p in specmod.fmu_parameters("flexjoint")}
+        names = {*SENSOR_DAQ, *CALIBRATION.values(), "pot_deadband"}
+        return {**plant, **self.plant}, {**{d: fmu_value(self.daq, "daq", d) for d in sorted(names)}, **self.daq}
 
     def nominal(self, param: str) -> float:
         """The simulation's own value of a parameter: an FMU parameter's ("plant.Ks": the sim spec's, else the FMU
@@ -142,10 +153,11 @@ def rig_tables(
     :func:`harness.diagnosis.rigmodel.to_plant`, a sensor's gain onto the DAQ's: reading = gain x true angle), and
     the DAQ as the data's calibration believes it (the sensor gains as given): (plant, daq, calibrated daq)."""
     p_over, d_over = _split_overrides(over)
-    sheet = {**setup.plant, **exp.plant}
+    plant_sheet, daq_sheet = setup.sheet
+    sheet = {**plant_sheet, **exp.plant}
     drive = {k: float(v) for k, v in over.items() if k in COMBOS}
     plant = {**sheet, **(to_plant(drive, sheet) if drive else {}), **p_over}
-    believed = {**setup.daq, **exp.daq, **d_over}
+    believed = {**daq_sheet, **exp.daq, **d_over}
     daq = dict(believed)
     for s, name in SENSORS.items():
         if s in over:
@@ -157,7 +169,7 @@ def sim_calibration(daq: Mapping[str, Any], comb_angles: np.ndarray | None) -> C
     """The calibration that converts the simulated DAQ's volts (``daq``: its parameters, FMU defaults for the
     rest), made as the real rig's: :func:`harness.ident.calibration.daq_calibration`."""
     return daq_calibration(
-        *(fmu_value(daq, "daq", k) for k in ("pot_gain", "pot_offset", "gauge_gain", "gauge_offset", "gauge_cubic")),
+        *(fmu_value(daq, "daq", k) for k in SENSOR_DAQ),
         comb_angles=comb_angles,
     )
 

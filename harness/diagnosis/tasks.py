@@ -340,6 +340,17 @@ def _label(call: tuple[Any, ...]) -> str:
     return {"where": "where", "loopnoise": "loop noise", "spread": "loop spread", "replay": "replay"}.get(kind, "score")
 
 
+def _weight(call: tuple[Any, ...]) -> int:
+    """A rough rank of what a task costs: a recalibration (grids and least squares), then a refit (the more so with
+    an effect's parameters free: its rig is no longer linear), then a screening, then a single score."""
+    kind = call[0]
+    if kind == "recal":
+        return 10
+    if kind == "refit":
+        return 2 + 3 * len(call[2])
+    return 1 if kind == "fit" else 0
+
+
 def stretches(setup: Setup, names: list[str], n: int) -> list[list[str]]:
     """``names`` cut into at most ``n`` consecutive stretches of about equal fit-window samples (what a residual
     vector costs to simulate), none empty."""
@@ -360,7 +371,14 @@ class Pool:
         self.ex = Executor(workers, scheduler, progress)
 
     def map(self, calls: list[tuple[Any, ...]]) -> list[Any]:
-        return self.ex.map(_run_call, calls, self.setup, desc="", labels=[_label(c) for c in calls])
+        """The calls' results in their order; the longest are started first (:func:`_weight`), so that no worker
+        is left with a long refit while the others idle."""
+        order = sorted(range(len(calls)), key=lambda i: -_weight(calls[i]))
+        done = self.ex.map(_run_call, [calls[i] for i in order], self.setup, labels=[_label(calls[i]) for i in order])
+        out: list[Any] = [None] * len(calls)
+        for i, r in zip(order, done, strict=True):
+            out[i] = r
+        return out
 
     def refit(
         self, base: dict[str, Any], free: list[str], names: list[str], max_nfev: int, linear: bool = True

@@ -4,6 +4,7 @@ ships as package data (``harness/_fmus``, ``harness/_specs``); ``$FLEXJOINT_FMU_
 from __future__ import annotations
 
 import os
+from functools import cache
 from importlib import resources
 from pathlib import Path
 
@@ -12,8 +13,9 @@ from .. import clone
 __all__ = ["available_models", "bundled_dir", "fmu_source_dir"]
 
 
+@cache
 def bundled_dir(kind: str) -> Path:
-    """Where the package's data tree ``kind`` ('fmus' or 'specs') lives.
+    """Where the package's data tree ``kind`` ('fmus' or 'specs') lives (looked up once per process).
 
     An installed wheel ships it as package data (``harness/_fmus``, ``harness/_specs``); an editable install or a
     plain checkout reads the clone's top-level ``fmus/`` and ``specs/``. Returns the first that exists (the
