@@ -503,15 +503,18 @@ def test_linear_parameters_a_recalibration_that_did_not_pay_leaves_at_the_spec(t
 
 def test_a_record_starts_in_motion_only_when_its_first_rate_stands_out_of_its_noise():
     """A closed-loop record at rest at its start (its hub still, 0.05 deg of noise, a slow square whose rate RMS is
-    small) keeps the rest start; one whose hub turns at 1 rad/s from its first sample starts from its measured state;
-    one driven from rest by its reference's step at t = 0 keeps the rest start."""
+    small) keeps the rest start; one whose hub turns at 3 rad/s from its first sample starts from its measured state;
+    one driven from rest by its reference's step at t = 0 keeps the rest start, a fast drive's too (its hub's first
+    10 ms are no parabola: a parabola's slope at the first sample read 1.5 rad/s)."""
     rate, n = 500.0, 5000
     t = np.arange(n) / rate
     rng = np.random.default_rng(3)
     ref = np.where((t % 8.0) < 4.0, 10.0, -10.0)
     slow = np.where(t < 4.0, 0.0, -10.0 * np.minimum((t - 4.0) / 2.0, 1.0)) + rng.normal(0, 0.05, n)
-    moving = np.degrees(1.0) * t[:n] * (t < 0.5) + np.degrees(0.5) * (t >= 0.5) + rng.normal(0, 0.05, n)
+    moving = np.degrees(3.0) * t[:n] * (t < 0.5) + np.degrees(1.5) * (t >= 0.5) + rng.normal(0, 0.02, n)
     stepped = 10.0 * np.minimum(t / 0.3, 1.0) ** 2 + rng.normal(0, 0.05, n)
+    s = t % 2.0  # a drive of 40 rad/s and 10 ms from rest at each step, held at 40 deg
+    fast = np.degrees(np.minimum(40.0 * (s - 0.01 * (1.0 - np.exp(-s / 0.01))), 0.7)) * np.where(t % 4.0 < 2.0, 1, -1)
 
     def rec(theta: np.ndarray, r: np.ndarray) -> RigExperiment:
         return RigExperiment(name="r", kind="square", Ts=1 / rate, t=t, u=np.zeros(n), theta=theta,
@@ -520,5 +523,6 @@ def test_a_record_starts_in_motion_only_when_its_first_rate_stands_out_of_its_no
 
     assert rec(slow, ref).start_state == {}
     state = rec(moving, np.full(n, 30.0)).start_state
-    assert state["theta_dot_start"] == pytest.approx(1.0, rel=0.05)
+    assert state["theta_dot_start"] == pytest.approx(3.0, rel=0.05)
     assert rec(stepped, np.full(n, 10.0)).start_state == {}
+    assert rec(fast + rng.normal(0, 0.01, n), np.full(n, 40.0)).start_state == {}

@@ -126,19 +126,20 @@ class RigExperiment:
     def start_state(self) -> dict[str, float]:
         """The measured state a replay of a record that starts in motion starts from, as plant parameters
         (alpha_start [rad], theta_dot_start, alpha_dot_start [rad/s]): a record cut from a longer run, whose hub rate
-        at its first sample (a parabola through its first SMOOTH_SECONDS) is above the hub rate's RMS over the record;
-        {} for one that starts at rest (one driven from rest, by its reference's step, has no rate at its first
-        sample: the parabola's slope there is its noise)."""
-        head = max(5, int(round(SMOOTH_SECONDS / self.Ts)))
+        at its first sample (a cubic through its first SMOOTH_SECONDS) is above the hub rate's RMS over the record
+        and START_SE of its standard errors; {} for one that starts at rest (one driven from rest, by its reference's
+        step, has no rate at its first sample: the cubic's slope there is its noise; a parabola's is not, where the
+        drive's torque jerks the hub)."""
+        head = max(6, int(round(SMOOTH_SECONDS / self.Ts)))
         if self.u.size < 4 * head:
             return {}
         t = np.arange(head) * self.Ts
         th = np.radians(self.theta[:head])
         x = measured_state(self)
-        coef, cov = np.polyfit(t, th, 2, cov="unscaled")
+        coef, cov = np.polyfit(t, th, 3, cov="unscaled")
         resid = th - np.polyval(coef, t)
-        se = math.sqrt(max(float(cov[1, 1]) * float(np.sum(resid**2)) / (head - 3), 0.0))
-        v0 = abs(float(coef[1]))
+        se = math.sqrt(max(float(cov[2, 2]) * float(np.sum(resid**2)) / (head - 4), 0.0))
+        v0 = abs(float(coef[2]))
         if v0 <= float(np.sqrt(np.mean(x[:, 2] ** 2))) or v0 <= START_SE * se:
             return {}
         return dict(zip(("alpha_start", "theta_dot_start", "alpha_dot_start"), map(float, x[0, 1:]), strict=True))
