@@ -78,9 +78,8 @@ PRIOR_HELD = 0.8  # an interval at least 0.8x its prior's wide: the data did not
 HOLD_TOLERANCE = 0.02  # an undetermined parameter keeps the spec's value when that costs < 2 % more squared error
 SE_CAP = 50.0  # standard error [log of the factor] of a parameter the residuals do not determine: no interval
 STAIRCASE_STEP = 0.05  # a Jacobian column that a 0.1 % step left at zero is taken again with a 5 % step (log)
-PRIOR_PASSES = (
-    3  # fits again from the solution while its residual variance is under half the one that weighed the prior
-)
+PRIOR_PASSES = 8  # fits again from the solution while its residual variance is under PRIOR_SETTLED x the one that
+PRIOR_SETTLED = 0.8  # weighed the prior: each pass moves a parameter the prior held back part of the way
 POWELL_XTOL = 0.01  # a derivative-free fit's smallest step: 1 % of a parameter (log)
 
 
@@ -225,7 +224,7 @@ def _fit(
                 ftol=1e-4,
             )
         nfev += int(res.nfev)
-        if not sel.any() or variance(res.x) > 0.5 * w2:
+        if not sel.any() or variance(res.x) > PRIOR_SETTLED * w2:
             break
         x0, w2 = res.x, variance(res.x)
     r = data(res.x)
