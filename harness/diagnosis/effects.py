@@ -81,16 +81,16 @@ class Effect:
     """A candidate effect: one FMU parameter ``param`` ("plant.coulomb_torque") in ``unit``.
 
     ``kind`` "log" / "linear" (continuous, search bounds ``lo``..``hi``, coarse ``grid`` points) or "int"
-    (``values`` enumerated); ``joint``: it moves the rig's resonances, so it is judged only after a joint refit of
-    the linear parameters; ``extra``: secondary plant parameters freed with it in the joint refit, with their
-    absolute bounds; ``blind``: the magnitudes the blind test hides in its rigs (log-uniform, or integers);
-    ``rule``: the candidate rule (the effect with the range to search against a simulation and data, or None
-    when it is not worth fitting, for the reason ``skipped``); ``signature``: found by its signature in the data
-    (the ADC lattice), not by closing the gap: it is added last with its honest shrink, never searched;
-    ``spread``: in a closed loop the effect makes the motion depend on the noise the controller feeds back (a gear's
-    play rattles in a phase the noise sets), so no replay reproduces the record sample by sample and a fit of its
-    gap takes it to zero: it is tested by its spread (:func:`harness.diagnosis.search.by_spread`) when closing the gap
-    left it out.
+    (``values`` enumerated); ``joint``: it moves the rig's resonances or the drive's phase, which recalibrated linear
+    parameters mimic, so it is judged only after a joint refit of them; ``extra``: secondary plant parameters freed
+    with it in the joint refit, with their absolute bounds; ``blind``: the magnitudes the blind test hides in its
+    rigs (log-uniform, or integers); ``rule``: the candidate rule (the effect with the range to search against a
+    simulation and data, or None when it is not worth fitting, for the reason ``skipped``); ``signature``: found by
+    its signature in the data (the ADC lattice), not by closing the gap: it is added last with its honest shrink,
+    never searched; ``spread``: in a closed loop the effect makes the motion depend on the noise the controller feeds
+    back (a gear's play rattles in a phase the noise sets), so no replay reproduces the record sample by sample and a
+    fit of its gap takes it to zero: it is tested by its spread (:func:`harness.diagnosis.search.by_spread`) when
+    closing the gap left it out.
     """
 
     name: str
@@ -188,7 +188,14 @@ EFFECTS: dict[str, Effect] = {
         "second_mode", "plant.n_modes", "1", "int", values=(2,), joint=True, blind=(2, 2), rule=unless_modelled_modes
     ),
     "delay": Effect(
-        "delay", "daq.delay_samples", "samples", "int", values=(0, 1, 2, 3, 4, 5), blind=(1, 3), rule=other_delays
+        "delay",
+        "daq.delay_samples",
+        "samples",
+        "int",
+        values=(0, 1, 2, 3, 4, 5),
+        joint=True,
+        blind=(1, 3),
+        rule=other_delays,
     ),
     "quantization": Effect(
         "quantization",

@@ -7,9 +7,9 @@ Recalibration first: the linear parameters (:data:`harness.diagnosis.recalibrate
 1. screening (:func:`screen`): each candidate's parameter alone, on the current rig and, since recalibration has
    already absorbed part of any effect (friction raises Beq, a delay lowers the motor gain and raises Jeq, a second
    mode shifts Ks), also on the spec's own linear rig;
-2. joint refit (:func:`refit_leaders`): the JOINT_TOP best and every candidate that moves the rig's resonances
-   (``joint``) refitted jointly with the linear parameters and the effects already chosen, from every value a
-   screening proposed for an integer;
+2. joint refit (:func:`refit_leaders`): the leaders (:func:`leaders`: the JOINT_TOP best by screening and by their
+   share on the current rig, and every candidate the linear parameters mimic, ``joint``) refitted jointly with the
+   linear parameters and the effects already chosen, from every value a screening proposed for an integer;
 3. the best candidate enters when its screening or joint closure reaches MIN_CLOSURE and it lowers the held-out
    gap; rounds go on while the gap is above NONE_RATIO x the floor.
 
@@ -60,6 +60,7 @@ __all__ = [
     "by_spread",
     "eliminate",
     "importance",
+    "leaders",
     "loop_floor",
     "recalibrated_alone",
     "search",
@@ -221,6 +222,17 @@ def screen(
     return ranked
 
 
+def leaders(ranked: list[dict[str, Any]], by_name: dict[str, Effect]) -> list[dict[str, Any]]:
+    """The candidates of a screening ``ranked`` (best screening first) worth a joint refit: the JOINT_TOP best by
+    their screening and the JOINT_TOP best by their honest share on the current rig, each with half of MIN_CLOSURE
+    (against a sheet far off the rig, an effect that stands in for the linear mismatch screens best on the sheet's
+    rig), and every ``joint`` candidate, in ``ranked``'s order."""
+    honest = sorted(ranked, key=lambda r: -r["held_out_share_pct"])[:JOINT_TOP]
+    keep = {r["effect"] for r in ranked[:JOINT_TOP] if r["screen_score"] >= 0.5 * MIN_CLOSURE}
+    keep |= {r["effect"] for r in honest if r["held_out_share_pct"] >= 50.0 * MIN_CLOSURE}
+    return [r for r in ranked if r["effect"] in keep or by_name[r["effect"]].joint]
+
+
 def refit_leaders(
     cf: CrossFit,
     ranked: list[dict[str, Any]],
@@ -229,15 +241,14 @@ def refit_leaders(
     e_base: float,
     bases: list[Overrides],
 ) -> None:
-    """The leaders of a screening (the JOINT_TOP best with half of MIN_CLOSURE, and every ``joint`` candidate)
-    refitted jointly with the linear parameters and the continuous parameters of the effects ``chosen``, from the rig
-    of its best screening and from that rig with the linear parameters of the current rig ``bases`` (per fold), the
-    better kept; an entry of ``ranked`` is updated in place when its joint refit closes more on held-out data."""
-    leaders = [r for r in ranked[:JOINT_TOP] if r["screen_score"] >= 0.5 * MIN_CLOSURE]
-    leaders += [r for r in ranked[JOINT_TOP:] if by_name[r["effect"]].joint]
+    """The leaders of a screening (:func:`leaders`) refitted jointly with the linear parameters and the continuous
+    parameters of the effects ``chosen``, from the rig of its best screening and from that rig with the linear
+    parameters of the current rig ``bases`` (per fold), the better kept; an entry of ``ranked`` is updated in place
+    when its joint refit closes more on held-out data."""
     free_before = [EFFECTS[e].param for e in chosen if EFFECTS[e].continuous]
     calls, slots = [], []
-    for r in leaders:
+    picked = leaders(ranked, by_name)
+    for r in picked:
         c = by_name[r["effect"]]
         free = free_before + ([c.param] if c.continuous else [])
         for k in (0, 1):
@@ -250,7 +261,7 @@ def refit_leaders(
             slots.append((len(calls), len(starts)))
             calls += [("refit", st, free, cf.fits[k], cf.helds[k]) for st in starts]
     joint = cf.pool.map(calls)
-    for i, r in enumerate(leaders):
+    for i, r in enumerate(picked):
         pair = [min(joint[a : a + m], key=lambda q: q["fit_msg"]) for a, m in slots[2 * i : 2 * i + 2]]
         e_j = cf.held_out(pair)
         if e_j < r["gap_after"] ** 2:
