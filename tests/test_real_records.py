@@ -10,7 +10,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from harness import spec as specmod
 from harness.diagnosis.diagnose import diagnose_run
+from harness.diagnosis.experiments import load_experiments
+from harness.diagnosis.simulation import fmu_value
+from harness.ident.calibration import load_calibration
+from harness.rig.controller import command_r2
 from harness.rig.records import ImportOptions, import_records
 from harness.rundir import Manifest
 
@@ -46,6 +51,19 @@ def test_cu_records_import_closed_loop_with_the_labs_controller(cu_run):
         assert -4.5 < c["alpha_bias"] < -3.5  # the gauge read ~4 deg at rest (negated): zeroed, kept for the controller
         assert e.lattice_deg["theta"] == pytest.approx(np.degrees(0.001))  # printed to 0.001 rad
     assert sum("alpha zeroed" in n for n in notes) == 2
+
+
+def test_cu_lab_sheets_controller_is_the_law_the_records_logged(cu_run):
+    """The spec's controller is the lab's law in the harness's convention: the log's deflection is the negated alpha,
+    so its K2 (-1.667 V/m) and K4 (1.333 V s/m) enter x L with their signs turned. With the log's signs kept, the law
+    explained R^2 0.33 of the logged command."""
+    run, _ = cu_run
+    sheet = specmod.load("cu_flexible_arm")
+    cal = load_calibration(run)
+    for x in load_experiments(run, cal, sheet, fmu_value({}, "daq", "adc_range"), "auto").values():
+        law = replace(sheet.controller, alpha_bias=x.controller["alpha_bias"])  # the record's gauge zero
+        r2 = command_r2(law, np.radians(x.ref), np.radians(x.theta), np.radians(x.alpha), x.u, x.Ts)
+        assert r2 > 0.94
 
 
 def test_cu_records_diagnosed_against_their_lab_sheet(cu_run):
