@@ -244,7 +244,8 @@ fmi2Status initialize(ModelInstance *comp) {
     d->Bh = d->Beq - d->Bm;
     d->Fs = d->stiction_ratio * d->coulomb_torque;
     /* (Fs - Fc) exp(-r^2) < Fc 2^-55 leaves Fc + it = Fc to the last bit: the exponential need not be taken */
-    d->r2_flat = d->Fs > d->coulomb_torque ? log((d->Fs - d->coulomb_torque) / d->coulomb_torque) + 55.0 * log(2.0) : 0.0;
+    d->r2_flat = 0.0;
+    if (d->Fs > d->coulomb_torque) d->r2_flat = log((d->Fs - d->coulomb_torque) / d->coulomb_torque) + 55.0 * log(2.0);
     massInverse(d, d->Jeq + Jl, d->Minv_r);
     massInverse(d, d->Jh + Jl, d->Minv_f);
     {   /* the clamped link (hub at rest): modal mass J I + mt and the hub row b + mt */
