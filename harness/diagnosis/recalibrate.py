@@ -207,7 +207,7 @@ def _fit(
     def full(x: np.ndarray) -> np.ndarray:
         return np.concatenate([data(x), math.sqrt(w2) * x[sel] / sd[sel]]) if sel.any() else data(x)
 
-    nfev = 0
+    nfev, before = 0, None
     for _ in range(PRIOR_PASSES):  # the start's variance overweights the prior: again with the solution's
         if derivative_free:
             res = _powell(full, x0, lo_hi, max_nfev * (len(names) + 1))
@@ -224,9 +224,13 @@ def _fit(
                 ftol=1e-4,
             )
         nfev += int(res.nfev)
+        cost = float(np.sum(data(res.x) ** 2))
+        if before is not None and cost > before[1]:  # a lighter prior cannot cost the data more: the search failed
+            res = before[0]  # there (Powell's on a staircase), and the pass before stands
+            break
         if not sel.any() or variance(res.x) > PRIOR_SETTLED * w2:
             break
-        x0, w2 = res.x, variance(res.x)
+        before, x0, w2 = (res, cost), res.x, variance(res.x)
     r = data(res.x)
     n_eff = int(np.count_nonzero(r))
     dof = max(n_eff - len(names), 1)
