@@ -220,8 +220,11 @@ def diagnose_run(
     cands = candidates(CandidateContext(plant, daq, top, noise.adc_lattice_bits))
     pool = Pool(setup, workers, scheduler, progress)
     try:
-        unit = list(experiments) if Manifest.load(real).kind == "import" and len(records) >= MIN_RECORDS else None
-        found = search(pool, experiments, (folds.A, folds.B), cands, e_noise, say, sigma, unit)
+        imported = Manifest.load(real).kind == "import"
+        unit = list(experiments) if imported and len(records) >= MIN_RECORDS else None
+        found = search(
+            pool, experiments, (folds.A, folds.B), cands, e_noise, say, sigma, unit, imported and len(records) > 1
+        )
         # after recalibration: what recalibration alone fitted (the waterfall's stage), not the final joint refit
         stages = {"given": {}, "recalibrated": found.recalibrated, "effects": found.final}
         before, after, *traces = pool.map(
