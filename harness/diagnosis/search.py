@@ -66,6 +66,7 @@ __all__ = [
     "search",
     "share_text",
     "spread_divergence",
+    "spread_on_refitted",
     "spread_round",
 ]
 
@@ -578,6 +579,18 @@ def by_spread(cf: CrossFit, eff: Effect, bases: list[Overrides], sigma_deg: dict
     }
 
 
+def spread_on_refitted(
+    cf: CrossFit, eff: Effect, t: dict[str, Any], bases: list[Overrides], sigma_deg: dict[str, float]
+) -> dict[str, Any]:
+    """A spread effect kept on top of ``bases`` (its test ``t``), whose recalibrated linear parameters had absorbed
+    part of it: the linear parameters refitted on each fold with the effect held at that fold's size, and the size
+    searched again on that rig; the second test stands when it keeps the effect too."""
+    refits = cf.pool.map([("refit", t["fold_params"][k], [], cf.fits[k], cf.helds[k]) for k in (0, 1)])
+    lin = [{q: v for q, v in r["params"].items() if q in recal.LINEAR} for r in refits]
+    again = by_spread(cf, eff, [{**bases[k], **lin[k]} for k in (0, 1)], sigma_deg)
+    return again if again["kept"] else t
+
+
 def spread_round(
     cf: CrossFit, fw: Forward, searched: list[Effect], sigma_deg: dict[str, float], e_expl: float, say: Progress
 ) -> tuple[list[dict[str, Any]], float]:
@@ -590,6 +603,8 @@ def spread_round(
     for c in searched:
         if c.spread and c.name not in fw.chosen:
             t = by_spread(cf, c, fw.bases, sigma_deg)
+            if t["kept"]:
+                t = spread_on_refitted(cf, c, t, fw.bases, sigma_deg)
             tested.append(t)
             say(
                 f"{c.name} by its spread: divergence {t['divergence_without']:.3f} without, "
