@@ -228,9 +228,9 @@ def _fit(
         if before is not None and cost > before[1]:  # a lighter prior cannot cost the data more: the search failed
             res = before[0]  # there (Powell's on a staircase), and the pass before stands
             break
-        if not sel.any() or variance(res.x) > PRIOR_SETTLED * w2:
+        if not sel.any() or (v := variance(res.x)) > PRIOR_SETTLED * w2:
             break
-        before, x0, w2 = (res, cost), res.x, variance(res.x)
+        before, x0, w2 = (res, cost), res.x, v
     r = data(res.x)
     n_eff = int(np.count_nonzero(r))
     dof = max(n_eff - len(names), 1)

@@ -186,9 +186,8 @@ def simulate(
         daq = {**daq, **{k: v for k, v in noise.items() if k not in d_over}}
         daq["seed"] = d_over.get("seed", REPLAY_NOISE_SEED)
     plant.setdefault("theta_start", math.radians(float(exp.theta[0])))
-    if exp.replay == "closed":  # a record cut from a longer run starts where it was
-        plant = {**exp.start_state, **plant}
     if exp.replay == "closed":
+        plant = {**exp.start_state, **plant}  # a record cut from a longer run starts where it was
         c = Controller(**exp.controller)  # type: ignore[arg-type]
         ctrl = c.fmu_parameters(1.0 / exp.Ts)
         ctrl = {k: fmu_value(believed, "daq", v) for k, v in CALIBRATION.items()} | ctrl  # the lab's calibration
