@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from fmpy.fmi1 import FMICallException
+from scipy.signal import lfilter
 
 KP, KE = 35.5145, -3.3636  # deg/V, lab 1's calibration
 OUT = ["u_plant", "theta_v", "alpha_v"]
@@ -144,6 +145,32 @@ def test_gauge_gain_offset_and_cubic(fmu_runner):
     assert res["alpha_v"][2] == pytest.approx(0.2, rel=1e-12)
 
 
+def test_gauge_low_pass_is_a_first_order_lag_taken_at_the_samples(fmu_runner):
+    """The gauge amplifier's low-pass (gauge_tau) against scipy's filter of the sampled readings, at a communication
+    step of a quarter sample (one filter step per sample, not per call), and its gain and phase at 1.5 Hz against
+    those of the analog RC filter 1 / (1 + j w tau) (its lag less half a sample: each sample's reading enters at
+    once)."""
+    fs, tau, n = 200.0, 0.05, 1600
+    t = np.arange(n) / (4 * fs)
+    deg = 3.0 + 5.0 * np.sin(2 * np.pi * 1.5 * t)
+    res = fmu_runner["daq"].run(
+        {"sample_rate": fs, "gauge_tau": tau}, {"alpha_gauge": np.radians(deg)}, OUT, 0.25 / fs, n
+    )
+    v = deg[::4] / KE  # the samples' readings without the filter
+    c = np.exp(-1.0 / (fs * tau))
+    y, _ = lfilter([1 - c], [1, -c], v, zi=[c * v[0]])  # starts in steady state at the first sample
+    np.testing.assert_allclose(res["alpha_v"], np.repeat(y, 4), rtol=0, atol=1e-12)
+    assert res["init"]["alpha_v"] == pytest.approx(v[0], abs=1e-12)
+    w, k = 2 * np.pi * 1.5, np.arange(n // 8, n // 4)  # the second half: the start has died out (8 tau)
+    ts = k / fs
+    basis = np.column_stack([np.sin(w * ts), np.cos(w * ts), np.ones(k.size)])
+    a, b, _ = np.linalg.lstsq(basis, y[k] - 3.0 / KE, rcond=None)[0]
+    gain, phase = np.hypot(a, b) / abs(5.0 / KE), np.arctan2(b, a) - (np.pi if KE < 0 else 0.0)
+    assert gain == pytest.approx(1 / np.hypot(1, w * tau), rel=5e-3)
+    phase = (phase + np.pi) % (2 * np.pi) - np.pi
+    assert -phase == pytest.approx(np.arctan(w * tau) - w / (2 * fs), abs=1e-3)  # the sample's own reading enters
+
+
 def test_seeded_noise(fmu_runner):
     n = 4000
     run = fmu_runner["daq"].run
@@ -176,6 +203,7 @@ def test_seeded_noise(fmu_runner):
         ({"pot_deadband": 400.0}, "pot_deadband"),
         ({"noise_theta": -0.1}, "noise_theta"),
         ({"gauge_gain": float("inf")}, "gauge_gain"),
+        ({"gauge_tau": -0.01}, "gauge_tau"),
     ],
 )
 def test_invalid_parameter_is_an_fmi_error(fmu_runner, params, name):

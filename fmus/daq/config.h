@@ -29,7 +29,8 @@
     X(noise_alpha, 14, 0.0)      \
     X(encoder_counts, 17, 4096.0) \
     X(pot_bow, 18, 0.0)          \
-    X(gauge_drift, 19, 0.0)
+    X(gauge_drift, 19, 0.0)      \
+    X(gauge_tau, 20, 0.0)
 #define INTEGER_PARAMETERS(X)    \
     X(dac_bits, 1, 0)            \
     X(delay_samples, 4, 0)       \
@@ -62,6 +63,8 @@ typedef struct {
     int delay_head;
     int64_t next_sample; /* index k of the next sample instant k / sample_rate not yet taken */
     uint64_t key_theta, key_alpha; /* PRNG stream keys derived from seed */
+    double gauge_lp;   /* the gauge low-pass's output at sample gauge_lp_k [V] */
+    int64_t gauge_lp_k; /* the last sample taken for real (-1: none yet) */
     int inputs_changed; /* inputs set since the last sample: reading theta_v or alpha_v previews the next one */
 } ModelData;
 

@@ -30,7 +30,9 @@
  *                so that one calibration reads both.
  *                A linearity error (pot_bow) bows the track: wrapped + pot_bow 180 sin(pi wrapped / 180) degrees.
  * Strain gauge:  v_lin = alpha_deg / gauge_gain + gauge_offset, v = v_lin (1 + gauge_cubic (alpha_deg/10)^2);
- *                a gain drift (gauge_drift [1/s]) scales it about the offset: offset + (v - offset)(1 + drift t_k).
+ *                a gain drift (gauge_drift [1/s]) scales it about the offset: offset + (v - offset)(1 + drift t_k);
+ *                then the amplifier's first-order low-pass of time constant gauge_tau [s], taken at the samples
+ *                (y_k = y_(k-1) + (1 - exp(-1 / (sample_rate gauge_tau))) (v_k - y_(k-1)), y_0 = v_0; 0 = none).
  * Then white Gaussian noise (noise_theta, noise_alpha V rms), then ADC quantisation (round to
  * LSB = 2 adc_range / 2^adc_bits and clamp to +-adc_range; 0 bits = ideal, no clamp).
  * Noise: counter-based generator, splitmix64 of (seed, stream, sample index) + Box-Muller, so the noise
@@ -76,6 +78,7 @@ bool validate(ModelInstance *comp, char *msg, size_t len) {
     CHECK(d->pot_deadband >= 0 && d->pot_deadband < 360, "invalid parameter pot_deadband = %g: must be in [0, 360)",
           d->pot_deadband);
     CHECK(d->gauge_gain != 0, "invalid parameter gauge_gain = %g: must be non-zero", d->gauge_gain);
+    CHECK(d->gauge_tau >= 0, "invalid parameter gauge_tau = %g: must be >= 0", d->gauge_tau);
     CHECK(d->adc_bits >= 0 && d->adc_bits <= 52, "invalid parameter adc_bits = %d: must be in 0..52 (0 = ideal)",
           d->adc_bits);
     CHECK(d->adc_range > 0, "invalid parameter adc_range = %g: must be > 0", d->adc_range);
@@ -146,9 +149,21 @@ static double encoderVoltage(const ModelData *d, double theta) {
     return round(theta * RAD2DEG / step) * step / d->pot_gain + d->pot_offset;
 }
 
-/* the readings theta_v, alpha_v of sample number k of the inputs */
-static void sampleSensors(ModelData *d, int64_t k) {
-    double va = gaugeVoltage(d, d->alpha_gauge, (double)k / d->sample_rate);
+/* the gauge's low-pass output at sample k from its input v; commit: sample k is taken for real (not a preview) */
+static double gaugeLowPass(ModelData *d, int64_t k, double v, int commit) {
+    double y = v;
+    if (d->gauge_tau > 0 && d->gauge_lp_k >= 0 && k > d->gauge_lp_k)
+        y = d->gauge_lp + (1.0 - exp(-1.0 / (d->sample_rate * d->gauge_tau))) * (v - d->gauge_lp);
+    if (commit) {
+        d->gauge_lp = y;
+        d->gauge_lp_k = k;
+    }
+    return y;
+}
+
+/* the readings theta_v, alpha_v of sample number k of the inputs (commit 0: a preview, nothing kept) */
+static void sampleSensors(ModelData *d, int64_t k, int commit) {
+    double va = gaugeLowPass(d, k, gaugeVoltage(d, d->alpha_gauge, (double)k / d->sample_rate), commit);
     if (d->noise_alpha > 0) va += d->noise_alpha * gauss(d->key_alpha, k);
     d->alpha_v = quantize(va, d->adc_bits, d->adc_range);
     if (d->theta_sensor == 1) {
@@ -193,7 +208,8 @@ fmi2Status initialize(ModelInstance *comp) {
     d->key_alpha = mix64(s ^ 0x616c706861ULL); /* "alpha" */
     d->next_sample = (int64_t)ceil(comp->startTime * d->sample_rate - 1e-6);
     holdCommand(d);
-    sampleSensors(d, d->next_sample); /* preview of the first sample */
+    d->gauge_lp_k = -1;
+    sampleSensors(d, d->next_sample, 0); /* preview of the first sample */
     return fmi2OK;
 }
 
@@ -217,7 +233,7 @@ fmi2Status doStep(ModelInstance *comp, double t, double h) {
     }
     k = (int64_t)ceil(t * fs - 1e-6);
     if (k < d->next_sample) k = d->next_sample;
-    for (; (double)k < kEnd; k++) sampleSensors(d, k);
+    for (; (double)k < kEnd; k++) sampleSensors(d, k, 1);
     if (k > d->next_sample) d->next_sample = k;
     /* the samples that end within (t, t + h]: their command is the u set now */
     kNext = (int64_t)floor((t + h) * fs + 1e-6);
@@ -255,7 +271,7 @@ fmi2Status getFloat64(ModelInstance *comp, fmi2ValueReference vr, double *value)
     }
     if ((vr == vr_theta_v || vr == vr_alpha_v) && d->inputs_changed && comp->state == StateStepComplete &&
         fabs(comp->time * d->sample_rate - (double)d->next_sample) < 1e-6)
-        sampleSensors(d, d->next_sample); /* at its instant: preview of the next sample's readings */
+        sampleSensors(d, d->next_sample, 0); /* at its instant: preview of the next sample's readings */
     switch (vr) {
         INPUTS(GET_CASE)
         OUTPUTS(GET_CASE)
