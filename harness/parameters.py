@@ -29,9 +29,7 @@ class Parameter:
     max: float | int | None
     spec: float | int | bool | None
     description: str
-    uncertainty: float | None = (
-        None  # the spec's 95 % factor on the sheet's value (its [uncertainty]), where it has one
-    )
+    uncertainty: float | None = None  # the spec's 95 % factor on the sheet's value, where it has one
 
     @property
     def range(self) -> str:

@@ -27,6 +27,7 @@ import copy
 import hashlib
 import json
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -87,6 +88,11 @@ def _model_parameters(model: str) -> dict[str, Variable]:
 def fmu_parameters(model: str) -> dict[str, tuple[str, Any]]:
     """Parameters of an FMU source model as ``{name: (type, start)}``."""
     return {name: (v.type, v.start) for name, v in _model_parameters(model).items()}
+
+
+def fmu_value(table: Mapping[str, Any], model: str, name: str) -> float:
+    """Parameter ``name`` of FMU ``model`` ("flexjoint", "daq"): its value in ``table``, else the FMU's default."""
+    return float(table[name] if name in table else fmu_parameters(model)[name][1])
 
 
 def _check_range(where: str, v: Variable, value: float) -> None:

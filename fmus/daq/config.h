@@ -63,8 +63,9 @@ typedef struct {
     int delay_head;
     int64_t next_sample; /* index k of the next sample instant k / sample_rate not yet taken */
     uint64_t key_theta, key_alpha; /* PRNG stream keys derived from seed */
-    double gauge_lp;   /* the gauge low-pass's output at sample gauge_lp_k [V] */
-    int64_t gauge_lp_k; /* the last sample taken for real (-1: none yet) */
+    double gauge_c;    /* the gauge low-pass's gain per sample, 1 - exp(-1 / (sample_rate gauge_tau)) */
+    double gauge_lp;   /* its output at the last sample taken for real [V] */
+    int gauge_lp_set;  /* a sample has been taken for real: gauge_lp holds */
     int inputs_changed; /* inputs set since the last sample: reading theta_v or alpha_v previews the next one */
 } ModelData;
 

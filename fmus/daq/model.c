@@ -149,21 +149,19 @@ static double encoderVoltage(const ModelData *d, double theta) {
     return round(theta * RAD2DEG / step) * step / d->pot_gain + d->pot_offset;
 }
 
-/* the gauge's low-pass output at sample k from its input v; commit: sample k is taken for real (not a preview) */
-static double gaugeLowPass(ModelData *d, int64_t k, double v, int commit) {
-    double y = v;
-    if (d->gauge_tau > 0 && d->gauge_lp_k >= 0 && k > d->gauge_lp_k)
-        y = d->gauge_lp + (1.0 - exp(-1.0 / (d->sample_rate * d->gauge_tau))) * (v - d->gauge_lp);
+/* the gauge's low-pass output for the next sample from its input v; commit: that sample is taken for real */
+static double gaugeLowPass(ModelData *d, double v, int commit) {
+    const double y = (d->gauge_tau > 0 && d->gauge_lp_set) ? d->gauge_lp + d->gauge_c * (v - d->gauge_lp) : v;
     if (commit) {
         d->gauge_lp = y;
-        d->gauge_lp_k = k;
+        d->gauge_lp_set = 1;
     }
     return y;
 }
 
 /* the readings theta_v, alpha_v of sample number k of the inputs (commit 0: a preview, nothing kept) */
 static void sampleSensors(ModelData *d, int64_t k, int commit) {
-    double va = gaugeLowPass(d, k, gaugeVoltage(d, d->alpha_gauge, (double)k / d->sample_rate), commit);
+    double va = gaugeLowPass(d, gaugeVoltage(d, d->alpha_gauge, (double)k / d->sample_rate), commit);
     if (d->noise_alpha > 0) va += d->noise_alpha * gauss(d->key_alpha, k);
     d->alpha_v = quantize(va, d->adc_bits, d->adc_range);
     if (d->theta_sensor == 1) {
@@ -208,7 +206,8 @@ fmi2Status initialize(ModelInstance *comp) {
     d->key_alpha = mix64(s ^ 0x616c706861ULL); /* "alpha" */
     d->next_sample = (int64_t)ceil(comp->startTime * d->sample_rate - 1e-6);
     holdCommand(d);
-    d->gauge_lp_k = -1;
+    d->gauge_c = d->gauge_tau > 0 ? 1.0 - exp(-1.0 / (d->sample_rate * d->gauge_tau)) : 1.0;
+    d->gauge_lp_set = 0;
     sampleSensors(d, d->next_sample, 0); /* preview of the first sample */
     return fmi2OK;
 }

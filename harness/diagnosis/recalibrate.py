@@ -78,8 +78,10 @@ PRIOR_HELD = 0.8  # an interval at least 0.8x its prior's wide: the data did not
 HOLD_TOLERANCE = 0.02  # an undetermined parameter keeps the spec's value when that costs < 2 % more squared error
 SE_CAP = 50.0  # standard error [log of the factor] of a parameter the residuals do not determine: no interval
 STAIRCASE_STEP = 0.05  # a Jacobian column that a 0.1 % step left at zero is taken again with a 5 % step (log)
-PRIOR_PASSES = 8  # fits at most, each from the last solution with the prior weighed by that solution's variance,
-PRIOR_SETTLED = 0.8  # while the variance is under 0.8x the one that weighed the prior (the weight has not settled)
+# a prior's weight settles: the fit is made again from its solution, the prior weighed by that solution's residual
+# variance, while the variance is under PRIOR_SETTLED x the one that weighed it, PRIOR_PASSES fits at most
+PRIOR_PASSES = 8
+PRIOR_SETTLED = 0.8
 POWELL_XTOL = 0.01  # a derivative-free fit's smallest step: 1 % of a parameter (log)
 
 

@@ -36,7 +36,7 @@ MIN_BEQ_SHARE = 1e-3  # of the hub's damping D left at least to viscous damping 
 
 def plant_value(plant: Mapping[str, Any], name: str) -> float:
     """A plant parameter: its value in ``plant``, else the flexjoint FMU's default."""
-    return float(plant[name] if name in plant else specmod.fmu_parameters("flexjoint")[name][1])
+    return specmod.fmu_value(plant, "flexjoint", name)
 
 
 def link_inertia(plant: Mapping[str, Any]) -> float:

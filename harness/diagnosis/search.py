@@ -633,9 +633,7 @@ def loop_floor(cf: CrossFit, e_noise: float, sigma_deg: dict[str, float], over: 
 
 def cross_started(cf: CrossFit, rec: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """Each fold's recalibration ``rec`` fitted again from the other fold's linear parameters, the lower cost on its
-    own records kept: least squares from a fold's own best grid point can stop in another basin (the Quanser record's
-    second half, imported as a file of its own, stopped at a drive gain of 1.78 rad/(V s); from the first half's 1.30
-    it finds 1.36, at a lower cost)."""
+    own records kept: least squares from a fold's own best grid point can stop in another basin."""
     starts = [{p: v for p, v in rec[1 - k]["params"].items() if p in recal.LINEAR} for k in (0, 1)]
     again = cf.pool.map([("refit", starts[k], [], cf.fits[k], cf.helds[k], RECAL_NFEV) for k in (0, 1)])
     return [min((rec[k], again[k]), key=lambda r: r["fit_msg"]) for k in (0, 1)]

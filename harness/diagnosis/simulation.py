@@ -41,6 +41,7 @@ from ..executor import FmuBytes
 from ..fmu.cosim import CALIBRATION
 from ..ident.calibration import Calibration, alpha_deg, daq_calibration, theta_deg
 from ..rig.controller import Controller, delayed
+from ..spec import fmu_value
 from .experiments import CHANNELS, DEADBAND_GUARD, SHOOTING_SECONDS, RigExperiment, measured_state
 from .recalibrate import LINEAR
 from .result import ExperimentGap, GapSummary
@@ -71,11 +72,6 @@ SENSOR_KNOWN = 0.01  # a sensor gain known to 1 % (sd, log) is not fitted: its e
 REPLAY_NOISE_SEED = 7  # noise seed of every closed-loop replay (:attr:`Setup.loop_noise`)
 LOOP_NOISE_SEEDS = (1, 2)  # other seeds, whose replays against it measure what noise fed back leaves
 SPREAD_SECONDS = 0.25  # s: the windows in which a closed-loop replay's gap is set beside its spread (loop_spread)
-
-
-def fmu_value(table: Mapping[str, Any], model: str, name: str) -> float:
-    """Parameter ``name`` of FMU ``model`` ("flexjoint", "daq"): its value in ``table``, else the FMU's default."""
-    return float(table[name] if name in table else specmod.fmu_parameters(model)[name][1])
 
 
 @dataclass
