@@ -643,6 +643,8 @@ def interval_text(lo: float, hi: float) -> str:
 def diagnosis_summary(d: Diagnosis) -> str:
     """A few lines for the terminal: verdict, effects in greedy order with their fitted parameters, the shrink."""
     lines = [f"verdict: {d.verdict}"]
+    if d.calibration.gauge_delay_s:
+        lines.append(f"  data: {d.calibration.gauge_delay_method}")
     for name, p in d.parameters.items():
         if p.finding is not None:
             lo, hi = p.ci95

@@ -171,6 +171,28 @@ def test_gauge_low_pass_is_a_first_order_lag_taken_at_the_samples(fmu_runner):
     assert -phase == pytest.approx(np.arctan(w * tau) - w / (2 * fs), abs=1e-3)  # the sample's own reading enters
 
 
+def test_gauge_delay_reads_the_gauge_whole_samples_late(fmu_runner):
+    """gauge_delay = d: the reading of sample k is the gauge's of sample k - d (the first sample's before it), at a
+    communication step of a third of a sample; with the low-pass too, the lagged readings delayed; theta on time.
+    0 leaves the readings bit for bit."""
+    fs, d, n = 100.0, 7, 300
+    t = np.arange(n) / (3 * fs)
+    deg = 2.0 + 4.0 * np.sin(2 * np.pi * 1.3 * t)
+    inputs = {"alpha_gauge": np.radians(deg), "theta": np.radians(deg)}
+    run = fmu_runner["daq"].run
+    base = run({"sample_rate": fs}, inputs, OUT, 1 / (3 * fs), n)
+    late = run({"sample_rate": fs, "gauge_delay": d}, inputs, OUT, 1 / (3 * fs), n)
+    v = base["alpha_v"][::3]
+    np.testing.assert_array_equal(late["alpha_v"][::3], np.concatenate([np.full(d, v[0]), v[:-d]]))
+    np.testing.assert_array_equal(late["theta_v"], base["theta_v"])
+    assert late["init"]["alpha_v"] == base["init"]["alpha_v"]
+    lag = run({"sample_rate": fs, "gauge_tau": 0.05}, inputs, OUT, 1 / (3 * fs), n)["alpha_v"][::3]
+    both = run({"sample_rate": fs, "gauge_tau": 0.05, "gauge_delay": d}, inputs, OUT, 1 / (3 * fs), n)
+    np.testing.assert_array_equal(both["alpha_v"][::3], np.concatenate([np.full(d, lag[0]), lag[:-d]]))
+    zero = run({"sample_rate": fs, "gauge_delay": 0}, inputs, OUT, 1 / (3 * fs), n)
+    np.testing.assert_array_equal(zero["alpha_v"], base["alpha_v"])
+
+
 def test_seeded_noise(fmu_runner):
     n = 4000
     run = fmu_runner["daq"].run
@@ -204,6 +226,7 @@ def test_seeded_noise(fmu_runner):
         ({"noise_theta": -0.1}, "noise_theta"),
         ({"gauge_gain": float("inf")}, "gauge_gain"),
         ({"gauge_tau": -0.01}, "gauge_tau"),
+        ({"gauge_delay": -3}, "gauge_delay"),
     ],
 )
 def test_invalid_parameter_is_an_fmi_error(fmu_runner, params, name):

@@ -472,8 +472,9 @@ def test_a_lone_real_record_is_diagnosed_on_its_halves(tmp_path):
     assert "split in time" in d.folds.scheme and set(d.replays) == {a[0], b[0]}
     assert {r["replay"] for r in d.replays.values()} == {"closed"}
     dec = d.gap.decomposition
-    assert 100 * (1 - dec.before) < 50.0 < 100 * (1 - dec.after_recalibration) < 100 * (1 - dec.after_effects)
-    assert 100 * (1 - dec.after_effects) >= 70.0  # measured 75.4 % held out (35.9 % as given)
+    assert 100 * (1 - dec.before) < 70.0 < 100 * (1 - dec.after_recalibration) <= 100 * (1 - dec.after_effects)
+    # measured 81.9 % held out, 65.3 % as given, the gauge read 59 ms late (75.4 and 35.9 % with it on time)
+    assert 100 * (1 - dec.after_effects) >= 80.0 and d.calibration.gauge_delay_s == pytest.approx(0.059, abs=0.002)
     assert d.noise_floor.theta_deg == pytest.approx(math.degrees(0.001) / math.sqrt(12.0), rel=0.10)
     assert d.noise_floor.fit_pct < 99.5
     assert not [k for k, p in d.parameters.items() if p.at_bound]

@@ -13,6 +13,7 @@ import pytest
 from harness import spec as specmod
 from harness.diagnosis.diagnose import diagnose_run
 from harness.diagnosis.experiments import load_experiments
+from harness.diagnosis.gauge import gauge_delay
 from harness.diagnosis.simulation import fmu_value
 from harness.ident.calibration import load_calibration
 from harness.rig.controller import command_r2
@@ -66,23 +67,44 @@ def test_cu_lab_sheets_controller_is_the_law_the_records_logged(cu_run):
         assert r2 > 0.94
 
 
+def test_cu_records_gauge_reads_59_ms_behind_the_hub(cu_run):
+    """alpha from theta through the link: the records' gauge reads 59 ms late on both records (each alone 58-60),
+    the link's clamped frequency 1.70 Hz (the sheet says 1.8); the Quanser record's gauge is on time."""
+    run, _ = cu_run
+    xs = load_experiments(run, load_calibration(run), specmod.load("cu_flexible_arm"), 10.0)
+    g = gauge_delay(xs)
+    assert g.samples == 59 and g.seconds == 0.059 and g.link_hz == pytest.approx(1.70, abs=0.02)
+    assert g.fit_none_pct == pytest.approx(56.0, abs=0.5) and g.fit_pct == pytest.approx(83.1, abs=0.5)
+    for name in xs:
+        assert 58 <= gauge_delay({name: xs[name]}).samples <= 60
+
+
 def test_cu_records_diagnosed_against_their_lab_sheet(cu_run):
-    """Closed-loop replay through the identified controller, the rig identified in what the data determine (the
-    drive's gain and time constant, the link, the sensors' gains) under the lab sheet's priors: held-out fit 35.9 %
-    as given -> 81.4 % recalibrated (61.9 % when Jeq, Beq and kt were fitted in boxes around the sheet, all three at
-    a wall), alpha 9.5 -> 75.3 %, nothing held by a wall; the link is 35 % softer than the sheet's 1.8 Hz says on
-    both records alone."""
+    """Closed-loop replay through the identified controller, the gauge read 59 ms late as the records show, the rig
+    identified in what the data determine (the drive's gain and time constant, the link, the sensors' gains) under
+    the lab sheet's priors: held-out fit 64.3 % as given (35.9 % with the gauge on time) -> 83.6 % recalibrated
+    (81.8 % with it on time, the hub's inertia then at its wall; 61.9 % when Jeq, Beq and kt were fitted in boxes
+    around the sheet), alpha 49.7 -> 77.6 %; nothing held by a wall, and the two records' own parameters agree within
+    their intervals: the link 27 % softer than the sheet's 1.8 Hz says (1.64 N m/rad) on both."""
+    from harness.cli import diagnosis_summary
+    from harness.render.gap_text import diagnosis_markdown
+
     run, _ = cu_run
     d = diagnose_run(run, "cu_flexible_arm", workers=1)
     assert {r["replay"] for r in d.replays.values()} == {"closed"}
     assert d.folds.A != d.folds.B
+    assert d.calibration.gauge_delay_s == 0.059
+    said = "the gauge reads 59 ms (59 samples) behind the hub angle: alpha from theta through a 1.7 Hz link fits"
+    assert f"  data: {said}" in diagnosis_summary(d)
+    assert any(line.startswith(f"Gauge timing (every replay reads it so): {said}") for line in diagnosis_markdown(d))
     dec = d.gap.decomposition
-    assert 100 * (1 - dec.before) < 40.0 and 100 * (1 - dec.after_recalibration) > 80.0
-    assert dec.channels["after_recalibration"]["alpha"] > 74.0 and dec.gap_channel() == "alpha"
+    assert 100 * (1 - dec.before) < 66.0 and 100 * (1 - dec.after_recalibration) > 83.0
+    assert dec.channels["after_recalibration"]["alpha"] > 77.0 and dec.gap_channel() == "alpha"
     assert d.noise_floor.fit_pct < 100.0  # the records' 0.001 steps are in the floor
     assert not [k for k, p in d.parameters.items() if p.at_bound]
-    for fitted, lo, hi in d.parameters["plant.Ks"].folds:  # each record alone: 1.45 N m/rad, the sheet 2.24
-        assert 1.35 < lo <= fitted <= hi < 1.55
+    assert not [k for k, p in d.parameters.items() if p.folds_disagree]
+    for fitted, lo, hi in d.parameters["plant.Ks"].folds:  # each record alone: 1.64 N m/rad, the sheet 2.24
+        assert 1.58 < lo <= fitted <= hi < 1.70
     assert "not at a bound" not in " ".join(d.caveats or [])
 
 
@@ -178,8 +200,9 @@ def test_quanser_record_in_two_files_is_the_same_rig(quanser_halves):
 
 def test_a_units_records_each_fitted_alone_beside_the_joint_fit(tmp_path):
     """Three records of one unit (test_3 cut in two files, and test_4): each recalibrated alone, from the grid and
-    from the joint fit, so its own fit is at least the joint parameters' on it (measured 84.0 / 88.5 / 83.6 % alone,
-    83.3 / 87.2 / 83.1 % jointly); every fitted parameter per record; the summary says both."""
+    from the joint fit, so its own fit is the joint parameters' on it or better, but for what its priors trade
+    (measured 83.9 / 88.7 / 82.70 % alone, 83.9 / 87.7 / 82.71 % jointly); every fitted parameter per record; the
+    summary says both."""
     from harness.cli import diagnosis_summary
 
     lines = CU[0].read_text().splitlines(keepends=True)
@@ -192,7 +215,7 @@ def test_a_units_records_each_fitted_alone_beside_the_joint_fit(tmp_path):
     names = ["test_3a", "test_3b", "flexibleArm_test_4"]
     assert list(d.gap.records) == names
     for r in d.gap.records.values():
-        assert r["own"] >= r["joint"] - 1e-6 and r["joint"] > 80.0
+        assert r["own"] >= r["joint"] - 0.05 and r["joint"] > 82.0
     fitted = [k for k, p in d.parameters.items() if p.records]
     assert {"rig.drive_gain", "rig.drive_tau", "plant.Ks", "sensor.alpha_gauge_gain"} <= set(fitted)
     for k in fitted:

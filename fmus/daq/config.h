@@ -36,7 +36,8 @@
     X(delay_samples, 4, 0)       \
     X(adc_bits, 11, 0)           \
     X(seed, 15, 0)               \
-    X(theta_sensor, 16, 0)
+    X(theta_sensor, 16, 0)       \
+    X(gauge_delay, 21, 0)
 #define INPUTS(X)                \
     X(u, 30)                     \
     X(theta, 31)                 \
@@ -66,6 +67,8 @@ typedef struct {
     double gauge_c;    /* the gauge low-pass's gain per sample, 1 - exp(-1 / (sample_rate gauge_tau)) */
     double gauge_lp;   /* its output at the last sample taken for real [V] */
     int gauge_lp_set;  /* a sample has been taken for real: gauge_lp holds */
+    double *gauge_line; /* the gauge's last gauge_delay readings [V], oldest at gauge_head */
+    int gauge_head;
     int inputs_changed; /* inputs set since the last sample: reading theta_v or alpha_v previews the next one */
 } ModelData;
 

@@ -32,7 +32,8 @@
  * Strain gauge:  v_lin = alpha_deg / gauge_gain + gauge_offset, v = v_lin (1 + gauge_cubic (alpha_deg/10)^2);
  *                a gain drift (gauge_drift [1/s]) scales it about the offset: offset + (v - offset)(1 + drift t_k);
  *                then the amplifier's first-order low-pass of time constant gauge_tau [s], taken at the samples
- *                (y_k = y_(k-1) + (1 - exp(-1 / (sample_rate gauge_tau))) (v_k - y_(k-1)), y_0 = v_0; 0 = none).
+ *                (y_k = y_(k-1) + (1 - exp(-1 / (sample_rate gauge_tau))) (v_k - y_(k-1)), y_0 = v_0; 0 = none),
+ *                read gauge_delay samples late (y_(k - gauge_delay); y_0 before the first sample).
  * Then white Gaussian noise (noise_theta, noise_alpha V rms), then ADC quantisation (round to
  * LSB = 2 adc_range / 2^adc_bits and clamp to +-adc_range; 0 bits = ideal, no clamp).
  * Noise: counter-based generator, splitmix64 of (seed, stream, sample index) + Box-Muller, so the noise
@@ -50,9 +51,10 @@
 
 void setStartValues(ModelInstance *comp) {
     ModelData *d = &comp->data;
-    double *line = d->delay_line; /* keep the pointer: releaseModel frees it */
+    double *line = d->delay_line, *gline = d->gauge_line; /* keep the pointers: releaseModel frees them */
     memset(d, 0, sizeof(*d));
     d->delay_line = line;
+    d->gauge_line = gline;
     REAL_PARAMETERS(SET_START)
     INTEGER_PARAMETERS(SET_START)
 }
@@ -78,6 +80,8 @@ bool validate(ModelInstance *comp, char *msg, size_t len) {
     CHECK(d->pot_deadband >= 0 && d->pot_deadband < 360, "invalid parameter pot_deadband = %g: must be in [0, 360)",
           d->pot_deadband);
     CHECK(d->gauge_gain != 0, "invalid parameter gauge_gain = %g: must be non-zero", d->gauge_gain);
+    CHECK(d->gauge_delay >= 0 && d->gauge_delay <= MAX_DELAY_SAMPLES,
+          "invalid parameter gauge_delay = %d: must be in 0..%d", d->gauge_delay, MAX_DELAY_SAMPLES);
     CHECK(d->gauge_tau >= 0, "invalid parameter gauge_tau = %g: must be >= 0", d->gauge_tau);
     CHECK(d->adc_bits >= 0 && d->adc_bits <= 52, "invalid parameter adc_bits = %d: must be in 0..52 (0 = ideal)",
           d->adc_bits);
@@ -159,9 +163,29 @@ static double gaugeLowPass(ModelData *d, double v, int commit) {
     return y;
 }
 
+/* the gauge's reading gauge_delay samples before the one of input v (before the first sample: the first's) */
+static double gaugeDelay(ModelData *d, double v, int commit, int first) {
+    double y;
+    int i;
+    if (d->gauge_delay == 0) return v;
+    if (first) { /* no sample taken yet: the line fills with the first */
+        if (commit)
+            for (i = 0; i < d->gauge_delay; i++) d->gauge_line[i] = v;
+        return v;
+    }
+    y = d->gauge_line[d->gauge_head];
+    if (commit) {
+        d->gauge_line[d->gauge_head] = v;
+        d->gauge_head = (d->gauge_head + 1) % d->gauge_delay;
+    }
+    return y;
+}
+
 /* the readings theta_v, alpha_v of sample number k of the inputs (commit 0: a preview, nothing kept) */
 static void sampleSensors(ModelData *d, int64_t k, int commit) {
-    double va = gaugeLowPass(d, gaugeVoltage(d, d->alpha_gauge, (double)k / d->sample_rate), commit);
+    const int first = !d->gauge_lp_set; /* no sample taken for real yet */
+    double va = gaugeVoltage(d, d->alpha_gauge, (double)k / d->sample_rate);
+    va = gaugeDelay(d, gaugeLowPass(d, va, commit), commit, first);
     if (d->noise_alpha > 0) va += d->noise_alpha * gauss(d->key_alpha, k);
     d->alpha_v = quantize(va, d->adc_bits, d->adc_range);
     if (d->theta_sensor == 1) {
@@ -202,6 +226,14 @@ fmi2Status initialize(ModelInstance *comp) {
         memset(d->delay_line, 0, (size_t)d->delay_samples * sizeof(double));
     }
     d->delay_head = 0;
+    if (d->gauge_delay > 0) {
+        d->gauge_line = (double *)allocateModelMemory(comp, (size_t)d->gauge_delay, sizeof(double));
+        if (!d->gauge_line) {
+            logError(comp, "out of memory for gauge_delay = %d", d->gauge_delay);
+            return fmi2Error;
+        }
+    }
+    d->gauge_head = 0;
     d->key_theta = mix64(s ^ 0x7468657461ULL); /* "theta" */
     d->key_alpha = mix64(s ^ 0x616c706861ULL); /* "alpha" */
     d->next_sample = (int64_t)ceil(comp->startTime * d->sample_rate - 1e-6);
@@ -217,6 +249,10 @@ void releaseModel(ModelInstance *comp) {
     if (d->delay_line) {
         freeModelMemory(comp, d->delay_line);
         d->delay_line = NULL;
+    }
+    if (d->gauge_line) {
+        freeModelMemory(comp, d->gauge_line);
+        d->gauge_line = NULL;
     }
 }
 

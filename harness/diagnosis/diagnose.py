@@ -9,6 +9,8 @@ The data flow, one module per step:
    where it shows a period and its replay follows the record (closed loop, multiple shooting), else into two
    halves at its quietest point near the middle); records at different sample rates are refused;
 2. :mod:`harness.diagnosis.noise`: the noise floor of the data and the ADC lattice it sits on;
+   :mod:`harness.diagnosis.gauge`: the gauge's delay behind the hub angle, read from the records (alpha from theta
+   through the link), which every replay's DAQ then has, as the data's calibration;
 3. :mod:`harness.diagnosis.simulation`: each experiment re-simulated on the SIM spec's rig with the real command,
    both sides calibrated alike; the gap g = sqrt(E), E the mean squared gap (per experiment and channel
    ||y_real - y_sim||^2 / ||y_real - mean||^2, averaged), fit % = 100 (1 - g) (MATLAB ``compare``'s fit,
@@ -58,6 +60,7 @@ from ..rundir import Manifest, RunDir, record_inputs, write_json
 from . import recalibrate as recal
 from .effects import CandidateContext, candidates
 from .experiments import REPLAYS, RigExperiment, fold_experiments, load_experiments, masked_share, one_rate
+from .gauge import gauge_delay
 from .noise import noise_floor
 from .replays import write_replays
 from .result import Diagnosis, FittedParameter, Folds, SensorCalibration, Thresholds
@@ -207,6 +210,10 @@ def diagnose_run(
         raise ValueError(f"replay {replay!r} unknown; valid: auto, {', '.join(REPLAYS)}")
     records = load_experiments(real, cal, sim_spec, adc_range, replay)
     one_rate(records)  # records at different rates: one line, nothing written
+    timing = gauge_delay(records)  # the gauge's reading behind the hub's: the data's, in every replay
+    if timing.samples:
+        for x in records.values():
+            x.daq = {**x.daq, "gauge_delay": timing.samples}
     experiments, folds = fold_experiments(records)
     fmus = fmus or build_all()
     shipped = {k: fmu_bytes(fmus[k]) for k in ("flexjoint", "daq", "controller") if k in fmus}
@@ -250,7 +257,13 @@ def diagnose_run(
         real=os.path.relpath(real, dest),  # relative to diagnosis.json, so a moved run dir stays the same bytes
         sim_spec=sim_spec.name if isinstance(sim, specmod.Spec) else str(sim),
         sim_spec_file=Path(sim_spec.path).name,
-        calibration=SensorCalibration(Kp=cal.Kp, Ke=cal.Ke, gauge_offset_v=cal.gauge_offset_v),
+        calibration=SensorCalibration(
+            Kp=cal.Kp,
+            Ke=cal.Ke,
+            gauge_offset_v=cal.gauge_offset_v,
+            gauge_delay_s=timing.seconds,
+            gauge_delay_method=timing.describe(),
+        ),
         folds=folds,
         verdict=found.verdict,
         parameters=found.parameters,

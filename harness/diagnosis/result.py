@@ -54,11 +54,15 @@ FIRST_STAGE = "simulation as given"  # the waterfall's first bar: the held-out g
 
 @dataclass
 class SensorCalibration:
-    """The real run's sensor calibration the data were converted with: Kp, Ke [deg/V], gauge offset [V]."""
+    """The real run's sensor calibration the data were converted with: Kp, Ke [deg/V], gauge offset [V]; the
+    gauge's delay behind the hub angle [s] read from the records (:mod:`harness.diagnosis.gauge`; every replay's DAQ
+    has it) and how it was read."""
 
     Kp: float
     Ke: float
     gauge_offset_v: float
+    gauge_delay_s: float | None = None
+    gauge_delay_method: str | None = None
 
 
 @dataclass

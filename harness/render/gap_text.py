@@ -325,11 +325,15 @@ def _candidates_lines(diag: Diagnosis) -> list[str]:
 
 def _noise_lines(diag: Diagnosis) -> list[str]:
     n = diag.noise_floor
-    return [
+    lines = [
         f"Noise floor (from the data, {n.method}): gap {fmt(n.gap, 4)} (fit {fmt(n.fit_pct)} %), theta "
         f"{fmt_any(n.theta_deg)} deg rms, alpha {fmt_any(n.alpha_deg)} deg rms.",
         "",
     ]
+    if diag.calibration.gauge_delay_method:
+        how = "every replay reads it so" if diag.calibration.gauge_delay_s else "read from the records"
+        lines += [f"Gauge timing ({how}): {diag.calibration.gauge_delay_method}.", ""]
+    return lines
 
 
 def _where_stages(where: dict[str, Any]) -> list[tuple[str, dict[str, Any]]]:
