@@ -60,10 +60,6 @@ class GaugeDelay:
         )
 
 
-def _shifted(y: np.ndarray, d: int) -> np.ndarray:
-    return y if d == 0 else np.concatenate([np.full(d, y[0]), y[:-d]])
-
-
 class _LinkFit:
     """alpha [rad] from theta [rad] through the one-mode link filter, each record's gain and offset by linear
     least squares; residuals on the samples after the longest delay searched."""
