@@ -142,6 +142,17 @@ def test_a_rig_without_command_delay_is_one_sample_late_in_a_master_that_steps_a
     assert np.abs(got - _campaign(s, "square_mid")["theta"][1:]).max() > 0.1
 
 
+def test_libcosim_runs_a_gauge_read_late_to_the_campaigns_theta(tmp_path):
+    """The DAQ's gauge_delay in the SSP: libcosim runs the LQR loop whose controller reads alpha 25 samples late to
+    the campaign's theta, to the bit, and that loop is not the one with the gauge on time."""
+    s = specmod.load("closed_loop", ["daq.gauge_delay=25"])
+    want = _campaign(s, "square_30")["theta"]
+    got = _libcosim_theta(ssp_bytes(s, "square_30"), tmp_path, len(want), s.Ts)
+    np.testing.assert_allclose(got, want[1:], rtol=0, atol=1e-9)
+    on_time = _campaign(specmod.load("closed_loop", []), "square_30")["theta"]
+    assert np.abs(want - on_time).max() > 0.1
+
+
 def _load_pypi_tbb() -> None:
     """Ecos links libtbb.so.12, which a machine without Debian's libtbb12 lacks: the test extras' ``tbb`` wheel puts
     it in the environment's lib/, which the loader does not search, so it is loaded here first, globally."""
