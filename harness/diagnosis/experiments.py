@@ -66,6 +66,7 @@ FIT_SECONDS = 20.0  # s: parameters are fitted on the first 20 s of each experim
 SCREEN_SECONDS = 12.0  # s: candidates are screened on the first 12 s of each experiment
 DEADBAND_GUARD = 1.5  # deg: samples this close to a pot track end (its dead band) are not compared
 START_SE = 5.0  # a record starts in motion when its first hub rate is this many of its standard errors (and more)
+LINK_START_SHARE = 0.1  # ... or its link is deflected by this share of its largest deflection
 SMOOTH_SECONDS = 0.02  # s: window of the smoothed rates of the measured state (a multiple-shooting start)
 
 
@@ -126,23 +127,25 @@ class RigExperiment:
     def start_state(self) -> dict[str, float]:
         """The measured state a replay of a record that starts in motion starts from, as plant parameters
         (alpha_start [rad], theta_dot_start, alpha_dot_start [rad/s]): a record cut from a longer run, whose hub rate
-        at its first sample (a cubic through its first SMOOTH_SECONDS) is above the hub rate's RMS over the record
-        and START_SE of its standard errors; {} for one that starts at rest (one driven from rest, by its reference's
-        step, has no rate at its first sample: the cubic's slope there is its noise; a parabola's is not, where the
-        drive's torque jerks the hub)."""
+        at its first sample (a cubic through its first SMOOTH_SECONDS) is above the hub rate's RMS over the record and
+        START_SE of its standard errors, or whose link is deflected there by more than LINK_START_SHARE of its
+        largest deflection and START_SE standard errors (a soft link still swinging where a cut found the hub slow);
+        {} for one that starts at rest (one driven from rest, by its reference's step, has no rate at its first
+        sample: the cubic's slope there is its noise; a parabola's is not, where the drive's torque jerks the hub).
+        The link's state is read ``gauge_delay`` samples on (the DAQ's, when the gauge reads late)."""
         head = max(6, int(round(SMOOTH_SECONDS / self.Ts)))
-        if self.u.size < 4 * head:
+        lag = int(self.daq.get("gauge_delay", 0))
+        if self.u.size < 4 * head + lag:
             return {}
         t = np.arange(head) * self.Ts
-        th = np.radians(self.theta[:head])
         x = measured_state(self)
-        coef, cov = np.polyfit(t, th, 3, cov="unscaled")
-        resid = th - np.polyval(coef, t)
-        se = math.sqrt(max(float(cov[2, 2]) * float(np.sum(resid**2)) / (head - 4), 0.0))
-        v0 = abs(float(coef[2]))
-        if v0 <= float(np.sqrt(np.mean(x[:, 2] ** 2))) or v0 <= START_SE * se:
+        v0, se = _cubic_start(t, np.radians(self.theta[:head]), 1)
+        a0, se_a = _cubic_start(t, np.radians(self.alpha[lag : lag + head]), 0)
+        moving = v0 > START_SE * se and v0 > float(np.sqrt(np.mean(x[:, 2] ** 2)))
+        deflected = a0 > START_SE * se_a and a0 > LINK_START_SHARE * float(np.max(np.abs(x[:, 1])))
+        if not (moving or deflected):
             return {}
-        return dict(zip(("alpha_start", "theta_dot_start", "alpha_dot_start"), map(float, x[0, 1:]), strict=True))
+        return {"alpha_start": float(x[lag, 1]), "theta_dot_start": float(x[0, 2]), "alpha_dot_start": float(x[lag, 3])}
 
     def window(self, which: str) -> tuple[int, dict[str, float]]:
         """(samples, sst per channel) of a window: "all", "fit" (first FIT_SECONDS), "screen" (SCREEN_SECONDS)."""
@@ -330,6 +333,15 @@ def split_folds(experiments: dict[str, RigExperiment]) -> tuple[list[str], list[
         b.append(a.pop())
     order = {n: i for i, n in enumerate(names)}
     return sorted(a, key=order.get), sorted(b, key=order.get)
+
+
+def _cubic_start(t: np.ndarray, y: np.ndarray, order: int) -> tuple[float, float]:
+    """|value| (order 0) or |slope| (1) at t[0] of a cubic through ``y``, and its standard error."""
+    coef, cov = np.polyfit(t, y, 3, cov="unscaled")
+    resid = y - np.polyval(coef, t)
+    k = 3 - order
+    se = math.sqrt(max(float(cov[k, k]) * float(np.sum(resid**2)) / (t.size - 4), 0.0))
+    return abs(float(coef[k])), se
 
 
 def measured_state(exp: RigExperiment) -> np.ndarray:
