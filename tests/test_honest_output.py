@@ -531,10 +531,10 @@ def test_a_record_starts_in_motion_only_when_its_first_rate_stands_out_of_its_no
 
 def test_a_lone_record_cut_where_a_soft_link_still_swings_starts_its_part_there(tmp_path):
     """The CU twin with a link 4x softer than its sheet (first clamped mode 0.9 Hz), one 10 s record: the cut between
-    its halves finds the hub slow but the link 9 deg deflected. The second half's replay starts from that measured
-    state (alpha_start, its rate, the hub's rate), not at rest: held-out fit 42.9 -> 88.9 % recalibrated (the
-    first half alone had fitted the rig, the second a gauge gain of 0.47 to make up the missing swing), Ks within
-    2 % of the truth."""
+    its halves finds the hub slow but the link 9 deg deflected (from the gauge's median reading: a zero offset is
+    none). The second half's replay starts from that measured state (alpha_start, its rate, the hub's rate), not at
+    rest: held-out fit 42.9 -> 88.9 % recalibrated (the first half alone had fitted the rig, the second a gauge gain
+    of 0.47 to make up the missing swing), Ks within 2 % of the truth."""
     from harness.diagnosis.experiments import fold_experiments
     from harness.rig.campaign import run_campaign
 
@@ -549,6 +549,7 @@ def test_a_lone_record_cut_where_a_soft_link_still_swings_starts_its_part_there(
     parts, _ = fold_experiments(load_experiments(run, load_calibration(run), sheet, 10.0))
     first, second = parts.values()
     assert first.start_state == {}
+    assert replace(first, alpha=first.alpha + 10.0).start_state == {}  # a gauge's zero offset is no deflection
     assert abs(math.degrees(second.start_state["alpha_start"])) > 5.0
     assert second.start_state["alpha_start"] == pytest.approx(math.radians(second.alpha[0]), rel=0.02)
     d = diagnose_run(run, sheet, tmp_path / "diag", workers=2)
