@@ -66,7 +66,7 @@ typedef struct {
     uint64_t key_theta, key_alpha; /* PRNG stream keys derived from seed */
     double gauge_c;    /* the gauge low-pass's gain per sample, 1 - exp(-1 / (sample_rate gauge_tau)) */
     double gauge_lp;   /* its output at the last sample taken for real [V] */
-    int gauge_lp_set;  /* a sample has been taken for real: gauge_lp holds */
+    int gauge_lp_set;  /* a sample has been taken for real: gauge_lp and gauge_line hold */
     double *gauge_line; /* the gauge's last gauge_delay readings [V], oldest at gauge_head */
     int gauge_head;
     int inputs_changed; /* inputs set since the last sample: reading theta_v or alpha_v previews the next one */

@@ -130,19 +130,19 @@ class RigExperiment:
         at its first sample (a cubic through its first SMOOTH_SECONDS) is above the hub rate's RMS over the record and
         START_SE of its standard errors, or whose link is deflected there (from the median reading) by more than
         LINK_START_SHARE of its largest deflection and START_SE standard errors (a soft link still swinging where a
-        cut found the hub slow);
-        {} for one that starts at rest (one driven from rest, by its reference's step, has no rate at its first
-        sample: the cubic's slope there is its noise; a parabola's is not, where the drive's torque jerks the hub).
-        The link's state is read ``gauge_delay`` samples on (the DAQ's, when the gauge reads late)."""
+        cut found the hub slow); {} for one that starts at rest (one driven from rest, by its reference's step, has
+        no rate at its first sample: the cubic's slope there is its noise; a parabola's is not, where the drive's
+        torque jerks the hub). The link's state is read ``gauge_delay`` samples on (the DAQ's, when the gauge reads
+        late)."""
         head = max(6, int(round(SMOOTH_SECONDS / self.Ts)))
         lag = int(self.daq.get("gauge_delay", 0))
         if self.u.size < 4 * head + lag:
             return {}
         t = np.arange(head) * self.Ts
         x = measured_state(self)
-        v0, se = _cubic_start(t, np.radians(self.theta[:head]), 1)
+        v0, se = _cubic_start(t, x[:head, 0], 1)
         rest = float(np.median(x[:, 1]))  # the gauge's zero as the record shows it: an offset is no deflection
-        a0, se_a = _cubic_start(t, np.radians(self.alpha[lag : lag + head]) - rest, 0)
+        a0, se_a = _cubic_start(t, x[lag : lag + head, 1] - rest, 0)
         moving = v0 > START_SE * se and v0 > float(np.sqrt(np.mean(x[:, 2] ** 2)))
         deflected = a0 > START_SE * se_a and a0 > LINK_START_SHARE * float(np.max(np.abs(x[:, 1] - rest)))
         if not (moving or deflected):
