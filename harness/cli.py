@@ -642,13 +642,16 @@ def interval_text(lo: float, hi: float) -> str:
 
 def diagnosis_summary(d: Diagnosis) -> str:
     """A few lines for the terminal: verdict, effects in greedy order with their fitted parameters, the shrink."""
+    from .diagnosis.result import CHANNEL_STAGES
+
     lines = [f"verdict: {d.verdict}"]
     if d.calibration.gauge_delay_s:
         lines.append(f"  data: {d.calibration.gauge_delay_method}")
     for name, p in d.parameters.items():
         if p.finding is not None:
             lo, hi = p.ci95
-            lines.append(f"  {name}: {p.finding}" + ("" if p.kept else f" (95 % interval {interval_text(lo, hi)})"))
+            shown = p.kept or "95 % interval" in p.finding  # an undetermined one's finding gives it already
+            lines.append(f"  {name}: {p.finding}" + ("" if shown else f" (95 % interval {interval_text(lo, hi)})"))
     for e in d.effects:
         params = ", ".join(f"{k}={v:.4g}" for k, v in e.params.items())
         lines.append(f"  + {e.effect} ({params}): shrink {e.shrink_pct:.1f} % on held-out experiments")
@@ -661,7 +664,7 @@ def diagnosis_summary(d: Diagnosis) -> str:
     if dec.channels:
         lines.append("held-out fit per channel: " + ", ".join(
             f"{k.replace('_', ' ')} " + " ".join(f"{c} {v:.1f} %" for c, v in by.items())
-            for k, by in dec.channels.items()
+            for k in CHANNEL_STAGES if (by := dec.channels.get(k)) is not None
         ) + f"; the gap is in {dec.gap_channel()}")  # fmt: skip
     if d.gap.records:
         lines.append("each record's fit, recalibrated alone -> with the joint parameters: " + ", ".join(

@@ -32,7 +32,7 @@ is therefore simulated: a replay runs with the data's noise, and the floor is wh
 otherwise the effect found whose removal reopens most of the gap (drop-one), if the effects found close >=
 EXPLAINED (50 %) of the excess squared gap left after recalibration on held-out data;
 else ``unexplained`` (no candidate closes a meaningful part of the gap; they stay listed with their honest
-shrink). A candidate enters when its screening or joint closure reaches MIN_CLOSURE (0.3; effects that only pay
+shrink). A candidate enters when its screening or joint closure reaches MIN_CLOSURE (0.25; effects that only pay
 together, like the lab's delay, friction and second mode once the linear parameters compensate each alone, enter
 on their screening against the spec's rig) and it lowers the held-out gap; an effect whose removal reopens less
 than DROP_MIN (5 %) of the excess gap is dropped again, unless it still closes MIN_CLOSURE of what is left without
@@ -40,7 +40,7 @@ it. Measured on the blind test, twin and independent simulator
 (tests/indeprig.py): in-library effects on the twin close 99-100 %; on the independent rigs 99-100 %, except a
 contact-spring backlash that bounces, against the twin's plastic impacts, 53-71 % (named, fitted within 10 %);
 the nearest candidate to an out-of-library sensor effect (a drifting gauge gain, the pot's linearity error)
-closes 0-26 %.
+closes 0-18 %.
 """
 
 from __future__ import annotations
@@ -81,7 +81,7 @@ from .tasks import SENSOR_CHANNELS, Pool
 __all__ = ["EXPLAINED", "GAP_RESOLUTION", "MIN_CLOSURE", "NONE_RATIO", "NONE_RATIO_LOOP", "THRESHOLDS", "diagnose_run"]
 
 Progress = Callable[[str], None]
-MIN_RECORDS = 3  # an import of this many records or more: each also recalibrated alone (two: the folds are they)
+MIN_RECORDS = 2  # an import of this many records or more: each also recalibrated alone, the effects found held
 
 THRESHOLDS = Thresholds(
     none_ratio=NONE_RATIO,
@@ -115,11 +115,14 @@ def _own(p: FittedParameter, record: str) -> str:
     return f"{record} {v:.4g} [{lo:.4g}-{hi:.4g}]"
 
 
-def _caveats(parameters: dict[str, FittedParameter], verdict: str, folds: Folds | None = None) -> list[str] | None:
+def _caveats(
+    parameters: dict[str, FittedParameter], verdict: str, folds: Folds | None = None, effects: list[str] | None = None
+) -> list[str] | None:
     """What limits the verdict: which part of the spec does not describe the rig (:func:`recal.parts_at_bound`), each
     recalibrated parameter that ended at its bound (an effect's share of the gap may be a wrong linear part's), each
-    one the data do not determine; where nothing explains the gap, the linear parameters whose fits on the two folds
-    (records, where there are two or more) exclude each other."""
+    one the data do not determine; the linear parameters whose fits on each record alone (with the ``effects`` found
+    held) exclude each other, or, without records fitted alone, where nothing explains the gap, those of the two
+    folds."""
     out = recal.parts_at_bound({n: (p.nominal, p.fitted) for n, p in parameters.items() if n in recal.LINEAR})
     out += [f"verdict {verdict!r} reached with {p.finding}" for p in parameters.values() if p.at_bound]
     out += [f"{p.finding}" for p in parameters.values() if p.identifiable is False and p.finding and not p.at_bound]
@@ -132,9 +135,11 @@ def _caveats(parameters: dict[str, FittedParameter], verdict: str, folds: Folds 
         out.append(
             "recalibrated on each record alone, the 95 % intervals exclude each other ("
             + "; ".join(by_record)
-            + "): the linear model does not describe these records as one rig (model error, not noise)"
+            + f"): the linear model{' with ' + ' and '.join(effects) if effects else ''} does not describe these "
+            "records as one rig (model error, not noise)"
         )
-    apart = [n for n, p in parameters.items() if p.folds_disagree and not p.at_bound]
+    fitted_alone = any(p.records for p in parameters.values())
+    apart = [n for n, p in parameters.items() if p.folds_disagree and not p.at_bound and not fitted_alone]
     if verdict == "unexplained" and apart:
         fits = "; ".join(
             f"{recal.LINEAR[n].label} {a:.4g} [{lo_a:.4g}-{hi_a:.4g}] and {b:.4g} [{lo_b:.4g}-{hi_b:.4g}]"
@@ -276,7 +281,7 @@ def diagnose_run(
         thresholds=THRESHOLDS,
         where=where,
         replays=_replays(experiments),
-        caveats=_caveats(found.parameters, found.verdict, folds),
+        caveats=_caveats(found.parameters, found.verdict, folds, [e.effect for e in found.effects]),
     ).rounded()
     diagnosis.write(RunDir(dest).diagnosis)
     write_replays(RunDir(dest).diagnosis_replays, experiments, dict(zip(stages, traces, strict=True)))

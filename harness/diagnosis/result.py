@@ -28,6 +28,7 @@ from ..rundir import DataError, RunDir, from_plain, to_plain, write_json
 from .recalibrate import LINEAR, at_bound
 
 __all__ = [
+    "CHANNEL_STAGES",
     "Candidate",
     "Decomposition",
     "Diagnosis",
@@ -227,12 +228,15 @@ class Step:
     applied: bool
 
 
+CHANNEL_STAGES = ("before", "after_recalibration", "after_effects")  # the stages a fit per channel is given for
+
+
 @dataclass
 class Decomposition:
     """The held-out gap stage by stage: ``before`` (the simulation as given), ``after_recalibration``,
     ``after_effects``, the ``noise_floor`` gap and the ``resolution``, the ``steps`` and their definition;
-    ``channels``: the held-out fit [%] per channel (theta, alpha) as given ("before") and recalibrated
-    ("after_recalibration")."""
+    ``channels``: the held-out fit [%] per channel (theta, alpha) as given ("before"), recalibrated
+    ("after_recalibration") and, when effects were found, with them ("after_effects")."""
 
     before: float
     after_recalibration: float
@@ -243,10 +247,15 @@ class Decomposition:
     definition: str
     channels: dict[str, dict[str, float]] | None = None
 
-    def gap_channel(self, stage: str = "after_recalibration") -> str | None:
-        """The channel that holds the gap at ``stage``: the one that fits worse, None when neither is known."""
-        fits = {c: v for c, v in (self.channels or {}).get(stage, {}).items() if math.isfinite(v)}
+    def gap_channel(self, stage: str | None = None) -> str | None:
+        """The channel that holds the gap at ``stage`` (default: the last one measured): the one that fits worse,
+        None when neither is known."""
+        fits = {c: v for c, v in (self.channels or {}).get(stage or self.last_stage(), {}).items() if math.isfinite(v)}
         return min(fits, key=lambda c: fits[c]) if fits else None
+
+    def last_stage(self) -> str:
+        """The last stage whose fit per channel is known: "after_effects", "after_recalibration" or "before"."""
+        return next((s for s in CHANNEL_STAGES[::-1] if s in (self.channels or {})), CHANNEL_STAGES[0])
 
     def waterfall(self) -> list[tuple[str, float, float]]:
         """(stage, held-out gap after it, closed [%]) from ("simulation as given", before, NaN) on."""

@@ -79,7 +79,7 @@ NONE_RATIO = 2.0  # gap within 2x the noise gap (E within 4x E_noise): no gap be
 # error the floor only stands in for as white noise). On the closed blind family's rigs without an effect the gap
 # after recalibration sat at 0.99-1.04x that floor (7 rigs; quantised rigs 1.2-1.4x)
 NONE_RATIO_LOOP = 1.25
-MIN_CLOSURE = 0.3  # a candidate must close >= 30 % of the excess squared gap left on held-out experiments
+MIN_CLOSURE = 0.25  # a candidate must close >= 25 % of the excess squared gap left on held-out experiments
 EXPLAINED = 0.5  # the effects found must close >= half the excess squared gap left for a verdict naming one
 GAP_RESOLUTION = 1e-3  # gap (fit 99.9 %) below which no sensor calibration can tell sim from rig
 DROP_MIN = 0.05  # an effect whose removal reopens less than 5 % of the excess gap is dropped
@@ -374,13 +374,16 @@ def importance(without: dict[str, float], e_expl: float) -> dict[str, float]:
     return {e: r / total if total > 0 else 1.0 / len(reopen) for e, r in reopen.items()}
 
 
-def waterfall(cf: CrossFit, fw: Forward, order: list[str]) -> list[float]:
+def waterfall(cf: CrossFit, fw: Forward, order: list[str]) -> tuple[list[float], SSE | None]:
     """Held-out E after each effect of ``order`` is added: as the forward selection measured it (each stage with
     its own joint refit), or, when an effect was dropped again, with the final parameters; the effects found by
-    their signature last, on the final model."""
+    their signature last, on the final model. Also the last stage's held-out squared errors (None without an
+    effect)."""
     kept_forward = [e for e, _ in fw.added] == fw.chosen
     lin = [{q: v for q, v in b.items() if q in recal.LINEAR} for b in fw.bases]
     redo = range(len(fw.chosen), len(order)) if kept_forward else range(len(order))
+    if order and not redo:  # the last stage as measured, once more for its squared errors
+        redo = range(len(order) - 1, len(order))
     calls = []
     for j in redo:
         keep = effect_params(order[: j + 1])
@@ -388,8 +391,10 @@ def waterfall(cf: CrossFit, fw: Forward, order: list[str]) -> list[float]:
             ("sse", {**lin[k], **{q: v for q, v in fw.bases[k].items() if q in keep}}, cf.helds[k]) for k in (0, 1)
         ]
     sses = cf.pool.map(calls)
+    pairs = [{**sses[2 * i], **sses[2 * i + 1]} for i in range(len(redo))]
     msgs = [e for _, e in fw.added] if kept_forward else []
-    return msgs + [cf.msg({**sses[2 * i], **sses[2 * i + 1]}) for i in range(len(redo))]
+    msgs = (msgs + [cf.msg(pair) for pair in pairs])[: len(order)]
+    return msgs, pairs[-1] if pairs else None
 
 
 def final_params(
@@ -695,9 +700,8 @@ def search(
         tested, e_left = spread_round(cf, fw, searched, loop_sigma, e_expl, say)
     by_spread_kept = [r["effect"] for r in tested if r["kept"]]
     order = fw.chosen + [c.name for c in signature] + by_spread_kept
-    steps = [("recalibration", e_recal, recal_paid)] + [
-        (e, m, True) for e, m in zip(order, waterfall(cf, fw, order), strict=True)
-    ]
+    msgs, sse_effects = waterfall(cf, fw, order)
+    steps = [("recalibration", e_recal, recal_paid)] + [(e, m, True) for e, m in zip(order, msgs, strict=True)]
 
     def share(e_after: float) -> float:  # of the excess left after recalibration, closed down to e_after
         return min(closure(e_start, e_after, cf.floor), 1.0) if not no_gap else math.nan
@@ -749,6 +753,7 @@ def search(
             channels={
                 "before": channel_fits(sse0, experiments, names),
                 "after_recalibration": channel_fits({**rec[0]["sse"], **rec[1]["sse"]}, experiments, names),
+                **({"after_effects": channel_fits(sse_effects, experiments, names)} if sse_effects else {}),
             },
         ),
         definition=GAP_DEFINITION,

@@ -8,7 +8,7 @@ import math
 from typing import Any
 
 from ..diagnosis.effects import SELECTED_BY_SPREAD
-from ..diagnosis.result import Diagnosis, FittedParameter
+from ..diagnosis.result import CHANNEL_STAGES, Diagnosis, FittedParameter
 from .tables import fmt, fmt_any, num, table
 
 __all__ = ["LATTICE", "diagnosis_markdown", "gap_rows", "verdict_sentence"]
@@ -258,15 +258,16 @@ def _overall_lines(diag: Diagnosis) -> list[str]:
     ]
     dec = gap.decomposition
     if dec.channels:
-        stages = {"before": "as given", "after_recalibration": "recalibrated"}
+        stages = {"before": "as given", "after_recalibration": "recalibrated", "after_effects": "with the effects"}
         body = [
             [stages.get(k, k), *(fmt(by.get(c, math.nan)) for c in ("theta", "alpha"))]
-            for k, by in dec.channels.items()
+            for k in CHANNEL_STAGES
+            if (by := dec.channels.get(k)) is not None
         ]
         lines += [
             *table(["held-out fit [%]", "theta", "alpha"], body),
             "",
-            f"After recalibration the gap is in {dec.gap_channel()}: the channel that fits worse.",
+            f"{stages[dec.last_stage()].capitalize()}, the gap is in {dec.gap_channel()}: the channel that fits worse.",
             "",
         ]
     return lines
