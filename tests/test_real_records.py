@@ -127,6 +127,8 @@ def test_cu_records_diagnosed_against_their_lab_sheet(cu_run):
     (said,) = [c for c in d.caveats if "exclude each other" in c]
     assert "hub angle sensor's gain" in said and "the linear model with saturation does not describe" in said
     assert "not at a bound" not in " ".join(d.caveats)
+    (row,) = [line for line in diagnosis_markdown(d) if line.startswith("| sensor.theta_gain |")]
+    assert row.endswith(" (apart: flexibleArm_test_3, flexibleArm_test_4) |")  # the table's each-record column
 
 
 QUANSER = [REAL / "rfl_lqr_sqwave_pm30deg_500Hz.csv", REAL / "rfl_lqr_sqwave_pm30deg_500Hz_aux.csv"]

@@ -161,11 +161,21 @@ def _folds_text(p: FittedParameter) -> str:
     return " / ".join(fmt_any(f[0]) for f in p.folds) + (" (apart)" if p.folds_disagree else "")
 
 
+def _records_text(p: FittedParameter) -> str:
+    """Each record's own fit, "a / b / c", with "(apart: a, b)" naming the records whose intervals exclude each
+    other."""
+    if not p.records:
+        return "—"
+    apart = sorted({n for pair in p.records_apart for n in pair}, key=list(p.records).index)
+    return " / ".join(fmt_any(v[0]) for v in p.records.values()) + (f" (apart: {', '.join(apart)})" if apart else "")
+
+
 def _parameters_lines(diag: Diagnosis) -> list[str]:
     if not diag.parameters:
         return []
     alone = any(p.recalibrated is not None for p in diag.parameters.values())
     per_fold = any(p.folds for p in diag.parameters.values())
+    records = next((list(p.records) for p in diag.parameters.values() if p.records), [])
     rows = [
         [
             name,
@@ -177,6 +187,7 @@ def _parameters_lines(diag: Diagnosis) -> list[str]:
             p.finding or "—",
             *([fmt_any(p.recalibrated) if p.recalibrated is not None else "—"] if alone else []),
             *([_folds_text(p)] if per_fold else []),
+            *([_records_text(p)] if records else []),
         ]
         for name, p in diag.parameters.items()
     ]
@@ -184,6 +195,7 @@ def _parameters_lines(diag: Diagnosis) -> list[str]:
     header = ["parameter", "unit", "nominal", "fitted", "95 % interval", "change [%]", "finding"]
     header += ["recalibration alone"] if alone else []
     header += ["each fold alone (A / B)"] if per_fold else []
+    header += [f"each record alone ({' / '.join(records)})"] if records else []
     lines = [
         "Linear parameters of the simulation recalibrated against the data (within physical bounds): a linear "
         f"mismatch is a finding about the rig, not an unmodelled effect.{note}",
@@ -196,6 +208,13 @@ def _parameters_lines(diag: Diagnosis) -> list[str]:
             'Each fold alone: recalibrated on that fold\'s experiments only; "(apart)" where the two 95 % intervals '
             "exclude each other: the model, not the noise, separates the folds (with two records or more, each fold "
             "is records of its own).",
+            "",
+        ]
+    if records:
+        lines += [
+            "Each record alone: recalibrated on that record only, from the grid and from the joint fit, the effects "
+            'found held at their joint values; "(apart: ...)" names the records whose 95 % intervals exclude each '
+            "other: the model does not describe them as one rig.",
             "",
         ]
     if alone:
