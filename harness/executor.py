@@ -27,7 +27,9 @@ the project's numerical work is small matrices, where BLAS threads only oversubs
 identification grid: 26.7 s with them, 9.5 s without, 2 cores), and one thread everywhere keeps the results
 identical in every backend. A task that raises re-raises the same exception type and message on the client; a
 task that kills its worker three times (a crash in an FMU) becomes a ``RuntimeError``. A worker lost mid-map
-(machine gone) is not an error: Dask reruns its tasks elsewhere and each result is still taken exactly once.
+(machine gone) is not an error: Dask reruns its tasks elsewhere and each result is still taken exactly once; a
+task the scheduler gave up on with its worker (cancelled, "already forgotten") is submitted again, up to
+RESUBMITS times.
 
 A task runs as fast in a Dask worker as in a plain process. The nanny's default environment sets
 ``MALLOC_TRIM_THRESHOLD_=65536``, and glibc, once any malloc threshold is set by hand, stops raising its mmap
@@ -81,6 +83,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from distributed import Client, as_completed, get_worker
+from distributed.client import FutureCancelledError
 from distributed.diagnostics.plugin import WorkerPlugin
 from distributed.scheduler import KilledWorker
 from threadpoolctl import ThreadpoolController
@@ -92,6 +95,7 @@ from .machine import default_workers, env_workers
 
 __all__ = [
     "CLUSTER_CONFIG",
+    "RESUBMITS",
     "Executor",
     "FmuBytes",
     "LocalProcessCluster",
@@ -116,6 +120,7 @@ SCHEDULER_ENV = "FLEXJOINT_SCHEDULER"
 CONNECT_TIMEOUT_S = 10.0
 CLOSE_TIMEOUT_S = 10.0  # a local cluster not shut down by then is ended by signal
 CACHE_SIZE = 8  # worker_cache entries kept per process (least recently used dropped, and closed, first)
+RESUBMITS = 2  # a task the scheduler cancelled on its own (lost with its worker) is submitted this many times more
 BACKENDS = ("dask", "processes")
 # glibc's ceiling for its dynamic mmap threshold on 64-bit (DEFAULT_MMAP_THRESHOLD_MAX): what a plain process
 # reaches after its first large free; a worker whose thresholds were fixed by hand gets it back (see the module)
@@ -588,14 +593,26 @@ class Executor:
         ]
         index = {f.key: i for i, f in enumerate(futures)}
         results: list[Any] = [None] * len(items)
-        done = 0
+        done, again = 0, [0] * len(items)
         try:
-            for fut in as_completed(futures, loop=self.client.loop):
+            pending = as_completed(futures, loop=self.client.loop)
+            for fut in pending:
                 i = index[fut.key]
                 try:
                     results[i] = fut.result()
                 except KilledWorker as exc:
                     raise RuntimeError(f"{desc or 'task'} {names[i]}: {exc}") from None
+                except FutureCancelledError as exc:  # not by this map: the scheduler lost it with a worker
+                    if again[i] == RESUBMITS:
+                        raise RuntimeError(f"{desc or 'task'} {names[i]}: {exc}") from None
+                    again[i] += 1
+                    retry = self.client.submit(
+                        _worker_call, fn, items[i], *refs, key=f"{stem}-{i}-again{again[i]}", pure=False
+                    )
+                    index[retry.key] = i
+                    futures.append(retry)
+                    pending.add(retry)
+                    continue
                 done += 1
                 self._report(desc, names[i], done, len(items), quiet)
         except BaseException:

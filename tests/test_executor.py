@@ -223,6 +223,32 @@ def test_local_workers_leave_the_gil_to_their_task():
         assert ex.map(_housekeeping, [0, 1]) == [(False, 1.0)] * 2
 
 
+def _slow_double(x: int) -> int:
+    import time
+
+    time.sleep(0.4)
+    return 2 * x
+
+
+def test_a_task_the_scheduler_cancels_on_its_own_is_submitted_again():
+    """A task cancelled by someone other than the map (here another client forgets it; the scheduler does so with
+    a result lost with its worker and its data: "already forgotten") is submitted again, and the map still returns
+    every result once, in order."""
+    from distributed import Client, Future
+
+    def cancel(ex: Executor, ending: str) -> None:
+        with Client(ex.client.scheduler.address, set_as_default=False) as other:
+            keys = other.run_on_scheduler(lambda dask_scheduler: list(dask_scheduler.tasks))
+            (key,) = [k for k in keys if str(k).startswith("_slow_double-") and str(k).endswith(ending)]
+            other.cancel([Future(key, other)], force=True)
+
+    with Executor(workers=2) as ex:
+        seen: list[str] = []
+        ex.progress = lambda msg: (seen.append(msg), len(seen) == 1 and cancel(ex, "-5"))
+        assert ex.map(_slow_double, range(6), quiet=False) == [0, 2, 4, 6, 8, 10]
+        assert len(seen) == 6
+
+
 def _alloc_faults(n: int) -> tuple[str | None, int]:
     """Minor page faults of this thread while ``n`` 1 MiB arrays are allocated, written and freed in turn (after
     one untimed), and the MALLOC_TRIM_THRESHOLD_ this process was started with."""
