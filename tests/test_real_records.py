@@ -84,11 +84,12 @@ def test_cu_records_diagnosed_against_their_lab_sheet(cu_run):
     identified in what the data determine (the drive's gain and time constant, the link, the sensors' gains) under
     the lab sheet's priors: held-out fit 64.3 % as given (35.9 % with the gauge on time) -> 83.6 % recalibrated
     (81.8 % with it on time, the hub's inertia then at its wall; 61.9 % when Jeq, Beq and kt were fitted in boxes
-    around the sheet), alpha 49.7 -> 77.6 %, nothing held by a wall. Then a drive limit of 0.79 V (the logged
-    command reaches 5.53 V) closes 28 % of the gap left: 86.0 %, alpha 80.7 %, and with it the hub's inertia, the
-    drive's time constant and Ks return to the sheet's (Jeq 0.00218 kg m^2, the sheet 0.002; recalibrated alone
-    4.2x). Each record fitted alone with it agrees on the drive and the link, and not on theta's gain (1.09 and
-    0.98): said as model error."""
+    around the sheet), alpha 49.7 -> 77.7 %, nothing held by a wall. Then a drive limit of 0.81 V (the logged
+    command reaches 5.53 V) closes 30 % of the gap left: 86.3 %, alpha 81.1 %, and with it the hub's inertia, the
+    drive's time constant and Ks return to the sheet's (Jeq 0.00213 kg m^2, the sheet 0.002; recalibrated alone
+    4.3x). Each record fitted alone with it agrees with the other within their intervals on every parameter, and
+    theta's gain is the sheet's (1.002; 1.05 and apart between the records while the replays started the hub at
+    the gain times its reading)."""
     from harness.cli import diagnosis_summary
     from harness.render.gap_text import diagnosis_markdown
 
@@ -103,7 +104,7 @@ def test_cu_records_diagnosed_against_their_lab_sheet(cu_run):
     # the link's damping is not determined: its finding gives its interval, once
     assert "link damping ratio is not determined by these data" in summary
     assert all(line.count("95 % interval") <= 1 for line in summary.splitlines())
-    assert "after recalibration theta 93.8 % alpha 77.6 %, after effects theta 96.0 % alpha 80.7 %" in summary
+    assert "after recalibration theta 93.8 % alpha 77.7 %, after effects theta 96.1 % alpha 81.1 %" in summary
     assert any(line.startswith(f"Gauge timing (every replay reads it so): {said}") for line in diagnosis_markdown(d))
     dec = d.gap.decomposition
     assert 100 * (1 - dec.before) < 66.0 and 100 * (1 - dec.after_recalibration) > 83.0
@@ -122,13 +123,11 @@ def test_cu_records_diagnosed_against_their_lab_sheet(cu_run):
     assert d.parameters["plant.Jeq"].fitted == pytest.approx(0.002, rel=0.2)
     assert d.parameters["rig.drive_tau"].fitted == pytest.approx(d.parameters["rig.drive_tau"].nominal, rel=0.2)
     assert d.parameters["plant.Ks"].fitted == pytest.approx(2.08, rel=0.03)
-    apart = [k for k, p in d.parameters.items() if p.records_apart]
-    assert "sensor.theta_gain" in apart and not {"rig.drive_gain", "rig.drive_tau", "plant.Ks"} & set(apart)
-    (said,) = [c for c in d.caveats if "exclude each other" in c]
-    assert "hub angle sensor's gain" in said and "the linear model with saturation does not describe" in said
-    assert "not at a bound" not in " ".join(d.caveats)
-    (row,) = [line for line in diagnosis_markdown(d) if line.startswith("| sensor.theta_gain |")]
-    assert row.endswith(" (apart: flexibleArm_test_3, flexibleArm_test_4) |")  # the table's each-record column
+    assert {k for k, p in d.parameters.items() if p.records} >= {"rig.drive_gain", "plant.Ks", "sensor.theta_gain"}
+    assert not [k for k, p in d.parameters.items() if p.records_apart] and not d.caveats
+    assert d.parameters["sensor.theta_gain"].fitted == pytest.approx(1.0, abs=0.01)
+    header = "| each record alone (flexibleArm_test_3 / flexibleArm_test_4) |"
+    assert any(line.startswith("| parameter |") and line.endswith(header) for line in diagnosis_markdown(d))
 
 
 QUANSER = [REAL / "rfl_lqr_sqwave_pm30deg_500Hz.csv", REAL / "rfl_lqr_sqwave_pm30deg_500Hz_aux.csv"]
@@ -187,38 +186,41 @@ def quanser_halves(tmp_path_factory):
     return diagnose_run(tmp / "run", "nominal", tmp / "diag", workers=1)
 
 
-def test_records_that_are_not_one_rig_are_said_to_disagree(quanser_halves):
-    """Each half recalibrated alone: drive gain 1.36 and 1.30 rad/(V s), 5 % apart with intervals under 1.5 % wide. The
-    diagnosis says the linear model does not describe both records as one rig, and names the parameters."""
+def test_the_quanser_halves_each_fitted_alone_are_one_rig(quanser_halves):
+    """The second half starts mid-motion; its replay starts from its measured state, the hub's and the link's rates
+    from the widest cubic that still fits (noise averages out; a 20 ms one read the hub's rate off by more than the
+    rig's own). Each half recalibrated alone, on its fold's fit window or on its whole length: drive gain 1.449 and
+    1.448 rad/(V s), within each other's intervals on every parameter (from 20 ms rates: 1.42 and 1.30, apart): one
+    rig, and no caveat says otherwise."""
     d = quanser_halves
     gain = d.parameters["rig.drive_gain"]
-    (a, lo_a, hi_a), (b, lo_b, hi_b) = gain.folds
-    assert gain.folds_disagree and (hi_a < lo_b or hi_b < lo_a) and max(a, b) > 1.03 * min(a, b)
-    (apart,) = [c for c in d.caveats if "exclude each other" in c]
-    assert "drive gain" in apart and "model error, not noise" in apart
+    (a, lo_a, hi_a), (b, lo_b, hi_b) = gain.records.values()
+    assert lo_a <= b <= hi_a and lo_b <= a <= hi_b
+    assert not [k for k, p in d.parameters.items() if p.records_apart or p.folds_disagree] and not d.caveats
     assert d.verdict == "unexplained"
 
 
 def test_quanser_record_in_two_files_fits_as_the_whole_record(quanser_halves):
     """The record imported as its two halves: the second file starts mid-motion (hub at -2.9 rad/s), and its replay
     starts from its measured state, the controller's velocity filter too (87.5 % from rest); held out 84.8 % as given,
-    90.6 % recalibrated (the whole record 85.0 -> 91.3 %), Ks 1.41-1.50 on each half."""
+    91.4 % recalibrated (the whole record 85.0 -> 91.3 %), Ks 1.41-1.50 on each half."""
     d = quanser_halves
     dec = d.gap.decomposition
-    assert 100 * (1 - dec.before) > 84.0 and 100 * (1 - dec.after_recalibration) >= 90.0
+    assert 100 * (1 - dec.before) > 84.0 and 100 * (1 - dec.after_recalibration) >= 91.0
     for fitted, _, _ in d.parameters["plant.Ks"].folds:
         assert 1.04 <= fitted <= 1.56
 
 
 def test_quanser_record_in_two_files_is_the_same_rig(quanser_halves):
-    """The two halves' own recalibrations, each also started from the other's, land in one basin (drive gain 1.36 and
-    1.30 rad/(V s); from its own grid point alone the second stopped at 1.78), and the hub inertia they imply
-    together is the whole record's (0.00178 kg m^2; it was 0.00155)."""
+    """The two halves' own recalibrations, each also started from the other's, land in one basin (from its own grid
+    point alone the second stopped at a drive gain of 1.78 rad/(V s)), and the hub inertia they imply together is
+    near the whole record's (0.00162 against 0.00178 kg m^2; whose two time folds disagree on the drive gain, 1.30 and
+    1.42)."""
     d = quanser_halves
-    assert d.parameters["plant.Jeq"].fitted == pytest.approx(0.00178, rel=0.05)  # the whole record's
-    assert 100 * (1 - d.gap.decomposition.after_recalibration) >= 90.0
+    assert d.parameters["plant.Jeq"].fitted == pytest.approx(0.00178, rel=0.1)  # the whole record's
+    assert 100 * (1 - d.gap.decomposition.after_recalibration) >= 91.0
     (a, _, _), (b, _, _) = d.parameters["rig.drive_gain"].folds
-    assert max(a, b) < 1.1 * min(a, b)
+    assert max(a, b) < 1.01 * min(a, b)
 
 
 def test_a_units_records_each_fitted_alone_beside_the_joint_fit(tmp_path):
@@ -247,3 +249,8 @@ def test_a_units_records_each_fitted_alone_beside_the_joint_fit(tmp_path):
     assert "each record's fit, recalibrated alone -> with the joint parameters: test_3a" in " ".join(
         diagnosis_summary(d).split()
     )
+    # the second half of test_3 is not one rig with the others: its drive is faster and slower to answer (measured
+    # 3.33 [3.03-3.64] rad/(V s) against test_4's 2.61 [2.33-2.92]), and a caveat says so, with the drive limit
+    assert ("test_3b", "flexibleArm_test_4") in d.parameters["rig.drive_gain"].records_apart
+    (apart,) = [c for c in d.caveats if "exclude each other" in c]
+    assert "drive gain" in apart and "the linear model with saturation does not describe" in apart

@@ -68,6 +68,8 @@ DEADBAND_GUARD = 1.5  # deg: samples this close to a pot track end (its dead ban
 START_SE = 5.0  # a record starts in motion when its first hub rate is this many of its standard errors (and more)
 LINK_START_SHARE = 0.1  # ... or its link is deflected by this share of its largest deflection
 SMOOTH_SECONDS = 0.02  # s: window of the smoothed rates of the measured state (a multiple-shooting start)
+START_WINDOWS = 4  # a record's start rates: a cubic over SMOOTH_SECONDS x 1, 2, 4, 8, the widest that agrees ...
+START_AGREE = 3.0  # ... with every narrower one's slope within this many of that one's standard errors
 
 
 @dataclass
@@ -147,7 +149,8 @@ class RigExperiment:
         deflected = a0 > START_SE * se_a and a0 > LINK_START_SHARE * float(np.max(np.abs(x[:, 1] - rest)))
         if not (moving or deflected):
             return {}
-        return {"alpha_start": float(x[lag, 1]), "theta_dot_start": float(x[0, 2]), "alpha_dot_start": float(x[lag, 3])}
+        rates = {"theta_dot_start": _start_rate(x[:, 0], self.Ts), "alpha_dot_start": _start_rate(x[lag:, 1], self.Ts)}
+        return {"alpha_start": float(x[lag, 1]), **rates}
 
     def window(self, which: str) -> tuple[int, dict[str, float]]:
         """(samples, sst per channel) of a window: "all", "fit" (first FIT_SECONDS), "screen" (SCREEN_SECONDS)."""
@@ -344,6 +347,27 @@ def _cubic_start(t: np.ndarray, y: np.ndarray, order: int) -> tuple[float, float
     k = 3 - order
     se = math.sqrt(max(float(cov[k, k]) * float(np.sum(resid**2)) / (t.size - 4), 0.0))
     return abs(float(coef[k])), se
+
+
+def _start_rate(y: np.ndarray, Ts: float) -> float:
+    """The rate [rad/s] of the angle ``y`` [rad] at its first sample: the slope of a cubic through its first
+    SMOOTH_SECONDS x 2^j samples, the widest window (j < START_WINDOWS) whose slope lies within START_AGREE standard
+    errors of every narrower window's (the intersection-of-confidence-intervals rule: a wider window averages the
+    noise out, until the cubic misses an acceleration and its slope leaves the narrower ones')."""
+    head = max(6, int(round(SMOOTH_SECONDS / Ts)))
+    kept: list[tuple[float, float]] = []
+    for j in range(START_WINDOWS):
+        n = head << j
+        if n > y.size:
+            break
+        t = np.arange(n) * Ts
+        coef, cov = np.polyfit(t, y[:n], 3, cov="unscaled")
+        resid = y[:n] - np.polyval(coef, t)
+        se = math.sqrt(max(float(cov[2, 2]) * float(resid @ resid) / (n - 4), 0.0))
+        if any(abs(coef[2] - r) > START_AGREE * s for r, s in kept):
+            break
+        kept.append((float(coef[2]), se))
+    return kept[-1][0] if kept else 0.0
 
 
 def measured_state(exp: RigExperiment) -> np.ndarray:

@@ -170,6 +170,16 @@ def sim_calibration(daq: Mapping[str, Any], comb_angles: np.ndarray | None) -> C
     )
 
 
+def true_state(state: Mapping[str, float], over: Mapping[str, Any]) -> dict[str, float]:
+    """A measured start state (plant parameters theta_start, alpha_start [rad], theta_dot_start, alpha_dot_start
+    [rad/s], as read) as the true angles and rates that sensors with ``over``'s gains (reading = gain x true angle)
+    read so."""
+    gain = {
+        c: float(over.get(s, 1.0)) for c, s in (("theta", "sensor.theta_gain"), ("alpha", "sensor.alpha_gauge_gain"))
+    }
+    return {k: v / gain[k.split("_", 1)[0]] for k, v in state.items()}
+
+
 def simulate(
     rig: Any, setup: Setup, exp: RigExperiment, over: Mapping[str, Any], n: int | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -181,9 +191,10 @@ def simulate(
     if exp.replay == "closed" and noise:
         daq = {**daq, **{k: v for k, v in noise.items() if k not in d_over}}
         daq["seed"] = d_over.get("seed", REPLAY_NOISE_SEED)
-    plant.setdefault("theta_start", math.radians(float(exp.theta[0])))
+    # at the angle read first, and a closed-loop record cut from a longer run where it was, as the sensors read them
+    start = {"theta_start": math.radians(float(exp.theta[0])), **(exp.start_state if exp.replay == "closed" else {})}
+    plant = {**true_state(start, over), **plant}
     if exp.replay == "closed":
-        plant = {**exp.start_state, **plant}  # a record cut from a longer run starts where it was
         c = Controller(**exp.controller)  # type: ignore[arg-type]
         ctrl = c.fmu_parameters(1.0 / exp.Ts)
         ctrl = {k: fmu_value(believed, "daq", v) for k, v in CALIBRATION.items()} | ctrl  # the lab's calibration
@@ -191,7 +202,7 @@ def simulate(
         ref = np.radians(delayed(exp.ref, c.ref_delay)[:n])  # type: ignore[arg-type]  # what the controller acted on
         res = rig.run_closed(ref, exp.Ts, ctrl, plant=plant, daq=daq, diverged="hold")
     elif exp.replay == "shooting":
-        res = _shooting(rig, exp, plant, daq, n)
+        res = _shooting(rig, exp, plant, daq, n, over)
     else:
         res = rig.run(exp.u[:n], exp.Ts, plant=plant, daq=daq)
     cal = sim_calibration(believed, setup.comb_angles)
@@ -211,9 +222,12 @@ def simulate(
     return th, alpha_deg(res["alpha_v"], cal), on_track
 
 
-def _shooting(rig: Any, exp: RigExperiment, plant: dict[str, Any], daq: dict[str, Any], n: int | None) -> dict:
+def _shooting(
+    rig: Any, exp: RigExperiment, plant: dict[str, Any], daq: dict[str, Any], n: int | None, over: Mapping[str, Any]
+) -> dict:
     """Multiple-shooting replay: the logged command open loop in windows of SHOOTING_SECONDS, each started from
-    the measured state (:func:`measured_state`); the windows' outputs end to end."""
+    the measured state (:func:`measured_state`, as the sensors of ``over`` read it); the windows' outputs end to
+    end."""
     m = exp.u[:n].size
     w = max(2, int(round(SHOOTING_SECONDS / exp.Ts)))
     x0 = measured_state(exp)
@@ -221,7 +235,7 @@ def _shooting(rig: Any, exp: RigExperiment, plant: dict[str, Any], daq: dict[str
     for s in range(0, m, w):
         start = {"theta_start": x0[s, 0], "alpha_start": x0[s, 1], "theta_dot_start": x0[s, 2]}
         start["alpha_dot_start"] = x0[s, 3]
-        parts.append(rig.run(exp.u[s : min(s + w, m)], exp.Ts, plant={**plant, **start}, daq=daq))
+        parts.append(rig.run(exp.u[s : min(s + w, m)], exp.Ts, plant={**plant, **true_state(start, over)}, daq=daq))
     return {k: np.concatenate([p[k] for p in parts]) for k in ("theta_v", "alpha_v")}
 
 
