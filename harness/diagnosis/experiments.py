@@ -142,9 +142,9 @@ class RigExperiment:
             return {}
         t = np.arange(head) * self.Ts
         x = measured_state(self)
-        v0, se = _cubic_start(t, x[:head, 0], 1)
+        v0, se = (abs(v) for v in _cubic_start(t, x[:head, 0], 1))
         rest = float(np.median(x[:, 1]))  # the gauge's zero as the record shows it: an offset is no deflection
-        a0, se_a = _cubic_start(t, x[lag : lag + head, 1] - rest, 0)
+        a0, se_a = (abs(v) for v in _cubic_start(t, x[lag : lag + head, 1] - rest, 0))
         moving = v0 > START_SE * se and v0 > float(np.sqrt(np.mean(x[:, 2] ** 2)))
         deflected = a0 > START_SE * se_a and a0 > LINK_START_SHARE * float(np.max(np.abs(x[:, 1] - rest)))
         if not (moving or deflected):
@@ -341,12 +341,12 @@ def split_folds(experiments: dict[str, RigExperiment]) -> tuple[list[str], list[
 
 
 def _cubic_start(t: np.ndarray, y: np.ndarray, order: int) -> tuple[float, float]:
-    """|value| (order 0) or |slope| (1) at t[0] of a cubic through ``y``, and its standard error."""
+    """The value (order 0) or slope (1) at t[0] = 0 of a cubic through ``y``, and its standard error."""
     coef, cov = np.polyfit(t, y, 3, cov="unscaled")
     resid = y - np.polyval(coef, t)
     k = 3 - order
     se = math.sqrt(max(float(cov[k, k]) * float(np.sum(resid**2)) / (t.size - 4), 0.0))
-    return abs(float(coef[k])), se
+    return float(coef[k]), se
 
 
 def _start_rate(y: np.ndarray, Ts: float) -> float:
@@ -360,13 +360,10 @@ def _start_rate(y: np.ndarray, Ts: float) -> float:
         n = head << j
         if n > y.size:
             break
-        t = np.arange(n) * Ts
-        coef, cov = np.polyfit(t, y[:n], 3, cov="unscaled")
-        resid = y[:n] - np.polyval(coef, t)
-        se = math.sqrt(max(float(cov[2, 2]) * float(resid @ resid) / (n - 4), 0.0))
-        if any(abs(coef[2] - r) > START_AGREE * s for r, s in kept):
+        rate, se = _cubic_start(np.arange(n) * Ts, y[:n], 1)
+        if any(abs(rate - r) > START_AGREE * s for r, s in kept):
             break
-        kept.append((float(coef[2]), se))
+        kept.append((rate, se))
     return kept[-1][0] if kept else 0.0
 
 
