@@ -154,13 +154,15 @@ class CrossFit:
 @dataclass
 class Forward:
     """The forward selection's state: the effects chosen, (effect, held-out E once it was added) in order, every
-    round's ranked candidates, the per-fold parameters and the held-out E of the current model."""
+    round's ranked candidates, the per-fold parameters, the held-out E of the current model and its held-out squared
+    errors (None before an effect is chosen)."""
 
     chosen: list[str]
     added: list[tuple[str, float]]
     rounds: list[list[dict[str, Any]]]
     bases: list[Overrides]
     msg: float
+    sse: SSE | None = None
 
 
 @dataclass
@@ -206,9 +208,11 @@ def screen(
                 (closure(e_refs[j], e_cv, cf.floor), e_cv, [{**b[k], **r["params"]} for k, r in enumerate(pair)])
             )
         e_cv = opts[0][1]  # the honest share is on the current rig
+        current = res[2 * i : 2 * i + 2]
         ranked.append(
             {
                 "effect": c.name,
+                "held_sse": {**current[0]["sse"], **current[1]["sse"]},
                 "fold_params": opts[0][2],
                 "start": max(opts, key=lambda o: o[0])[2],
                 "starts": [o[2] for o in opts],
@@ -270,6 +274,7 @@ def refit_leaders(
             r.update(
                 fold_params=[q["params"] for q in pair],
                 params={c.param: c.combine([q["params"][c.param] for q in pair])},
+                held_sse={**pair[0]["sse"], **pair[1]["sse"]},
                 held_out_share_pct=100.0 * closure(e_base, e_j, cf.floor),
                 shrink_pct=shrink_pct(math.sqrt(e_base), math.sqrt(e_j)),
                 gap_after=math.sqrt(e_j),
@@ -331,7 +336,7 @@ def forward_selection(
             break
         fw.bases = [dict(b) for b in best["fold_params"]]
         fw.chosen.append(best["effect"])
-        fw.msg = best["gap_after"] ** 2
+        fw.msg, fw.sse = best["gap_after"] ** 2, best["held_sse"]
         fw.added.append((best["effect"], fw.msg))
         remaining = [c for c in remaining if c.name != best["effect"]]
         say(f"  gap left {math.sqrt(fw.msg):.4f} (noise {math.sqrt(cf.noise):.4f})")
@@ -382,8 +387,8 @@ def waterfall(cf: CrossFit, fw: Forward, order: list[str]) -> tuple[list[float],
     kept_forward = [e for e, _ in fw.added] == fw.chosen
     lin = [{q: v for q, v in b.items() if q in recal.LINEAR} for b in fw.bases]
     redo = range(len(fw.chosen), len(order)) if kept_forward else range(len(order))
-    if order and not redo:  # the last stage as measured, once more for its squared errors
-        redo = range(len(order) - 1, len(order))
+    if order and not redo:  # the forward selection's own last stage
+        return [e for _, e in fw.added], fw.sse
     calls = []
     for j in redo:
         keep = effect_params(order[: j + 1])
@@ -393,8 +398,7 @@ def waterfall(cf: CrossFit, fw: Forward, order: list[str]) -> tuple[list[float],
     sses = cf.pool.map(calls)
     pairs = [{**sses[2 * i], **sses[2 * i + 1]} for i in range(len(redo))]
     msgs = [e for _, e in fw.added] if kept_forward else []
-    msgs = (msgs + [cf.msg(pair) for pair in pairs])[: len(order)]
-    return msgs, pairs[-1] if pairs else None
+    return msgs + [cf.msg(pair) for pair in pairs], pairs[-1] if pairs else None
 
 
 def final_params(
@@ -768,7 +772,7 @@ def search(
         effects=effects,
         candidates=_candidate_table(cf, fw, signature, sse_signature, {c.name for c in cands}, e_base),
         rounds=[
-            [{k: v for k, v in r.items() if k not in ("fold_params", "start", "starts")} for r in rnd]
+            [{k: v for k, v in r.items() if k not in ("fold_params", "held_sse", "start", "starts")} for r in rnd]
             for rnd in fw.rounds + ([tested] if tested else [])
         ],
         gap=gap,
