@@ -642,8 +642,6 @@ def interval_text(lo: float, hi: float) -> str:
 
 def diagnosis_summary(d: Diagnosis) -> str:
     """A few lines for the terminal: verdict, effects in greedy order with their fitted parameters, the shrink."""
-    from .diagnosis.result import CHANNEL_STAGES
-
     lines = [f"verdict: {d.verdict}"]
     if d.calibration.gauge_delay_s:
         lines.append(f"  data: {d.calibration.gauge_delay_method}")
@@ -664,7 +662,7 @@ def diagnosis_summary(d: Diagnosis) -> str:
     if dec.channels:
         lines.append("held-out fit per channel: " + ", ".join(
             f"{k.replace('_', ' ')} " + " ".join(f"{c} {v:.1f} %" for c, v in by.items())
-            for k in CHANNEL_STAGES if (by := dec.channels.get(k)) is not None
+            for k, by in dec.channel_stages()
         ) + f"; the gap is in {dec.gap_channel()}")  # fmt: skip
     if d.gap.records:
         lines.append("each record's fit, recalibrated alone -> with the joint parameters: " + ", ".join(

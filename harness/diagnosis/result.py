@@ -253,9 +253,13 @@ class Decomposition:
         fits = {c: v for c, v in (self.channels or {}).get(stage or self.last_stage(), {}).items() if math.isfinite(v)}
         return min(fits, key=lambda c: fits[c]) if fits else None
 
+    def channel_stages(self) -> list[tuple[str, dict[str, float]]]:
+        """(stage, fit [%] per channel) for each stage of CHANNEL_STAGES that has them, in that order."""
+        return [(s, self.channels[s]) for s in CHANNEL_STAGES if self.channels and s in self.channels]
+
     def last_stage(self) -> str:
         """The last stage whose fit per channel is known: "after_effects", "after_recalibration" or "before"."""
-        return next((s for s in CHANNEL_STAGES[::-1] if s in (self.channels or {})), CHANNEL_STAGES[0])
+        return ([s for s, _ in self.channel_stages()] or [CHANNEL_STAGES[0]])[-1]
 
     def waterfall(self) -> list[tuple[str, float, float]]:
         """(stage, held-out gap after it, closed [%]) from ("simulation as given", before, NaN) on."""

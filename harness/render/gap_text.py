@@ -8,7 +8,7 @@ import math
 from typing import Any
 
 from ..diagnosis.effects import SELECTED_BY_SPREAD
-from ..diagnosis.result import CHANNEL_STAGES, Diagnosis, FittedParameter
+from ..diagnosis.result import Diagnosis, FittedParameter
 from .tables import fmt, fmt_any, num, table
 
 __all__ = ["LATTICE", "diagnosis_markdown", "gap_rows", "verdict_sentence"]
@@ -280,8 +280,7 @@ def _overall_lines(diag: Diagnosis) -> list[str]:
         stages = {"before": "as given", "after_recalibration": "recalibrated", "after_effects": "with the effects"}
         body = [
             [stages.get(k, k), *(fmt(by.get(c, math.nan)) for c in ("theta", "alpha"))]
-            for k in CHANNEL_STAGES
-            if (by := dec.channels.get(k)) is not None
+            for k, by in dec.channel_stages()
         ]
         lines += [
             *table(["held-out fit [%]", "theta", "alpha"], body),
