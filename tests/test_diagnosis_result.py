@@ -193,10 +193,14 @@ def test_a_missing_or_broken_file_is_one_line(tmp_path):
     assert "\n" not in str(err.value)
 
 
-def test_folds_disagree_only_when_their_intervals_exclude_each_other():
+def test_fits_are_apart_only_when_their_intervals_exclude_each_other_and_they_differ_by_5_pct():
     row = FittedParameter(nominal=1.3, fitted=1.5, ci95=[1.49, 1.51], change_pct=15.4, unit="N m/rad")
     assert not row.folds_disagree  # no per-fold fits
     row.folds = [[1.50, 1.49, 1.51], [1.505, 1.50, 1.52]]
     assert not row.folds_disagree  # overlapping: noise can separate them
     row.folds = [[1.45, 1.44, 1.46], [1.55, 1.54, 1.56]]
     assert row.folds_disagree
+    row.folds = [[1.50, 1.499, 1.501], [1.52, 1.519, 1.521]]
+    assert not row.folds_disagree  # excluding each other, but 1.3 % apart: under APART_MIN, one rig for any use
+    row.records = {"a": [1.50, 1.499, 1.501], "b": [1.52, 1.519, 1.521], "c": [1.40, 1.39, 1.41]}
+    assert row.records_apart == [("a", "c"), ("b", "c")]

@@ -28,6 +28,7 @@ from ..rundir import DataError, RunDir, from_plain, to_plain, write_json
 from .recalibrate import LINEAR, at_bound
 
 __all__ = [
+    "APART_MIN",
     "CHANNEL_STAGES",
     "Candidate",
     "Decomposition",
@@ -43,10 +44,15 @@ __all__ = [
     "SensorCalibration",
     "Step",
     "Thresholds",
+    "apart",
     "round_floats",
 ]
 
 T = TypeVar("T")
+# two fits of one parameter are apart (model error, not noise) when their 95 % intervals exclude each other and they
+# differ by more than this share of the larger: closer fits are one rig for any use of them, whatever their
+# intervals say (a closed loop's intervals miss the error its start and its fed-back noise make)
+APART_MIN = 0.05
 FIRST_STAGE = "simulation as given"  # the waterfall's first bar: the held-out gap before anything is fitted
 
 
@@ -81,6 +87,13 @@ class Folds:
         return "A and B" if a and b else "fold A" if a else "fold B" if b else "—"
 
 
+def apart(a: list[float], b: list[float]) -> bool:
+    """Are two fits [value, lo, hi] of one parameter apart: 95 % intervals that exclude each other, values more
+    than APART_MIN apart?"""
+    (va, lo_a, hi_a), (vb, lo_b, hi_b) = a, b
+    return (hi_a < lo_b or hi_b < lo_a) and abs(va - vb) > APART_MIN * max(abs(va), abs(vb))
+
+
 @dataclass
 class FittedParameter:
     """One row of the parameter table: a linear parameter recalibrated, or the parameter of an effect found, or a
@@ -111,18 +124,15 @@ class FittedParameter:
 
     @property
     def records_apart(self) -> list[tuple[str, str]]:
-        """The pairs of records whose own fits (:attr:`records`) have 95 % intervals that exclude each other."""
+        """The pairs of records whose own fits (:attr:`records`) are apart (:func:`apart`)."""
         r = self.records or {}
         names = list(r)
-        return [(a, b) for i, a in enumerate(names) for b in names[i + 1 :] if r[a][2] < r[b][1] or r[b][2] < r[a][1]]
+        return [(a, b) for i, a in enumerate(names) for b in names[i + 1 :] if apart(r[a], r[b])]
 
     @property
     def folds_disagree(self) -> bool:
-        """Do the two folds' own fits have 95 % intervals that exclude each other (model error, not noise)?"""
-        if not self.folds or len(self.folds) != 2:
-            return False
-        (_, lo_a, hi_a), (_, lo_b, hi_b) = self.folds
-        return hi_a < lo_b or hi_b < lo_a
+        """Are the two folds' own fits apart (:func:`apart`: model error, not noise)?"""
+        return bool(self.folds) and len(self.folds) == 2 and apart(*self.folds)
 
     @property
     def kept(self) -> bool:
