@@ -86,10 +86,7 @@ EXPLAINED = 0.5  # the effects found must close >= half the excess squared gap l
 GAP_RESOLUTION = 1e-3  # gap (fit 99.9 %) below which no sensor calibration can tell sim from rig
 DROP_MIN = 0.05  # an effect whose removal reopens less than 5 % of the excess gap is dropped
 JOINT_TOP = 2  # candidates refitted jointly with the linear parameters per round
-# the first round's gap beyond this x the floor with no candidate leading: every one refitted jointly (the CU arm
-# with a wrong drive and friction under two controllers: 73x; a lone record's start transients left 1.3x, where a
-# friction of 0.001 N m with its breakaway and Stribeck drop, refitted jointly, closed 54 % of them)
-LOST_RATIO = 10.0
+LOST_RATIO = 10.0  # the first round's gap beyond this x the floor and no candidate leading: every one refitted jointly
 FOLDS_APART = 0.1  # a fold's effect left at its start, the other's this share away: refitted from the other's too
 # An effect tested by its spread is kept when the replay's gap is its own spread window by window on held-out
 # experiments: mean divergence (spread_divergence) <= 1 and at most 0.3x that without it. On the closed blind
@@ -277,8 +274,10 @@ def refit_leaders(
             slots.append((len(calls), len(starts)))
             calls += [("refit", st, free, cf.fits[k], cf.helds[k]) for st in starts]
     joint = cf.pool.map(calls)
-    pairs = [[min(joint[a : a + m], key=lambda q: q["fit_msg"]) for a, m in slots[2 * i : 2 * i + 2]] for i in
-             range(len(picked))]  # fmt: skip
+    pairs = [
+        [min(joint[a : a + m], key=lambda q: q["fit_msg"]) for a, m in slots[2 * i : 2 * i + 2]]
+        for i in range(len(picked))
+    ]
     _cross_refit(cf, picked, pairs, by_name, free_before)
     for i, r in enumerate(picked):
         pair = pairs[i]
