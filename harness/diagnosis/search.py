@@ -9,9 +9,12 @@ Recalibration first: the linear parameters (:data:`harness.diagnosis.recalibrate
    mode shifts Ks), also on the spec's own linear rig;
 2. joint refit (:func:`refit_leaders`): the leaders (:func:`leaders`: the JOINT_TOP best by screening and by their
    share on the current rig, and every candidate the linear parameters mimic, ``joint``) refitted jointly with the
-   linear parameters and the effects already chosen, from every value a screening proposed for an integer;
+   linear parameters and the effects already chosen, from every value a screening proposed for an integer; every
+   candidate when none leads and the linear model is lost (the first round, LOST_RATIO x the floor away); a fold
+   that left an effect where it started refitted from the other fold's parameters (:func:`_cross_refit`);
 3. the best candidate enters when its screening or joint closure reaches MIN_CLOSURE and it lowers the held-out
-   gap; rounds go on while the gap is above NONE_RATIO x the floor.
+   gap (with the linear model lost and none entering, the two best refitted together, :func:`refit_pair`); rounds
+   go on while the gap is above NONE_RATIO x the floor.
 
 Score: closure = (E_before - E_after) / (E_before - E_floor), E the mean squared gap, E_floor = max(E_noise,
 GAP_RESOLUTION^2). Backward elimination (:func:`eliminate`) then drops an effect whose removal reopens less than
