@@ -377,25 +377,29 @@ def forward_selection(
                 for r in ranked
             )
         )
-        if best is None or _closes(best) < MIN_CLOSURE:
-            pair = refit_pair(cf, lower, by_name) if _lost(cf, fw.chosen, fw.msg) else None
-            if pair is None or closure(fw.msg, pair["added"][1][1], cf.floor) < MIN_CLOSURE:
-                break
-            (first, e_first), (second, e_pair) = pair["added"]
-            fw.added += pair["added"]
-            fw.bases, fw.msg, fw.sse = pair["fold_params"], e_pair, pair["held_sse"]
-            fw.chosen += [first, second]
-            remaining = [c for c in remaining if c.name not in (first, second)]
-            say(f"  {first} and {second} together: gap left {math.sqrt(e_pair):.4f} ({math.sqrt(e_first):.4f} with "
-                f"{first} alone; noise {math.sqrt(cf.noise):.4f})")  # fmt: skip
-            continue
-        fw.bases = [dict(b) for b in best["fold_params"]]
-        fw.chosen.append(best["effect"])
-        fw.msg, fw.sse = best["gap_after"] ** 2, best["held_sse"]
-        fw.added.append((best["effect"], fw.msg))
-        remaining = [c for c in remaining if c.name != best["effect"]]
-        say(f"  gap left {math.sqrt(fw.msg):.4f} (noise {math.sqrt(cf.noise):.4f})")
+        entering = _entering(cf, fw, best, lower, by_name)
+        if entering is None:
+            break
+        fw.added += entering["added"]
+        fw.chosen += [e for e, _ in entering["added"]]
+        fw.bases = [dict(b) for b in entering["fold_params"]]
+        fw.msg, fw.sse = entering["added"][-1][1], entering["held_sse"]
+        remaining = [c for c in remaining if c.name not in fw.chosen]
+        say(f"  {' and '.join(e for e, _ in entering['added'])}: gap left {math.sqrt(fw.msg):.4f} (noise "
+            f"{math.sqrt(cf.noise):.4f})")  # fmt: skip
     return fw
+
+
+def _entering(
+    cf: CrossFit, fw: Forward, best: dict[str, Any] | None, lower: list[dict[str, Any]], by_name: dict[str, Effect]
+) -> dict[str, Any] | None:
+    """What enters the model this round: the ``best`` candidate when it closes MIN_CLOSURE, else, with the linear
+    model lost, :func:`refit_pair`'s pair when it does; as ``added`` (each effect with the held-out E once it is in),
+    ``fold_params`` and ``held_sse``. None: nothing."""
+    if best is not None and _closes(best) >= MIN_CLOSURE:
+        return {"added": [(best["effect"], best["gap_after"] ** 2)], **best}
+    pair = refit_pair(cf, lower, by_name) if _lost(cf, fw.chosen, fw.msg) else None
+    return pair if pair is not None and closure(fw.msg, pair["added"][-1][1], cf.floor) >= MIN_CLOSURE else None
 
 
 def _lost(cf: CrossFit, chosen: list[str], msg: float) -> bool:
