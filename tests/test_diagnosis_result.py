@@ -10,7 +10,7 @@ from typing import Any
 
 import pytest
 
-from harness.diagnosis.result import Diagnosis, FittedParameter, round_floats
+from harness.diagnosis.result import Decomposition, Diagnosis, FittedParameter, round_floats
 from harness.rundir import DataError, write_json
 
 
@@ -204,3 +204,16 @@ def test_fits_are_apart_only_when_their_intervals_exclude_each_other_and_they_di
     assert not row.folds_disagree  # excluding each other, but 1.3 % apart: under APART_MIN, one rig for any use
     row.records = {"a": [1.50, 1.499, 1.501], "b": [1.52, 1.519, 1.521], "c": [1.40, 1.39, 1.41]}
     assert row.records_apart == [("a", "c"), ("b", "c")]
+
+
+def test_a_gap_left_within_the_none_ratio_of_the_floor_is_not_put_in_a_channel():
+    """The two-controller twin's gap with its friction found (0.0126 against a floor of 0.0106) is within 2x the
+    floor: its worse channel (theta 98.6 against alpha 98.9 %) is noise, not a place. The CU records' 0.137 is not."""
+    dec = Decomposition(before=0.58, after_recalibration=0.78, after_effects=0.0126, noise_floor=0.0106,
+                        resolution=1e-3, steps=[], definition="",
+                        channels={"after_effects": {"theta": 98.6, "alpha": 98.9}})  # fmt: skip
+    assert dec.at_floor(2.0) and not dec.at_floor(1.1) and dec.gap_channel() == "theta"
+    dec.after_effects = 0.137
+    assert not dec.at_floor(2.0)
+    dec.channels = {}
+    assert not dec.at_floor(2.0)  # no fit per channel: the stage is "before"

@@ -267,6 +267,11 @@ class Decomposition:
         """(stage, fit [%] per channel) for each stage of CHANNEL_STAGES that has them, in that order."""
         return [(s, self.channels[s]) for s in CHANNEL_STAGES if self.channels and s in self.channels]
 
+    def at_floor(self, ratio: float) -> bool:
+        """Is the gap left at the last stage with a fit per channel within ``ratio`` x the floor (max of the noise
+        floor and the resolution)? Then no channel holds a gap worth naming."""
+        return getattr(self, self.last_stage()) <= ratio * max(self.noise_floor, self.resolution)
+
     def last_stage(self) -> str:
         """The last stage whose fit per channel is known: "after_effects", "after_recalibration" or "before"."""
         return ([s for s, _ in self.channel_stages()] or [CHANNEL_STAGES[0]])[-1]

@@ -285,7 +285,12 @@ def _overall_lines(diag: Diagnosis) -> list[str]:
         lines += [
             *table(["held-out fit [%]", "theta", "alpha"], body),
             "",
-            f"{stages[dec.last_stage()].capitalize()}, the gap is in {dec.gap_channel()}: the channel that fits worse.",
+            f"{stages[dec.last_stage()].capitalize()}, "
+            + (
+                f"what is left is within {ratio:g}x the noise floor."
+                if dec.at_floor(ratio := diag.thresholds.none_ratio)
+                else f"the gap is in {dec.gap_channel()}: the channel that fits worse."
+            ),
             "",
         ]
     return lines
