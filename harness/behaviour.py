@@ -17,9 +17,10 @@ step's first sample; its *tail* is its last ``tail_s`` seconds, at most its seco
 - ``stop_error_deg``: ``d (r1 - final)``: positive when the hub stops short of the reference;
 - ``peak_alpha_deg``, ``peak_u_v``: the largest ``|alpha|``, ``|u|`` over the step;
 - ``ring_alpha_deg``: RMS of alpha over the tail, its mean removed;
-- ``ring_hz``: the dominant frequency of alpha over the tail (its Hann-windowed spectrum's peak, refined to a
-  fraction of a bin), NaN when alpha does not ring there: when the peak (+-2 bins of the unpadded spectrum) holds less
-  than half the tail's variance, or the tail holds less than two periods of it.
+- ``ring_hz``: the dominant frequency of alpha after settling (from the settling time, else the step's second half,
+  and at least over the tail; its Hann-windowed spectrum's peak, refined to a fraction of a bin), NaN when alpha does
+  not ring there: when the peak (+-2 bins of the unpadded spectrum) holds less than half that stretch's variance, or
+  the stretch holds less than two periods of it.
 
 The settling time is python-control's ``step_info`` rule (``T[last outside + 1]``, band ``SettlingTimeThreshold`` x
 the final value) with two differences that make it a step's own, independent of where the step starts: the band is a
@@ -267,6 +268,7 @@ def step_metrics(
         else:
             settling = math.nan
         tail = al[-n_tail:]
+        settled = s + (outside[-1] + 1 if outside.size and outside[-1] + 1 < e - s else (e - s) // 2)
         out.append(
             StepMetrics(
                 step=st,
@@ -277,7 +279,7 @@ def step_metrics(
                 peak_alpha_deg=float(np.max(np.abs(al))),
                 peak_u_v=float(np.max(np.abs(u[s:e]))),
                 ring_alpha_deg=float(np.sqrt(np.mean((tail - tail.mean()) ** 2))),
-                ring_hz=ring_frequency(t[e - n_tail : e], tail),
+                ring_hz=ring_frequency(t[min(settled, e - n_tail) : e], al[min(settled, e - n_tail) - s :]),
             )
         )
     return out

@@ -415,7 +415,8 @@ def import_(
         ),
     ] = None,
     zero_alpha: Annotated[
-        bool, typer.Option(help="zero the deflection on each record's first 0.1 s at rest (the gauge's zero)")
+        bool,
+        typer.Option(help="zero the deflection on each record's quietest 0.25 s at rest (the gauge's zero), if any"),
     ] = False,
     force: ForceOpt = False,
 ) -> None:
@@ -642,6 +643,8 @@ def interval_text(lo: float, hi: float) -> str:
 
 def diagnosis_summary(d: Diagnosis) -> str:
     """A few lines for the terminal: verdict, effects in greedy order with their fitted parameters, the shrink."""
+    from .render.gap_text import behaviour_outside, sensor_lines
+
     lines = [f"verdict: {d.verdict}"]
     if d.calibration.gauge_delay_s:
         lines.append(f"  data: {d.calibration.gauge_delay_method}")
@@ -650,6 +653,7 @@ def diagnosis_summary(d: Diagnosis) -> str:
             lo, hi = p.ci95
             shown = p.kept or "95 % interval" in p.finding  # an undetermined one's finding gives it already
             lines.append(f"  {name}: {p.finding}" + ("" if shown else f" (95 % interval {interval_text(lo, hi)})"))
+    lines += [f"  sensors: {r}" for r in sensor_lines(d)]
     for e in d.effects:
         params = ", ".join(f"{k}={v:.4g}" for k, v in e.params.items())
         lines.append(f"  + {e.effect} ({params}): shrink {e.shrink_pct:.1f} % on held-out experiments")
@@ -671,6 +675,10 @@ def diagnosis_summary(d: Diagnosis) -> str:
     lines.append(
         f"gap: fit {d.gap.before.fit_pct:.2f} % -> {d.gap.after.fit_pct:.2f} %, total shrink {d.gap.shrink_pct:.1f} %"
     )
+    for name, outside in behaviour_outside(d).items():
+        cover = 100.0 * d.behaviour[name].coverage if d.behaviour else math.nan
+        lines.append(f"behaviour {name}: {cover:.0f} % of its step metrics inside the replays' 95 % band"
+                     + (f"; outside: {', '.join(outside)}" if outside else ""))  # fmt: skip
     lines += [f"caveat: {c}" for c in d.caveats or []]
     replays = sorted({(r["replay"], r["reason"]) for r in (d.replays or {}).values()})
     lines += [f"replay: {kind} ({why})" for kind, why in replays]
@@ -688,8 +696,9 @@ def blindtest(
             "--family",
             help="twin, nuisance, independent, closed (the nuisance rigs under state feedback, 500 Hz and 1 kHz "
             "records replayed in closed loop), wrong_sheet (closed-loop rigs whose drive, Ks and gauge gain are off "
-            "their sheet, the data converted with the sheet's gauge gain; only when named); repeat; default the "
-            "first four",
+            "their sheet, the data converted with the sheet's gauge gain), real_like (units of the CU arm logged as "
+            "real records are: gauge offsets, a ringing start, a command offset, two controllers, imported with "
+            "--zero-alpha); the last two only when named; repeat; default the first four",
         ),
     ] = None,
     quick: Annotated[bool, typer.Option("--quick", help="the shortened blind campaign (12 s experiments)")] = False,

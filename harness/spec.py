@@ -92,6 +92,12 @@ def fmu_parameters(model: str) -> dict[str, tuple[str, Any]]:
     return {name: (v.type, v.start) for name, v in _model_parameters(model).items()}
 
 
+def physical_range(model: str, name: str) -> tuple[float, float]:
+    """The range [min, max] a parameter of FMU ``model`` declares (-inf / inf where it declares none)."""
+    v = _model_parameters(model)[name]
+    return (-math.inf if v.min is None else float(v.min), math.inf if v.max is None else float(v.max))
+
+
 def fmu_value(table: Mapping[str, Any], model: str, name: str) -> float:
     """Parameter ``name`` of FMU ``model`` ("flexjoint", "daq"): its value in ``table``, else the FMU's default."""
     return float(table[name] if name in table else fmu_parameters(model)[name][1])

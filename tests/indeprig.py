@@ -176,6 +176,7 @@ class IndepRig:
     eta_m: float = 0.69  # motor efficiency [-]
     motor_gain: float = 1.0  # factor on eta_g eta_m (drive torque and back-EMF damping) [-]
     amp_limit: float = 0.0  # amplifier saturation [V], 0 = none
+    u_offset: float = 0.0  # amplifier input offset [V]: it drives (held command + u_offset), then its limit
     # drive train
     Jeq: float = 2.08e-3  # motor side + hub inertia at the load shaft [kg m^2]
     Jm_fraction: float = 0.4  # share of Jeq on the motor side of the play [-]
@@ -190,6 +191,7 @@ class IndepRig:
     # link
     m_link: float = 0.065  # [kg]
     L_link: float = 0.419  # [m]
+    m_tip: float = 0.0  # a point mass at the tip [kg]
     EI: float = ei_from_ks(1.3, 0.419)  # flexural rigidity [N m^2] (Ks_eq = 1.3 N m/rad)
     n_modes: int = 1  # assumed modes (1..3)
     zeta_link: float = 0.01  # modal damping ratio [-]
@@ -222,7 +224,7 @@ class IndepRig:
         for name in ("Rm", "kt", "Kg", "Jeq", "m_link", "L_link", "EI", "motor_gain", "pot_gain", "adc_range"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"IndepRig.{name} = {getattr(self, name)} must be > 0")
-        for name in ("km", "Beq", "backlash", "coulomb_torque", "amp_limit", "zeta_link", "noise_theta"):
+        for name in ("km", "Beq", "backlash", "coulomb_torque", "amp_limit", "zeta_link", "noise_theta", "m_tip"):
             if getattr(self, name) < 0:
                 raise ValueError(f"IndepRig.{name} = {getattr(self, name)} must be >= 0")
         if self.noise_alpha < 0 or self.dac_limit <= 0 or self.gauge_Ke == 0:
@@ -273,13 +275,13 @@ def mode_frequencies(rig: IndepRig, hub: str = "free") -> np.ndarray:
     dropped) or "clamped"."""
     b = beam_of(rig)
     if hub == "clamped":
-        lam = np.linalg.eigvals(np.linalg.solve(b.mass, b.stiffness)).real
+        lam = np.linalg.eigvals(np.linalg.solve(b.mass + rig.m_tip, b.stiffness)).real
     elif hub == "free":
         n = int(rig.n_modes)
         M = np.zeros((n + 1, n + 1))
-        M[0, 0] = rig.Jeq + b.J_rigid
-        M[0, 1:] = M[1:, 0] = b.coupling
-        M[1:, 1:] = b.mass
+        M[0, 0] = rig.Jeq + b.J_rigid + rig.m_tip * rig.L_link**2
+        M[0, 1:] = M[1:, 0] = b.coupling + rig.m_tip * rig.L_link
+        M[1:, 1:] = b.mass + rig.m_tip
         K = np.zeros_like(M)
         K[1:, 1:] = b.stiffness
         lam = np.sort(np.linalg.eigvals(np.linalg.solve(M, K)).real)[1:]
@@ -329,7 +331,7 @@ class _Plant:
         M = np.zeros((N, N))
         K = np.zeros((N, N))
         D = np.zeros((N, N))
-        M[nh:, nh:] = b.mass
+        M[nh:, nh:] = b.mass + rig.m_tip  # a tip mass moves with every mode's unit tip deflection
         K[nh:, nh:] = b.stiffness
         k_modal = np.diag(b.stiffness)
         D[nh:, nh:] = np.diag(2.0 * rig.zeta_link * np.sqrt(k_modal * np.diag(b.mass)))
@@ -340,12 +342,12 @@ class _Plant:
             Jh = rig.Jeq - Jm if self.play else 0.0
             ih = self.ih
             M[0, 0] += Jm
-            M[ih, ih] += Jh + b.J_rigid
-            M[ih, nh:] = M[nh:, ih] = b.coupling
+            M[ih, ih] += Jh + b.J_rigid + rig.m_tip * rig.L_link**2
+            M[ih, nh:] = M[nh:, ih] = b.coupling + rig.m_tip * rig.L_link
             D[0, 0] = rig.Beq + Bemf
             f_tip[ih] = 1.0
             if self.play:
-                Jhub = Jh + b.J_rigid
+                Jhub = Jh + b.J_rigid + rig.m_tip * rig.L_link**2
                 self.k_c = rig.contact_stiffness
                 self.c_c = 2.0 * rig.contact_zeta * math.sqrt(self.k_c * Jm * Jhub / (Jm + Jhub))
                 self.half_play = 0.5 * rig.backlash
@@ -563,7 +565,8 @@ def simulate(
     u_held = np.zeros(n)
     if d < n:
         u_held[d:] = u_dac[: n - d]
-    u_amp = np.clip(u_held, -rig.amp_limit, rig.amp_limit) if rig.amp_limit > 0 else u_held
+    u_in = u_held + rig.u_offset
+    u_amp = np.clip(u_in, -rig.amp_limit, rig.amp_limit) if rig.amp_limit > 0 else u_in
     if tau_tip is not None:
         tau_tip = np.asarray(tau_tip, dtype=float)
         if tau_tip.shape != u.shape or not np.all(np.isfinite(tau_tip)):
@@ -770,9 +773,13 @@ def simulate_closed(
     seed: int = 0,
     rtol: float = RTOL,
     check: bool = True,
+    start: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0),
+    calibration: tuple[float, float, float, float] | None = None,
 ) -> dict[str, np.ndarray]:
     """Run one closed-loop record: the shaft tracks ``ref_rad`` [rad per sample at Ts] under ``controller`` (a
-    spec's controller or its dict, :meth:`LabLaw.of`), from rest; ``seed`` draws the noise.
+    spec's controller or its dict, :meth:`LabLaw.of`), from ``start`` (hub angle, tip deflection angle [rad] in the
+    first mode, and their rates [rad/s]; default rest); ``seed`` draws the noise; ``calibration``: the one the lab
+    controller converts its volts with (default :func:`nominal_calibration`: a lab that knows its gauge's offset).
 
     Sample by sample: at t_k the DAQ samples the state (noise, ADC, as :func:`simulate`); the controller converts
     those volts with :func:`nominal_calibration` and computes u_k, which after the DAC clamp, ``delay_samples`` and
@@ -802,11 +809,15 @@ def simulate_closed(
     n, d = ref.size, int(rig.delay_samples)
     plant = _Plant(rig, hub_locked=False)
     stepper = _Stepper(plant, Ts, rtol)
-    ctl = LabController(law, Ts, nominal_calibration(rig))
+    ctl = LabController(law, Ts, calibration or nominal_calibration(rig))
     noise_theta, noise_alpha = _noise(rig, seed, n)
     bits, fs = int(rig.adc_bits), rig.adc_range
     t = np.arange(n) * Ts
     S = np.zeros((n, 2 * plant.N))
+    S[0, plant.ih], S[0, plant.nh], S[0, plant.N + plant.ih], S[0, plant.N + plant.nh] = (
+        start[0], rig.L_link * start[1], start[2], rig.L_link * start[3])  # fmt: skip
+    if plant.play:
+        S[0, plant.im], S[0, plant.N + plant.im] = start[0], start[2]
     u, u_amp, theta_v, alpha_v = (np.zeros(n) for _ in range(4))
     ih, curv = plant.ih, gauge_scale(rig) * beam_of(rig).curv0 * DEG  # alpha_gauge [deg] per modal coordinate
     amp = rig.amp_limit if rig.amp_limit > 0 else math.inf
@@ -822,8 +833,8 @@ def simulate_closed(
         theta_v[k] = adc(pot_volts(s[ih] * DEG, rig) + noise_theta[k], bits, fs)
         alpha_v[k] = adc(gauge_volts(curv @ s[plant.nh : plant.N], rig, k * Ts) + noise_alpha[k], bits, fs)
         u[k] = ctl.step(float(ref[k]), float(theta_v[k]), float(alpha_v[k]))
-        if k >= d:
-            u_amp[k] = min(max(min(max(u[k - d], -rig.dac_limit), rig.dac_limit), -amp), amp)
+        held = min(max(u[k - d], -rig.dac_limit), rig.dac_limit) if k >= d else 0.0
+        u_amp[k] = min(max(held + rig.u_offset, -amp), amp)
         if k + 1 < n:
             S[k + 1] = stepper.advance(s, t[k : k + 2], float(u_amp[k]), 0.0)[0]
     return {

@@ -331,3 +331,36 @@ def test_cli_runs_the_wrong_sheet_family(tmp_path, fmus):
     assert "wrong sheet: all four" in r.stdout and doc["totals"]["wrong_sheet"]["n"] == 1
     bad = flexjoint("blindtest", "--n", 1, "--family", "wrong_sheets", "--out", tmp_path / "bad")
     assert bad.returncode != 0 and "unknown family wrong_sheets" in bad.stderr and "wrong_sheet" in bad.stderr
+
+
+def test_real_like_units_carry_what_real_records_show():
+    """Half the units one library effect, half none, every other one on the independent simulator; each with a
+    command offset within 0.2 V, a link damped at 0.002-0.05, and per record a gauge zero error within 5 deg and a
+    ring of 0.3-1.5 deg at its start; its own draws (the other families' unchanged)."""
+    cases = bt.plan(20, 3, ("real_like",))
+    assert cases == bt.plan(20, 3, ("real_like",)) and [c["case"] for c in cases] == list(range(20))
+    assert [c["kind"] for c in cases].count("single") == 10 and [c["kind"] for c in cases].count("none") == 10
+    assert [c["unit"]["simulator"] for c in cases].count("independent") == 10
+    u = [c["nuisance"]["plant.u_offset"] for c in cases]
+    zeta = [c["nuisance"]["plant.zeta_link"] for c in cases]
+    assert max(map(abs, u)) <= 0.2 and min(u) < -0.05 and max(u) > 0.05
+    assert 0.002 <= min(zeta) and max(zeta) <= 0.05 and max(zeta) / min(zeta) > 4
+    recs = [r for c in cases for r in c["unit"]["records"]]
+    assert {r["name"] for r in recs} == {"p_only", "p_tip"}
+    assert max(abs(r["gauge_deg"]) for r in recs) <= 5.0 and all(0.3 <= r["ring_deg"] <= 1.5 for r in recs)
+    assert bt.plan(20, 3, ("twin",)) == bt.plan(20, 3, ("twin",))  # unchanged by the family's own stream
+    assert "real_like" not in bt.FAMILIES  # run when named
+
+
+def test_a_real_like_unit_on_the_independent_simulator_gives_back_its_friction_and_offsets(tmp_path, fmus):
+    """A unit of the independent simulator (its own beam with the tip mass, its own Stribeck friction and lab
+    controller) with Coulomb friction, gauges reading their own zeros, rings at the starts and a command offset,
+    imported with --zero-alpha: friction named and sized within 10 %, each record's gauge offset within 0.1 deg in
+    its own zero, the command offset within 0.02 V."""
+    case = next(c for c in bt.plan(6, 0, ("real_like",)) if c["unit"]["simulator"] == "independent" and
+                c["truth_effects"] == ["coulomb_friction"])  # fmt: skip
+    files = {k: bt.fmu_bytes(v) for k, v in fmus.items()}
+    score = bt.run_case(case, tmp_path, False, files)["score"]
+    assert score["verdict"] == "coulomb_friction" and score["param_ok"], score
+    assert abs(score["fitted"]["plant.coulomb_torque"] / case["truth_params"]["plant.coulomb_torque"] - 1) < 0.1
+    assert score["offsets_ok"], score

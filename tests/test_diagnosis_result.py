@@ -10,7 +10,7 @@ from typing import Any
 
 import pytest
 
-from harness.diagnosis.result import Decomposition, Diagnosis, FittedParameter, round_floats
+from harness.diagnosis.result import Diagnosis, FittedParameter, round_floats
 from harness.rundir import DataError, write_json
 
 

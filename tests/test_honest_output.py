@@ -24,7 +24,7 @@ from harness.diagnosis.diagnose import diagnose_run
 from harness.diagnosis.experiments import RigExperiment, load_experiments
 from harness.diagnosis.noise import noise_floor, value_step
 from harness.diagnosis.result import Diagnosis, FittedParameter
-from harness.diagnosis.search import recalibrated_alone
+from harness.diagnosis.search import combine
 from harness.ident.calibration import load_calibration
 from harness.render.gap_text import diagnosis_markdown
 from harness.rig import records
@@ -380,10 +380,13 @@ def test_value_step_is_the_common_step_of_the_values():
 # ----------------------------------------------------------------------------------------------- recalibration alone
 
 
-def test_recalibration_alone_is_the_folds_geometric_mean():
-    rec = [{"params": {"plant.Ks": 1.2, "rig.drive_tau": 0.06}}, {"params": {"plant.Ks": 1.5, "rig.drive_tau": 0.096}}]
-    alone = recalibrated_alone(rec)
-    assert alone == {"plant.Ks": pytest.approx(math.sqrt(1.2 * 1.5)), "rig.drive_tau": pytest.approx(0.0758947)}
+def test_recalibration_alone_is_the_folds_geometric_mean_and_an_offset_their_mean():
+    """Two folds' fits made one: a ratio's geometric mean (a factor either way is as far), an offset's mean (it may be
+    0 or negative), an effect's own rule (an integer's common value)."""
+    assert combine("plant.Ks", [1.2, 1.5]) == pytest.approx(math.sqrt(1.2 * 1.5))
+    assert combine("rig.drive_tau", [0.06, 0.096]) == pytest.approx(0.0758947)
+    assert combine("plant.u_offset", [-0.1, 0.04]) == pytest.approx(-0.03)
+    assert combine("daq.delay_samples", [2, 2]) == 2
 
 
 def _honest_doc() -> dict:

@@ -69,6 +69,7 @@ from ..rig.campaign import run_campaign
 from ..rundir import Manifest, RunDir, record_inputs, write_json
 from .diagnose import diagnose_run
 from .effects import EFFECTS
+from .reallike import make_unit, offsets_ok, plan_units
 from .result import Diagnosis
 from .rigmodel import combos, to_plant
 from .simulation import fmu_value
@@ -78,7 +79,7 @@ Progress = Callable[[str], None]
 BLIND_SPEC = specmod.SPEC_DIR / "blind.toml"
 CLOSED_SPEC = specmod.SPEC_DIR / "blind_closed.toml"
 FAMILIES = ("twin", "nuisance", "independent", "closed")  # the default set
-EXTRA_FAMILIES = ("wrong_sheet",)  # run when asked for by name
+EXTRA_FAMILIES = ("wrong_sheet", "real_like")  # run when asked for by name
 KNOWN_FAMILIES = (*FAMILIES, *EXTRA_FAMILIES)
 LOOP_FAMILIES = ("closed", "wrong_sheet")  # run under state feedback on specs/blind_closed.toml
 CLOSED_RATES = (500.0, 1000.0)  # Hz: the closed-loop families' cases alternate between these sample rates
@@ -191,14 +192,15 @@ def plan(n: int, seed: int, families: tuple[str, ...] = ("twin",)) -> list[dict[
     if bad or not families:
         what = bad[0] if bad else "(none given)"
         raise ValueError(f"unknown family {what}: expected some of {', '.join(KNOWN_FAMILIES)}")
-    if "wrong_sheet" not in families:
+    apart = {"wrong_sheet": _plan_wrong_sheet, "real_like": plan_units}  # families planned apart, each its own draws
+    if not any(f in apart for f in families):
         return _plan(n, seed, families)
     slots = [families[i % len(families)] for i in range(n)]
-    n_ws = slots.count("wrong_sheet")
-    others = tuple(f for f in families if f != "wrong_sheet")
-    rest = iter(_plan(n - n_ws, seed, others) if n > n_ws else [])
-    ws = iter(_plan_wrong_sheet(n_ws, seed))
-    return [{**next(ws if f == "wrong_sheet" else rest), "case": i} for i, f in enumerate(slots)]
+    others = tuple(f for f in families if f not in apart)
+    n_rest = sum(f in others for f in slots)
+    streams = {f: iter(plan_f(slots.count(f), seed)) for f, plan_f in apart.items() if f in families}
+    streams["rest"] = iter(_plan(n_rest, seed, others) if n_rest else [])
+    return [{**next(streams[f if f in apart else "rest"]), "case": i} for i, f in enumerate(slots)]
 
 
 def _plan(n: int, seed: int, families: tuple[str, ...]) -> list[dict[str, Any]]:
@@ -319,6 +321,8 @@ def make_rig_run(case: dict[str, Any], dest: Path, fmus: dict[str, Path] | None 
     (:func:`sheet_calibration` in ``calibration.json``)."""
 
     family = case.get("family", "twin")
+    if family == "real_like":
+        return make_unit(case, dest, independent_simulator(), fmus)
     base = campaign_spec(quick, family=family)
     seed = _case_sets(case)
     sensor = case.get("sensor", {})
@@ -444,6 +448,7 @@ def scores(cases: list[dict[str, Any]]) -> dict[str, Any]:
     out = [c for c in cases if c["kind"] == "out"]
     recal = [c for c in cases if "recal_ok" in c["score"]]
     sheet = [c for c in cases if "sheet_ok" in c["score"]]
+    units = [c for c in cases if "offsets_ok" in c["score"]]
     per_effect = {}
     for eff in EFFECTS:
         cs = [c for c in single if c["truth_effects"][0] == eff]
@@ -491,6 +496,7 @@ def scores(cases: list[dict[str, Any]]) -> dict[str, Any]:
             else math.nan,
         },
         "wrong_sheet": _sheet_group(sheet),
+        "offsets_within_tolerance": _share([c["score"]["offsets_ok"] for c in units]),
     }
 
 
@@ -531,6 +537,7 @@ SCORE_ROWS: dict[str, tuple[str, ...]] = {
     "wrong sheet: Ks +-10 %": ("wrong_sheet", "rows", "plant.Ks", "within_10pct"),
     "wrong sheet: gauge gain +-10 %": ("wrong_sheet", "rows", "sensor.alpha_gauge_gain", "within_10pct"),
     "wrong sheet: all four +-10 %": ("wrong_sheet", "all_four_within_10pct"),
+    "real like: offsets within 0.1 deg and 0.02 V": ("offsets_within_tolerance",),
 }
 
 
@@ -546,7 +553,9 @@ def shown_rows(tot: dict[str, Any]) -> list[str]:
     """The score rows a summary shows: every row, but the wrong_sheet ones only when a case scores them (a blind
     test of blindtest.json files written before the family lack them)."""
     ws = tot.get("wrong_sheet", {}).get("n", 0)
-    return [r for r in SCORE_ROWS if SCORE_ROWS[r][0] != "wrong_sheet" or ws]
+    units = tot.get("offsets_within_tolerance", {}).get("n", 0)
+    return [r for r in SCORE_ROWS if (SCORE_ROWS[r][0] != "wrong_sheet" or ws)
+            and (SCORE_ROWS[r][0] != "offsets_within_tolerance" or units)]  # fmt: skip
 
 
 def not_fitted_line(tot: dict[str, Any]) -> str | None:
@@ -607,8 +616,9 @@ def slowest_first(cases: list[dict[str, Any]]) -> list[dict[str, Any]]:
     each, 162 s serially) took 91.8 s on 2 plain processes, the 86 s closed case started third; 82.2 s so."""
 
     def key(case: dict[str, Any]) -> tuple[bool, float, bool]:
-        closed = case.get("family") in LOOP_FAMILIES
-        rate = CLOSED_RATES[case["case"] % len(CLOSED_RATES)] if closed else 0.0
+        closed = case.get("family") in (*LOOP_FAMILIES, "real_like")
+        rate = 2000.0 if case.get("family") == "real_like" else (
+            CLOSED_RATES[case["case"] % len(CLOSED_RATES)] if closed else 0.0)  # fmt: skip
         return (not closed, -rate, case["kind"] == "none")
 
     return sorted(cases, key=key)
@@ -627,9 +637,15 @@ def run_case(
         if d.exists():
             shutil.rmtree(d)
         make_rig_run(case, d, files, quick)
-        sim = campaign_spec(quick, _case_sets(case)[1:], case.get("family", "twin"))  # the case's rate, not seed
+        if case.get("family") == "real_like":
+            sim = specmod.load("cu_flexible_arm")
+        else:
+            sim = campaign_spec(quick, _case_sets(case)[1:], case.get("family", "twin"))  # the case's rate, not seed
         diag = diagnose_run(d, sim, d, workers=1, fmus=files)
-    return {**case, "score": score_case(case, diag), "timing_s": time.perf_counter() - tc}
+        score = score_case(case, diag)
+        if case.get("family") == "real_like" and diag.rig is not None:
+            score |= offsets_ok(case, d, diag.rig.overrides)
+    return {**case, "score": score, "timing_s": time.perf_counter() - tc}
 
 
 def blindtest(

@@ -52,7 +52,7 @@ from .replays import write_replays
 from .result import Diagnosis, FittedParameter, Folds, RecordSensors, RigFit, SensorCalibration, Thresholds
 from .rigmodel import prior_sd
 from .search import POLICY, Policy, SearchResult, search
-from .simulation import Setup, fit_pct, fmu_value, lattice_in_loop, offset_key, replay_noise, sim_rig
+from .simulation import Setup, fit_pct, fmu_value, lattice_in_loop, link_keys, offset_key, replay_noise, sim_rig
 from .tasks import SENSOR_CHANNELS, Pool, Replay, Where
 
 __all__ = ["diagnose_run", "priors", "thresholds"]
@@ -75,7 +75,7 @@ def _rig_fit(found: SearchResult) -> RigFit:
 
 def _sensors(found: SearchResult, experiments: dict[str, RigExperiment]) -> dict[str, RecordSensors]:
     """Each record's gauge offset as fitted (a closed loop's, with its interval) or as an open loop's least squares
-    took it (its reading at rest), and where its replay started the link."""
+    took it (its reading at rest), and where its (first) replay started the link (a closed loop's as fitted)."""
     out: dict[str, RecordSensors] = {}
     for x in experiments.values():
         if x.record in out:
@@ -86,11 +86,11 @@ def _sensors(found: SearchResult, experiments: dict[str, RigExperiment]) -> dict
             offset = [float(found.final[key]), float(lo), float(hi)]
         else:
             offset = [float(x.alpha_rest), math.nan, math.nan]
-        start = x.start_state
+        a, r = link_keys(x.name)
         out[x.record] = RecordSensors(
             gauge_offset_deg=offset,
-            link_start_deg=math.degrees(start["alpha_start"]) - offset[0] if "alpha_start" in start else None,
-            link_rate_start_deg_s=math.degrees(start["alpha_dot_start"]) if "alpha_dot_start" in start else None,
+            link_start_deg=float(found.final.get(a, x.link_start[0])),
+            link_rate_start_deg_s=float(found.final.get(r, x.link_start[1])),
         )
     return out
 
@@ -217,6 +217,8 @@ def diagnose_run(
     shipped = {k: fmu_bytes(fmus[k]) for k in ("flexjoint", "daq", "controller") if k in fmus}
     noise, _ = noise_floor(records, adc_range, cal, experiments)
     sigma = {"theta": noise.theta_deg, "alpha": noise.alpha_deg}  # [deg], an ADC's quantisation included
+    for x in experiments.values():  # a channel within twice its noise's variance carries nothing a model can fit
+        x.quiet = frozenset(c for c in sigma if x.sst[c] <= 2.0 * x.u.size * sigma[c] ** 2)
     lattice = replay_noise(daq, noise.estimated_deg) if noise.adc_lattice_bits and noise.estimated_deg else {}
     prior, rel_se = priors(sim_spec, cal.gain_rel_se(), all(x.encoder for x in experiments.values()))
     setup = Setup(plant, daq, cal.comb_angles, experiments, shipped, replay_noise(daq, sigma), lattice, rel_se, prior,
@@ -269,6 +271,7 @@ def diagnose_run(
         caveats=_caveats(found.parameters, found.verdict, folds, [e.effect for e in found.effects]),
         rig=_rig_fit(found),
         sensors=_sensors(found, experiments),
+        behaviour=found.behaviour or None,
     ).rounded()
     diagnosis.write(RunDir(dest).diagnosis)
     write_replays(RunDir(dest).diagnosis_replays, experiments, dict(zip(stages, traces, strict=True)))

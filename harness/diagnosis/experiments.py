@@ -71,7 +71,7 @@ LINK_START_SHARE = 0.1  # ... or its link is deflected by this share of its larg
 SMOOTH_SECONDS = 0.02  # s: window of the smoothed rates of the measured state (a multiple-shooting start)
 START_WINDOWS = 4  # a record's start rates: a cubic over SMOOTH_SECONDS x 1, 2, 4, 8, the widest that agrees ...
 START_AGREE = 3.0  # ... with every narrower one's slope within this many of that one's standard errors
-RING_SECONDS = 1.0  # s: a record's first stretch, where its link's ring at the start is read, is at most this long
+RING_SECONDS = 2.0  # s: a record's first stretch, where its link's ring at the start is read, is at most this long
 RING_PERIODS = 1.5  # ... and holds at least this many periods of what it shows
 
 
@@ -87,7 +87,8 @@ class RigExperiment:
     and ``replay_reason`` why; ``encoder``: theta was read by an encoder (no pot wrap or dead band);
     ``lattice_deg``: the angle step [deg] per channel a record was written on (from its import). The fit
     window (first FIT_SECONDS) and the screening window (first SCREEN_SECONDS) have their own sample counts and
-    sums of squares."""
+    sums of squares. ``record``: the record it is (a part of); ``measured_start``: where a part cut from an open-loop
+    record starts; ``quiet``: the channels that do not move beyond their noise (:meth:`moves`)."""
 
     name: str
     kind: str
@@ -117,6 +118,7 @@ class RigExperiment:
     lattice_deg: dict[str, float] | None = None
     record: str = ""
     measured_start: dict[str, float] | None = None
+    quiet: frozenset[str] = frozenset()
 
     def __post_init__(self) -> None:
         self.record = self.record or self.name
@@ -167,14 +169,32 @@ class RigExperiment:
         rates = {"theta_dot_start": _start_rate(x[:, 0], self.Ts), "alpha_dot_start": _start_rate(x[lag:, 1], self.Ts)}
         return {"alpha_start": float(x[lag, 1]), **rates}
 
+    @property
+    def link_start(self) -> tuple[float, float]:
+        """The link's deflection from rest [deg] and its rate [deg/s] at the first sample, as the gauge reads them
+        (:attr:`start_state` less the record's rest reading :attr:`alpha_rest`; 0 where the record starts at rest):
+        where a closed loop's replay starts the link, before a fit moves it."""
+        s = self.start_state
+        a = math.degrees(s["alpha_start"]) - self.alpha_rest if "alpha_start" in s else 0.0
+        return a, math.degrees(s.get("alpha_dot_start", 0.0))
+
     @cached_property
     def link_ring(self) -> Ring | None:
-        """The link's ring over the record's first stretch (until its reference, or an open loop's command, first
-        changes; at most RING_SECONDS), read ``gauge_delay`` samples on: :func:`fit_ring`; None where that stretch
-        is too short to hold RING_PERIODS periods of what it shows."""
+        """The link's ring over the record's first stretch, where the rig starts undriven (a closed loop's hub within
+        LINK_START_SHARE of its reference's range from its reference, an open loop's command at 0) until its
+        reference, or command, first changes (at most RING_SECONDS), read ``gauge_delay`` samples on:
+        :func:`fit_ring`; None where the rig starts driven or that stretch is too short to hold RING_PERIODS periods
+        of what it shows."""
         lag = int(self.daq.get("gauge_delay", 0))
         drive = self.ref if self.ref is not None else self.u
-        moved = np.flatnonzero(np.abs(drive - drive[0]) > 1e-9 * max(float(np.max(np.abs(drive))), 1e-12))
+        scale = max(float(np.max(np.abs(drive))), 1e-12)
+        if self.ref is not None:
+            driven = abs(float(self.ref[0] - self.theta[0])) > LINK_START_SHARE * max(float(np.ptp(self.ref)), 1e-12)
+        else:
+            driven = abs(float(self.u[0])) > 1e-9 * scale
+        if driven:
+            return None
+        moved = np.flatnonzero(np.abs(drive - drive[0]) > 1e-9 * scale)
         end = min(int(moved[0]) if moved.size else drive.size, int(round(RING_SECONDS / self.Ts)), self.u.size - lag)
         return fit_ring(self.alpha[lag : lag + end], self.Ts) if end > 0 else None
 
@@ -191,6 +211,12 @@ class RigExperiment:
             return float(np.median(self.alpha))
         i = int(np.argmin(_quietness(self)[w // 2 : self.u.size - w // 2])) if self.u.size > w else 0
         return float(np.median(self.alpha[i : i + w]))
+
+    def moves(self, channel: str, which: str = "all") -> bool:
+        """Does ``channel`` move over window ``which`` (:meth:`window`) beyond its noise (not one of :attr:`quiet`,
+        which the diagnosis marks from the noise floor: a channel whose variance is within twice its noise's carries
+        nothing a model can fit)?"""
+        return self.window(which)[1][channel] > 0 and channel not in self.quiet
 
     def window(self, which: str) -> tuple[int, dict[str, float]]:
         """(samples, sst per channel) of a window: "all", "fit" (first FIT_SECONDS), "screen" (SCREEN_SECONDS)."""
@@ -209,9 +235,11 @@ class RigExperiment:
 @dataclass(frozen=True)
 class Ring:
     """A link ringing freely over a record's first stretch, as the gauge reads it [deg]: alpha(t) = offset_deg +
-    exp(-decay t) (a_deg cos(omega t) + b_deg sin(omega t)), ``omega`` [rad/s], ``decay`` [1/s]."""
+    drift_deg_s t + exp(-decay t) (a_deg cos(omega t) + b_deg sin(omega t)), ``omega`` [rad/s], ``decay`` [1/s]
+    (the drift: what the hub's slow motion deflects the link by)."""
 
     offset_deg: float
+    drift_deg_s: float
     a_deg: float
     b_deg: float
     omega: float
@@ -222,30 +250,31 @@ class Ring:
         included) and alpha_dot_start [rad/s]."""
         return {
             "alpha_start": math.radians(self.offset_deg + self.a_deg),
-            "alpha_dot_start": math.radians(self.omega * self.b_deg - self.decay * self.a_deg),
+            "alpha_dot_start": math.radians(self.drift_deg_s + self.omega * self.b_deg - self.decay * self.a_deg),
         }
 
 
 def _ring_basis(t: np.ndarray, omega: float, decay: float) -> np.ndarray:
     env = np.exp(-decay * t)
-    return np.column_stack([np.ones_like(t), env * np.cos(omega * t), env * np.sin(omega * t)])
+    return np.column_stack([np.ones_like(t), t, env * np.cos(omega * t), env * np.sin(omega * t)])
 
 
 def fit_ring(y: np.ndarray, Ts: float) -> Ring | None:
-    """A damped sinusoid about an offset fitted to ``y`` [deg] sampled at ``Ts`` [s] (:class:`Ring`): the frequency
-    of the largest peak of its spectrum (zero-padded), then frequency and decay by least squares with the offset and
-    the amplitudes solved linearly at each step. None when ``y`` holds less than RING_PERIODS periods of it (or fewer
-    than 16 samples)."""
+    """A damped sinusoid about an offset and a drift fitted to ``y`` [deg] sampled at ``Ts`` [s] (:class:`Ring`):
+    the frequency of the largest peak of its detrended spectrum (zero-padded) among those of which it holds at least
+    RING_PERIODS periods, then frequency and decay by least squares with the offset, drift and amplitudes solved
+    linearly at each step. None when ``y`` is too short for that (or holds fewer than 16 samples)."""
     n = y.size
     if n < 16 or np.ptp(y) <= 0:
         return None
     t = np.arange(n) * Ts
-    spec = np.abs(np.fft.rfft((y - y.mean()) * np.hanning(n), 8 * n))
+    flat = y - np.polyval(np.polyfit(t, y, 1), t)
+    spec = np.abs(np.fft.rfft(flat * np.hanning(n), 8 * n))
     f = np.fft.rfftfreq(8 * n, Ts)
-    k = 1 + int(np.argmax(spec[1:]))
-    omega0 = 2.0 * math.pi * float(f[k])
-    if omega0 * n * Ts < 2.0 * math.pi * RING_PERIODS:
+    ok = np.flatnonzero(f * n * Ts >= RING_PERIODS)
+    if not ok.size:
         return None
+    omega0 = 2.0 * math.pi * float(f[ok[int(np.argmax(spec[ok]))]])
 
     def resid(p: np.ndarray) -> np.ndarray:
         basis = _ring_basis(t, p[0], p[1])
@@ -253,8 +282,8 @@ def fit_ring(y: np.ndarray, Ts: float) -> Ring | None:
 
     fit = least_squares(resid, [omega0, 0.0], bounds=([0.5 * omega0, -0.5 * omega0], [2.0 * omega0, omega0]))
     omega, decay = (float(v) for v in fit.x)
-    c, a, b = (float(v) for v in np.linalg.lstsq(_ring_basis(t, omega, decay), y, rcond=None)[0])
-    return Ring(c, a, b, omega, decay) if omega * n * Ts >= 2.0 * math.pi * RING_PERIODS else None
+    c, d, a, b = (float(v) for v in np.linalg.lstsq(_ring_basis(t, omega, decay), y, rcond=None)[0])
+    return Ring(c, d, a, b, omega, decay) if omega * n * Ts >= 2.0 * math.pi * RING_PERIODS else None
 
 
 def command_period(u: np.ndarray, hint: int = 0) -> int:

@@ -65,10 +65,14 @@ LINEAR: dict[str, Bound] = {
     "sensor.alpha_gauge_gain": Bound(0.1, 10.0, "1", "strain gauge's gain (reading per true angle)", part=SENSOR),
     "plant.u_offset": Bound(-2.0, 2.0, "V", "command offset (the amplifier's input zero)", log=False, part=DRIVE),
 }
-# a record's own gauge offset [deg] as the record reads it (harness.diagnosis.simulation.offset_key), fitted with the
-# linear parameters where a closed loop acts on it
-RECORD_OFFSET = Bound(-30.0, 30.0, "deg", "gauge offset (the gauge's reading of the link at rest)", log=False,
-                      part=SENSOR)  # fmt: skip
+# a closed-loop replay's own parameters (harness.diagnosis.simulation.nuisance_keys), fitted with the linear ones: its
+# record's gauge offset [deg] as the record reads it, and its link's deflection from rest [deg] and rate [deg/s] at its
+# start
+OWN: dict[str, Bound] = {
+    "sensor.alpha_offset": Bound(-30.0, 30.0, "deg", "gauge offset (its reading of the link at rest)", log=False),
+    "link.alpha_start": Bound(-30.0, 30.0, "deg", "the link's deflection at the record's start", log=False),
+    "link.alpha_rate": Bound(-1000.0, 1000.0, "deg/s", "the link's rate at the record's start", log=False),
+}
 # the physical values the fitted combos imply (rigmodel.to_plant), reported beside them: (plain name, unit)
 IMPLIED: dict[str, tuple[str, str]] = {
     "plant.Jeq": ("hub inertia", "kg m^2"),

@@ -33,6 +33,7 @@ __all__ = [
     "Candidate",
     "Decomposition",
     "Diagnosis",
+    "Band",
     "ExperimentGap",
     "FittedParameter",
     "Folds",
@@ -42,9 +43,11 @@ __all__ = [
     "HeldOutGap",
     "NoiseFloor",
     "SensorCalibration",
+    "RecordBehaviour",
     "RecordSensors",
     "RigFit",
     "Step",
+    "StepBehaviour",
     "Thresholds",
     "apart",
     "round_floats",
@@ -348,6 +351,43 @@ class RigFit:
 
 
 @dataclass
+class Band:
+    """One behaviour metric of one step: as the record ``measured`` it, and the ``median`` and 95 % band (``lo``,
+    ``hi``) of the replays' ensemble (NaN where a metric is not defined: a step that did not settle, a link that
+    does not ring)."""
+
+    measured: float
+    median: float
+    lo: float
+    hi: float
+
+    @property
+    def inside(self) -> bool:
+        """Is the measured value inside the band?"""
+        return self.lo <= self.measured <= self.hi
+
+
+@dataclass
+class StepBehaviour:
+    """A reference step of a closed-loop record [its start, s from the record's start; direction +1 up, -1 down;
+    size, deg] and its metrics (:data:`harness.behaviour.METRICS`), each measured and as replayed."""
+
+    start_s: float
+    direction: int
+    size_deg: float
+    metrics: dict[str, Band]
+
+
+@dataclass
+class RecordBehaviour:
+    """A closed-loop record's behaviour step by step beside its replays', and the share of its measured metrics
+    inside their bands (``coverage``)."""
+
+    steps: list[StepBehaviour]
+    coverage: float
+
+
+@dataclass
 class RecordSensors:
     """One record's sensors as fitted: the gauge's offset [deg] (its reading of the link at rest, in the record's own
     zero: [fitted, lo, hi] where a closed loop fitted it, [value, nan, nan] where an open loop's least squares took
@@ -390,7 +430,7 @@ class Diagnosis:
     caveats: list[str] | None = None
     rig: RigFit | None = None
     sensors: dict[str, RecordSensors] | None = None
-    behaviour: dict[str, Any] | None = None
+    behaviour: dict[str, RecordBehaviour] | None = None
 
     @classmethod
     def load(cls, path: str | os.PathLike[str]) -> Diagnosis:

@@ -24,18 +24,19 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
 from . import recalibrate as recal
+from .bands import bands, closed_steps, coverage, parameter_draws
 from .effects import BY_PARAM, EFFECTS, SECONDARY, SELECTED_BY_SPREAD, Effect, effect_params
 from .experiments import CHANNELS, RigExperiment
-from .result import Candidate, Decomposition, FittedParameter, FoundEffect, Gap, HeldOutGap, Step
+from .result import Candidate, Decomposition, FittedParameter, FoundEffect, Gap, HeldOutGap, RecordBehaviour, Step
 from .rigmodel import COMBOS, plant_value, to_plant
 from .simulation import ALPHA_OFFSET, SSE, channel_fits, fit_pct, gap_summary, mean_squared_gap
-from .tasks import Cost, Evaluate, FitResult, Grid, Pool, Recalibrate, Refit, effect_values
+from .tasks import Behaviour, Cost, Evaluate, FitResult, Grid, Pool, Recalibrate, Refit, effect_values
 
 __all__ = [
     "POLICY",
@@ -59,41 +60,51 @@ Overrides = dict[str, Any]
 @dataclass(frozen=True)
 class Policy:
     """How the diagnosis decides, the same for every record. The score (:class:`Score`) of a model is its held-out
-    excess: window by window, n |gap - spread| over the replays' samples, in units of each record's variance (mean
-    over experiments and channels); ``spread`` the replays' own (their noise, the noise a closed loop fed back).
+    effective gap: window by window, the record's gap to the replay beside the spread the replays predict there (an
+    open loop's noise; a closed loop's, from replays with other noise draws: the noise its controller fed back), as
+    the profile Gaussian likelihood of the record under that spread plus a model-error variance, given as the mean
+    squared gap a replay without spread would need to score the same
+    (:func:`harness.diagnosis.simulation.effective_gap`), mean over experiments and channels. Without spread it is
+    the mean squared gap; a spread where the record's gap lies lowers it. The floor is what a right model leaves: the
+    score of the replay against another noise draw of itself.
 
     Four thresholds, each applied in one place:
 
-    - ``none_level``: no gap beyond noise when the linear model's held-out excess is within this many times its
-      replays' own spread (:func:`verdict`);
-    - ``min_gain``: an effect (or a pair) enters when it closes this share of the held-out excess left, and stays
-      while removing it reopens this share of the excess it left (:func:`forward_selection`, :func:`eliminate`);
-    - ``explained``: the verdict names an effect when the effects close this share of the excess the linear model
-      left (else ``unexplained``, :func:`verdict`);
+    - ``none_level``: no gap beyond noise when the linear model's held-out score is within this ratio of the floor's,
+      as a gap (its square as a mean squared gap, :func:`verdict`);
+    - ``min_gain``: an effect (or a pair) enters when it closes this share of the held-out score left above the
+      floor, and stays while removing it reopens this share of what it left (:func:`forward_selection`,
+      :func:`eliminate`);
+    - ``explained``: the verdict names an effect when the effects close this share of what the linear model left
+      above the floor (else ``unexplained``, :func:`verdict`);
     - ``resolution``: a gap below this share of a record's RMS (a fit of 99.9 %) is no sensor calibration's to
       tell: no window's spread is taken below it.
 
     Settings, not thresholds: ``draws``, the noise draws beside a closed-loop replay's own that make its spread;
     ``behaviour_draws``, the replays whose behaviour makes its band."""
 
-    none_level: float = 1.0
+    none_level: float = 1.25
     min_gain: float = 0.25
     explained: float = 0.5
     resolution: float = 1e-3
     draws: int = 2
-    behaviour_draws: int = 19
+    behaviour_draws: int = 39
 
     def meaning(self) -> str:
         """The rule in one paragraph, for diagnosis.json."""
         return (
-            "score = held-out excess of the record's gap over the replay's own spread, window by window (n |gap - "
-            "spread|, in units of the record's variance, mean over experiments and channels; spread: a closed "
-            "loop's replays with other noise draws, an open loop's noise); none: the recalibrated linear model's "
-            f"score <= none_level ({self.none_level:g}) x its spread; an effect (or a pair, where no single one "
-            f"does) enters when it closes >= min_gain ({self.min_gain:g}) of the excess score left and stays while "
-            "removing it reopens as much, and only where its replays' behaviour covers the record's as well as "
-            f"without it; the verdict names the effect whose removal reopens most when the effects close >= "
-            f"explained ({self.explained:g}) of the excess the linear model left, else unexplained; no spread below "
+            "score = held-out effective gap: the record's gap to the replay beside the replays' own spread, window by "
+            "window (spread: an open loop's noise, a closed loop's replays with other noise draws), as the profile "
+            "Gaussian likelihood of the record under that spread and a model-error variance, given as the mean "
+            "squared gap a replay without spread would need to score the same, mean over experiments and channels; "
+            "floor: the score of a replay against another noise draw of itself; none: the recalibrated linear "
+            f"model's score within none_level ({self.none_level:g}) of the floor's as a gap; an effect (or a pair, "
+            f"where no single one does) enters when it closes >= min_gain ({self.min_gain:g}) of the score left "
+            "above the floor and stays while removing it reopens as much, and only where its replays' behaviour "
+            "covers the record's as well as without it; the verdict names the effect whose removal reopens most when "
+            "the effects close >= "
+            f"explained ({self.explained:g}) of what the linear model left above the floor, else unexplained; no "
+            "spread below "
             f"resolution ({self.resolution:g}) x the record's RMS"
         )
 
@@ -104,7 +115,8 @@ POLICY = Policy()
 @dataclass(frozen=True)
 class Score:
     """A model's held-out score (both folds' fits, each experiment scored by the fit not made on it): ``excess``
-    (what decides, see :class:`Policy`), ``spread`` (its replays' own, same units), ``msg`` the mean squared gap E
+    the effective gap (what decides, see :class:`Policy`), ``spread`` its replays' own spread in units of each
+    record's variance (mean over experiments and channels), ``msg`` the mean squared gap E
     (fit % = 100 (1 - sqrt(E))), ``sse`` the squared residuals per experiment and channel [deg^2], and the gauge
     offset [deg] each closed-loop record was replayed with (fitted on it where the fit was not)."""
 
@@ -118,12 +130,14 @@ class Score:
 @dataclass(frozen=True)
 class Model:
     """A model of the rig: the ``effects`` on top of the linear model, its fit on each fold (fold A's, scored on B,
-    then B's) and its held-out ``score``; ``how`` it was fitted."""
+    then B's) and its held-out ``score``; ``how`` it was fitted; ``floor``: what it leaves if it is right, its score
+    against another noise draw of itself (:func:`floored`)."""
 
     effects: tuple[str, ...]
     fits: tuple[FitResult, FitResult]
     score: Score
     how: str = "jointly with the linear parameters"
+    floor: Score | None = None
 
     def params(self, k: int) -> Overrides:
         """Fold k's fitted overrides."""
@@ -153,8 +167,8 @@ class CrossFit:
         for n, e in ev.items():
             x = self.experiments[n]
             for c in CHANNELS:
-                if x.sst[c] > 0:
-                    excess.append(e.excess[c] / x.sst[c])
+                if x.moves(c):
+                    excess.append(e.effective[c])
                     spread.append(e.spread[c] / x.sst[c])
                     msg.append(e.sse[c] / x.sst[c])
         closed = [n for n in ev if self.experiments[n].replay == "closed"]
@@ -167,13 +181,20 @@ class CrossFit:
             offsets=offsets,
         )
 
-    def scores(self, fold_params: Sequence[Sequence[Overrides]], pseudo: bool = False) -> list[Score]:
-        """The held-out score of each model given as its two folds' overrides, in one map."""
+    def draws(self, fit: FitResult | Overrides) -> tuple[Overrides, ...]:
+        """``Policy.draws`` draws of a fold's fit from its covariance (its overrides each time where it has none)."""
+        if isinstance(fit, FitResult):
+            return tuple(parameter_draws(fit.params, fit.names, fit.log, fit.cov, self.policy.draws + 1, 2,
+                                         fit.ranges)[1:])  # fmt: skip
+        return tuple(dict(fit) for _ in range(self.policy.draws))
+
+    def scores(self, folds: Sequence[Sequence[FitResult | Overrides]], pseudo: bool = False) -> list[Score]:
+        """The held-out score of each model given as its two folds' fits (or overrides), in one map."""
         p = self.policy
-        tasks = [Evaluate(ps[k], tuple(self.helds[k]), p.draws, p.resolution, pseudo) for ps in fold_params
-                 for k in (0, 1)]  # fmt: skip
+        tasks = [Evaluate(_params(fs[k]), tuple(self.helds[k]), self.draws(fs[k]), p.resolution, pseudo)
+                 for fs in folds for k in (0, 1)]  # fmt: skip
         res = self.pool.map(tasks)
-        return [self._merge(res[2 * i : 2 * i + 2]) for i in range(len(fold_params))]
+        return [self._merge(res[2 * i : 2 * i + 2]) for i in range(len(folds))]
 
     def share(self, before: Score, after: Score, floor: Score) -> float:
         """Share of ``before``'s excess above the ``floor`` that ``after`` closes (may be negative)."""
@@ -185,7 +206,8 @@ class CrossFit:
 class SearchResult:
     """What the search finds: verdict, effects, candidates, rounds, gap, parameter table, whether recalibration
     was applied, the final overrides (all experiments) and their covariance, the linear parameters recalibration
-    alone fitted ({} when not applied), the floor's and the base model's scores."""
+    alone fitted ({} when not applied), the floor's and the base model's scores, and each closed-loop record's
+    behaviour beside its replays' (the final rig, with draws of its parameters and of the noise)."""
 
     verdict: str
     effects: list[FoundEffect]
@@ -200,6 +222,21 @@ class SearchResult:
     floor: Score
     base: Score
     models: dict[str, Model]
+    behaviour: dict[str, RecordBehaviour]
+
+
+def floored(cf: CrossFit, model: Model) -> Model:
+    """``model`` with its floor: its held-out score against records it would make itself, another noise draw
+    (:func:`harness.diagnosis.simulation.evaluate`'s ``pseudo``): what it leaves if it is right, its own spread
+    included (a loop that sticks where the noise decides leaves much more than one that does not)."""
+    if model.floor is not None:
+        return model
+    (floor,) = cf.scores([list(model.fits)], pseudo=True)
+    return replace(model, floor=floor)
+
+
+def _params(fit: FitResult | Overrides) -> Overrides:
+    return dict(fit.params) if isinstance(fit, FitResult) else dict(fit)
 
 
 def shrink_pct(before: float, after: float) -> float:
@@ -245,7 +282,7 @@ def recalibrated(cf: CrossFit, say: Progress) -> tuple[Model, Score]:
     (*rec,) = cf.pool.map([Recalibrate(tuple(cf.fits[k])) for k in (0, 1)])
     again = cf.pool.map([Recalibrate(tuple(cf.fits[k]), _linear_of(rec[1 - k].params)) for k in (0, 1)])
     fits = tuple(min(rec[k], again[k], key=lambda r: r.cost) for k in (0, 1))
-    linear, given = cf.scores([[f.params for f in fits], [{}, {}]])
+    linear, given = cf.scores([list(fits), [{}, {}]])
     say(f"gap as given: fit {fit_pct(given.msg):.2f} %; recalibrated: {fit_pct(linear.msg):.2f} %")
     return Model((), (fits[0], fits[1]), linear, "recalibration"), given
 
@@ -259,8 +296,10 @@ def fit_models(
 ) -> list[Model]:
     """``current`` with each group of effects of ``adds`` added, refitted on each fold jointly with the linear
     parameters and the effects of ``current``, and scored held out. Each effect starts at the best of its values
-    (:func:`harness.diagnosis.tasks.effect_values`) on the current fold's rig, or at its fit in ``hints`` (its
-    model alone); each fold is refitted again from the other fold's refit, the lower cost kept. An effect that a
+    (:func:`harness.diagnosis.tasks.effect_values`) on the current fold's rig, and at its best on the sheet's linear
+    rig where that fits the fold better (the fitted linear parameters may have made up for it), or at its fit in
+    ``hints`` (its model alone); each fold is refitted again from the other fold's refit where that costs less; the
+    lowest cost kept. An effect that a
     closed loop does not reproduce sample by sample (``Effect.spread``) is sized instead by the score on the fitted
     fold over its values, the linear parameters then refitted with it held."""
     hints = hints or {}
@@ -278,22 +317,40 @@ def fit_models(
                 continue  # sized by the score below
             else:
                 for k in (0, 1):
-                    grid_slots.append((i, k, e))
-                    grid_tasks.append(Grid(table[e], starts[i][k], tuple(cf.fits[k])))
-    for (i, k, e), costs in zip(grid_slots, cf.pool.map(grid_tasks), strict=True):
-        starts[i][k][table[e].param] = min(costs, key=lambda vc: (vc[1], vc[0]))[0]
+                    for j, rig in enumerate((starts[i][k], _sheet_linear(starts[i][k]))):
+                        grid_slots.append((i, k, e, j))
+                        grid_tasks.append(Grid(table[e], rig, tuple(cf.fits[k])))
+    others: list[list[list[Overrides]]] = [[[], []] for _ in adds]
+    best: dict[tuple[int, int, str, int], tuple[float | int, float]] = {}
+    for (i, k, e, j), costs in zip(grid_slots, cf.pool.map(grid_tasks), strict=True):
+        best[(i, k, e, j)] = min(costs, key=lambda vc: (vc[1], vc[0]))
+    for (i, k, e, j), (value, cost) in sorted(best.items()):
+        if j == 0:
+            starts[i][k][table[e].param] = value
+        elif cost < best[(i, k, e, 0)][1]:  # the sheet's linear rig fits this fold better with it: a start there
+            others[i][k].append({**_sheet_linear(starts[i][k]), table[e].param: value})
     _size_by_spread(cf, adds, starts, hints)
     free = [_free((*current.effects, *group), table) for group in adds]
-    first = cf.pool.map([Refit(starts[i][k], free[i], tuple(cf.fits[k])) for i in range(len(adds)) for k in (0, 1)])
-    fits = [[first[2 * i], first[2 * i + 1]] for i in range(len(adds))]
+    slots = [(i, k, st) for i in range(len(adds)) for k in (0, 1) for st in [starts[i][k], *others[i][k]]]
+    first = cf.pool.map([Refit(st, free[i], tuple(cf.fits[k])) for i, k, st in slots])
+    fits: list[list[FitResult]] = [[None, None] for _ in adds]  # type: ignore[list-item]
+    for (i, k, _), r in zip(slots, first, strict=True):
+        if fits[i][k] is None or r.cost < fits[i][k].cost:
+            fits[i][k] = r
     _cross_started(cf, fits, free)
-    scores = cf.scores([[f.params for f in fs] for fs in fits])
+    scores = cf.scores([list(fs) for fs in fits])
     models = []
     for group, fs, sc in zip(adds, fits, scores, strict=True):
         how = "by its spread, the linear parameters refitted with it" if any(
             table[e].spread for e in group) and spread else "jointly with the linear parameters"  # fmt: skip
         models.append(Model((*current.effects, *group), (fs[0], fs[1]), sc, how))
     return models
+
+
+def _sheet_linear(over: Overrides) -> Overrides:
+    """Overrides with the linear parameters left at the sheet's (an effect's other start: the fitted linear
+    parameters may have made up for it, a delay for a slower drive, a friction for a heavily damped hub)."""
+    return {k: v for k, v in over.items() if k not in recal.LINEAR}
 
 
 def _cross_started(cf: CrossFit, fits: list[list[FitResult]], free: list[tuple[str, ...]]) -> None:
@@ -330,8 +387,8 @@ def _size_by_spread(
                 for k in (0, 1):
                     for v in effect_values(cf.effects[e]):
                         slots.append((i, k, e, v))
-                        tasks.append(Evaluate({**starts[i][k], cf.effects[e].param: v}, tuple(cf.fits[k]), p.draws,
-                                              p.resolution))  # fmt: skip
+                        over = {**starts[i][k], cf.effects[e].param: v}
+                        tasks.append(Evaluate(over, tuple(cf.fits[k]), cf.draws(over), p.resolution))
     if not tasks:
         return
     best: dict[tuple[int, int, str], tuple[float, float]] = {}
@@ -369,15 +426,18 @@ class Forward:
     trials: list[list[Model]]
 
 
-def forward_selection(cf: CrossFit, base: Model, floor: Score, candidates: list[str], say: Progress) -> Forward:
-    """Greedy forward selection of ``candidates`` on top of the linear model ``base`` (see the module)."""
+def forward_selection(cf: CrossFit, base: Model, candidates: list[str], say: Progress) -> Forward:
+    """Greedy forward selection of ``candidates`` on top of the linear model ``base`` (see the module): each round
+    judged against the current model's own floor (:func:`floored`)."""
     p = cf.policy
-    fw = Forward([base], [], [])
+    fw = Forward([floored(cf, base)], [], [])
     remaining = list(candidates)
     singles: dict[str, Model] = {}
     while remaining:
         current = fw.path[-1]
-        if current.score.excess <= p.none_level * current.score.spread:
+        floor = current.floor
+        assert floor is not None
+        if current.score.excess <= p.none_level**2 * floor.excess:
             break
         trials = fit_models(cf, current, [(e,) for e in remaining])
         singles |= {m.effects[-1]: m for m in trials}
@@ -401,25 +461,30 @@ def forward_selection(cf: CrossFit, base: Model, floor: Score, candidates: list[
                                                      for r in entries))  # fmt: skip
         if entering is None:
             break
-        fw.path.append(entering)
+        fw.path.append(floored(cf, entering))
         remaining = [e for e in remaining if e not in entering.effects]
         say(f"  {' and '.join(e for e in entering.effects if e not in current.effects)} enters: held-out fit "
             f"{fit_pct(entering.score.msg):.2f} %")  # fmt: skip
     return fw
 
 
-def eliminate(cf: CrossFit, model: Model, floor: Score) -> tuple[Model, dict[str, Score]]:
+def eliminate(cf: CrossFit, model: Model) -> tuple[Model, dict[str, Score]]:
     """Backward elimination on held-out data: each effect of ``model`` removed (the others and the jointly refitted
-    linear parameters kept); the effect whose removal reopens least goes while that is less than ``min_gain`` of the
-    excess it then leaves. Returns the model kept and {effect: its score without it}."""
+    linear parameters kept); the effect whose removal reopens least goes while what the model with it closes is less
+    than ``min_gain`` of what the model without it leaves above its own floor (the rule an effect entered by).
+    Returns the model kept and {effect: its score without it}."""
     while model.effects:
-        without = {e: [_without(model.params(k), [e]) for k in (0, 1)] for e in model.effects}
-        scores = dict(zip(without, cf.scores(list(without.values())), strict=True))
+        less = {e: Model(tuple(x for x in model.effects if x != e),
+                         tuple(FitResult(**{**f.__dict__, "params": _without(f.params, [e])})
+                               for f in model.fits), model.score, model.how)  # type: ignore[arg-type]
+                for e in model.effects}  # fmt: skip
+        scores = dict(zip(less, cf.scores([list(m.fits) for m in less.values()]), strict=True))
         weakest = min(model.effects, key=lambda e: (scores[e].excess, e))
-        if cf.share(scores[weakest], model.score, floor) >= cf.policy.min_gain:
-            return model, scores
-        fits = tuple(FitResult(**{**model.fits[k].__dict__, "params": without[weakest][k]}) for k in (0, 1))
-        model = Model(tuple(e for e in model.effects if e != weakest), (fits[0], fits[1]), scores[weakest], model.how)
+        reduced = floored(cf, replace(less[weakest], score=scores[weakest]))
+        assert reduced.floor is not None
+        if cf.share(reduced.score, model.score, reduced.floor) >= cf.policy.min_gain:
+            return floored(cf, model), scores
+        model = reduced
     return model, {}
 
 
@@ -431,16 +496,17 @@ def importance(model: Model, without: dict[str, Score]) -> dict[str, float]:
     return {e: r / total if total > 0 else 1.0 / len(reopen) for e, r in reopen.items()}
 
 
-def verdict(cf: CrossFit, base: Model, final: Model, floor: Score, shares: dict[str, float],
-            signature: list[Effect]) -> tuple[str, float]:  # fmt: skip
-    """The verdict and the share of the linear model's excess the effects close (NaN with no gap): ``none`` (or the
-    effect found by its signature in the data) when the linear model's score is within ``none_level`` of its spread;
-    the effect whose removal reopens most when the effects close ``explained`` of that excess; else
-    ``unexplained``."""
+def verdict(cf: CrossFit, base: Model, final: Model, shares: dict[str, float], signature: list[Effect]
+            ) -> tuple[str, float]:  # fmt: skip
+    """The verdict and the share of what the linear model left above the final model's floor that the effects close
+    (NaN with no gap): ``none`` (or the effect found by its signature in the data) when the linear model's score is
+    within ``none_level`` of its own floor; the effect whose removal reopens most when the effects close
+    ``explained`` of that; else ``unexplained``."""
     p = cf.policy
-    if base.score.excess <= p.none_level * base.score.spread:
+    assert base.floor is not None and final.floor is not None
+    if base.score.excess <= p.none_level**2 * base.floor.excess:
         return (signature[0].name if signature else "none"), math.nan
-    explained = cf.share(base.score, final.score, floor)
+    explained = cf.share(base.score, final.score, final.floor)
     if final.effects and explained >= p.explained:
         return max(final.effects, key=lambda e: (shares.get(e, 0.0), -final.effects.index(e))), explained
     return "unexplained", explained
@@ -467,24 +533,35 @@ def search(
         keep = [{k: v for k, v in f.params.items() if k.startswith(ALPHA_OFFSET)} for f in base.fits]
         base = Model((), (FitResult(keep[0], {}, base.fits[0].cost, 0), FitResult(keep[1], {}, base.fits[1].cost, 0)),
                      given, "the spec's linear parameters")  # fmt: skip
-    (floor,) = cf.scores([[f.params for f in base.fits]], pseudo=True)
-    say(f"floor: held-out fit {fit_pct(floor.msg):.3f} %")
+    base = floored(cf, base)
+    assert base.floor is not None
+    say(f"floor: held-out fit {fit_pct(base.floor.msg):.3f} %")
     signature = [c for c in cands if c.signature]
     searched = [c.name for c in cands if not c.signature]
-    fw = forward_selection(cf, base, floor, searched, say)
-    model, without = eliminate(cf, fw.path[-1], floor)
+    fw = forward_selection(cf, base, searched, say)
+    model, without = eliminate(cf, fw.path[-1])
     model, without = _behaviour_kept(cf, model, without)
+    model = floored(cf, model)
     shares = importance(model, without) if without else {}
     final_model = model
     if signature:
         fits = tuple(FitResult(**{**model.fits[k].__dict__, "params": {**model.params(k), **{
             c.param: c.values[0] for c in signature}}}) for k in (0, 1))  # fmt: skip
-        (sig_score,) = cf.scores([[f.params for f in fits]])
+        (sig_score,) = cf.scores([list(fits)])
         final_model = Model((*model.effects, *(c.name for c in signature)), (fits[0], fits[1]), sig_score,
                             "adc lattice in the data")  # fmt: skip
-    name, explained = verdict(cf, base, model, floor, shares, signature)
+    name, explained = verdict(cf, base, model, shares, signature)
+    floor = model.floor
+    assert floor is not None
     final, final_fit, table_rows = final_params(cf, final_model)
     own = dict(zip(records or [], pool.map([Recalibrate((r,), final) for r in records or []]), strict=True))
+    final_fit = between_folds(final_fit, final_model)
+    draws = parameter_draws(final, final_fit.names, final_fit.log, final_fit.cov, policy.behaviour_draws, 1,
+                            final_fit.ranges)  # fmt: skip
+    looped = closed_steps(experiments)
+    behaviour = {}
+    for part in pool.map([Behaviour(tuple(draws), (n,)) for n in looped]):
+        behaviour |= bands(experiments, final, part)
     rec_alone = _recalibrated_alone(base) if recal_paid else {}
     for prm, value in rec_alone.items():
         if prm in table_rows:
@@ -492,7 +569,7 @@ def search(
             table_rows[prm].folds = [_fit_row(f, prm) for f in base.fits]
             if own:
                 table_rows[prm].records = {n: _fit_row(r, prm) for n, r in own.items()}
-    (sse_final,) = pool.map([Evaluate(final, tuple(names), 0, policy.resolution)])
+    (sse_final,) = pool.map([Evaluate(final, tuple(names), (), policy.resolution)])
     sse_final = {n: dict(e.sse) for n, e in sse_final.items()}
     path = _path(fw, model) + ([final_model] if signature else [])
     steps = [Step("recalibration", math.sqrt(base.score.msg), 100.0 * cf.share(given, base.score, floor),
@@ -519,7 +596,7 @@ def search(
             resolution=policy.resolution,
             steps=steps,
             definition=DECOMPOSITION_DEFINITION,
-            within_noise=last.score.excess <= policy.none_level * last.score.spread,
+            within_noise=last.score.excess <= policy.none_level**2 * floor.excess,
             channels={
                 "before": channel_fits(given.sse, experiments, names),
                 "after_recalibration": channel_fits(base.score.sse, experiments, names),
@@ -536,7 +613,7 @@ def search(
     return SearchResult(
         verdict=name,
         effects=_found_effects(cf, base, path, final, shares),
-        candidates=_candidate_table(cf, fw, base, floor, signature),
+        candidates=_candidate_table(cf, fw, base, base.floor, signature),
         rounds=fw.rounds,
         gap=gap,
         parameters=table_rows,
@@ -547,12 +624,42 @@ def search(
         floor=floor,
         base=base.score,
         models={"base": base, "final": final_model},
+        behaviour=behaviour,
     )
 
 
+def held_out_coverage(cf: CrossFit, fits: Sequence[FitResult]) -> float:
+    """The share of the held-out closed-loop records' behaviour metrics (every reference step's) inside the band of
+    ``Policy.behaviour_draws`` replays with other draws of the fold's fitted parameters and of the noise, each fold's
+    model replaying the records it was not fitted on; NaN without such records."""
+    n = cf.policy.behaviour_draws
+    tasks, slots = [], []
+    for k in (0, 1):
+        f = fits[k]
+        draws = tuple(parameter_draws(f.params, f.names, f.log, f.cov, n, 3, f.ranges))
+        for name in closed_steps({x: cf.experiments[x] for x in cf.helds[k]}):
+            slots.append((k, name))
+            tasks.append(Behaviour(draws, (name,)))
+    steps = []
+    for (k, name), res in zip(slots, cf.pool.map(tasks), strict=True):
+        steps += bands(cf.experiments, fits[k].params, res)[name].steps
+    return coverage(steps)
+
+
 def _behaviour_kept(cf: CrossFit, model: Model, without: dict[str, Score]) -> tuple[Model, dict[str, Score]]:
-    """An effect is kept only where its replays' behaviour covers the records' as well as without it (see
-    :mod:`harness.diagnosis.behaviour_check`); hook for the behaviour bands."""
+    """An effect is kept only where the behaviour of its replays covers the held-out records' as well as without it
+    (:func:`held_out_coverage`): removed, the least important first, while its model's replays cover less of the
+    records' behaviour than the model without it."""
+    if not model.effects or not closed_steps(cf.experiments):
+        return model, without
+    for e in sorted(model.effects, key=lambda e: (without[e].excess, e)):
+        if e not in model.effects:
+            continue
+        less = tuple(FitResult(**{**f.__dict__, "params": _without(f.params, [e])}) for f in model.fits)
+        if not held_out_coverage(cf, less) > held_out_coverage(cf, model.fits):
+            continue
+        model = Model(tuple(x for x in model.effects if x != e), (less[0], less[1]), without[e], model.how)
+        model, without = eliminate(cf, model) if model.effects else (model, {})
     return model, without
 
 
@@ -578,6 +685,20 @@ def _fit_row(res: FitResult, prm: str) -> list[float]:
     return [float(res.params[prm]), *map(float, res.ci95.get(prm, (math.nan,) * 2))]
 
 
+def between_folds(fit: FitResult, model: Model) -> FitResult:
+    """The final fit with what its two folds' fits disagree on added to its covariance (d d^T, d the folds'
+    difference over sqrt 2 in the fit's coordinates, for the parameters both folds fitted): the records' own
+    variability, which a closed loop's residuals do not show."""
+    a, b = (f.params for f in model.fits)
+    d = np.array([(math.log(a[n] / b[n]) if lg else a[n] - b[n]) / math.sqrt(2.0)
+                  if n in a and n in b and (not lg or a[n] * b[n] > 0) else 0.0
+                  for n, lg in zip(fit.names, fit.log, strict=True)])  # fmt: skip
+    if not d.size:
+        return fit
+    cov = np.asarray(fit.cov, dtype=float).reshape(d.size, d.size) + np.outer(d, d)
+    return FitResult(**{**fit.__dict__, "cov": tuple(tuple(float(v) for v in row) for row in cov)})
+
+
 def final_params(cf: CrossFit, model: Model) -> tuple[Overrides, FitResult, dict[str, FittedParameter]]:
     """The reported parameters: integers from the folds (when they disagree, settled by the lower gap on all
     experiments), then the linear parameters, the continuous effect parameters and each record's gauge offset fitted
@@ -592,7 +713,7 @@ def final_params(cf: CrossFit, model: Model) -> tuple[Overrides, FitResult, dict
         a, b = (f.params[eff.param] for f in model.fits)
         if not eff.continuous and a != b:
             opts = sorted({a, b})
-            res = cf.pool.map([Evaluate({**start, eff.param: v}, tuple(cf.names), 0, cf.policy.resolution)
+            res = cf.pool.map([Evaluate({**start, eff.param: v}, tuple(cf.names), (), cf.policy.resolution)
                                for v in opts])  # fmt: skip
             start[eff.param] = min(zip(opts, res, strict=True), key=lambda o: cf._merge([o[1]]).msg)[0]
     free = _free(model.effects, cf.effects)

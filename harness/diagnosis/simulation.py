@@ -29,12 +29,13 @@ window (:func:`evaluate`): what the search scores.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Any
 
 import numpy as np
+from scipy.optimize import minimize_scalar
 
 from .. import spec as specmod
 from ..executor import FmuBytes
@@ -56,18 +57,26 @@ __all__ = [
     "gap_summary",
     "gauge_offset",
     "evaluate",
-    "fit_offset",
+    "fit_nuisance",
+    "link_keys",
+    "nuisance_keys",
     "mean_squared_gap",
     "offset_key",
+    "replay",
     "replay_noise",
     "replay_traces",
     "residuals",
     "sim_calibration",
     "sim_rig",
     "simulate",
+    "effective_gap",
 ]
 
 ALPHA_OFFSET = "sensor.alpha_offset"  # a record's gauge offset [deg], per record: :func:`offset_key`
+LINK_START = (
+    "link.alpha_start",
+    "link.alpha_rate",
+)  # a closed loop's link at its start [deg, deg/s]: :func:`link_keys`
 SENSOR_DAQ = ("pot_gain", "pot_offset", "gauge_gain", "gauge_offset", "gauge_cubic")  # the calibration's DAQ parameters
 SSE = dict[str, dict[str, float]]  # experiment -> channel -> sum of squared residuals [deg^2]
 MODELS = {"plant": "flexjoint", "daq": "daq"}  # the FMU behind each rig table
@@ -75,7 +84,7 @@ SENSOR_KNOWN = 0.01  # a sensor gain known to 1 % (sd, log) is not fitted: its e
 REPLAY_NOISE_SEED = 7  # noise seed of every closed-loop replay (:attr:`Setup.loop_noise`)
 LOOP_NOISE_SEEDS = (1, 2, 3, 4)  # other seeds, whose replays against it show what noise fed back spreads
 PSEUDO_SEED = 11  # the noise draw of the record a right model would leave (:func:`evaluate`'s floor)
-OFFSET_STEP = 0.1  # deg: the step of a held-out record's gauge offset fit (:func:`fit_offset`)
+OFFSET_STEP = 0.1  # deg (deg/s x 10): the step of a held-out record's own parameters' fit (:func:`fit_nuisance`)
 SPREAD_SECONDS = 0.25  # s: the windows in which a replay's gap is set beside its spread (:func:`evaluate`)
 
 
@@ -183,6 +192,22 @@ def offset_key(record: str) -> str:
     return f"{ALPHA_OFFSET}@{record}"
 
 
+def link_keys(experiment: str) -> tuple[str, str]:
+    """The overrides of an experiment's link at its start, its deflection from rest [deg] and rate [deg/s] as the
+    gauge reads them: ("link.alpha_start@<experiment>", "link.alpha_rate@<experiment>")."""
+    return f"{LINK_START[0]}@{experiment}", f"{LINK_START[1]}@{experiment}"
+
+
+def nuisance_keys(exp: RigExperiment) -> dict[str, float]:
+    """A closed-loop replay's own parameters, each with where a fit starts it: its record's gauge offset (its reading
+    at rest) and its link's state at its start (from the record: :attr:`RigExperiment.link_start`); {} for another
+    replay (an open loop's offsets are fitted by its least squares, its start read from the record)."""
+    if exp.replay != "closed":
+        return {}
+    a, r = link_keys(exp.name)
+    return {offset_key(exp.record): exp.alpha_rest, a: exp.link_start[0], r: exp.link_start[1]}
+
+
 def gauge_offset(exp: RigExperiment, over: Mapping[str, Any]) -> float:
     """The gauge offset [deg] of ``exp``'s record in a replay with ``over``: the record's own override
     (:func:`offset_key`), else its reading at rest (:attr:`RigExperiment.alpha_rest`)."""
@@ -204,7 +229,25 @@ def simulate(
     rig: Any, setup: Setup, exp: RigExperiment, over: Mapping[str, Any], n: int | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Simulated (theta, alpha) [deg] of one experiment (its first ``n`` samples) on the sim rig with ``over``
-    ({"plant.x": v, ...}), and the mask of the theta samples where the simulated pot is on its track.
+    ({"plant.x": v, ...}), and the mask of the theta samples where the simulated pot is on its track
+    (:func:`replay`)."""
+    r = replay(rig, setup, exp, over, n)
+    return r.theta, r.alpha, r.on_track
+
+
+@dataclass(frozen=True)
+class Replayed:
+    """One experiment's replay: theta, alpha [deg] as its sensors read them, the samples where the simulated pot is
+    on its track, and the command [V] (a closed loop's controller's; the logged one otherwise)."""
+
+    theta: np.ndarray
+    alpha: np.ndarray
+    on_track: np.ndarray
+    u: np.ndarray
+
+
+def replay(rig: Any, setup: Setup, exp: RigExperiment, over: Mapping[str, Any], n: int | None = None) -> Replayed:
+    """One experiment (its first ``n`` samples) replayed on the sim rig with ``over`` ({"plant.x": v, ...}).
 
     The gauge reads its record's offset (:func:`gauge_offset`), which a closed loop's controller acts on; an
     open-loop replay's offsets are then fitted by least squares (theta's: the integrator's unknown initial state, as
@@ -217,14 +260,18 @@ def simulate(
     if exp.replay == "closed" and noise:
         daq = {**daq, **{k: v for k, v in noise.items() if k not in d_over}}
         daq["seed"] = d_over.get("seed", REPLAY_NOISE_SEED)
-    # at the angle read first, the link as the record shows it there, as the sensors read them
+    # at the angle read first, the link as the record shows it there (a closed loop's as fitted), as the sensors read
     start = {"theta_start": math.radians(float(exp.theta[0])), **(exp.start_state if exp.replay != "shooting" else {})}
+    if exp.replay == "closed":
+        a, r = link_keys(exp.name)
+        start["alpha_start"] = math.radians(delta + float(over.get(a, exp.link_start[0])))
+        start["alpha_dot_start"] = math.radians(float(over.get(r, exp.link_start[1])))
     plant = {**plant, **true_state(start, over, delta)}
     if exp.replay == "closed":
         c = Controller(**exp.controller)  # type: ignore[arg-type]
         ctrl = c.fmu_parameters(1.0 / exp.Ts)
         ctrl = {k: fmu_value(believed, "daq", v) for k, v in CALIBRATION.items()} | ctrl  # the lab's calibration
-        ctrl |= {k: v for k, v in exp.start_state.items() if k.endswith("_dot_start")}  # its velocity filter too
+        ctrl |= {k: v for k, v in start.items() if k.endswith("_dot_start")}  # its velocity filter too
         ref = np.radians(delayed(exp.ref, c.ref_delay)[:n])  # type: ignore[arg-type]  # what the controller acted on
         res = rig.run_closed(ref, exp.Ts, ctrl, plant=plant, daq=daq, diverged="hold")
     elif exp.replay == "shooting":
@@ -249,7 +296,7 @@ def simulate(
             al += float(np.mean((exp.alpha[: al.size] - al)[ok_a]))  # the gauge's zero: least squares
     else:  # started at the measured angle: only whole turns of the pot's wrap to restore
         th += 360.0 * np.round((exp.theta[0] - th[0]) / 360.0)
-    return th, al, on_track
+    return Replayed(th, al, on_track, np.asarray(res.get("u", exp.u[:n]), dtype=float))
 
 
 def _shooting(
@@ -314,7 +361,7 @@ def mean_squared_gap(sse: SSE, experiments: dict[str, RigExperiment], names: lis
     """The mean squared gap E: mean over ``names`` and both channels of sse / sst over a window (see
     :meth:`RigExperiment.window`; channels with no motion skipped); the gap is sqrt(E)."""
     ssts = {n: experiments[n].window(window)[1] for n in names}
-    qs = [sse[n][c] / ssts[n][c] for n in names for c in CHANNELS if ssts[n][c] > 0]
+    qs = [sse[n][c] / ssts[n][c] for n in names for c in CHANNELS if experiments[n].moves(c, window)]
     return float(np.mean(qs)) if qs else math.nan
 
 
@@ -323,7 +370,7 @@ def channel_fits(sse: SSE, experiments: dict[str, RigExperiment], names: list[st
     where it does not move skipped; NaN where it moves in none)."""
     out = {}
     for c in CHANNELS:
-        qs = [sse[n][c] / experiments[n].sst[c] for n in names if experiments[n].sst[c] > 0]
+        qs = [sse[n][c] / experiments[n].sst[c] for n in names if experiments[n].moves(c)]
         out[c] = fit_pct(float(np.mean(qs))) if qs else math.nan
     return out
 
@@ -342,7 +389,7 @@ def gap_summary(sse: SSE, experiments: dict[str, RigExperiment], names: list[str
     for n in names:
         x = experiments[n]
         per[n] = ExperimentGap(
-            fit_pct={c: fit_pct(sse[n][c] / x.sst[c]) if x.sst[c] > 0 else math.nan for c in CHANNELS},
+            fit_pct={c: fit_pct(sse[n][c] / x.sst[c]) if x.moves(c) else math.nan for c in CHANNELS},
             rms_deg={c: math.sqrt(sse[n][c] / x.u.size) for c in CHANNELS},
         )  # fmt: skip
     return GapSummary(
@@ -364,19 +411,25 @@ def replay_noise(daq: Mapping[str, Any], sigma_deg: Mapping[str, float]) -> dict
 
 @dataclass(frozen=True)
 class Evaluation:
-    """One experiment replayed beside its own spread, per channel [deg^2 summed over its valid samples]: ``sse`` the
-    squared residual of the record to the replay; ``spread`` what the replay itself predicts there, window by window
-    (SPREAD_SECONDS): a closed loop's mean squared difference between the replay and its replays with other noise
-    draws (LOOP_NOISE_SEEDS: the noise its controller fed back, and both replays' measurement noise), an open loop's
-    the data's measurement noise, at least the resolution's; ``excess`` how far the record's gap is from that
-    spread, window by window (the sum of n |gap - spread| over windows of n samples: a replay that is right leaves
-    the noise's fluctuation, one that misses leaves its misfit, one that spreads more than the record its excess
-    spread). ``offset``: the record's gauge offset the replay read [deg] (fitted on it where the fit left none)."""
+    """One experiment replayed beside its own spread, per channel: ``sse`` the squared residual of the record to the
+    replay [deg^2 summed over its valid samples]; ``spread`` what the replay itself predicts there [deg^2, summed
+    likewise], window by window (SPREAD_SECONDS): a closed loop's mean squared difference between the replay and its
+    replays with other noise draws (LOOP_NOISE_SEEDS: the noise its controller fed back, and both replays'
+    measurement noise), an open loop's the data's measurement noise, at least the resolution's; ``effective`` the
+    record's gap beside that spread as one mean squared gap in units of the record's variance
+    (:func:`effective_gap`: the gap itself where the replay has no spread). ``own``: the replay's own parameters it
+    was replayed with (its record's gauge offset, its link at its start: fitted on it where the fit left them
+    out)."""
 
     sse: dict[str, float]
-    excess: dict[str, float]
+    effective: dict[str, float]
     spread: dict[str, float]
-    offset: float
+    own: dict[str, float]
+
+    @property
+    def offset(self) -> float:
+        """The record's gauge offset [deg] the replay read."""
+        return next((v for k, v in self.own.items() if k.startswith(ALPHA_OFFSET)), math.nan)
 
 
 def _weighted(exp: RigExperiment, th: np.ndarray, al: np.ndarray, on: np.ndarray) -> np.ndarray:
@@ -385,21 +438,58 @@ def _weighted(exp: RigExperiment, th: np.ndarray, al: np.ndarray, on: np.ndarray
     m = th.size
     parts = []
     for c, y in (("theta", th), ("alpha", al)):
-        if exp.sst[c] > 0:
+        if exp.moves(c):
             ok = exp.valid[c][:m] & (on if c == "theta" else True)
             parts.append(np.where(ok, (exp.theta if c == "theta" else exp.alpha)[:m] - y, 0.0) / math.sqrt(exp.sst[c]))
     return np.concatenate(parts) if parts else np.zeros(0)
 
 
-def fit_offset(rig: Any, setup: Setup, exp: RigExperiment, over: Mapping[str, Any]) -> float:
-    """The gauge offset [deg] of ``exp``'s record that fits its replay with ``over`` best, by one Gauss-Newton step
-    from its reading at rest (:attr:`RigExperiment.alpha_rest`; exact where the loop is linear in it, as a loop
-    without friction or play is): a held-out record's own zero, fitted on it as its initial state would be."""
-    key, d0, h = offset_key(exp.record), exp.alpha_rest, OFFSET_STEP
-    r0 = _weighted(exp, *simulate(rig, setup, exp, {**over, key: d0}))
-    j = (_weighted(exp, *simulate(rig, setup, exp, {**over, key: d0 + h})) - r0) / h
-    jj = float(np.dot(j, j))
-    return d0 - float(np.dot(j, r0)) / jj if jj > 0 else d0
+def fit_nuisance(rig: Any, setup: Setup, exp: RigExperiment, over: Mapping[str, Any]) -> dict[str, float]:
+    """The closed-loop replay's own parameters ``over`` lacks (:func:`nuisance_keys`: its record's gauge offset, its
+    link at its start) that fit it best, by one Gauss-Newton step from where the record puts them (exact where the
+    loop is linear in them, as a loop without friction or play is): a held-out record's own, fitted on it as its
+    initial state would be."""
+    start = {k: v for k, v in nuisance_keys(exp).items() if k not in over}
+    if not start:
+        return {}
+    keys = list(start)
+    x0 = np.array([start[k] for k in keys])
+    steps = np.array([OFFSET_STEP if k.startswith(ALPHA_OFFSET) or k.startswith(LINK_START[0]) else 10 * OFFSET_STEP
+                      for k in keys])  # fmt: skip
+    r0 = _weighted(exp, *simulate(rig, setup, exp, {**over, **start}))
+    cols = []
+    for j, k in enumerate(keys):
+        cols.append(
+            (_weighted(exp, *simulate(rig, setup, exp, {**over, **start, k: x0[j] + steps[j]})) - r0) / steps[j]
+        )
+    jac = np.column_stack(cols)
+    dx = np.linalg.lstsq(jac, -r0, rcond=None)[0]
+    return {k: float(v) for k, v in zip(keys, x0 + dx, strict=True)}
+
+
+def effective_gap(gap: np.ndarray, count: np.ndarray, spread: np.ndarray, scale: float) -> float:
+    """The record's gap to a replay beside the spread the replay predicts, window by window, as one mean squared gap
+    [in units of ``scale``, the record's variance per sample]: the profile Gaussian likelihood of the record under the
+    replay's predictive variance (its ``spread`` per window, deg^2) plus a model-error variance fitted to it, given as
+    the mean squared gap a replay without spread would need to score the same, exp(S - 1) with S the least
+    mean over windows of log(v + t) + m / (v + t) (m a window's mean squared gap, ``gap`` [deg^2] summed over its
+    ``count`` valid samples, v its spread, t the model-error variance, all in units of ``scale``; windows weighted by
+    their samples). Without spread it is the mean squared gap itself; a spread where the record's gap lies lowers
+    it, a spread the record does not show raises it, and one as wide as the gap everywhere leaves it where it was."""
+    ok = count > 0
+    if not ok.any() or scale <= 0:
+        return 0.0
+    n, m, v = count[ok], gap[ok] / count[ok] / scale, spread[ok] / scale
+    w = n / float(np.sum(n))
+
+    def score(t: float) -> float:
+        return float(np.sum(w * (np.log(v + t) + m / (v + t))))
+
+    top = float(np.max(m)) + 1e-300
+    best = minimize_scalar(lambda u: score(math.exp(u)), bounds=(math.log(top) - 40.0, math.log(top) + 1.0),
+                           method="bounded", options={"xatol": 1e-6})  # fmt: skip
+    s = min(score(math.exp(float(best.x))), score(0.0) if float(np.min(v)) > 0 else math.inf)
+    return math.exp(s - 1.0)
 
 
 def _windows(v: np.ndarray, ok: np.ndarray, w: int) -> tuple[np.ndarray, np.ndarray]:
@@ -414,25 +504,26 @@ def evaluate(
     setup: Setup,
     exp: RigExperiment,
     over: Mapping[str, Any],
-    draws: int,
+    draws: Sequence[Mapping[str, Any]],
     pseudo: bool = False,
     resolution: float = 0.0,
 ) -> Evaluation:
-    """``exp`` replayed with ``over`` beside its own spread (:class:`Evaluation`): a closed loop with ``draws`` other
-    noise draws, its record's gauge offset fitted on it where ``over`` has none (:func:`fit_offset`). ``pseudo``:
-    the record replaced by what the replay itself would record with another noise draw (a closed loop's replay with
-    PSEUDO_SEED, an open loop's replay with the data's white noise): what a right model leaves, the floor.
-    ``resolution``: the smallest gap that counts, as a share of the record's RMS about its mean (a spread below it
-    is taken at it)."""
-    over = dict(over)
+    """``exp`` replayed with ``over`` beside its own spread (:class:`Evaluation`): its replays with each of ``draws``
+    (other draws of the fitted parameters, each with another noise draw: LOOP_NOISE_SEEDS), its own parameters
+    fitted on it where ``over`` has none (:func:`fit_nuisance`). ``pseudo``: the record replaced by what the replay
+    itself would record with another noise draw (a closed loop's replay with PSEUDO_SEED, an open loop's replay with
+    the data's white noise): what a right model leaves, the floor. ``resolution``: the smallest gap that counts, as a
+    share of the record's RMS about its mean (a spread below it is taken at it)."""
+    own = fit_nuisance(rig, setup, exp, over)
+    over = {**over, **own}
     key = offset_key(exp.record)
+    over.setdefault(key, exp.alpha_rest)
     closed = exp.replay == "closed" and bool(setup.loop_noise)
-    if exp.replay == "closed" and key not in over:
-        over[key] = fit_offset(rig, setup, exp, over)
     th0, al0, on0 = simulate(rig, setup, exp, over)
     m = th0.size
     sims = {"theta": th0, "alpha": al0}
-    others = [simulate(rig, setup, exp, {**over, "daq.seed": s}) for s in LOOP_NOISE_SEEDS[:draws]] if closed else []
+    others = [simulate(rig, setup, exp, {**d, **own, "daq.seed": s})
+              for d, s in zip(draws, LOOP_NOISE_SEEDS, strict=False)]  # fmt: skip
     if pseudo and closed:
         th, al, on = simulate(rig, setup, exp, {**over, "daq.seed": PSEUDO_SEED})
         data, on0 = {"theta": th, "alpha": al}, on0 & on
@@ -442,14 +533,14 @@ def evaluate(
     else:
         data = {"theta": exp.theta[:m], "alpha": exp.alpha[:m]}
     w = max(1, int(round(SPREAD_SECONDS / exp.Ts)))
-    out: dict[str, dict[str, float]] = {"sse": {}, "excess": {}, "spread": {}}
+    out: dict[str, dict[str, float]] = {"sse": {}, "effective": {}, "spread": {}}
     for c in CHANNELS:
         ok = exp.valid[c][:m] & (on0 if c == "theta" else True)
         r2 = (data[c] - sims[c]) ** 2
         gap, count = _windows(r2, ok, w)
         floor = max(setup.sigma_deg.get(c, 0.0) ** 2, resolution**2 * exp.sst[c] / max(exp.u.size, 1))
         if others:
-            spread = np.zeros_like(gap)
+            spread = np.zeros_like(gap) if closed else np.full(gap.shape, setup.sigma_deg.get(c, 0.0) ** 2)
             for th, al, on in others:
                 y = th if c == "theta" else al
                 sub = ok & (on if c == "theta" else True)
@@ -458,8 +549,8 @@ def evaluate(
             spread = np.maximum(spread, floor)
         else:
             spread = np.full(gap.shape, floor)
-        mean_gap = np.divide(gap, count, out=np.zeros_like(gap), where=count > 0)
         out["sse"][c] = float(np.sum(gap))
-        out["excess"][c] = float(np.sum(count * np.abs(mean_gap - spread)))
         out["spread"][c] = float(np.sum(count * spread))
-    return Evaluation(out["sse"], out["excess"], out["spread"], float(over.get(key, exp.alpha_rest)))
+        out["effective"][c] = effective_gap(gap, count, spread, exp.sst[c] / max(exp.u.size, 1))
+    own = {k: float(v) for k, v in over.items() if k in nuisance_keys(exp) or k == key}
+    return Evaluation(out["sse"], out["effective"], out["spread"], own)

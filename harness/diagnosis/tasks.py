@@ -24,17 +24,20 @@ from typing import Any
 
 import numpy as np
 
+from ..behaviour import StepMetrics
 from ..executor import Executor, one_blas_thread, worker_rig
 from . import recalibrate as recal
+from .bands import BEHAVIOUR_SEED, replay_metrics
 from .effects import BY_PARAM, Effect
 from .experiments import CHANNELS
-from .simulation import Evaluation, Setup, evaluate, lattice_in_loop, offset_key, replay_traces, residuals
+from .simulation import Evaluation, Setup, evaluate, lattice_in_loop, nuisance_keys, replay_traces, residuals
 from .where import where_gap
 
 SENSOR_CHANNELS = {"theta": "sensor.theta_gain", "alpha": "sensor.alpha_gauge_gain"}
 Overrides = dict[str, Any]  # {"plant.Ks": 1.5, "daq.delay_samples": 1, "sensor.alpha_offset@rec": 0.3, ...}
 
 __all__ = [
+    "Behaviour",
     "Cost",
     "Evaluate",
     "FitResult",
@@ -48,7 +51,7 @@ __all__ = [
     "joint_refit",
     "least_squares_refit",
     "moving_channels",
-    "record_rows",
+    "own_rows",
     "recalibrate",
     "residual_vector",
     "stretches",
@@ -73,7 +76,8 @@ def _bind(setup: Setup) -> None:
 class FitResult:
     """A least-squares fit: the overrides fitted (``params``, with the fixed ones), each fitted parameter's 95 %
     interval, ``cost`` the mean squared gap on the fit windows, the simulations it took, and the covariance of the
-    fitted parameters in the fit's coordinates (``names``; log of the value for a parameter on a log scale)."""
+    fitted parameters in the fit's coordinates (``names``; log of the value for a parameter on a log scale) with the
+    range each was searched in (``ranges``, its values)."""
 
     params: Overrides
     ci95: dict[str, tuple[float, float]]
@@ -82,11 +86,12 @@ class FitResult:
     names: tuple[str, ...] = ()
     cov: tuple[tuple[float, ...], ...] = ()
     log: tuple[bool, ...] = ()
+    ranges: tuple[tuple[float, float], ...] = ()
 
 
 def moving_channels(setup: Setup, names: list[str]) -> int:
     """K: how many experiment-channels of ``names`` move over their fit windows (sst > 0)."""
-    return sum(1 for n in names for c in CHANNELS if setup.experiments[n].sst_fit[c] > 0)
+    return sum(1 for n in names for c in CHANNELS if setup.experiments[n].moves(c, "fit"))
 
 
 def residual_vector(over: Overrides, names: list[str], k: int | None = None) -> np.ndarray:
@@ -99,22 +104,22 @@ def residual_vector(over: Overrides, names: list[str], k: int | None = None) -> 
     for n in names:
         x = setup.experiments[n]
         e = residuals(_CTX["rig"], setup, x, over, x.n_fit)
-        parts += [e[c] / math.sqrt(k * x.sst_fit[c]) for c in CHANNELS if x.sst_fit[c] > 0]
+        parts += [e[c] / math.sqrt(k * x.sst_fit[c]) for c in CHANNELS if x.moves(c, "fit")]
     return np.concatenate(parts)
 
 
-def record_rows(setup: Setup, names: list[str]) -> dict[str, np.ndarray]:
-    """Per record of a closed-loop replay among ``names``: the mask of its rows in :func:`residual_vector` of
-    ``names`` (what its own gauge offset moves)."""
-    sizes = [(n, setup.experiments[n].n_fit * sum(1 for c in CHANNELS if setup.experiments[n].sst_fit[c] > 0))
+def own_rows(setup: Setup, names: list[str]) -> dict[str, tuple[float, np.ndarray]]:
+    """Each closed-loop replay's own parameters among ``names`` (:func:`harness.diagnosis.simulation.nuisance_keys`:
+    a record's gauge offset, an experiment's link at its start), each with its start and the mask of the rows of
+    :func:`residual_vector` of ``names`` it moves."""
+    sizes = [(n, setup.experiments[n].n_fit * sum(1 for c in CHANNELS if setup.experiments[n].moves(c, "fit")))
              for n in names]  # fmt: skip
     total = sum(m for _, m in sizes)
-    out: dict[str, np.ndarray] = {}
+    out: dict[str, tuple[float, np.ndarray]] = {}
     at = 0
     for n, m in sizes:
-        x = setup.experiments[n]
-        if x.replay == "closed":
-            mask = out.setdefault(x.record, np.zeros(total, dtype=bool))
+        for key, start in nuisance_keys(setup.experiments[n]).items():
+            mask = out.setdefault(key, (start, np.zeros(total, dtype=bool)))[1]
             mask[at : at + m] = True
         at += m
     return out
@@ -133,7 +138,7 @@ def gain_columns(setup: Setup, names: list[str], fitted: Collection[str] = ()) -
     for n in names:
         x = setup.experiments[n]
         for i, c in enumerate(CHANNELS):
-            if x.sst_fit[c] <= 0:
+            if not x.moves(c, "fit"):
                 continue
             ok = x.valid[c][: x.n_fit]
             y = np.where(ok, (x.theta if c == "theta" else x.alpha)[: x.n_fit], 0.0)
@@ -157,8 +162,8 @@ def least_squares_refit(
     """Output-error least squares on the residual vector ``resid(overrides)`` (:func:`residual_vector` of the
     experiments ``names``, computed here or over the workers) of the linear parameters
     (:data:`harness.diagnosis.recalibrate.LINEAR`; ``linear`` False: they keep their values in ``base``), the
-    continuous effect parameters ``free`` (with their secondary parameters) and the gauge offset of each record a
-    closed loop acts on (:func:`harness.diagnosis.simulation.offset_key`, from its reading at rest), from their
+    continuous effect parameters ``free`` (with their secondary parameters) and each closed-loop replay's own
+    parameters (:func:`own_rows`: its record's gauge offset, its link at its start), from their
     values in ``base`` (linear ones default to the sim's); a closed loop through an ADC lattice is fitted without
     derivatives (:func:`harness.diagnosis.recalibrate.fit`). An integer effect parameter in ``base`` (a delay, chosen
     on a rig whose linear parameters had compensated it) has its neighbours tried on the refitted rig, and is moved
@@ -174,10 +179,8 @@ def least_squares_refit(
         for x, b in eff.extra.items():
             bounds[x], nominal[x] = b, setup.nominal(x)
     local = {}
-    for record, mask in record_rows(setup, names).items():
-        key = offset_key(record)
-        rest = next(x.alpha_rest for x in setup.experiments.values() if x.record == record)
-        bounds[key], nominal[key], local[key] = recal.RECORD_OFFSET, rest, mask
+    for key, (start, mask) in own_rows(setup, names).items():
+        bounds[key], nominal[key], local[key] = recal.OWN[key.split("@", 1)[0]], start, mask
     fixed = {k: v for k, v in base.items() if k not in bounds}
     gains = gain_columns(setup, names, [c for c, s in SENSOR_CHANNELS.items() if s in bounds])
     prior = {p: sd for p, sd in setup.prior_sd.items() if p in bounds}
@@ -223,7 +226,13 @@ def least_squares_refit(
         names=tuple(f.names),
         cov=tuple(tuple(float(v) for v in row) for row in f.cov),
         log=tuple(bounds[n].log for n in f.names),
+        ranges=tuple(_value_range(bounds[n], nominal[n]) for n in f.names),
     )
+
+
+def _value_range(b: recal.Bound, nominal: float) -> tuple[float, float]:
+    """A search range as values: factors of the nominal value on a log scale, the bounds themselves otherwise."""
+    return (nominal * b.lo, nominal * b.hi) if b.log else (b.lo, b.hi)
 
 
 def joint_refit(base: Overrides, free: Collection[str], fit: list[str], max_nfev: int = REFIT_NFEV) -> FitResult:
@@ -351,12 +360,12 @@ class Cost:
 @dataclass(frozen=True)
 class Evaluate:
     """The experiments ``names`` replayed with ``over`` beside their own spread
-    (:func:`harness.diagnosis.simulation.evaluate`, ``draws`` other noise draws, ``pseudo`` the floor's record):
-    {experiment: Evaluation}."""
+    (:func:`harness.diagnosis.simulation.evaluate`: its replays with ``draws``, other draws of the fitted parameters
+    each with another noise draw; ``pseudo`` the floor's record): {experiment: Evaluation}."""
 
     over: Overrides
     names: tuple[str, ...]
-    draws: int
+    draws: tuple[Overrides, ...]
     resolution: float
     pseudo: bool = False
     label = "score"
@@ -368,6 +377,23 @@ class Evaluate:
             n: evaluate(_CTX["rig"], setup, setup.experiments[n], self.over, self.draws, self.pseudo, self.resolution)
             for n in self.names
         }
+
+
+@dataclass(frozen=True)
+class Behaviour:
+    """Each experiment of ``names`` replayed with each of ``overs`` (a draw of the rig) and its own noise draw
+    (seed BEHAVIOUR_SEED + i), its behaviour per step: {experiment: [[StepMetrics per step] per replay]}
+    (:func:`harness.diagnosis.bands.replay_metrics`)."""
+
+    overs: tuple[Overrides, ...]
+    names: tuple[str, ...]
+    label = "behaviour"
+    weight = 1
+
+    def run(self) -> dict[str, list[list[StepMetrics]]]:
+        setup: Setup = _CTX["setup"]
+        return {n: [replay_metrics(_CTX["rig"], setup, setup.experiments[n], over, BEHAVIOUR_SEED + i)
+                    for i, over in enumerate(self.overs)] for n in self.names}  # fmt: skip
 
 
 @dataclass(frozen=True)

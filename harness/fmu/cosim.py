@@ -210,7 +210,8 @@ class Rig:
         Returns the keys of :meth:`run` (``u`` the controller's command [V]) plus ``ref`` [deg]. When the loop
         diverges (the link deflects more than DIVERGED_ALPHA_DEG or the shaft strays more than half a turn from the
         reference) ``diverged="raise"`` raises :class:`ClosedLoopError` (one line); ``"hold"`` stops there and holds
-        the last sample to the end (a fit's trial parameters that destabilise the loop: a large gap, not an error),
+        the last sample to the end (a fit's trial parameters that destabilise the loop: a large gap, not an error;
+        zeros where it diverged at its start),
         and the result's ``diverged_at`` is that sample's index (-1 when the loop held).
         """
         if self.controller is None:
@@ -258,8 +259,8 @@ class Rig:
         stopped = -1
         if code == DIVERGED:
             k = at.value
-            if diverged == "hold" and k > 0:
-                out[k:] = out[k - 1]
+            if diverged == "hold":
+                out[k:] = out[k - 1] if k > 0 else 0.0  # diverged from its start: nothing to hold but zeros
                 stopped = k
             else:
                 raise ClosedLoopError(

@@ -144,13 +144,13 @@ def _effects_lines(diag: Diagnosis) -> list[str]:
     return lines
 
 
-def _ci_halfwidth(ci95: list[float], fitted: float) -> str:
+def _ci_halfwidth(ci95: list[float], fitted: float, nominal: float = 1.0) -> str:
     """A 95 % interval as +- its half-width, in % of the fitted value (the interval's ends agree to more digits
-    than a table shows)."""
+    than a table shows); of an offset about 0 (``nominal`` 0), in its own unit."""
     if len(ci95) != 2 or not all(math.isfinite(v) for v in ci95):
         return "—"
     half = (ci95[1] - ci95[0]) / 2.0
-    return f"± {100.0 * half / abs(fitted):.2g} %" if fitted else f"± {half:.2g}"
+    return f"± {100.0 * half / abs(fitted):.2g} %" if fitted and nominal else f"± {half:.2g}"
 
 
 def _folds_text(p: FittedParameter) -> str:
@@ -181,7 +181,7 @@ def _parameters_lines(diag: Diagnosis) -> list[str]:
             p.unit,
             fmt_any(p.nominal),
             fmt_any(p.fitted),
-            _ci_halfwidth(p.ci95, p.fitted),
+            _ci_halfwidth(p.ci95, p.fitted, p.nominal),
             fmt(p.change_pct, 1),
             p.finding or "—",
             *([fmt_any(p.recalibrated) if p.recalibrated is not None else "—"] if alone else []),
@@ -234,6 +234,85 @@ def _parameters_lines(diag: Diagnosis) -> list[str]:
                 "not yet modelled, or moved to make room for one): " + "; ".join(moves) + "."
             )
         lines += [text, ""]
+    return lines
+
+
+def sensor_lines(diag: Diagnosis) -> list[str]:
+    """One line per record: its gauge offset as fitted (with its interval) or read at rest, and where its replay
+    started the link."""
+    out = []
+    for name, r in (diag.sensors or {}).items():
+        v, lo, hi = r.gauge_offset_deg
+        how = f"95 % interval {lo:.4g}..{hi:.4g}" if math.isfinite(lo) else "its least squares in an open loop"
+        text = f"{name}: gauge offset {v:.4g} deg ({how})"
+        if r.link_start_deg is not None and r.link_rate_start_deg_s is not None:
+            text += (f"; its replay starts the link at {r.link_start_deg:.3g} deg, "
+                     f"{r.link_rate_start_deg_s:.3g} deg/s (its ring at the start)")  # fmt: skip
+        out.append(text)
+    return out
+
+
+BEHAVIOUR_LABELS = {
+    "overshoot_pct": "overshoot [%]",
+    "settling_s": "settling [s]",
+    "stop_error_deg": "stop error [deg]",
+    "peak_alpha_deg": "peak alpha [deg]",
+    "peak_u_v": "peak command [V]",
+    "ring_alpha_deg": "ringing [deg RMS]",
+    "ring_hz": "ringing [Hz]",
+}
+
+
+def behaviour_outside(diag: Diagnosis) -> dict[str, list[str]]:
+    """Per closed-loop record, its measured metrics outside their replays' band ("stop error at 5 s (down)")."""
+    out: dict[str, list[str]] = {}
+    for name, rb in (diag.behaviour or {}).items():
+        out[name] = [
+            f"{BEHAVIOUR_LABELS[m].split(' [')[0]} at {st.start_s:.3g} s ({'up' if st.direction > 0 else 'down'})"
+            for st in rb.steps
+            for m, b in st.metrics.items()
+            if math.isfinite(b.measured) and math.isfinite(b.lo) and not b.inside
+        ]
+    return out
+
+
+def _sensors_lines(diag: Diagnosis) -> list[str]:
+    rows = sensor_lines(diag)
+    if not rows:
+        return []
+    return [
+        "Each record's sensors as fitted: the strain gauge's offset (its reading of the link at rest, in the "
+        "record's own zero), fitted with the linear parameters where a closed loop acted on it, and where each "
+        "replay started the link (its ring at the record's start, amplitude and phase from the data).",
+        "",
+        *(f"- {r}" for r in rows),
+        "",
+    ]
+
+
+def _behaviour_lines(diag: Diagnosis) -> list[str]:
+    if not diag.behaviour:
+        return []
+    lines = [
+        "Behaviour step by step, as the record measured it and as the final rig replays it: median and 95 % band "
+        "of replays with other noise draws and other draws of the fitted parameters (a replay follows a record "
+        "sample by sample only where the loop does not stick or rattle in a phase the noise sets; the band is what "
+        "the model says the record may do). Outside its band: **bold**.",
+        "",
+    ]
+    for name, rb in diag.behaviour.items():
+        rows = []
+        for st in rb.steps:
+            for m, b in st.metrics.items():
+                if not math.isfinite(b.measured) and not math.isfinite(b.median):
+                    continue
+                cell = fmt(b.measured, 3)
+                cell = f"**{cell}**" if math.isfinite(b.lo) and math.isfinite(b.measured) and not b.inside else cell
+                step = f"{st.start_s:.3g} s {'up' if st.direction > 0 else 'down'} {st.size_deg:.3g} deg"
+                rows.append([step, BEHAVIOUR_LABELS.get(m, m), cell, fmt(b.median, 3),
+                             f"{fmt(b.lo, 3)}..{fmt(b.hi, 3)}"])  # fmt: skip
+        lines += [f"{name}: {fmt(100.0 * rb.coverage, 0)} % of its metrics inside their bands.", ""]
+        lines += [*table(["step", "metric", "measured", "median", "95 % band"], rows), ""]
     return lines
 
 
@@ -417,10 +496,12 @@ def diagnosis_markdown(diag: Diagnosis, waterfall_figure: str | None = None) -> 
     per-experiment gaps with the folds, first-round candidates, noise floor and where the gap is."""
     lines = _verdict_lines(diag)
     lines += _parameters_lines(diag)
+    lines += _sensors_lines(diag)
     lines += _effects_lines(diag)
     lines += _decomposition_lines(diag, waterfall_figure)
     lines += _overall_lines(diag)
     lines += _experiments_lines(diag)
+    lines += _behaviour_lines(diag)
     lines += _candidates_lines(diag)
     lines += _noise_lines(diag)
     return lines + _where_lines(diag)

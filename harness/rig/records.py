@@ -28,9 +28,11 @@ Rules, no silent guesses:
   uniform grid are resampled onto it by linear interpolation (the pot's wrap jumps are not interpolated
   across: the nearer sample is taken) and the largest correction is reported; beyond that: refused;
 - no calibration given: lab 1's Kp and Ke are assumed and a note says so;
-- ``zero_alpha``: the deflection is zeroed on the record's first ``ZERO_SECONDS`` (the shaft must be at rest
-  there), as labs zero their gauge, with a note; a closed-loop record's controller keeps the zero error it acted
-  with (``alpha_bias``).
+- ``zero_alpha``: the deflection is zeroed on the record's quietest ``ZERO_SECONDS`` (the shaft at rest there, the
+  link too: its deflection varies no more than ``REST_SIGMAS`` times its noise), as labs zero their gauge, with a
+  note; where the link never rests, a warning says so and the record is left as read (the diagnosis fits each
+  record's gauge offset anyway); a closed-loop record's controller keeps the zero error it acted with
+  (``alpha_bias``).
 
 Closed-loop records (every public record of a flexible link is one: the logged ``u`` is a controller's output):
 a reference column given the role ``ref`` (``{"theta_ref_deg": "ref"}``, in deg, rad, counts or the pot's volts)
@@ -105,8 +107,9 @@ THETA_SENSORS = ("pot", "encoder")
 MIN_RATE = 10.0  # Hz: slower records cannot show the link's first mode (~3-4.5 Hz)
 MIN_RECORD_SECONDS = 2 * MIN_FOLD_SECONDS  # s: the shortest record imported (n Ts, n samples at interval Ts)
 JITTER_LIMIT = 0.1  # largest time-stamp correction resampled, as a share of the sample interval
-ZERO_SECONDS = 0.1  # s: a deflection recorded as an angle or a length is zeroed on its first ZERO_SECONDS at rest
+ZERO_SECONDS = 0.25  # s: a deflection is zeroed on its quietest stretch of ZERO_SECONDS at rest
 AT_REST_DEG = 0.5  # deg: the shaft moves less than this over those samples: at rest
+REST_SIGMAS = 3.0  # ... and the deflection's RMS about its mean there is within this many times its noise
 UNITS = {
     "t": ("s", "ms", "us"),
     "u": ("V",),
@@ -781,11 +784,16 @@ def normalise(table: RawTable, opts: ImportOptions, cal: Calibration, note: Note
             deg = _angle(ch, c, opts, table.file)
             off, gain = (cal.pot_offset_v, cal.Kp) if ch == "theta" else (cal.gauge_offset_v, cal.Ke)
             cols[f"{ch}_v"], cols[ch] = deg / gain + off, deg
-    zero = _gauge_zero(cols, Ts, table.file) if opts.zero_alpha else 0.0
-    if zero:
-        cols["alpha"] = cols["alpha"] - zero
-        cols["alpha_v"] = cols["alpha"] / cal.Ke + cal.gauge_offset_v
-        remark(f"alpha zeroed: it read {zero:.4g} deg over the first {ZERO_SECONDS:g} s at rest (the gauge's zero)")
+    zero = 0.0
+    if opts.zero_alpha:
+        zero, where = _gauge_zero(cols, Ts)
+        if math.isfinite(zero):
+            cols["alpha"] = cols["alpha"] - zero
+            cols["alpha_v"] = cols["alpha"] / cal.Ke + cal.gauge_offset_v
+            remark(f"alpha zeroed: it read {zero:.4g} deg over {where} (the gauge's zero)")
+        else:
+            warn(f"--zero-alpha: {where}; alpha left as read (the diagnosis fits its gauge offset)")
+            zero = 0.0
     if "ref" in chans:
         c = chans["ref"]
         cols["ref"] = theta_deg(c.values, cal) if c.unit == "V" else _angle("ref", c, opts, table.file)
@@ -875,15 +883,28 @@ def _off_lattice(theta: np.ndarray, step: float) -> float:
     return float(np.max(np.abs(k - np.round(k)))) if k.size else 0.0
 
 
-def _gauge_zero(cols: dict[str, np.ndarray], Ts: float, file: str) -> float:
-    """The deflection's zero [deg]: its median over the record's first ZERO_SECONDS, where the shaft must be at
-    rest (it moves less than AT_REST_DEG)."""
-    n = max(2, int(round(ZERO_SECONDS / Ts)))
-    moved = float(np.ptp(cols["theta"][:n]))
-    if cols["theta"].size < 2 * n or moved > AT_REST_DEG:
-        raise DataError(f"{file}: cannot zero alpha: the shaft moves {moved:.3g} deg over the first {ZERO_SECONDS:g} s "
-                        f"(not at rest)")  # fmt: skip
-    return float(np.median(cols["alpha"][:n]))
+def _gauge_zero(cols: dict[str, np.ndarray], Ts: float) -> tuple[float, str]:
+    """The deflection's zero [deg] and what it was read on: its median over the record's quietest stretch of
+    ZERO_SECONDS where the shaft is at rest (it moves less than AT_REST_DEG) and the link too (its deflection's RMS
+    about its mean within REST_SIGMAS times its noise: the MAD of its third differences, at least its lattice's
+    step / sqrt 12); (NaN, why) where the link never rests."""
+    th, al = cols["theta"], cols["alpha"]
+    n = max(4, int(round(ZERO_SECONDS / Ts)))
+    if al.size < 2 * n:
+        return math.nan, f"the record is shorter than two stretches of {ZERO_SECONDS:g} s"
+    d3 = np.diff(al, 3)
+    sigma = max(1.4826 * float(np.median(np.abs(d3 - np.median(d3)))) / math.sqrt(20.0),
+                value_step(al) / math.sqrt(12.0))  # fmt: skip
+    starts = np.arange(0, al.size - n + 1, max(1, n // 2))
+    still = [a for a in starts if float(np.ptp(th[a : a + n])) < AT_REST_DEG]
+    if not still:
+        return math.nan, f"the shaft never rests for {ZERO_SECONDS:g} s"
+    quiet = min(still, key=lambda a: (float(np.std(al[a : a + n])), a))
+    rms = float(np.std(al[quiet : quiet + n]))
+    if rms > REST_SIGMAS * sigma:
+        return math.nan, (f"the link never rests: its quietest {ZERO_SECONDS:g} s (at {quiet * Ts:.3g} s) swings "
+                          f"{rms:.3g} deg RMS, {rms / max(sigma, 1e-12):.0f}x its noise")  # fmt: skip
+    return float(np.median(al[quiet : quiet + n])), f"its quietest {ZERO_SECONDS:g} s at rest, at {quiet * Ts:.3g} s"
 
 
 def _controller(
