@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from scipy.optimize import minimize_scalar
 
 from ..behaviour import StepMetrics
 from ..executor import Executor, one_blas_thread, worker_rig
@@ -327,7 +328,8 @@ class Refit:
 @dataclass(frozen=True)
 class Grid:
     """Each of an effect's values (:func:`effect_values`) on top of ``base``, with the least-squares cost (mean
-    squared gap) of the experiments ``fit``: [(value, cost)]."""
+    squared gap) of the experiments ``fit``, and a continuous effect's best value refined between its neighbours by
+    bounded Brent (in log for a log scale): [(value, cost)]."""
 
     effect: Effect
     base: Overrides
@@ -339,9 +341,26 @@ class Grid:
         return f"grid {self.effect.name}"
 
     def run(self) -> list[tuple[float | int, float]]:
-        fit = list(self.fit)
-        return [(v, float(np.sum(residual_vector({**self.base, self.effect.param: v}, fit) ** 2)))
-                for v in effect_values(self.effect)]  # fmt: skip
+        fit, eff = list(self.fit), self.effect
+
+        def cost(v: float | int) -> float:
+            return float(np.sum(residual_vector({**self.base, eff.param: v}, fit) ** 2))
+
+        values = effect_values(eff)
+        out = [(v, cost(v)) for v in values]
+        if eff.continuous:
+            log = eff.kind == "log"
+            i = min(range(len(out)), key=lambda j: (out[j][1], j))
+            lo, hi = values[max(i - 1, 0)], values[min(i + 1, len(values) - 1)]
+            ends = (math.log(lo), math.log(hi)) if log else (lo, hi)
+            res = minimize_scalar(
+                lambda x: cost(math.exp(x) if log else x),
+                bounds=ends,
+                method="bounded",
+                options={"xatol": 0.01 if log else 0.002 * (eff.hi - eff.lo), "maxiter": 10},
+            )
+            out.append((float(math.exp(res.x) if log else res.x), float(res.fun)))
+        return out
 
 
 @dataclass(frozen=True)
