@@ -30,7 +30,6 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass, field, replace
-from typing import Any
 
 import numpy as np
 from scipy.optimize import OptimizeResult, least_squares, minimize
@@ -93,6 +92,7 @@ STAIRCASE_STEP = 0.05  # a Jacobian column that a 0.1 % step left at zero is tak
 PRIOR_PASSES = 8
 PRIOR_SETTLED = 0.8
 POWELL_XTOL = 0.01  # a derivative-free fit's smallest step: 1 % of a parameter (log)
+BROYDEN_EVERY = 3  # least squares' Jacobian by differences at every third point it accepts, by Broyden's between
 
 
 @dataclass
@@ -228,11 +228,7 @@ def _fit(
         return np.concatenate([data(x), math.sqrt(w2) * x[sel] / sd[sel]]) if sel.any() else data(x)
 
     masks = [None if local is None else local.get(n) for n in names]
-    jac: Any = "2-point"
-    if any(m is not None for m in masks):
-
-        def jac(x: np.ndarray) -> np.ndarray:
-            return grouped_jacobian(full, x, lo_hi, masks, sel)
+    jac = Broyden(full, lo_hi, masks, sel)
 
     nfev, before = 0, None
     for _ in range(PRIOR_PASSES):  # the start's variance overweights the prior: again with the solution's
@@ -263,7 +259,8 @@ def _fit(
     n_eff = int(np.count_nonzero(r))
     dof = max(n_eff - len(names), 1)
     s2 = float(np.sum(r**2)) / dof * n_eff / max(effective_samples(r, max_rho), 1.0)  # smooth residuals: fewer samples
-    jac = _felt(data, res.x, r, np.array(res.jac, dtype=float)[: r.size], lo_hi)
+    exact = grouped_jacobian(full, res.x, lo_hi, masks, sel) if not derivative_free else np.array(res.jac, dtype=float)
+    jac = _felt(data, res.x, r, exact[: r.size], lo_hi)
     info = jac.T @ jac / max(s2, 1e-300) + np.diag(np.where(sel, 1.0 / sd**2, 0.0))
     cov = np.linalg.pinv(info)
     if calibration is not None:  # what the sensor gains' errors move the fit by (see the module)
@@ -281,6 +278,38 @@ def _fit(
     sd_cov = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
     cov = cov / np.outer(sd_cov, sd_cov) * np.outer(se, se)  # the correlations, with the variances as capped
     return Fit({n: values[n] for n in names}, ci, float(np.sum(r**2)), nfev, n_eff, (), tuple(names), cov)
+
+
+class Broyden:
+    """The Jacobian least squares asks for at each point it accepts: by forward differences
+    (:func:`grouped_jacobian`) every BROYDEN_EVERY points, and between them by Broyden's rank-one update from the
+    last two points' residuals (J += (df - J dx) dx^T / dx^T dx), which costs no simulation. The intervals are taken
+    from a Jacobian by differences at the solution."""
+
+    def __init__(
+        self,
+        fun: Callable[[np.ndarray], np.ndarray],
+        lo_hi: list[tuple[float, float]],
+        masks: list[np.ndarray | None],
+        prior_rows: np.ndarray,
+    ) -> None:
+        self.fun, self.lo_hi, self.masks, self.prior_rows = fun, lo_hi, masks, prior_rows
+        self.last: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self.since = 0
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        f = self.fun(x)
+        if self.last is None or self.since + 1 >= BROYDEN_EVERY or f.size != self.last[1].size:
+            jac = grouped_jacobian(self.fun, x, self.lo_hi, self.masks, self.prior_rows)
+            self.since = 0
+        else:
+            x0, f0, jac = self.last
+            dx = x - x0
+            dd = float(dx @ dx)
+            jac = jac + np.outer((f - f0) - jac @ dx, dx) / dd if dd > 0 else jac
+            self.since += 1
+        self.last = (x.copy(), f.copy(), jac)
+        return jac
 
 
 def grouped_jacobian(
