@@ -247,7 +247,7 @@ def test_a_lone_open_loop_record_stays_in_halves_and_its_second_half_starts_from
     first, second = parts.values()
     m = first.u.size
     state = ex.measured_state(x)[m]
-    assert first.plant == {} and second.plant == pytest.approx(
+    assert first.measured_start is None and second.measured_start == pytest.approx(
         {
             "theta_start": math.radians(x.theta[m]),
             "alpha_start": math.radians(x.alpha[m]),
@@ -255,7 +255,8 @@ def test_a_lone_open_loop_record_stays_in_halves_and_its_second_half_starts_from
             "alpha_dot_start": state[3],
         }  # fmt: skip
     )
-    assert abs(second.plant["theta_dot_start"]) > 0.1  # [rad/s]: the shaft moves there
+    assert second.start_state == second.measured_start and first.plant == second.plant == {}
+    assert abs(second.start_state["theta_dot_start"]) > 0.1  # [rad/s]: the shaft moves there
 
 
 def test_a_lone_open_loop_record_cut_at_a_command_step_is_replayed_from_where_the_rig_was(tmp_path):

@@ -1,32 +1,21 @@
-"""Diagnose the sim-to-real gap: which unmodelled effect causes it, how far it shrinks, where it lies.
+"""Diagnose the sim-to-real gap: where it lies, which unmodelled effect causes it, how far it shrinks.
 
 The data flow, one module per step:
 
-1. :mod:`harness.diagnosis.experiments`: every non-calibration experiment of the REAL run, converted to degrees
-   with the real run's calibration, its invalid samples masked (pot dead band, ADC clipping), split into two
-   folds for 2-fold cross-fitting (stratified by signal kind and command level; a lone record is cut in time, so
-   that what is reported as held out is held out: into blocks at quiet points that alternate between the folds
-   where it shows a period and its replay follows the record (closed loop, multiple shooting), else into two
-   halves at its quietest point near the middle); records at different sample rates are refused;
-2. :mod:`harness.diagnosis.noise`: the noise floor of the data and the ADC lattice it sits on;
-   :mod:`harness.diagnosis.gauge`: the gauge's delay behind the hub angle, read from the records (alpha from theta
-   through the link), which every replay's DAQ then has, as the data's calibration;
-3. :mod:`harness.diagnosis.simulation`: each experiment re-simulated on the SIM spec's rig with the real command,
-   both sides calibrated alike; the gap g = sqrt(E), E the mean squared gap (per experiment and channel
-   ||y_real - y_sim||^2 / ||y_real - mean||^2, averaged), fit % = 100 (1 - g) (MATLAB ``compare``'s fit,
-   pooled). Angles, not their filtered differences: on the lab campaign the noise-only gap of theta is 0.002 in
-   angle and 0.009 in the velocity domain, for the same effect gaps;
+1. :mod:`harness.diagnosis.experiments`: every non-calibration experiment of the real run in degrees (the run's
+   calibration), its invalid samples masked (pot dead band, ADC clipping), split into two folds (a lone record cut
+   in time); where each replay starts (the link's ring at a record's start);
+2. :mod:`harness.diagnosis.noise`: the data's noise and the ADC lattice they sit on; :mod:`harness.diagnosis.gauge`:
+   the gauge's delay behind the hub angle, read from the records;
+3. :mod:`harness.diagnosis.simulation`: each experiment replayed on the sim spec's rig as it was run, its gap and
+   its gap beside the replays' own spread;
 4. :mod:`harness.diagnosis.effects`: the candidate effects worth fitting against this simulation and data;
-5. :mod:`harness.diagnosis.search` (its simulations as executor tasks, :mod:`harness.diagnosis.tasks`):
-   recalibration of the linear parameters first (a real rig's are never the datasheet's; the mismatch is a
-   finding, ``parameters``, not an effect), then greedy forward selection of the effects on top of it, backward
-   elimination and drop-one importance, every score on held-out data;
-6. :mod:`harness.diagnosis.where`: where the gap of the simulation as given, and recalibrated, lies (two tasks);
-7. :mod:`harness.diagnosis.result`: ``diagnosis.json``, with per experiment its replay and why, and the caveats of
-   the verdict: a recalibrated parameter at its search bound (the spec may not describe the rig), one the data do
-   not determine (95 % interval wider than a factor 100).
-
-Verdict and the rule that reaches it: :class:`harness.diagnosis.search.Policy`.
+5. :mod:`harness.diagnosis.search` (its simulations as tasks, :mod:`harness.diagnosis.tasks`): the linear model
+   and each record's sensors, the effects on top of it, the verdict, by one rule
+   (:class:`harness.diagnosis.search.Policy`); :mod:`harness.diagnosis.bands`: each closed-loop record's
+   behaviour beside its replays';
+6. :mod:`harness.diagnosis.where`: where the gap of the simulation as given, and recalibrated, lies;
+7. :mod:`harness.diagnosis.result`: ``diagnosis.json``, with the caveats of the verdict.
 """
 
 from __future__ import annotations

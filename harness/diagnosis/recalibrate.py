@@ -320,8 +320,8 @@ def grouped_jacobian(
     prior_rows: np.ndarray,
     step: float = 1e-3,
 ) -> np.ndarray:
-    """The forward-difference Jacobian of ``fun`` at ``x`` (steps of ``step`` x max(1, |x|), backward at an upper
-    bound, as least squares takes them) where a column with a mask (``masks[j]``: the data rows it moves; None: every
+    """The forward-difference Jacobian of ``fun`` at ``x`` (steps of ``step`` x |x|, sqrt(eps) x max(1, |x|) where
+    that is no step, backward at an upper bound: least squares' own rule) where a column with a mask (``masks[j]``: the data rows it moves; None: every
     row) moves only those rows: columns whose masks are disjoint are stepped together, one evaluation for the group.
     ``prior_rows``: which parameters have a prior row after the data rows (in order), each moved by its own column
     only."""
@@ -345,7 +345,10 @@ def grouped_jacobian(
     for cols in groups:
         h = np.zeros(x.size)
         for j in cols:
-            h[j] = step * max(1.0, abs(float(x[j]))) * (1.0 if x[j] >= 0 else -1.0)
+            sign = 1.0 if x[j] >= 0 else -1.0
+            h[j] = step * sign * abs(float(x[j]))
+            if (x[j] + h[j]) - x[j] == 0.0:  # at 0: the smallest step that tells (least squares' own rule)
+                h[j] = math.sqrt(np.finfo(float).eps) * sign * max(1.0, abs(float(x[j])))
             if not lo_hi[j][0] <= x[j] + h[j] <= lo_hi[j][1]:
                 h[j] = -h[j]
         df = fun(x + h) - f0

@@ -528,6 +528,7 @@ def search(
     table = {c.name: c for c in cands}
     cf = CrossFit(pool, experiments, names, [folds[0], folds[1]], [folds[1], folds[0]], policy, table)
     base, given = recalibrated(cf, say)
+    recal_model = base
     recal_paid = base.score.excess < given.excess
     if not recal_paid:  # the sheet's linear parameters, each record's own gauge offset fitted
         keep = [{k: v for k, v in f.params.items() if k.startswith(ALPHA_OFFSET)} for f in base.fits]
@@ -562,11 +563,11 @@ def search(
     behaviour = {}
     for part in pool.map([Behaviour(tuple(draws), (n,)) for n in looped]):
         behaviour |= bands(experiments, final, part)
-    rec_alone = _recalibrated_alone(base) if recal_paid else {}
+    rec_alone = _recalibrated_alone(recal_model)  # shown beside the table's values, applied or not
     for prm, value in rec_alone.items():
         if prm in table_rows:
             table_rows[prm].recalibrated = value
-            table_rows[prm].folds = [_fit_row(f, prm) for f in base.fits]
+            table_rows[prm].folds = [_fit_row(f, prm) for f in recal_model.fits]
             if own:
                 table_rows[prm].records = {n: _fit_row(r, prm) for n, r in own.items()}
     (sse_final,) = pool.map([Evaluate(final, tuple(names), (), policy.resolution)])
@@ -620,7 +621,7 @@ def search(
         recalibration_applied=recal_paid,
         final=final,
         final_fit=final_fit,
-        recalibrated=rec_alone,
+        recalibrated=rec_alone if recal_paid else {},
         floor=floor,
         base=base.score,
         models={"base": base, "final": final_model},
