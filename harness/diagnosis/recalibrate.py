@@ -321,8 +321,9 @@ def grouped_jacobian(
     step: float = 1e-3,
 ) -> np.ndarray:
     """The forward-difference Jacobian of ``fun`` at ``x`` (steps of ``step`` x |x|, sqrt(eps) x max(1, |x|) where
-    that is no step, backward at an upper bound: least squares' own rule) where a column with a mask (``masks[j]``: the data rows it moves; None: every
-    row) moves only those rows: columns whose masks are disjoint are stepped together, one evaluation for the group.
+    that is no step, backward at an upper bound: least squares' own rule) where a column with a mask (``masks[j]``:
+    the data rows it moves; None: every row) moves only those rows: columns whose masks are disjoint are stepped
+    together, one evaluation for the group.
     ``prior_rows``: which parameters have a prior row after the data rows (in order), each moved by its own column
     only."""
     f0 = fun(x)

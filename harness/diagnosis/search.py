@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from . import recalibrate as recal
-from .bands import bands, closed_steps, coverage, parameter_draws
+from .bands import bands, closed_steps, parameter_draws
 from .effects import BY_PARAM, EFFECTS, SECONDARY, SELECTED_BY_SPREAD, Effect, effect_params
 from .experiments import CHANNELS, RigExperiment
 from .result import Candidate, Decomposition, FittedParameter, FoundEffect, Gap, HeldOutGap, RecordBehaviour, Step
@@ -297,7 +297,7 @@ def fit_models(
     """``current`` with each group of effects of ``adds`` added, refitted on each fold jointly with the linear
     parameters and the effects of ``current``, and scored held out. Each effect starts at the best of its values
     (:func:`harness.diagnosis.tasks.effect_values`) on the current fold's rig, and at its best on the sheet's linear
-    rig where that fits the fold better (the fitted linear parameters may have made up for it), or at its fit in
+    rig (the fitted linear parameters may have bent to mimic it: a limit as a heavy, damped hub), or at its fit in
     ``hints`` (its model alone); each fold is refitted again from the other fold's refit where that costs less; the
     lowest cost kept. An effect that a
     closed loop does not reproduce sample by sample (``Effect.spread``) is sized instead by the score on the fitted
@@ -324,10 +324,10 @@ def fit_models(
     best: dict[tuple[int, int, str, int], tuple[float | int, float]] = {}
     for (i, k, e, j), costs in zip(grid_slots, cf.pool.map(grid_tasks), strict=True):
         best[(i, k, e, j)] = min(costs, key=lambda vc: (vc[1], vc[0]))
-    for (i, k, e, j), (value, cost) in sorted(best.items()):
+    for (i, k, e, j), (value, _) in sorted(best.items()):
         if j == 0:
             starts[i][k][table[e].param] = value
-        elif cost < best[(i, k, e, 0)][1]:  # the sheet's linear rig fits this fold better with it: a start there
+        else:  # the fitted linear parameters may have bent to mimic it: a start from the sheet's too
             others[i][k].append({**_sheet_linear(starts[i][k]), table[e].param: value})
     _size_by_spread(cf, adds, starts, hints)
     free = [_free((*current.effects, *group), table) for group in adds]
@@ -541,7 +541,7 @@ def search(
     searched = [c.name for c in cands if not c.signature]
     fw = forward_selection(cf, base, searched, say)
     model, without = eliminate(cf, fw.path[-1])
-    model, without = _behaviour_kept(cf, model, without)
+    model, without = _behaviour_kept(cf, model, without, fw.path)
     model = floored(cf, model)
     shares = importance(model, without) if without else {}
     final_model = model
@@ -629,10 +629,10 @@ def search(
     )
 
 
-def held_out_coverage(cf: CrossFit, fits: Sequence[FitResult]) -> float:
-    """The share of the held-out closed-loop records' behaviour metrics (every reference step's) inside the band of
-    ``Policy.behaviour_draws`` replays with other draws of the fold's fitted parameters and of the noise, each fold's
-    model replaying the records it was not fitted on; NaN without such records."""
+def held_out_coverage(cf: CrossFit, fits: Sequence[FitResult]) -> dict[tuple[str, int, str], bool]:
+    """Whether each of the held-out closed-loop records' behaviour metrics (every reference step's) lies inside the
+    band of ``Policy.behaviour_draws`` replays with other draws of the fold's fitted parameters and of the noise, each
+    fold's model replaying the records it was not fitted on: {(experiment, step, metric): inside}, where defined."""
     n = cf.policy.behaviour_draws
     tasks, slots = [], []
     for k in (0, 1):
@@ -641,25 +641,43 @@ def held_out_coverage(cf: CrossFit, fits: Sequence[FitResult]) -> float:
         for name in closed_steps({x: cf.experiments[x] for x in cf.helds[k]}):
             slots.append((k, name))
             tasks.append(Behaviour(draws, (name,)))
-    steps = []
+    out = {}
     for (k, name), res in zip(slots, cf.pool.map(tasks), strict=True):
-        steps += bands(cf.experiments, fits[k].params, res)[name].steps
-    return coverage(steps)
+        for j, st in enumerate(bands(cf.experiments, fits[k].params, res)[name].steps):
+            for m, b in st.metrics.items():
+                if math.isfinite(b.measured) and math.isfinite(b.lo):
+                    out[(name, j, m)] = b.inside
+    return out
 
 
-def _behaviour_kept(cf: CrossFit, model: Model, without: dict[str, Score]) -> tuple[Model, dict[str, Score]]:
-    """An effect is kept only where the behaviour of its replays covers the held-out records' as well as without it
-    (:func:`held_out_coverage`): removed, the least important first, while its model's replays cover less of the
-    records' behaviour than the model without it."""
+def covers_less(with_it: dict[tuple[str, int, str], bool], without: dict[tuple[str, int, str], bool]) -> bool:
+    """Does a model cover the records' behaviour less than the model without its effect, beyond chance: McNemar's
+    test at 95 % on the metrics both define (those only the model without it covers against those only the model
+    with it covers)?"""
+    common = with_it.keys() & without.keys()
+    only_without = sum(without[k] and not with_it[k] for k in common)
+    only_with = sum(with_it[k] and not without[k] for k in common)
+    return only_without - only_with > 1.96 * math.sqrt(only_without + only_with)
+
+
+def _behaviour_kept(cf: CrossFit, model: Model, without: dict[str, Score], path: list[Model]
+                    ) -> tuple[Model, dict[str, Score]]:  # fmt: skip
+    """An effect is kept only where the behaviour of its replays covers the held-out records' behaviour as well as
+    the model's without it (:func:`held_out_coverage`, :func:`covers_less`; the model the forward selection had
+    without it, ``path``, else the model with it removed): removed, the least important first, while its model's
+    replays cover less of the records' behaviour."""
     if not model.effects or not closed_steps(cf.experiments):
         return model, without
     for e in sorted(model.effects, key=lambda e: (without[e].excess, e)):
         if e not in model.effects:
             continue
-        less = tuple(FitResult(**{**f.__dict__, "params": _without(f.params, [e])}) for f in model.fits)
-        if not held_out_coverage(cf, less) > held_out_coverage(cf, model.fits):
+        rest = tuple(x for x in model.effects if x != e)
+        prev = next((m for m in reversed(path) if set(m.effects) == set(rest)), None)
+        less = prev.fits if prev is not None else tuple(
+            FitResult(**{**f.__dict__, "params": _without(f.params, [e])}) for f in model.fits)  # fmt: skip
+        if not covers_less(held_out_coverage(cf, model.fits), held_out_coverage(cf, less)):
             continue
-        model = Model(tuple(x for x in model.effects if x != e), (less[0], less[1]), without[e], model.how)
+        model = prev if prev is not None else Model(rest, (less[0], less[1]), without[e], model.how)
         model, without = eliminate(cf, model) if model.effects else (model, {})
     return model, without
 
