@@ -41,9 +41,9 @@ becomes the dataset's ``ref`` [deg] and makes the experiment closed loop. Its co
 multiple shooting. A given controller is checked against the logged command (its R^2 said, a warning below
 ``R2_MIN``) and kept as given; given for a record without a reference: refused. A reference of another length than
 the record or with NaN: refused, one line naming the file and the column. ``theta_sensor="encoder"`` (or theta in
-encoder counts) with ``counts_per_rev`` > 0: theta has no pot wrap or dead band (resampling does not treat its
-jumps as wraps) and its step is the count, 360 / counts_per_rev deg (``lattice_deg``), whatever unit it was
-written in.
+encoder counts, or ``counts_per_rev`` given for a theta in deg or rad) with ``counts_per_rev`` > 0: theta has no pot
+wrap or dead band (resampling does not treat its jumps as wraps) and its step is the count, 360 / counts_per_rev deg
+(``lattice_deg``), whatever unit it was written in.
 
 The dataset written (``data/<name>.parquet``) is the same whatever the format: ``t`` [s], ``u`` [V],
 ``theta_v``, ``alpha_v`` [V] as the lab's DAQ reads them (angles converted with the calibration: theta_v =
@@ -69,6 +69,7 @@ import scipy.io
 
 from ..diagnosis.experiments import MIN_FOLD_SAMPLES, MIN_FOLD_SECONDS
 from ..diagnosis.noise import decimal_resolution, value_step
+from ..fmu.modeldesc import source_model
 from ..ident.calibration import LAB1_CALIBRATION, Calibration, alpha_deg, theta_deg
 from ..rundir import (
     DataError,
@@ -449,9 +450,26 @@ def _leaf_names(items: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     return {(k.rsplit(".", 1)[-1] if leaves.count(k.rsplit(".", 1)[-1]) == 1 else k): v for k, v in items.items()}
 
 
+def _first_line(exc: BaseException) -> str:
+    """An exception's first line of text (its type's name when it has none), for a one-line error."""
+    return str(exc).splitlines()[0] if str(exc).strip() else type(exc).__name__
+
+
 def _read_mat(path: Path) -> RawTable:
     items: dict[str, np.ndarray] = {}
     seen: list[str] = []
+    try:
+        form = _read_mat_items(path, items, seen)
+    except DataError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - scipy and h5py raise many types (IndexError, KeyError...) on a bad file
+        raise DataError(f"{path.name}: not a readable MATLAB .mat file ({_first_line(exc)})") from None
+    return _mat_columns(_leaf_names(items), path, form, seen)
+
+
+def _read_mat_items(path: Path, items: dict[str, np.ndarray], seen: list[str]) -> str:
+    """Fill ``items`` (numeric arrays by dotted name) and ``seen`` (every variable, for messages) from a .mat file;
+    returns its form."""
     if h5py.is_hdf5(path):
         form = "MATLAB v7.3 (HDF5)"
         with h5py.File(path, "r") as f:
@@ -476,23 +494,18 @@ def _read_mat(path: Path) -> RawTable:
             visit(f, "")
     else:
         form = "MATLAB v5"
-        try:
-            mat = scipy.io.loadmat(path, simplify_cells=True)
-        except (ValueError, NotImplementedError, TypeError, OSError) as exc:
-            first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-            raise DataError(f"{path.name}: not a readable MATLAB .mat file ({first})") from None
+        mat = scipy.io.loadmat(path, simplify_cells=True)
         for k, v in mat.items():
             if not k.startswith("__"):
                 _flatten(f"{k}.", v, items, seen)
-    return _mat_columns(_leaf_names(items), path, form, seen)
+    return form
 
 
 def _read_parquet(path: Path) -> RawTable:
     try:
         df = pq.read_table(path).to_pandas()
     except Exception as exc:  # noqa: BLE001 - pyarrow raises several types for a bad file
-        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise DataError(f"{path.name}: not a readable Parquet file ({first})") from None
+        raise DataError(f"{path.name}: not a readable Parquet file ({_first_line(exc)})") from None
     names = [str(c) for c in df.columns]
     values, bad = [], {}
     for name, col in zip(names, df.columns, strict=True):
@@ -619,6 +632,18 @@ def _bad_cells(table: RawTable, chans: dict[str, Channel]) -> None:
             )
 
 
+def _command_in_range(u: Channel, file: str) -> None:
+    """Refuse a command [V] that no DAQ of the twin can carry: beyond the range the DAQ FMU declares for its clamp
+    (``daq.out_limit``)."""
+    top = source_model("daq").variables["out_limit"].max
+    k = int(np.argmax(np.abs(u.values)))
+    if top is not None and abs(u.values[k]) > top:
+        raise DataError(
+            f"{file}: the command (column {u.column!r}) reaches {u.values[k]:.3g} V at row {k}, beyond the +-{top:g} V "
+            "a DAQ of the twin can carry (a command in mV, or a corrupt cell?)"
+        )
+
+
 def time_seconds(t: np.ndarray, unit: str | None, table: RawTable, column: str, note: Note) -> tuple[np.ndarray, str]:
     """(time [s], unit it was in) from a column in ``unit``; without one, by the sample-interval rule of the
     module docstring."""
@@ -741,7 +766,7 @@ def normalise(table: RawTable, opts: ImportOptions, cal: Calibration, note: Note
     if opts.controller is not None and "ref" not in chans:
         raise DataError(f"{table.file}: --controller given, but the record has no reference column: map it with "
                         f"--columns NAME=ref (a closed-loop record's reference of theta)")  # fmt: skip
-    sensor = _theta_sensor(chans["theta"], opts, table.file)
+    sensor = _theta_sensor(chans, opts, table.file)
     if "ref" in chans and chans["ref"].unit is None:
         chans["ref"].unit = chans["theta"].unit
         remark(f"reference {chans['ref'].column!r}: no unit given, taken as theta's ({chans['theta'].unit})")
@@ -756,6 +781,7 @@ def normalise(table: RawTable, opts: ImportOptions, cal: Calibration, note: Note
     if table.values[0].size < 16:
         raise DataError(f"{table.file}: only {table.values[0].size} rows; need at least 16 samples")
     _bad_cells(table, chans)
+    _command_in_range(chans["u"], table.file)
     t, chans["t"].unit = time_seconds(chans["t"].values, chans["t"].unit, table, chans["t"].column, remark)
     grid, worst, Ts = uniform_time(t, table, chans["t"].column)
     if Ts > 1.0 / MIN_RATE:
@@ -826,8 +852,6 @@ def normalise(table: RawTable, opts: ImportOptions, cal: Calibration, note: Note
         if off > 0.01 + 0.5 * printed / step:  # an angle printed to few decimals is that far off by its rounding
             remark(f"theta is not on the encoder's {step:.6g} deg steps (up to {off:.2g} of a step off: filtered or "
                    f"resampled?); its step is recorded as {step:.6g} deg all the same")  # fmt: skip
-    elif opts.counts_per_rev and "counts" not in (chans["theta"].unit, chans["alpha"].unit):
-        remark(f"--counts-per-rev {opts.counts_per_rev:g} not used: theta is a pot's (say --theta-sensor encoder)")
     entry.update(sensor)
     if "ref" in cols:
         entry["loop"] = "closed"
@@ -853,13 +877,20 @@ def _step_deg(c: Channel, opts: ImportOptions) -> float:
     return math.degrees(step) if c.unit == "rad" else step
 
 
-def _theta_sensor(theta: Channel, opts: ImportOptions, file: str) -> dict[str, Any]:
-    """The manifest's ``theta_sensor`` (and ``counts_per_rev``) of a record: an encoder when said or when theta is
-    in counts."""
-    sensor = opts.theta_sensor or ("encoder" if theta.unit == "counts" else "pot")
+def _theta_sensor(chans: dict[str, Channel], opts: ImportOptions, file: str) -> dict[str, Any]:
+    """The manifest's ``theta_sensor`` (and ``counts_per_rev``) of a record: an encoder when said, when theta is in
+    counts, or when ``counts_per_rev`` is given for a theta in deg or rad (and no other channel is in counts); a
+    ``counts_per_rev`` that can describe nothing (a pot's theta, no channel in counts) is refused."""
+    theta, counted = chans["theta"], any(c.unit == "counts" for c in chans.values())
+    implied = bool(opts.counts_per_rev) and theta.unit != "V" and not counted
+    sensor = opts.theta_sensor or ("encoder" if theta.unit == "counts" or implied else "pot")
     if sensor not in THETA_SENSORS:
         raise DataError(f"--theta-sensor {sensor!r}: use {' or '.join(THETA_SENSORS)}")
     if sensor == "pot":
+        if opts.counts_per_rev and not counted:
+            why = "theta is in volts, a pot's" if opts.theta_sensor is None else "--theta-sensor pot"
+            raise DataError(f"{file}: --counts-per-rev {opts.counts_per_rev:g} describes no channel ({why}, none in "
+                            "counts); an encoder theta is --theta-sensor encoder")  # fmt: skip
         return {}
     if not opts.counts_per_rev and theta.unit == "counts":
         raise DataError(f"{file}: theta column {theta.column!r} is in encoder counts: give --counts-per-rev "
