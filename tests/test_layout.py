@@ -1,5 +1,5 @@
-"""The package's shape: no import cycle among its modules, imports at the top of files, the README's module map
-equal to the tree."""
+"""The package's shape: no import cycle among its modules, imports at the top of files, the manual's module map
+(docs/concepts/data-flow.md) equal to the tree."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from pathlib import Path
 import harness
 
 PKG = Path(harness.__file__).parent
-README = PKG.parent / "README.md"
+MODULE_MAP = PKG.parent / "docs" / "concepts" / "data-flow.md"  # the manual's page of the data flow
 
 
 def _modules() -> dict[str, Path]:
@@ -118,10 +118,10 @@ def test_imports_at_the_top_of_files() -> None:
     assert late == []
 
 
-def readme_module_map() -> set[str]:
-    """The files the README's module map lists (paths relative to the package's parent), read from its indented
+def module_map() -> set[str]:
+    """The files the manual's module map lists (paths relative to the package's parent), read from its indented
     tree: a name ending in "/" opens a folder at that indentation."""
-    text = README.read_text(encoding="utf-8")
+    text = MODULE_MAP.read_text(encoding="utf-8")
     block = text.split("<!-- module map", 1)[1].split("```text\n", 1)[1].split("```", 1)[0]
     out: set[str] = set()
     stack: list[tuple[int, str]] = []
@@ -140,15 +140,15 @@ def readme_module_map() -> set[str]:
     return out
 
 
-def test_readme_module_map_is_the_tree() -> None:
+def test_module_map_is_the_tree() -> None:
     tree = {
         str(p.relative_to(PKG.parent))
         for p in PKG.rglob("*.py")
         if p.name != "__init__.py" and not any(part.startswith("_") for part in p.relative_to(PKG).parts)
     }
-    listed = readme_module_map()
+    listed = module_map()
     assert "harness/diagnosis/diagnose.py" in listed and "harness/cli.py" in listed
-    assert listed == tree, f"only in README: {sorted(listed - tree)}; only in the tree: {sorted(tree - listed)}"
+    assert listed == tree, f"only in the module map: {sorted(listed - tree)}; only in the tree: {sorted(tree - listed)}"
 
 
 def test_public_api_in_data_flow_order() -> None:
