@@ -13,7 +13,6 @@ from pathlib import Path
 from types import FrameType
 from typing import TYPE_CHECKING, Annotated, Any, cast
 
-import click
 import typer
 import typer.core
 
@@ -21,8 +20,10 @@ from ._version import __version__
 
 if TYPE_CHECKING:
     from rich.console import Console
+    from rich.table import Table
 
     from .diagnosis.result import Diagnosis
+    from .ident.identify import GridResult
 
 # A command imports what it runs when it runs (here, and only here, imports sit inside functions): ``--help`` and
 # ``--version`` then answer without loading numpy, fmpy, Dask or the pipeline (tests/test_cli_startup.py).
@@ -32,7 +33,7 @@ class _Commands(typer.core.TyperGroup):
     """The command group: ``--help`` lists each command with its first sentence whole, wrapped under the others,
     where click cuts it to the line's width with "..."."""
 
-    def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+    def format_commands(self, ctx: Any, formatter: Any) -> None:  # typer's click Context and HelpFormatter
         cmds = [(n, c) for n in self.list_commands(ctx) if (c := self.get_command(ctx, n)) and not c.hidden]
         if cmds:
             with formatter.section("Commands"):
@@ -138,7 +139,7 @@ def _fit(table: Any) -> Any:
     table.box, table.padding, table.show_edge = box.SIMPLE_HEAD, (0, 1), False
     if Measurement.get(out, wide, table).minimum <= out.width:
         return table
-    first, parts = table.columns[0], [[]]
+    first, parts = table.columns[0], [list[Any]()]
     for c in table.columns[1:]:
         if parts[-1] and sum((x.min_width or 12) + 3 for x in (first, *parts[-1], c)) > out.width:  # pad, rule
             parts.append([])
@@ -307,7 +308,8 @@ def info(
         if narrow:  # the description (and the uncertainty) under the name
             name.append("\n  " + r.description + (f" ({r.within})" if r.within else ""), style="dim")
         within = [r.within] if s is not None and not narrow else []
-        cells = [name, r.unit, *value, value_text(r.default), r.range, *within, *([] if narrow else [r.description])]
+        cells: list[Text | str] = [name, r.unit, *value, value_text(r.default), r.range, *within]
+        cells += [] if narrow else [r.description]
         t.add_row(*cells)
     out.print(_fit(t))
 
@@ -498,7 +500,7 @@ def identify(
             )
 
 
-def crossval_table(res):
+def crossval_table(res: GridResult) -> Table:
     """Lab 1's table 2: each dataset's best model (rows) cross-validated on every dataset (columns)."""
     from rich.table import Table
 
@@ -738,7 +740,7 @@ def blindtest(
         out.print(f"skipped family {why}")
 
 
-def blindtest_table(tot: dict):
+def blindtest_table(tot: dict[str, Any]) -> Table:
     """The blind test's scores per family and pooled, each share with its 95 % interval and count."""
     from rich.table import Table
 

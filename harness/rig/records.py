@@ -56,7 +56,7 @@ from __future__ import annotations
 import hashlib
 import math
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -375,7 +375,7 @@ def _read_csv(path: Path) -> RawTable:
     if header and len(rows) > 1 and not any(_is_num(c, dec) for c in rows[1]):
         cells = rows[1]
         if all(unit_name(c) for c in cells if c):
-            units.update({n: unit_name(c) for n, c in zip(names, cells, strict=True) if c})
+            units.update({n: u for n, c in zip(names, cells, strict=True) if c and (u := unit_name(c))})
             notes.append(f"line {lines[1][0]} under the header read as units: {', '.join(cells)}")
             start = 2
         else:
@@ -838,13 +838,13 @@ def normalise(table: RawTable, opts: ImportOptions, cal: Calibration, note: Note
         "units": {ch: c.unit for ch, c in chans.items()},
         "jitter_corrected_s": worst,
     }
+    lattice: dict[str, float] = {}  # the angle step [deg] per channel recorded on one
     for ch in ("theta", "alpha"):
         step = _step_deg(chans[ch], opts)
         if step:
-            entry.setdefault("lattice_deg", {})[ch] = step
+            lattice[ch] = step
     if sensor:  # an encoder's count is theta's step (its angle printed finer or not)
         step = 360.0 / sensor["counts_per_rev"]
-        lattice = entry.setdefault("lattice_deg", {})
         found = lattice.get("theta", 0.0)
         lattice["theta"] = found if found > step * (1 + 1e-6) else step  # the count, unless printed coarser
         off = _off_lattice(cols["theta"], step)
@@ -852,6 +852,8 @@ def normalise(table: RawTable, opts: ImportOptions, cal: Calibration, note: Note
         if off > 0.01 + 0.5 * printed / step:  # an angle printed to few decimals is that far off by its rounding
             remark(f"theta is not on the encoder's {step:.6g} deg steps (up to {off:.2g} of a step off: filtered or "
                    f"resampled?); its step is recorded as {step:.6g} deg all the same")  # fmt: skip
+    if lattice:
+        entry["lattice_deg"] = lattice
     entry.update(sensor)
     if "ref" in cols:
         entry["loop"] = "closed"
@@ -976,7 +978,7 @@ def calibration_option(kp: float | None, ke: float | None, file: Path | None) ->
         return cal
     if (kp is None) != (ke is None):
         raise DataError(f"--kp and --ke go together (got only {'--kp' if kp is not None else '--ke'})")
-    if kp is None:
+    if kp is None or ke is None:
         return None
     why = {"method": "given at import (--kp/--ke)"}
     return Calibration(Kp=kp, Ke=ke, source={"Kp": why, "Ke": why})
@@ -991,18 +993,43 @@ def _calibration(opts: ImportOptions) -> Calibration:
 
 
 def import_records(
-    paths: list[Path | str],
+    paths: Sequence[Path | str],
     out: Path,
     opts: ImportOptions | None = None,
     note: Note | None = None,
     force: bool = False,
 ) -> list[Path]:
-    """Import records into run directory ``out``: ``data/<name>.parquet``, ``calibration.json`` and a
-    ``manifest.json`` of kind "import". A record is a file, or ``[NAME=]FILE+FILE+...`` (:func:`record_files`);
-    its ``sources`` entry names its files and their sha256 joined by "+". Every file is read and checked before
-    anything is written, aside and moved into place (:func:`harness.rundir.new_run`; over an existing run only with
-    ``force``); returns the dataset paths. ``note`` receives one-line remarks (units taken, resampling,
-    the calibration assumed)."""
+    """Import real records into a new run directory, as they were recorded.
+
+    Every file is read and checked before anything is written; the run is written aside and moved into place
+    (:func:`harness.rundir.new_run`). The rules (formats, units, time, encoders, closed loops) are in the module
+    docstring of :mod:`harness.rig.records`.
+
+    Parameters
+    ----------
+    paths : sequence of str or Path
+        The records: a file each, or ``[NAME=]FILE+FILE+...`` for one record written as several files that share
+        its time base (:func:`record_files`).
+    out : Path
+        The run directory to write: ``data/<name>.parquet``, ``calibration.json``, a ``manifest.json`` of kind
+        "import" (each record's files and their sha256, units, sensors, controller).
+    opts : ImportOptions, optional
+        Column map, units, link length, encoder counts, calibration, controller (``flexjoint import``'s options).
+    note : callable, optional
+        Called with each one-line remark (units taken, resampling, the calibration assumed, a warning).
+    force : bool
+        Replace a run already in ``out``.
+
+    Returns
+    -------
+    list of Path
+        The datasets written.
+
+    Raises
+    ------
+    harness.DataError
+        One line naming the file, the column and the row of what cannot be read; nothing is written.
+    """
     opts = opts or ImportOptions()
     say = note or (lambda _m: None)
     if not paths:
