@@ -35,8 +35,8 @@ def write_api_page(path: Path) -> None:
             if inspect.isclass(obj) and issubclass(obj, BaseException)
             else ("autoclass" if inspect.isclass(obj) else "autofunction")
         )
-        options = "\n:members:\n:undoc-members: false" if kind == "autoclass" else ""
-        block = f"```{{{kind}}} harness.{name}{options}\n```\n"
+        options = "\n   :members:" if kind == "autoclass" else ""
+        block = f"```{{eval-rst}}\n.. {kind}:: harness.{name}{options}\n```\n"  # autodoc writes reST
         sections.setdefault(STAGES[module], []).append(block)
     text = "\n".join(f"## {title}\n\n" + "\n".join(blocks) for title, blocks in sections.items())
     if not path.exists() or path.read_text(encoding="utf-8") != text:  # unchanged: Sphinx need not re-read it

@@ -125,7 +125,7 @@ def filter_response(af: float, f_hz: ArrayLike, Ts: float) -> tuple[np.ndarray, 
     Returns
     -------
     magnitude : numpy.ndarray
-        |H| per sample (dimensionless).
+        The magnitude of H per sample (dimensionless).
     phase : numpy.ndarray
         The phase of H [rad].
     """
