@@ -14,18 +14,34 @@ from types import FrameType
 from typing import TYPE_CHECKING, Annotated, Any, cast
 
 import typer
+import typer.core
 
 from ._version import __version__
 
 if TYPE_CHECKING:
     from rich.console import Console
+    from rich.table import Table
 
     from .diagnosis.result import Diagnosis
+    from .ident.identify import GridResult
 
 # A command imports what it runs when it runs (here, and only here, imports sit inside functions): ``--help`` and
 # ``--version`` then answer without loading numpy, fmpy, Dask or the pipeline (tests/test_cli_startup.py).
 
+
+class _Commands(typer.core.TyperGroup):
+    """The command group: ``--help`` lists each command with its first sentence whole, wrapped under the others,
+    where click cuts it to the line's width with "..."."""
+
+    def format_commands(self, ctx: Any, formatter: Any) -> None:  # typer's click Context and HelpFormatter
+        cmds = [(n, c) for n in self.list_commands(ctx) if (c := self.get_command(ctx, n)) and not c.hidden]
+        if cmds:
+            with formatter.section("Commands"):
+                formatter.write_dl([(n, c.get_short_help_str(limit=10_000)) for n, c in cmds])
+
+
 app = typer.Typer(
+    cls=_Commands,
     add_completion=False,
     no_args_is_help=True,
     pretty_exceptions_enable=False,
@@ -123,7 +139,7 @@ def _fit(table: Any) -> Any:
     table.box, table.padding, table.show_edge = box.SIMPLE_HEAD, (0, 1), False
     if Measurement.get(out, wide, table).minimum <= out.width:
         return table
-    first, parts = table.columns[0], [[]]
+    first, parts = table.columns[0], [list[Any]()]
     for c in table.columns[1:]:
         if parts[-1] and sum((x.min_width or 12) + 3 for x in (first, *parts[-1], c)) > out.width:  # pad, rule
             parts.append([])
@@ -253,9 +269,11 @@ def info(
     set_: SetOpt = None,
     as_json: Annotated[bool, typer.Option("--json", help="print the list as JSON")] = False,
 ) -> None:
-    """List every plant, DAQ and controller parameter (a spec's table.name, for --set and the spec's tables) with
-    its unit, the SPEC's value, the FMU's default, its declared range and, for a sheet value the diagnosis
-    recalibrates, the SPEC's 95 % uncertainty on it ([uncertainty])."""
+    """List every plant, DAQ and controller parameter with its unit, value, default and range.
+
+    Each is named table.name, as --set and the spec's tables name it; the value is the SPEC's, the default and the
+    declared range the FMU's, and a sheet value the diagnosis recalibrates has the SPEC's 95 % uncertainty on it
+    ([uncertainty])."""
     import json
 
     from rich.table import Table
@@ -290,7 +308,8 @@ def info(
         if narrow:  # the description (and the uncertainty) under the name
             name.append("\n  " + r.description + (f" ({r.within})" if r.within else ""), style="dim")
         within = [r.within] if s is not None and not narrow else []
-        cells = [name, r.unit, *value, value_text(r.default), r.range, *within, *([] if narrow else [r.description])]
+        cells: list[Text | str] = [name, r.unit, *value, value_text(r.default), r.range, *within]
+        cells += [] if narrow else [r.description]
         t.add_row(*cells)
     out.print(_fit(t))
 
@@ -353,8 +372,10 @@ def ssp(
     loop: Annotated[str | None, typer.Option(help="open or closed: refuse an experiment of the other loop")] = None,
     set_: SetOpt = None,
 ) -> None:
-    """Write a spec's rig running one experiment as SSP 1.0 for other co-simulation masters: SystemStructure.ssd
-    (plant, daq, controller, signal, their connections and parameters) and the FMUs under resources/."""
+    """Write a spec's rig running one experiment as SSP 1.0, for other co-simulation masters.
+
+    The archive holds SystemStructure.ssd (plant, daq, controller, signal, their connections and parameters) and
+    the FMUs under resources/."""
     from . import spec as specmod
     from .ssp import SUBSTEPS, ssp_experiment, write_ssp
 
@@ -392,7 +413,8 @@ def import_(
     units: Annotated[str | None, typer.Option(help="units, e.g. theta=deg,alpha=rad,u=V,t=s")] = None,
     link_length: Annotated[float | None, typer.Option(help="link length in m (for tip deflections in m or mm)")] = None,
     counts_per_rev: Annotated[
-        float | None, typer.Option(help="encoder counts per revolution (> 0): theta's step is 360/counts deg")
+        float | None,
+        typer.Option(help="encoder counts per revolution (> 0): theta is an encoder's, step 360/counts deg"),
     ] = None,
     kp: Annotated[float | None, typer.Option("--kp", help="pot gain Kp in deg/V of the lab's DAQ")] = None,
     ke: Annotated[float | None, typer.Option("--ke", help="gauge gain Ke in deg/V of the lab's DAQ")] = None,
@@ -410,8 +432,8 @@ def import_(
     theta_sensor: Annotated[
         str | None,
         typer.Option(
-            help="theta's sensor: pot (default; wrap and dead band) or encoder (needs --counts-per-rev; default when "
-            "theta is in counts)"
+            help="theta's sensor: pot (wrap and dead band) or encoder (needs --counts-per-rev); default: encoder when "
+            "theta is in counts or --counts-per-rev is given, else pot"
         ),
     ] = None,
     zero_alpha: Annotated[
@@ -479,7 +501,7 @@ def identify(
             )
 
 
-def crossval_table(res):
+def crossval_table(res: GridResult) -> Table:
     """Lab 1's table 2: each dataset's best model (rows) cross-validated on every dataset (columns)."""
     from rich.table import Table
 
@@ -706,9 +728,11 @@ def blindtest(
     scheduler: SchedulerOpt = None,
     workers: WorkersOpt = None,
 ) -> None:
-    """Score the diagnoser on rigs with hidden effects (none, one, two, outside the library), on our twin, on the
-    twin with its linear parameters off the datasheet, on an independent simulator and on the off-datasheet twin in
-    closed loop (and, when named, on closed-loop rigs off their sheet): blindtest.json."""
+    """Score the diagnoser on rigs with hidden effects: blindtest.json.
+
+    Each rig hides none, one or two effects, or one outside the library. Families: our twin, the twin with its linear
+    parameters off the datasheet, an independent simulator, the off-datasheet twin in closed loop and, when named,
+    closed-loop rigs off their sheet."""
     from .diagnosis.blindtest import FAMILIES, not_fitted_line
     from .diagnosis.blindtest import blindtest as run_blind
 
@@ -725,7 +749,7 @@ def blindtest(
         out.print(f"skipped family {why}")
 
 
-def blindtest_table(tot: dict):
+def blindtest_table(tot: dict[str, Any]) -> Table:
     """The blind test's scores per family and pooled, each share with its 95 % interval and count."""
     from rich.table import Table
 

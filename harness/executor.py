@@ -23,32 +23,20 @@ importable on the workers (a module-level function of an installed package: Dask
 (the ``processes`` backend: pickled once per executor into a scratch file each process reads once); both know
 them by identity, so a shared object must not change between the maps of one executor.
 Every call runs with BLAS limited to one thread (threadpoolctl), on the workers and on the serial path alike:
-the project's numerical work is small matrices, where BLAS threads only oversubscribe the cores (the lab's
-identification grid: 26.7 s with them, 9.5 s without, 2 cores), and one thread everywhere keeps the results
-identical in every backend. A task that raises re-raises the same exception type and message on the client; a
-task that kills its worker three times (a crash in an FMU) becomes a ``RuntimeError``. A worker lost mid-map
-(machine gone) is not an error: Dask reruns its tasks elsewhere and each result is still taken exactly once; a
-task the scheduler gave up on with its worker (cancelled, "already forgotten") is submitted again, up to
-RESUBMITS times.
+the project's numerical work is small matrices, where BLAS threads only oversubscribe the cores, and one thread
+everywhere keeps the results identical in every backend. A task that raises re-raises the same exception type and
+message on the client; a task that kills its worker three times (a crash in an FMU) becomes a ``RuntimeError``. A
+worker lost mid-map (machine gone) is not an error: Dask reruns its tasks elsewhere and each result is still taken
+exactly once; a task the scheduler gave up on with its worker (cancelled, "already forgotten") is submitted again,
+up to RESUBMITS times.
 
-A task runs as fast in a Dask worker as in a plain process. The nanny's default environment sets
-``MALLOC_TRIM_THRESHOLD_=65536``, and glibc, once any malloc threshold is set by hand, stops raising its mmap
-threshold dynamically: every array above 128 KiB (the grid's 3000 x 19 regressors, the simulations' output
-tables) is then a fresh ``mmap`` whose pages fault in and are zeroed, and is unmapped again on ``free``. Measured
-on one ARMAX grid task (144 fits on 3000 samples, 2 cores): plain process 2.1 s, 20 k minor page faults; Dask
-worker 3.7 s, 710 k faults and 1.3 s of system time; with the trim threshold raised to 1 GiB still 3.3 s and
-220 k faults (the mmap threshold stays static); without the variable 2.2 s and no faults. So
-:func:`local_cluster` starts its workers without it, and a task in a worker whose environment has it anyway (a
-remote ``dask worker`` started by its nanny) first resets both thresholds once per process with ``mallopt`` (to
-glibc's own dynamic ceiling, :data:`MMAP_THRESHOLD`, and twice that for trimming).
-
-Nor does a task share its worker's GIL with Dask's housekeeping more than it must. A Dask process wakes a thread
-that takes the GIL for its statistical profiler every 10 ms, its event loop's tick every 20 ms and its memory and
-system monitors every 0.1 and 0.5 s; a task's thread then waits for the GIL and the cores switch between threads.
-On 2 cores with both workers busy, the map of the lab grid's 18 tasks (0.7 s each) took 6.5 to 7.0 s on the local
-cluster (its tasks 7 % slower than on plain processes: a worker busy 6.4 to 7.0 s), 6.0 to 6.6 s on 2 plain
-processes, and 6.3 to 6.6 s once :func:`local_cluster` started the cluster without the profiler and with a 1 s tick
-and slow monitors (:data:`CLUSTER_CONFIG`); a remote cluster keeps its own configuration.
+A task runs as fast in a Dask worker as in a plain process: :func:`local_cluster` starts its workers without the
+nanny's ``MALLOC_TRIM_THRESHOLD_`` (which makes glibc map and zero every array above 128 KiB afresh), a task in a
+worker whose environment has it anyway (a remote ``dask worker``) first resets both malloc thresholds once per
+process with ``mallopt`` (to :data:`MMAP_THRESHOLD`, and twice that for trimming), and the local cluster runs
+without Dask's statistical profiler and with a slow event-loop tick and monitors (:data:`CLUSTER_CONFIG`), which
+would otherwise take the GIL from a task's thread; a remote cluster keeps its own configuration. The measurements
+behind each are on the manual's validation page.
 
 No shared filesystem: built FMUs travel as :class:`FmuBytes` and :func:`fmu_file` writes each once per worker
 process; the co-simulation's step loops (``fmus/master``) reach a remote cluster's workers as bytes too

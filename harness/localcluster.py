@@ -26,6 +26,7 @@ import shutil
 import signal
 import sys
 import tempfile
+from typing import Any
 
 import dask
 import psutil
@@ -60,7 +61,7 @@ def serve(
     os.environ["TMPDIR"] = scratch  # the workers' scratch files, removed with the cluster
     address_out = os.fdopen(os.dup(sys.stdout.fileno()), "w")
     os.dup2(sys.stderr.fileno(), sys.stdout.fileno())  # what the workers print goes to the log, not the pipe
-    config = {**CLUSTER_CONFIG, "distributed.worker.profile.enabled": dashboard is not None}
+    config: dict[str, Any] = {**CLUSTER_CONFIG, "distributed.worker.profile.enabled": dashboard is not None}
     config["distributed.worker.preload"] = list(preload or [])
     try:
         with dask.config.set(config):  # the nannies take the config (and their pre-spawn environment) when created

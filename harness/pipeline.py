@@ -4,19 +4,19 @@ report and recording), and the identification step over a run directory."""
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from . import spec as specmod
 from .diagnosis.diagnose import diagnose_run
 from .fmu.build import build_all
 from .ident.accept import accept
-from .ident.calibration import calibrate_run, load_calibration
+from .ident.calibration import Calibration, calibrate_run, load_calibration
 from .ident.crossfit import crossfit_run
 from .ident.doubled_rate import doubled_rate_check
-from .ident.identify import prepare, run_grid, write_grid
+from .ident.identify import GridResult, PreparedExperiment, prepare, run_grid, write_grid
 from .render.load import load_results
 from .render.report import write_report
 from .render.viewer import log_run
@@ -26,15 +26,38 @@ from .rundir import DataError, Manifest, RunDir, load_run, new_run, recorded_spe
 Progress = Callable[[str], None]
 
 
-def identify_run(run: Path, identify: dict[str, Any] | None = None, progress: Progress | None = None):
+def identify_run(
+    run: Path, identify: Mapping[str, Any] | None = None, progress: Progress | None = None
+) -> tuple[GridResult, dict[str, PreparedExperiment], Calibration, specmod.IdentifySettings]:
     """Grid, cross-validation and selection on a run's identification datasets; writes grid.csv and models/. A
-    calibration.json made from other data than the run holds is made again from its calibration experiments."""
+    calibration.json made from other data than the run holds is made again from its calibration experiments.
+
+    Parameters
+    ----------
+    run : Path
+        The run directory (a campaign or an import).
+    identify : mapping, optional
+        Overrides of the spec's ``[identify]`` table (``na``, ``nb``, ``nc`` ranges, ``af``, ...).
+    progress : callable, optional
+        Called with one line of text per finished grid task.
+
+    Returns
+    -------
+    grid : GridResult
+        The order grid, the best model per dataset, the selected one and the rule that chose it.
+    prepared : dict of str to PreparedExperiment
+        Each identification dataset detrended and filtered as identified.
+    calibration : Calibration
+        Kp, Ke and the dead zone the angles were read with.
+    identify : IdentifySettings
+        The ``[identify]`` settings used.
+    """
 
     run = Path(run)
     spec = recorded_spec(run)
-    ident = dict(specmod.IDENTIFY_DEFAULTS)
-    ident.update(spec.identify if spec else {})
-    ident.update(identify or {})
+    ident = cast(
+        specmod.IdentifySettings, {**(spec.identify if spec else specmod.IDENTIFY_DEFAULTS), **(identify or {})}
+    )
     stale = stale_artefacts(run).get("calibration.json")
     if stale and not Manifest.load(run).entries("calibration"):
         raise DataError(stale.replace("re-run flexjoint identify", "import the records again"))
@@ -71,10 +94,38 @@ def run_pipeline(
     status: Progress | None = None,
     force: bool = False,
 ) -> PipelineResult:
-    """``flexjoint run``: every step on one spec into run directory ``out``, written aside and moved into place when
-    complete (:func:`harness.rundir.new_run`; over an existing run only with ``force``); returns its summary and the
-    wall time of each stage (written to ``run.timing.json`` too). ``progress``: a message as each stage ends;
-    ``status``: what runs now, as each stage starts (a live status line's text)."""
+    """``flexjoint run``: every stage on one spec into a new run directory.
+
+    Build, campaign, calibration, identification, doubled-rate check, export and cross-fit, acceptance,
+    diagnosis against ``sim``, report and recording; written aside and moved into place when complete
+    (:func:`harness.rundir.new_run`).
+
+    Parameters
+    ----------
+    spec_name : str or Path
+        The spec (a bundled name or a path).
+    out : Path
+        The run directory to write.
+    overrides : list of str, optional
+        ``table.name=value`` items, as ``--set``.
+    sim : str or Path
+        The spec of the simulation the diagnosis judges.
+    rrd : Path, optional
+        The recording to write; default ``<out>/run.rrd``.
+    spawn, connect : optional
+        Stream the recording live (:func:`harness.log_run`).
+    progress : callable, optional
+        Called with a message as each stage ends.
+    status : callable, optional
+        Called with what runs now, as each stage starts (a live status line's text).
+    force : bool
+        Replace a run already in ``out``.
+
+    Returns
+    -------
+    PipelineResult
+        The run's summary and the wall time of each stage (also written to ``run.timing.json``).
+    """
     with new_run(out, force) as work:
         return _pipeline(spec_name, work, Path(out), overrides, sim, rrd, spawn, connect, progress, status)
 

@@ -173,8 +173,9 @@ def from_plain(cls: type[T], doc: Any, where: str) -> T:
     place in the file) starts the one-line :class:`DataError` of a missing key, an unknown one or a wrong type."""
     if not isinstance(doc, dict):
         raise DataError(f"{where}: expected an object, got {type(doc).__name__}")
-    hints = _hints(cls)
-    fs = dataclasses.fields(cls)  # type: ignore[arg-type]
+    klass: type = cls  # the dataclass itself (type[T] is not Hashable to a type checker, a class is)
+    hints = _hints(klass)
+    fs = dataclasses.fields(klass)
     keys = {_key(f) for f in fs}
     unknown = sorted(set(doc) - keys)
     if unknown:
@@ -200,7 +201,7 @@ def _plain_value(tp: Any, v: Any, where: str) -> Any:
         return _plain_value(inner[0], v, where)
     if tp is Any:
         return v
-    if dataclasses.is_dataclass(tp):
+    if isinstance(tp, type) and dataclasses.is_dataclass(tp):
         return from_plain(tp, v, where)
     if origin is list:
         if not isinstance(v, list):
@@ -382,7 +383,25 @@ def validate(df: pd.DataFrame, name: str) -> pd.DataFrame:
 
 
 def read_dataset(path: Path) -> pd.DataFrame:
-    """Read and validate one dataset (Parquet)."""
+    """Read and check one dataset.
+
+    Parameters
+    ----------
+    path : Path
+        A ``data/<experiment>.parquet`` file.
+
+    Returns
+    -------
+    pandas.DataFrame
+        Columns ``t`` [s], ``u`` [V], ``theta_v``, ``alpha_v`` [V], and ``theta``, ``alpha`` [deg] (the true angles
+        of simulated data, the recorded ones of an import), ``ref`` [deg] for a closed loop; finite numbers, time
+        uniform and strictly increasing.
+
+    Raises
+    ------
+    harness.DataError
+        A missing file or column, a non-numeric value, a non-uniform time.
+    """
     path = Path(path)
     if not path.exists():
         raise DataError(f"{path}: no such dataset")
@@ -401,7 +420,20 @@ def recorded_spec(run: Path) -> Spec | None:
 
 
 def load_run(run: Path, role: str | None = "identification") -> dict[str, pd.DataFrame]:
-    """Datasets of a run directory in manifest order, optionally only those of one role."""
+    """The datasets of a run directory, in manifest order.
+
+    Parameters
+    ----------
+    run : Path
+        The run directory.
+    role : str or None
+        Only the experiments of this role ("identification", "validation", "calibration"); None: all.
+
+    Returns
+    -------
+    dict of str to pandas.DataFrame
+        ``{experiment: dataset}``, each checked as :func:`read_dataset` does.
+    """
     out = {e.name: read_dataset(RunDir(run).dataset(e.name)) for e in Manifest.load(run).entries(role)}
     if not out:
         raise DataError(f"{run}: no {role or ''} datasets in manifest.json")

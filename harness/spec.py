@@ -30,7 +30,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypedDict, cast
 
 import tomllib
 
@@ -48,7 +48,36 @@ CONTROLLER_KEYS = {"kind", "K", "kp", "ki", "kd", "cutoff", "u_limit", "sample_r
                    "alpha_bias"}  # fmt: skip
 LOOPS = ("open", "closed")
 COMB_PARAMS = {"deflections_cm", "D_cm", "hold", "ramp"}
-IDENTIFY_DEFAULTS: dict[str, Any] = {
+
+
+class IdentifySettings(TypedDict):
+    """The ``[identify]`` table, every key filled (:data:`IDENTIFY_DEFAULTS` where the spec gives none): the ARMAX
+    orders ``na``, ``nb``, ``nc`` (an integer or [lo, hi]) and the delay ``nk`` [samples]; the prefilter's pole ``af``;
+    the identified ``output`` ("y" tip angle, "theta", "alpha"); ``fit_threshold`` [%] a model must reach;
+    the selection's ``tolerance`` [fit points]; the initial state ``ic`` of the fits ("z" zero, "e" estimated);
+    ``doubled_rate``: run lab 1's doubled-rate check."""
+
+    na: int | list[int]
+    nb: int | list[int]
+    nc: int | list[int]
+    nk: int
+    af: float
+    output: str
+    fit_threshold: float
+    tolerance: float
+    ic: str
+    doubled_rate: bool
+
+
+class AcceptThresholds(TypedDict):
+    """The ``[accept]`` table: ``min_fit`` [%] on every identification dataset, ``min_average_fit`` [%] on their
+    mean, for the selected model."""
+
+    min_fit: float
+    min_average_fit: float
+
+
+IDENTIFY_DEFAULTS: IdentifySettings = {
     "na": [1, 8],
     "nb": [1, 3],
     "nc": [1, 8],
@@ -60,7 +89,7 @@ IDENTIFY_DEFAULTS: dict[str, Any] = {
     "ic": "z",
     "doubled_rate": True,
 }
-ACCEPT_DEFAULTS: dict[str, Any] = {"min_fit": 80.0, "min_average_fit": 85.0}
+ACCEPT_DEFAULTS: AcceptThresholds = {"min_fit": 80.0, "min_average_fit": 85.0}
 # 95 % factors by kind of sheet: what a maker measured (datasheet), what a lab wrote down or derived (lab), what was
 # measured on this unit (measured). Nobody's sheet knows damping: Beq a factor 3 on every sheet, a link's damping
 # ratio a factor 10 (0.001-0.1 about a steel ruler's 0.01).
@@ -140,8 +169,8 @@ class Spec:
     daq: dict[str, Any]
     calibration: list[Experiment]
     experiments: list[Experiment]
-    identify: dict[str, Any]
-    accept: dict[str, Any]
+    identify: IdentifySettings
+    accept: AcceptThresholds
     raw: dict[str, Any]
     path: str = ""
     controller: Controller | None = None
@@ -192,7 +221,7 @@ def _check_params(where: str, model: str, values: dict[str, Any]) -> dict[str, A
     declared ranges."""
     valid = _model_parameters(model)
     _check_keys(where, values, valid)
-    out = {}
+    out: dict[str, float | int | bool] = {}
     for k, v in values.items():
         kind = valid[k].type
         if kind == "Integer":
@@ -259,7 +288,7 @@ def _controller(d: Any) -> Controller:
             raise SpecError(f"[controller].{k} must be {'a list of 4 numbers' if k == 'K' else 'a number'}, got {v!r}")
     if "K" in d and not isinstance(d["K"], list):
         raise SpecError(f"[controller].K must be a list of 4 numbers, got {d['K']!r}")
-    kw = {k: [float(x) for x in v] if k == "K" else v for k, v in d.items()}
+    kw: dict[str, Any] = {k: [float(x) for x in v] if k == "K" else v for k, v in d.items()}
     try:
         c = Controller(**kw)
     except (TypeError, ValueError) as err:
@@ -363,16 +392,13 @@ def from_dict(raw: dict[str, Any], path: str = "") -> Spec:
     closed = [e.name for e in (*cal, *exps) if e.loop == "closed"]
     if closed and controller is None:
         raise SpecError(f"experiment(s) {', '.join(closed)} run closed loop but the spec has no [controller] table")
-    identify = dict(IDENTIFY_DEFAULTS)
-    _check_keys("[identify]", raw.get("identify", {}), IDENTIFY_DEFAULTS)
-    identify.update(raw.get("identify", {}))
-    accept = dict(ACCEPT_DEFAULTS)
-    _check_keys("[accept]", raw.get("accept", {}), ACCEPT_DEFAULTS)
-    accept.update(raw.get("accept", {}))
+    _check_keys("[identify]", raw.get("identify", {}), dict(IDENTIFY_DEFAULTS))
+    identify = cast(IdentifySettings, {**IDENTIFY_DEFAULTS, **raw.get("identify", {})})  # its keys checked above
+    _check_keys("[accept]", raw.get("accept", {}), dict(ACCEPT_DEFAULTS))
+    accept = cast(AcceptThresholds, {**ACCEPT_DEFAULTS, **raw.get("accept", {})})
     for k, v in accept.items():
         check_percent(f"[accept].{k}", v)
-    for k in ("fit_threshold",):
-        check_percent(f"[identify].{k}", identify[k])
+    check_percent("[identify].fit_threshold", identify["fit_threshold"])
     spec = Spec(
         name=str(camp.get("name", Path(path).stem or "campaign")),
         sample_rate=float(rate),
@@ -485,7 +511,25 @@ def check_memory(spec: Spec, workers: int | None = None, available: int | None =
 
 
 def load(spec: str | Path, overrides: list[str] | None = None) -> Spec:
-    """Read, override and validate a spec file."""
+    """Read, override and validate a spec.
+
+    Parameters
+    ----------
+    spec : str or Path
+        A path to a TOML file, or the name of a bundled spec (``lab``, ``nominal``, ...; ``flexjoint specs``).
+    overrides : list of str, optional
+        ``table.name=value`` items applied on top of the file, as ``--set`` does (``["plant.backlash=0.004"]``).
+
+    Returns
+    -------
+    Spec
+        The validated spec: every parameter checked against the range its FMU declares.
+
+    Raises
+    ------
+    SpecError
+        One line naming what is wrong (an unknown key with the valid ones, a value out of range, ...).
+    """
     path = resolve_path(spec)
     try:
         raw = tomllib.loads(path.read_text())

@@ -80,9 +80,10 @@ def ssp_experiment(spec: Spec, experiment: str | None = None, loop: str | None =
         exp = spec.experiment(experiment)
     else:
         want = loop or ("closed" if spec.controller is not None else "open")
-        exp = next((e for e in exps if e.loop == want), None)
-        if exp is None:
+        found = next((e for e in exps if e.loop == want), None)
+        if found is None:
             raise SpecError(f"spec {spec.name!r} has no {want}-loop experiment")
+        exp = found
     if loop is not None and exp.loop != loop:
         raise SpecError(f"experiment {exp.name!r} of spec {spec.name!r} runs {exp.loop} loop, not {loop}")
     return exp

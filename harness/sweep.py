@@ -235,7 +235,7 @@ class Plan:
     and the built FMUs."""
 
     spec: specmod.Spec
-    identify: dict[str, Any]
+    identify: specmod.IdentifySettings
     model: dict[str, Any] | None
     fmus: Mapping[str, FmuBytes]
 
@@ -245,7 +245,7 @@ def rig_spec(base: specmod.Spec, params: Mapping[str, float], seed: int) -> spec
     validated; the analysis experiments are dropped (a sweep only identifies)."""
     raw = copy.deepcopy(base.raw)
     for key, value in params.items():
-        table, name = key.split(".", 1)
+        table, name = _split_key(key)
         kind = specmod.fmu_parameters(_MODELS[table])[name][0]
         raw.setdefault(table, {})[name] = int(value) if kind == "Integer" else float(value)
     raw.setdefault("daq", {})["seed"] = int(seed)
@@ -587,6 +587,12 @@ def write_rrd(out: Path, table: pd.DataFrame, doc: dict[str, Any], markdown: str
     return write_recording(path or out / "sweep.rrd", rec_id, log, blueprint=blueprint)
 
 
+def _split_key(key: str) -> tuple[str, str]:
+    """``table.name`` -> (table, name)."""
+    table, _, name = key.partition(".")
+    return table, name
+
+
 # ----------------------------------------------------------------------------------------------- the sweep
 def parse_orders(text: str | Sequence[int] | None) -> tuple[int, int, int] | None:
     """``"na,nb,nc"`` (or a sequence) -> (na, nb, nc); None stays None."""
@@ -599,7 +605,7 @@ def parse_orders(text: str | Sequence[int] | None) -> tuple[int, int, int] | Non
         raise ValueError(f"--orders {text!r}: expected three integers na,nb,nc") from None
     if len(o) != 3 or min(o) < 0:
         raise ValueError(f"--orders {text!r}: expected three non-negative integers na,nb,nc")
-    return o  # type: ignore[return-value]
+    return o[0], o[1], o[2]
 
 
 def run_sweep(
@@ -617,8 +623,41 @@ def run_sweep(
     progress: Progress | None = None,
     rrd: bool = True,
 ) -> dict[str, Any]:
-    """Draw ``n`` rigs, run and judge each one as a task of the executor, write the outputs into ``out``;
-    returns the ``sweep.json`` document plus ``wall_s``."""
+    """Monte Carlo over rig tolerances: draw ``n`` rigs, run and judge each as a task, write the outputs.
+
+    Parameters
+    ----------
+    spec : Spec, str or Path
+        The base campaign.
+    vary : sequence of str or Vary
+        The parameters drawn: ``"plant.Ks=normal(1.3,0.05)"``; ``normal(mu,sigma)``, ``uniform(lo,hi)``,
+        ``lognormal(median,s)``, ``triangular(lo,mode,hi)``.
+    n : int
+        Number of rigs.
+    seed : int
+        Seed of the draws and of each rig's noise.
+    out : Path
+        The directory to write: ``sweep.parquet`` (one row per rig), ``sweep.json``, ``report.md``, ``figures/``,
+        ``sweep.rrd``.
+    model : Path, optional
+        Score this ``models/<m>.json`` on every rig instead of identifying each.
+    orders : str or sequence of int, optional
+        Identify one order ``na,nb,nc`` per rig instead of the spec's grid.
+    sampler : {"lhs", "sobol"}
+        Latin hypercube or Sobol points.
+    workers, scheduler : optional
+        Where to run (:class:`harness.Executor`).
+    progress : callable, optional
+        Called with one line of text per rig.
+    rrd : bool
+        Write ``sweep.rrd``.
+
+    Returns
+    -------
+    dict
+        The ``sweep.json`` document (pass rate with its 95 % Wilson interval, parameters ranked by sensitivity,
+        thresholds, draws) plus ``wall_s``.
+    """
 
     t0 = time.perf_counter()
     base = spec if isinstance(spec, specmod.Spec) else specmod.load(spec)
@@ -633,9 +672,9 @@ def run_sweep(
             raise ValueError(f"model {model} has Ts = {m.Ts:g} s but the spec samples at {base.Ts:g} s")
         if fixed is not None:
             raise ValueError("--orders fixes the orders of the identification; it does not apply to --model")
-    ident = dict(base.identify)
+    ident = base.identify.copy()
     if fixed is not None:
-        ident.update(na=fixed[0], nb=fixed[1], nc=fixed[2])
+        ident["na"], ident["nb"], ident["nc"] = fixed
     if RunDir(out).manifest.exists():
         raise FileExistsError(f"--out {out} holds a run: the sweep's report.md and figures/ would replace its own; "
                               "give another --out")  # fmt: skip
@@ -709,7 +748,7 @@ def report_sweep(out: Path, rrd: Path | None = None) -> tuple[Path, Path]:
         table = pq.read_table(out / "sweep.parquet").to_pandas()
     except (json.JSONDecodeError, OSError, pa.ArrowException) as exc:
         raise DataError(f"{out}: sweep.json or sweep.parquet unreadable ({exc})") from None
-    varies = [Vary(*v["key"].split(".", 1), v["distribution"], tuple(v["args"]), v["integer"]) for v in doc["vary"]]
+    varies = [Vary(*_split_key(v["key"]), v["distribution"], tuple(v["args"]), v["integer"]) for v in doc["vary"]]
     doc["summary"] = summarise(table, varies, doc["thresholds"])  # the same numbers, in the order they were made
     recording = _write_report(out, table, doc, rrd or True)
     assert recording is not None

@@ -206,3 +206,18 @@ def test_progress_is_a_live_status_in_a_terminal_and_lines_elsewhere(monkeypatch
         assert cli._status is None  # stopped by the result (or never started)
         assert "prbs_b005 [1/9]" in err_buf.getvalue() and " s)" in err_buf.getvalue()
         cli._stop_status()
+
+
+def test_help_lists_every_command_with_its_first_sentence_whole():
+    """`flexjoint --help` on a narrow terminal: each command's summary is its docstring's first sentence, wrapped,
+    never cut with "..."."""
+    from harness.cli import app
+
+    r = flexjoint("--help", env={"COLUMNS": "60"})
+    listed = "".join(r.stdout.split("Commands:", 1)[1].split())  # the wrapping's spaces and breaks left out
+    assert r.returncode == 0 and "..." not in listed, r.stdout
+    for cmd in app.registered_commands:
+        name = cmd.name or cmd.callback.__name__.rstrip("_")
+        words = cmd.callback.__doc__.split("\n\n")[0].split()
+        end = next(i for i, w in enumerate(words) if w.endswith(".") or i == len(words) - 1)  # click's sentence
+        assert name + "".join(words[: end + 1]) in listed, name

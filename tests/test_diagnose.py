@@ -1,5 +1,5 @@
 """The diagnoser on short runs of the blind campaign with known hidden effects: on our twin, on our twin with its
-linear parameters off the datasheet (the rows of the README's off-datasheet table), and on rigs of an independent
+linear parameters off the datasheet (the rows of the manual's off-datasheet table), and on rigs of an independent
 simulator (tests/indeprig.py: no FMU, other friction, backlash and link models); and its building blocks checked against
 independent constructions (ADC lattice, noise estimate, gauge calibration, folds, dead-band mask, candidate
 rules)."""
@@ -218,7 +218,7 @@ def test_effect_names_are_the_interface():
     }
 
 
-# the README's off-datasheet table on the quick blind campaign: a real rig's linear mismatch (stiffer link, more
+# the manual's off-datasheet table on the quick blind campaign: a real rig's linear mismatch (stiffer link, more
 # damping) plus one effect; each verdict names the effect (or none) and the linear parameters come back as findings
 MISMATCH = ["plant.Ks=1.5", "plant.Beq=0.0052", "plant.zeta_link=0.02"]
 

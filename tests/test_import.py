@@ -8,6 +8,7 @@ from __future__ import annotations
 import copy
 import json
 import math
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -599,8 +600,8 @@ def test_given_controller_low_r2_warning_and_encoder(tmp_path):
 
 
 def test_encoder_lattice_and_counts_per_rev_notes(tmp_path):
-    """An encoder theta in counts is an encoder by default; one in degrees off the count lattice is said; a
-    --counts-per-rev that nothing uses is said."""
+    """An encoder theta in counts is an encoder by default; one in degrees off the count lattice is said;
+    --counts-per-rev alone makes theta an encoder's, and one that describes no channel is refused."""
     df = _closed_frame(500)
     counts = np.round(df["theta_deg"] / 360.0 * CPR)
     df.assign(theta_counts=counts).drop(columns="theta_deg").to_csv(tmp_path / "cnt.csv", index=False)
@@ -617,11 +618,17 @@ def test_encoder_lattice_and_counts_per_rev_notes(tmp_path):
                    ImportOptions(calibration=CAL, theta_sensor="encoder", counts_per_rev=CPR), seen.append)  # fmt: skip
     off = "theta is not on the encoder's 0.0878906 deg steps (up to 0.4 of a step off: filtered or resampled?)"
     assert any(off in s for s in seen), seen
-    seen.clear()
-    import_records([tmp_path / "smooth.csv"], tmp_path / "c", ImportOptions(calibration=CAL, counts_per_rev=CPR),
-                   seen.append)  # fmt: skip
-    assert any("--counts-per-rev 4096 not used: theta is a pot's (say --theta-sensor encoder)" in s for s in seen)
-    assert Manifest.load(tmp_path / "c").experiments[0].theta_sensor is None
+    # --counts-per-rev alone says the encoder: the same record, the same manifest entry
+    import_records([tmp_path / "smooth.csv"], tmp_path / "c", ImportOptions(calibration=CAL, counts_per_rev=CPR))
+    assert Manifest.load(tmp_path / "c").experiments[0] == Manifest.load(tmp_path / "b").experiments[0]
+    # a --counts-per-rev that describes nothing (a pot's volts, or a pot said, with no channel in counts): one line
+    volts = df.assign(theta_v=df["theta_deg"] / CAL.Kp).drop(columns="theta_deg")
+    volts.to_csv(tmp_path / "volts.csv", index=False)
+    for path, sensor, why in ((tmp_path / "volts.csv", None, "theta is in volts, a pot's"),
+                              (tmp_path / "smooth.csv", "pot", "--theta-sensor pot")):  # fmt: skip
+        with pytest.raises(DataError, match=re.escape(f"--counts-per-rev 4096 describes no channel ({why}, none in")):
+            import_records([path], tmp_path / "d", ImportOptions(calibration=CAL, counts_per_rev=CPR,
+                                                                 theta_sensor=sensor))  # fmt: skip
 
 
 def _write_mat(path: Path, df: pd.DataFrame, ref: np.ndarray) -> Path:

@@ -1,15 +1,16 @@
-"""The package's shape: no import cycle among its modules, imports at the top of files, the README's module map
-equal to the tree."""
+"""The package's shape: no import cycle among its modules, imports at the top of files, the manual's module map
+(docs/concepts/data-flow.md) equal to the tree."""
 
 from __future__ import annotations
 
 import ast
+import inspect
 from pathlib import Path
 
 import harness
 
 PKG = Path(harness.__file__).parent
-README = PKG.parent / "README.md"
+MODULE_MAP = PKG.parent / "docs" / "concepts" / "data-flow.md"  # the manual's page of the data flow
 
 
 def _modules() -> dict[str, Path]:
@@ -118,10 +119,10 @@ def test_imports_at_the_top_of_files() -> None:
     assert late == []
 
 
-def readme_module_map() -> set[str]:
-    """The files the README's module map lists (paths relative to the package's parent), read from its indented
+def module_map() -> set[str]:
+    """The files the manual's module map lists (paths relative to the package's parent), read from its indented
     tree: a name ending in "/" opens a folder at that indentation."""
-    text = README.read_text(encoding="utf-8")
+    text = MODULE_MAP.read_text(encoding="utf-8")
     block = text.split("<!-- module map", 1)[1].split("```text\n", 1)[1].split("```", 1)[0]
     out: set[str] = set()
     stack: list[tuple[int, str]] = []
@@ -140,15 +141,15 @@ def readme_module_map() -> set[str]:
     return out
 
 
-def test_readme_module_map_is_the_tree() -> None:
+def test_module_map_is_the_tree() -> None:
     tree = {
         str(p.relative_to(PKG.parent))
         for p in PKG.rglob("*.py")
         if p.name != "__init__.py" and not any(part.startswith("_") for part in p.relative_to(PKG).parts)
     }
-    listed = readme_module_map()
+    listed = module_map()
     assert "harness/diagnosis/diagnose.py" in listed and "harness/cli.py" in listed
-    assert listed == tree, f"only in README: {sorted(listed - tree)}; only in the tree: {sorted(tree - listed)}"
+    assert listed == tree, f"only in the module map: {sorted(listed - tree)}; only in the tree: {sorted(tree - listed)}"
 
 
 def test_public_api_in_data_flow_order() -> None:
@@ -156,3 +157,17 @@ def test_public_api_in_data_flow_order() -> None:
     order = [harness.__all__.index(n) for n in ("load_spec", "run_campaign", "calibrate_run", "estimate",
                                                 "crossfit_run", "diagnose_run", "write_report")]  # fmt: skip
     assert order == sorted(order)
+
+
+def test_public_functions_have_numpydoc_sections() -> None:
+    """Every public function (``harness.__all__``) says what it takes and returns in numpydoc sections, which the
+    manual's API page renders; the diagnosis's own follow with its rewrite (issue 34)."""
+    bare = []
+    for name in harness.__all__:
+        obj = getattr(harness, name)
+        if not inspect.isfunction(obj) or obj.__module__.startswith("harness.diagnosis"):
+            continue
+        doc = inspect.getdoc(obj) or ""
+        if not ("Parameters\n----------" in doc and "Returns\n-------" in doc):
+            bare.append(name)
+    assert bare == []

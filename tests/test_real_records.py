@@ -151,7 +151,7 @@ def _quanser_halves(tmp: Path) -> list[Path]:
 
 
 def test_quanser_record_diagnosed_against_the_datasheet(tmp_path):
-    """The README's Quanser figures, on the record itself: closed-loop replay through the identified LQR (R^2
+    """The manual's Quanser figures, on the record itself: closed-loop replay through the identified LQR (R^2
     0.980), held-out fit 85.0 % as given -> 90.0 % recalibrated (measured 91.33 %: the rig identified in its combos
     under the datasheet's priors; 90.04 % with Jeq, Beq and kt in boxes), Ks 10 % above the datasheet's 1.3 (1.425),
     no linear parameter at a bound; the encoder's and the gauge's lattices (0.0879, 0.00848 deg) found

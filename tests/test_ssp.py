@@ -133,7 +133,7 @@ def test_libcosim_runs_the_ssp_to_the_campaigns_theta(tmp_path, spec, experiment
 
 def test_a_rig_without_command_delay_is_one_sample_late_in_a_master_that_steps_all_at_once(tmp_path):
     """blind_closed's DAQ writes the command within the sample (delay 0): libcosim cannot order the FMUs, so it runs
-    the campaign's rig with daq.delay_samples = 1, to the bit (what the README says of such rigs)."""
+    the campaign's rig with daq.delay_samples = 1, to the bit (what the manual's SSP tutorial says of such rigs)."""
     s = specmod.load("blind_closed", [])
     ssp = ssp_bytes(s, "square_mid")
     later = _campaign(specmod.load("blind_closed", ["daq.delay_samples=1"]), "square_mid")["theta"]

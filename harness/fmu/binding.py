@@ -146,7 +146,7 @@ def load(path: Path, instance_name: str | None = None) -> Instance:
     # exit, and in pool workers, which leave through multiprocessing's exit handlers rather than atexit
     inst.cleanup = Finalize(inst, shutil.rmtree, args=(unzipdir,), kwargs={"ignore_errors": True}, exitpriority=0)
 
-    def logger(env, instance, status, category, message):  # FMI 2.0 logger callback signature
+    def logger(env: Any, instance: Any, status: int, category: Any, message: bytes | None) -> None:  # FMI 2.0
         inst.log.append(message.decode(errors="replace") if message else "")
 
     callbacks = fmi2CallbackFunctions()

@@ -23,8 +23,10 @@ import sys
 import tempfile
 import xml.etree.ElementTree as ET
 import zipfile
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from types import ModuleType
 
 import cmake
 import fmpy
@@ -33,6 +35,7 @@ from fmpy.build import build_platform_binary
 from . import modeldesc
 from .sources import available_models, fmu_source_dir
 
+fcntl: ModuleType | None
 try:
     import fcntl
 except ImportError:  # Windows
@@ -141,7 +144,7 @@ def fmu_sha256(path: str | os.PathLike) -> str:
 
 
 @contextmanager
-def _file_lock(path: Path):
+def _file_lock(path: Path) -> Iterator[None]:
     if fcntl is None:  # Windows: os.replace alone keeps the cache consistent
         yield
         return
@@ -334,5 +337,18 @@ def install_master(name: str, data: bytes) -> Path:
 
 
 def build_all(out_dir: Path | None = None, force: bool = False) -> dict[str, Path]:
-    """Build the rig twin: ``{"flexjoint": Path, "daq": Path, "controller": Path}``."""
+    """Build the rig twin's FMUs (plant, DAQ, controller), each only when its sources changed.
+
+    Parameters
+    ----------
+    out_dir : Path, optional
+        Where to put the FMUs; default the cache (``~/.cache/flexjoint-harness`` or ``$FLEXJOINT_CACHE``).
+    force : bool
+        Rebuild even when a cached FMU matches its sources.
+
+    Returns
+    -------
+    dict of str to Path
+        ``{"flexjoint": Path, "daq": Path, "controller": Path}``.
+    """
     return {name: build_fmu(name, out_dir=out_dir, force=force) for name in MODELS}

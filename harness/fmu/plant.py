@@ -14,9 +14,9 @@ and ``int_0^L phi_i^2 dx = L``.  State order of :func:`state_space`:
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, field, make_dataclass
+from dataclasses import asdict, dataclass, field, make_dataclass
 from functools import cache
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy.integrate import quad
@@ -69,12 +69,24 @@ def _to_dict(self: Any) -> dict[str, float | int]:
 
 # names, types and defaults of the flexjoint FMU's parameters (the textbook rig, effects off), SI units as declared
 # in its modelDescription.xml
-PlantParams = make_dataclass(
-    "PlantParams",
-    [(n, int if v.type == "Integer" else float, field(default=v.start)) for n, v in FLEXJOINT.parameters().items()],
-    namespace={"validate": _validate, "to_dict": _to_dict, "__module__": __name__},
-)
-PlantParams.__doc__ = "Parameters of the flexjoint FMU by name, defaults from its modelDescription.xml."
+if TYPE_CHECKING:  # what the class made below looks like to a type checker: one attribute per FMU parameter
+
+    @dataclass
+    class PlantParams:
+        """Parameters of the flexjoint FMU by name, defaults from its modelDescription.xml."""
+
+        def __init__(self, **values: float) -> None: ...
+        def __getattr__(self, name: str) -> float: ...
+        def validate(self) -> None: ...
+        def to_dict(self) -> dict[str, float | int]: ...
+
+else:
+    PlantParams = make_dataclass(
+        "PlantParams",
+        [(n, int if v.type == "Integer" else float, field(default=v.start)) for n, v in FLEXJOINT.parameters().items()],
+        namespace={"validate": _validate, "to_dict": _to_dict, "__module__": __name__},
+    )
+    PlantParams.__doc__ = "Parameters of the flexjoint FMU by name, defaults from its modelDescription.xml."
 
 
 # ------------------------------------------------------------------ beam (dimensionless)

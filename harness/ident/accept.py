@@ -75,7 +75,25 @@ def judge(fits: Mapping[str, float], thresholds: Mapping[str, float], source: st
 
 
 def accept(run: Path, override: dict[str, Any] | None = None) -> Verdict:
-    """Gate the selected model of a run (:func:`judge` on its fits and its spec's thresholds)."""
+    """The acceptance gate: does a run's selected model meet the fit thresholds?
+
+    Parameters
+    ----------
+    run : Path
+        An identified run directory.
+    override : dict, optional
+        ``{"min_fit": ..., "min_average_fit": ...}`` [%] instead of the spec's ``[accept]`` values.
+
+    Returns
+    -------
+    Verdict
+        ``passed``, the fits, their average, the thresholds, where the fits were read, and the failing cells.
+
+    Raises
+    ------
+    harness.DataError
+        No selected model, or models or a cross-fit made from other data than the run holds.
+    """
     thresholds = thresholds_of(run, override)  # first: a malformed manifest is said before a missing model
     fits, source = selected_fits(run)
     check_fresh(run, ("models", "crossfit.csv") if source.startswith("crossfit.csv") else ("models",))

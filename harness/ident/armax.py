@@ -214,12 +214,14 @@ def _shift_cols(out: np.ndarray, col: int, x: np.ndarray, lags: range, sign: flo
         c[lag:] = x[: n - lag] if sign > 0 else -x[: n - lag]
 
 
-def _regressors(y: np.ndarray, u: np.ndarray, e: np.ndarray | None, na: int, nb: int, nc: int, nk: int):
+def _regressors(y: np.ndarray, u: np.ndarray, e: np.ndarray | None, na: int, nb: int, nc: int, nk: int) -> np.ndarray:
     """Zero-padded regressor matrix phi with e(t) = y(t) - phi(t) theta, columns [-y lags, u lags, e lags]."""
     phi = np.empty((y.size, na + nb + nc))
     _shift_cols(phi, 0, y, range(1, na + 1), -1.0)
     _shift_cols(phi, na, u, range(nk, nk + nb), 1.0)
     if nc:
+        if e is None:
+            raise ValueError("an ARMAX regressor with nc > 0 needs the residuals e")
         _shift_cols(phi, na + nb, e, range(1, nc + 1), 1.0)
     return phi
 
@@ -240,7 +242,7 @@ def _lstsq(phi: np.ndarray, y: np.ndarray) -> np.ndarray:
     return x / scale
 
 
-def _polys(theta: np.ndarray, na: int, nb: int, nc: int, nk: int) -> tuple[np.ndarray, ...]:
+def _polys(theta: np.ndarray, na: int, nb: int, nc: int, nk: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     A = np.concatenate([[1.0], theta[:na]])
     B = np.concatenate([np.zeros(nk), theta[na : na + nb]])
     C = np.concatenate([[1.0], theta[na + nb :]])
@@ -307,7 +309,9 @@ def _hannan_rissanen(y: np.ndarray, u: np.ndarray, na: int, nb: int, nc: int, nk
     return _lstsq(phi, y)
 
 
-def _jacobian(y, u, e, C, na, nb, nc, nk) -> np.ndarray:
+def _jacobian(
+    y: np.ndarray, u: np.ndarray, e: np.ndarray, C: np.ndarray, na: int, nb: int, nc: int, nk: int
+) -> np.ndarray:
     """psi = d yhat / d theta = phi / C (phi built from y, u, e): the analytic gradient regressors."""
     rows = np.vstack([y, u, e]) if nc else np.vstack([y, u])
     f = lfilter([1.0], C, rows, axis=-1) if C.size > 1 else rows
@@ -326,15 +330,33 @@ def estimate(
     max_iter: int = 50,
     tol: float = 1e-8,
 ) -> ArmaxModel:
-    """Prediction-error ARMAX estimate of A y = B u(t - nk) + C e from one input u and output y.
+    """Prediction-error ARMAX estimate of A(q) y = B(q) u(t - nk) + C(q) e from one input and output.
 
     Start: Hannan-Rissanen (long ARX innovations, then least squares on y, u, e lags). Iterations: damped
     Gauss-Newton (step halving) with the analytic gradient psi = phi / C, Levenberg-Marquardt when halving
     fails; C kept stable by reflecting its roots into the unit circle. When the start has an unstable A a
-    second start with A's roots reflected is also iterated and the lower loss wins. Stops when the relative
-    decrease of the loss falls below ``tol`` (``converged``) or after ``max_iter`` iterations per start.
-    ``nc = 0`` gives ARX by plain least squares. Zero initial conditions (module docstring). ``Ts`` [s]
-    only labels the model.
+    second start with A's roots reflected is also iterated and the lower loss wins. ``nc = 0`` gives ARX by
+    plain least squares. Zero initial conditions.
+
+    Parameters
+    ----------
+    u, y : array_like
+        Input and output, the same length.
+    na, nb, nc : int
+        Orders of A, B and C.
+    nk : int
+        Input delay [samples].
+    Ts : float
+        Sample period [s]; it only labels the model.
+    max_iter : int
+        Iterations per start.
+    tol : float
+        Stop when the relative decrease of the loss falls below it (``converged``).
+
+    Returns
+    -------
+    ArmaxModel
+        A, B, C at full precision, the loss, the noise variance, the parameter covariance, the one-step fit.
     """
     u, y = _check_signals(u, y)
     na, nb, nc, nk = _check_orders(na, nb, nc, nk)
@@ -397,11 +419,13 @@ def _reflect_start(theta: np.ndarray, na: int, nb: int, nc: int, nk: int) -> np.
     return np.concatenate([a, theta[na : na + nb] / gain, theta[na + nb :]])
 
 
-def _pem(y, u, na, nb, nc, nk, max_iter, tol) -> tuple[np.ndarray, int, bool]:
+def _pem(
+    y: np.ndarray, u: np.ndarray, na: int, nb: int, nc: int, nk: int, max_iter: int, tol: float
+) -> tuple[np.ndarray, int, bool]:
     """Hannan-Rissanen start (and, when its A is unstable, a second start with A reflected), then
     Gauss-Newton from each; the lowest loss wins. Returns (theta, total iterations, converged)."""
     th0 = _hannan_rissanen(y, u, na, nb, nc, nk)
-    best = None
+    best: tuple[float, np.ndarray, bool] | None = None
     total = 0
     for start in (th0, _reflect_start(th0, na, nb, nc, nk)):
         if start is None:
@@ -412,10 +436,14 @@ def _pem(y, u, na, nb, nc, nk, max_iter, tol) -> tuple[np.ndarray, int, bool]:
         V = float(np.dot(e, e))
         if best is None or V < best[0]:
             best = (V, th, conv)
+    if best is None:
+        raise ValueError("no starting point for the prediction-error search")
     return best[1], total, best[2]
 
 
-def _gauss_newton(theta, y, u, na, nb, nc, nk, max_iter, tol) -> tuple[np.ndarray, int, bool]:
+def _gauss_newton(
+    theta: np.ndarray, y: np.ndarray, u: np.ndarray, na: int, nb: int, nc: int, nk: int, max_iter: int, tol: float
+) -> tuple[np.ndarray, int, bool]:
     """Minimise mean(e^2) over theta; returns (theta, iterations, converged)."""
     n = y.size
     A, B, C = _polys(theta, na, nb, nc, nk)
@@ -488,8 +516,22 @@ def _free_responses(model: ArmaxModel, n: int) -> np.ndarray:
 def simulate(model: ArmaxModel, u: Any, y0: Any = None, ic: str = "z") -> np.ndarray:
     """Noise-free infinite-horizon simulation y_sim = B/A u.
 
-    ``ic="z"``: zero initial state. ``ic="e"``: the initial state of a state-space realisation of B/A is
-    estimated by least squares so that y_sim best matches the measured output ``y0`` (required, same length).
+    Parameters
+    ----------
+    model : ArmaxModel
+        The model.
+    u : array_like
+        Input.
+    y0 : array_like, optional
+        The measured output, required with ``ic="e"`` (same length as ``u``).
+    ic : {"z", "e"}
+        Zero initial state, or the initial state of a state-space realisation of B/A estimated by least squares
+        so that y_sim best matches ``y0``.
+
+    Returns
+    -------
+    numpy.ndarray
+        The simulated output.
     """
     u = _check_u(u)
     b = model.B if model.B.size else np.zeros(1)
@@ -509,10 +551,24 @@ def simulate(model: ArmaxModel, u: Any, y0: Any = None, ic: str = "z") -> np.nda
 
 
 def predict(model: ArmaxModel, u: Any, y: Any, k: int = 1) -> np.ndarray:
-    """k-step-ahead predictor yhat(t | t-k) (zero initial conditions).
+    """The k-step-ahead predictor yhat(t | t - k), zero initial conditions.
 
     C/A = F_k + q^-k G_k/A with F_k the first k impulse-response terms of C/A; then
     yhat = (F_k B u + (C - F_k A) y) / C. k = 1 gives yhat = y - e.
+
+    Parameters
+    ----------
+    model : ArmaxModel
+        The model.
+    u, y : array_like
+        Input and measured output, the same length.
+    k : int
+        Prediction horizon [samples], >= 1.
+
+    Returns
+    -------
+    numpy.ndarray
+        The prediction, in the unit of ``y``.
     """
     u, y = _check_signals(u, y)
     if isinstance(k, bool) or not isinstance(k, int | np.integer) or k < 1:
@@ -567,7 +623,22 @@ def compare_report(model: ArmaxModel, u: Any, y: Any, ic: str = "z") -> FitResul
 
 
 def compare(model: ArmaxModel, u: Any, y: Any, ic: str = "z") -> float:
-    """Simulation fit in percent like MATLAB ``compare``; ``math.nan`` for a model with unstable A."""
+    """Simulation fit in percent, as MATLAB's ``compare``: 100 (1 - ||y - yhat|| / ||y - mean y||).
+
+    Parameters
+    ----------
+    model : ArmaxModel
+        The model; its simulation (infinite horizon), not its one-step prediction, is scored.
+    u, y : array_like
+        Input and measured output, the same length.
+    ic : {"z", "e"}
+        Initial state: zero, or estimated by least squares from ``y``.
+
+    Returns
+    -------
+    float
+        The fit [%]; NaN for a model whose A is unstable (no number like -1e40).
+    """
     return compare_report(model, u, y, ic).fit
 
 
@@ -610,7 +681,22 @@ def _xcorr(a: np.ndarray, b: np.ndarray, lags: int) -> np.ndarray:
 
 
 def resid(model: ArmaxModel, u: Any, y: Any, lags: int = 25) -> ResidTest:
-    """Whiteness of the one-step prediction errors and their independence from the input."""
+    """Residual tests: whiteness of the one-step prediction errors and their independence from the input.
+
+    Parameters
+    ----------
+    model : ArmaxModel
+        The model.
+    u, y : array_like
+        Input and measured output.
+    lags : int
+        Lags of the auto- and cross-correlations tested.
+
+    Returns
+    -------
+    ResidTest
+        The correlations, their 99 % bound 2.58/sqrt(N), how many lags fall outside it, and the two verdicts.
+    """
     u, y = _check_signals(u, y)
     n = y.size
     if isinstance(lags, bool) or not isinstance(lags, int | np.integer) or not 1 <= lags < n // 2:

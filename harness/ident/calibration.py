@@ -440,7 +440,7 @@ def dead_zone_merge(*estimates: DeadZone) -> DeadZone:
     return _dead_zone(up, down)
 
 
-def _dead_zone(up: tuple[float, float] | None, down: tuple[float, float] | None) -> DeadZone:
+def _dead_zone(up: tuple[float, float | None] | None, down: tuple[float, float | None] | None) -> DeadZone:
     """DeadZone from the (threshold [V], onset [s]) of the up and the down ramp; v_th their mean."""
     vals = [x[0] for x in (up, down) if x is not None]
     return DeadZone(
@@ -644,8 +644,19 @@ def calibrate(
 
 
 def calibrate_run(run: Path) -> Calibration:
-    """Calibrate the sensors from a run's calibration experiments (:func:`calibrate` on the datasets it uses, read
-    from ``data/``) and write ``calibration.json``."""
+    """Calibrate the sensors from a run's calibration experiments and write ``calibration.json``.
+
+    Parameters
+    ----------
+    run : Path
+        A run directory with the calibration experiments (pot ramp, comb, dead-zone ramps) in ``data/``.
+
+    Returns
+    -------
+    Calibration
+        Kp [deg/V] from the pot's wraps, Ke [deg/V] by least squares over the comb, the dead zone [V] from the
+        slow ramps, the sensor offsets [V], and where each came from.
+    """
     run = Path(run)
     exps = Manifest.load(run).entries("calibration")
     pot, comb, ramps = _by_signal(exps)

@@ -117,10 +117,28 @@ def format_csv(matrix: pd.DataFrame) -> str:
 
 
 def crossfit_run(run: Path, progress: Callable[[str], None] | None = None) -> pd.DataFrame:
-    """Export (when missing or stale) and run every ``models/<name>.fmu`` of a run on every identification
-    dataset; write ``crossfit.csv`` atomically and return the matrix (index ``model``; dataset columns, then
-    ``average``). ``attrs["max_abs_diff"]`` holds the largest |FMU - Python| fit difference [fit points]. Models
-    identified from other data than the run holds are refused (one :class:`harness.rundir.DataError` line)."""
+    """Run every model of a run, as its FMU through fmpy, on every identification dataset.
+
+    Each ``models/<name>.fmu`` is exported when missing or stale; ``crossfit.csv`` is written atomically.
+
+    Parameters
+    ----------
+    run : Path
+        An identified run directory.
+    progress : callable, optional
+        Called with one line of text per model.
+
+    Returns
+    -------
+    pandas.DataFrame
+        Fit [%] of model i (index ``model``) on dataset j (columns), then ``average``;
+        ``attrs["max_abs_diff"]`` is the largest difference to the Python-side simulation [fit points].
+
+    Raises
+    ------
+    harness.DataError
+        Models identified from other data than the run holds.
+    """
     run = Path(run)
     check_fresh(run, ("models",))
     datasets = load_run(run, role="identification")

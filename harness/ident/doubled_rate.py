@@ -4,7 +4,7 @@ simulated at twice the sample rate, as it is and re-identified at that rate (``d
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TypedDict
 
 import numpy as np
 import pandas as pd
@@ -18,14 +18,29 @@ from .calibration import Calibration
 from .identify import prepare
 
 
+class DoubledRate(TypedDict, total=False):
+    """``doubled_rate.json``: the ``experiment`` re-run at ``sample_rate_hz`` [Hz], the selected model's ``orders``
+    (na, nb, nc, nk), its fit [%] applied as is (``fit_model_50hz_as_is``) and the same orders re-identified at
+    the doubled rate (``fit_reidentified_100hz``), the ratio of their static gains per sample
+    (``gain_ratio_as_is``); or only ``skipped``, why there was no check."""
+
+    experiment: str
+    sample_rate_hz: float
+    orders: list[int]
+    fit_model_50hz_as_is: float
+    fit_reidentified_100hz: float
+    gain_ratio_as_is: float
+    skipped: str
+
+
 def doubled_rate_check(
     run: Path,
     selected: armax.ArmaxModel,
-    ident: dict[str, Any],
+    ident: specmod.IdentifySettings,
     cal: Calibration,
     experiment: str | None = None,
     fmus: dict[str, Path] | None = None,
-) -> dict[str, Any]:
+) -> DoubledRate:
     """Lab 1's section 3.4: run an experiment at twice the sampling rate and score the 50 Hz model on it.
 
     Reports the 50 Hz model applied sample by sample to 100 Hz data, as lab 1 did (its per-sample gain is
@@ -42,7 +57,7 @@ def doubled_rate_check(
     cols = simulate_spec(fast, fmus or build_all(), experiments=[fast.experiment(exp.name)], workers=1)[exp.name]
     p = prepare({exp.name: pd.DataFrame(cols)}, cal, float(ident["af"]), str(ident["output"]))[exp.name]
     ic = str(ident["ic"])
-    out: dict[str, Any] = {
+    out: DoubledRate = {
         "experiment": exp.name,
         "sample_rate_hz": fast.sample_rate,
         "orders": [selected.na, selected.nb, selected.nc, selected.nk],

@@ -124,7 +124,7 @@ def _with_start_values(xml: str, params: dict[str, int | float], description: st
     for name, value in params.items():
         var = r'(<ScalarVariable name="' + re.escape(name) + r'"(?:(?!</ScalarVariable>).)*?\bstart=")'
         pat = re.compile(var + r'[^"]*(")', re.DOTALL)
-        xml, n = pat.subn(lambda m, v=value: m.group(1) + _fmt(v) + m.group(2), xml)
+        xml, n = pat.subn(r"\g<1>" + _fmt(value) + r"\g<2>", xml)  # a number: no backslash, no group reference
         if n != 1:
             raise RuntimeError(f"fmus/armax/modelDescription.xml: no single start value for {name!r}")
     text = escape(description, {'"': "&quot;"})
@@ -178,11 +178,30 @@ def export_model(
     u_offset: float = 0.0,
     y0: float = 0.0,
 ) -> Path:
-    """Write the FMU of one model (a ``models/<name>.json`` record or an ArmaxModel) to ``path``, atomically.
+    """Write the FMU of one identified model, atomically (rewritten only when its bytes change).
 
-    ``af`` defaults to the record's ``preprocessing.af`` (required for a bare ArmaxModel); ``u_offset`` [V] is
-    subtracted from the input ``u``; ``y0`` [deg] is the initial angle. The file is rewritten only when its
-    bytes change. Raises ValueError for a model the FMU cannot run (unstable, nk < 1, orders > NMAX).
+    Parameters
+    ----------
+    record : dict or ArmaxModel
+        A ``models/<name>.json`` record, or a bare model.
+    path : Path
+        The ``.fmu`` to write.
+    af : float, optional
+        The preprocessing filter's pole; default the record's ``preprocessing.af`` (required for a bare model).
+    u_offset : float
+        Subtracted from the input ``u`` [V].
+    y0 : float
+        The initial angle [deg].
+
+    Returns
+    -------
+    Path
+        ``path``.
+
+    Raises
+    ------
+    ValueError
+        A model the FMU cannot run (unstable, nk < 1, orders above its maximum).
     """
     path = Path(path)
     data = model_fmu_bytes(record, af=af, u_offset=u_offset, y0=y0)
@@ -217,7 +236,10 @@ class ModelFMU:
         self.inst: Instance = load(Path(fmu), "armax")
         self._vr_in = (ctypes.c_uint * 1)(self.inst.vr("u"))
         self._vr_out = (ctypes.c_uint * 2)(self.inst.vr("y_f"), self.inst.vr("y"))
-        self.Ts = float(self.inst.variables["Ts"].start)
+        Ts = self.inst.variables["Ts"].start
+        if Ts is None:
+            raise RuntimeError(f"{fmu}: the model's Ts has no start value")
+        self.Ts = float(Ts)
 
     def __enter__(self) -> ModelFMU:
         return self
@@ -233,7 +255,9 @@ class ModelFMU:
         self.inst.reset()
         return self.inst.get(list(self.inst.description.parameters()))
 
-    def run(self, u: np.ndarray, Ts: float | None = None, parameters: dict[str, Any] | None = None):
+    def run(
+        self, u: np.ndarray, Ts: float | None = None, parameters: dict[str, Any] | None = None
+    ) -> dict[str, np.ndarray]:
         """Outputs ``{"y_f", "y"}`` at t_k = k Ts, k = 0..len(u)-1, for the input ``u`` [V] sampled at ``Ts``
         [s] (default: the FMU's own Ts; a whole multiple of it runs several model samples per step, input
         held). u[k] is applied over [t_k, t_{k+1}). ``parameters`` overrides start values by name."""

@@ -22,6 +22,7 @@ import pandas as pd
 
 from ..executor import Executor
 from ..rundir import atomic_write_text, record_inputs, write_json
+from ..spec import IdentifySettings
 from . import armax
 from .calibration import Calibration, alpha_deg, theta_deg, tip_deg
 from .preprocess import preprocess
@@ -55,7 +56,27 @@ def output_angle(df: pd.DataFrame, cal: Calibration, output: str = "y") -> np.nd
 def prepare(
     datasets: dict[str, pd.DataFrame], cal: Calibration, af: float = 0.8, output: str = "y"
 ) -> dict[str, PreparedExperiment]:
-    """Convert volts to the output angle and apply lab 1's preprocessing to every dataset."""
+    """Convert a run's volts to the output angle and apply lab 1's preprocessing to every dataset.
+
+    The command is detrended; the angle [deg] is differentiated and low-passed by H(z) = (1 - af)(z - 1)/(z - af),
+    which removes the integrator.
+
+    Parameters
+    ----------
+    datasets : dict of str to pandas.DataFrame
+        The datasets (:func:`harness.load_run`).
+    cal : Calibration
+        Kp, Ke and the offsets that convert the DAQ's volts to degrees.
+    af : float
+        The filter's pole.
+    output : {"y", "theta", "alpha"}
+        The identified angle: the tip (theta + alpha), the shaft, or the deflection.
+
+    Returns
+    -------
+    dict of str to PreparedExperiment
+        Per dataset: ``u_d`` [V], ``y_f`` [deg/sample], the angle itself, the raw command and ``Ts``.
+    """
     out = {}
     for name, df in datasets.items():
         y = output_angle(df, cal, output)
@@ -72,15 +93,15 @@ def causal(na: int, nb: int, nk: int) -> bool:
     return nb + nk <= na
 
 
-def _orders(spec_identify: dict[str, Any]) -> list[tuple[int, int, int]]:
-    def rng(key: str) -> range:
-        v = spec_identify[key]
+def _orders(spec_identify: IdentifySettings) -> list[tuple[int, int, int]]:
+    def rng(key: str, v: int | list[int]) -> range:
         lo, hi = (v, v) if isinstance(v, int) else (int(v[0]), int(v[1]))
         if lo < 0 or hi < lo:
             raise ValueError(f"identify.{key} must be an integer or [lo, hi] with 0 <= lo <= hi, got {v!r}")
         return range(lo, hi + 1)
 
-    return [(na, nb, nc) for na in rng("na") for nb in rng("nb") for nc in rng("nc")]
+    s = spec_identify
+    return [(na, nb, nc) for na in rng("na", s["na"]) for nb in rng("nb", s["nb"]) for nc in rng("nc", s["nc"])]
 
 
 Orders = list[tuple[int, int, int]]
@@ -161,16 +182,33 @@ def _select(grid: pd.DataFrame, rows: pd.Index, tolerance: float) -> tuple[int, 
 
 def run_grid(
     prepared: dict[str, PreparedExperiment],
-    spec_identify: dict[str, Any],
+    spec_identify: IdentifySettings,
     workers: int | None = None,
     progress: Callable[[str], None] | None = None,
     scheduler: str | None = None,
 ) -> GridResult:
     """Fit the order grid on every dataset, keep causal models above the threshold, cross-validate, select.
 
-    Each dataset's grid, cut into :func:`slices_per_dataset` slices of the orders, is tasks of a
-    :class:`harness.executor.Executor` (``workers`` None: default cluster or the enclosing session's, 1: serial;
-    ``scheduler``: a Dask scheduler address); the rows come back in the grid's order however it was cut."""
+    Each dataset's grid, cut into slices of the orders, is tasks of a :class:`harness.Executor`; the rows come
+    back in the grid's order however it was cut.
+
+    Parameters
+    ----------
+    prepared : dict of str to PreparedExperiment
+        The identification datasets (:func:`prepare`).
+    spec_identify : IdentifySettings
+        The spec's ``[identify]`` table: order ranges, nk, threshold, tolerance, initial state.
+    workers, scheduler : optional
+        Where to run (:class:`harness.Executor`).
+    progress : callable, optional
+        Called with one line of text per finished task.
+
+    Returns
+    -------
+    GridResult
+        Every order on every dataset (``grid``), the models, each dataset's best, the selected one and the rule
+        that selected it.
+    """
     orders = _orders(spec_identify)
     nk, ic = int(spec_identify["nk"]), str(spec_identify["ic"])
     threshold, tol = float(spec_identify["fit_threshold"]), float(spec_identify["tolerance"])
@@ -215,7 +253,9 @@ def run_grid(
     return GridResult(grid, models, best, selected, rule, names)
 
 
-def model_record(res: GridResult, i: int, name: str, spec_identify: dict[str, Any], cal: Calibration) -> dict[str, Any]:
+def model_record(
+    res: GridResult, i: int, name: str, spec_identify: IdentifySettings, cal: Calibration
+) -> dict[str, Any]:
     """The JSON written to ``models/<name>.json``."""
     row = res.grid.loc[i]
     m = res.models[i]
@@ -240,7 +280,7 @@ def model_record(res: GridResult, i: int, name: str, spec_identify: dict[str, An
     }
 
 
-def write_grid(res: GridResult, run: Path, spec_identify: dict[str, Any], cal: Calibration) -> dict[str, Path]:
+def write_grid(res: GridResult, run: Path, spec_identify: IdentifySettings, cal: Calibration) -> dict[str, Path]:
     """Write ``grid.csv`` and ``models/<dataset>.json`` + ``models/selected.json``; returns model paths by name."""
 
     run = Path(run)

@@ -19,6 +19,7 @@ import math
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.signal import detrend as _scipy_detrend
 from scipy.signal import lfilter, lfilter_zi
 
@@ -69,7 +70,18 @@ def time_axis(t: Any) -> np.ndarray:
 
 
 def filter_coefficients(af: float = 0.8) -> tuple[np.ndarray, np.ndarray]:
-    """(b, a) of H in powers of z^-1: b = (1 - af) [1, -1], a = [1, -af]."""
+    """The preprocessing filter H(z) = (1 - af)(z - 1)/(z - af) as polynomials in z^-1.
+
+    Parameters
+    ----------
+    af : float
+        The filter's pole, in [0, 1).
+
+    Returns
+    -------
+    b, a : numpy.ndarray
+        ``b = (1 - af) [1, -1]``, ``a = [1, -af]``.
+    """
     af = _check_af(af)
     return np.array([1.0 - af, -(1.0 - af)]), np.array([1.0, -af])
 
@@ -98,8 +110,25 @@ def _check_Ts(Ts: float) -> float:
     return Ts
 
 
-def filter_response(af: float, f_hz: np.ndarray, Ts: float) -> tuple[np.ndarray, np.ndarray]:
-    """Magnitude (per sample, dimensionless) and phase [rad] of H at frequencies ``f_hz`` [Hz], Ts [s]."""
+def filter_response(af: float, f_hz: ArrayLike, Ts: float) -> tuple[np.ndarray, np.ndarray]:
+    """Frequency response of the preprocessing filter H(z).
+
+    Parameters
+    ----------
+    af : float
+        The filter's pole.
+    f_hz : array_like
+        Frequencies [Hz].
+    Ts : float
+        Sample period [s].
+
+    Returns
+    -------
+    magnitude : numpy.ndarray
+        The magnitude of H per sample (dimensionless).
+    phase : numpy.ndarray
+        The phase of H [rad].
+    """
     b, a = filter_coefficients(af)
     z = np.exp(1j * 2.0 * math.pi * np.asarray(f_hz, dtype=np.float64) * _check_Ts(Ts))
     h = np.polyval(b, z) / np.polyval(a, z)

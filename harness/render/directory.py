@@ -40,9 +40,28 @@ def what_wrote(path: Path) -> str:
 def report_directory(
     path: Path, rrd: Path | None = None, spawn: bool = False, connect: str | None = None
 ) -> tuple[str, Path, Path]:
-    """Write the report of output directory ``path`` (:func:`what_wrote`): report.md, figures/ and its recording
-    (``rrd``, default the directory's own: run.rrd, sweep.rrd or blindtest.rrd), streamed live to a spawned viewer
-    or to ``connect`` for a run or a diagnosis. Returns (kind, report.md, recording)."""
+    """Write the report of whatever a command wrote: report.md, figures/ and its recording.
+
+    Parameters
+    ----------
+    path : Path
+        A run directory, or the ``--out`` of ``diagnose``, ``sweep`` or ``blindtest``.
+    rrd : Path, optional
+        The recording to write; default the directory's own (run.rrd, sweep.rrd or blindtest.rrd).
+    spawn : bool
+        Also stream a run or a diagnosis to a newly spawned viewer.
+    connect : str, optional
+        Also stream it to a running viewer at this URL.
+
+    Returns
+    -------
+    kind : str
+        What wrote the directory (:func:`what_wrote`).
+    report : Path
+        Its report.md.
+    recording : Path
+        Its recording.
+    """
     kind = what_wrote(path)
     if kind in ("sweep", "blindtest"):
         if spawn or connect:

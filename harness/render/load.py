@@ -152,8 +152,8 @@ def load_results(run: Path) -> RunResults:
         output = str(pre.get("output", "y"))
         res.prepared = prepare({n: res.records[n] for n in names}, res.calibration, res.af, output)
     if sel is not None and sel[0].stable:
-        for name, p in res.prepared.items():
-            res.simulated[name] = armax.simulate(sel[0], p.u_d, p.y_f, res.ic)
+        for name, prep in res.prepared.items():
+            res.simulated[name] = armax.simulate(sel[0], prep.u_d, prep.y_f, res.ic)
     if paths.grid.exists() and "grid.csv" not in res.stale:
         res.grid = pd.read_csv(paths.grid)
         missing = [c for c in GRID_COLUMNS if c not in res.grid.columns]

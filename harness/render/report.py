@@ -85,7 +85,8 @@ def spec_overrides(res: RunResults) -> list[str]:
     for tab, ran in sorted(m.spec.items()):
         if not isinstance(ran, dict):
             continue
-        given = base.get(tab) if isinstance(base.get(tab), dict) else {}
+        sheet = base.get(tab)
+        given = sheet if isinstance(sheet, dict) else {}
         out += [f"{tab}.{k}={v}" for k, v in sorted(ran.items()) if not isinstance(v, dict) and given.get(k) != v]
     return out
 
@@ -472,7 +473,7 @@ def _section_resid(res: RunResults, figdir: Path) -> list[str]:
     if not tests:
         return []
     rec = res.selected[1] if res.selected else {}
-    own = rec.get("dataset") if rec.get("dataset") in tests else next(iter(tests))
+    own = str(rec["dataset"]) if rec.get("dataset") in tests else next(iter(tests))
     rows = [
         [
             name,
@@ -600,19 +601,26 @@ def draw(jobs: list[figures.FigureJob], paths: list[Path]) -> Callable[[], None]
 
 # ----------------------------------------------------------------------------------------------- entry point
 def write_report(run: Path, results: RunResults | None = None) -> Path:
-    """Write ``<run>/report.md`` and ``<run>/figures/*.png`` from the run directory alone; returns report.md.
-    ``results``: the run already loaded (:func:`harness.render.load.load_results`), shared with the viewer.
+    """Write ``report.md`` and its figures for a run directory, from the directory alone.
 
     Any run directory (a campaign, an import, identified or not, diagnosed or not, or the diagnosis alone that
     ``flexjoint diagnose --out`` wrote): each section is written from what the directory holds and skipped (or one
-    line) when it has nothing for it. Sections: run header (what it holds, the spec's overrides, the imported
-    records' formats and units), the data of every experiment, calibration vs lab 1, preprocessing filter (af =
-    0.6, 0.8, 0.9), grid summary and selection (best and selected per dataset, parameter deviations, FPE and AIC),
-    cross-fit table (averages computed), selected model with integrator (Bode with the measured response,
-    pole-zero, square wave), time responses (with zoom and residual), residual tests, doubled-rate check and the
-    diagnosis (verdict and what it means, recalibrated parameters, effects with their importance, gap waterfall,
-    folds, where, the replays against the record). Every file is written atomically (temp file + rename); a
-    figure of an earlier report that this one does not link is removed.
+    line) when it has nothing for it. Sections: what the run holds, the data of every experiment, calibration,
+    preprocessing filter, grid and selection, cross-fit, the selected model, time responses, residual tests, the
+    doubled-rate check, and the diagnosis with its replays against the record. Every file is written atomically;
+    a figure of an earlier report that this one does not link is removed.
+
+    Parameters
+    ----------
+    run : Path
+        The directory.
+    results : RunResults, optional
+        The run already loaded (:func:`harness.render.load.load_results`), shared with the viewer.
+
+    Returns
+    -------
+    Path
+        ``<run>/report.md``.
     """
     res = results if results is not None else load_results(run)
     figdir = res.paths.figures

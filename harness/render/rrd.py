@@ -55,10 +55,11 @@ def _enc_varint(value: int) -> bytes:
 
 def _fields(buf: bytes) -> list[Field]:
     """A protobuf message as (field number, wire type, value) in order."""
-    i, out = 0, []
+    i, out = 0, list[Field]()
     while i < len(buf):
         key, i = _varint(buf, i)
         number, wire = key >> 3, key & 7
+        value: int | bytes
         if wire == 0:
             value, i = _varint(buf, i)
         elif wire in (1, 5):
@@ -79,10 +80,10 @@ def _encode(fields: list[Field]) -> bytes:
         out += _enc_varint(number << 3 | wire)
         if wire == 0:
             out += _enc_varint(int(value))
-        elif wire == 2:
-            out += _enc_varint(len(value)) + bytes(value)  # type: ignore[arg-type]
+        elif isinstance(value, bytes):
+            out += (_enc_varint(len(value)) if wire == 2 else b"") + value
         else:
-            out += value  # type: ignore[operator]
+            raise TypeError(f"protobuf field {number}: wire type {wire} needs bytes, got {type(value).__name__}")
     return bytes(out)
 
 
@@ -110,7 +111,7 @@ def _messages(data: bytes) -> list[tuple[int, bytes]]:
 
 def _chunks(fields: list[Field]) -> list[pa.RecordBatch]:
     d = {number: value for number, _, value in fields}
-    payload = bytes(d[5])  # type: ignore[arg-type]
+    payload = bytes(d[5])
     if d.get(2) == LZ4:
         payload = pa.decompress(payload, decompressed_size=int(d[3]), codec="lz4_raw", asbytes=True)
     return list(pa.ipc.open_stream(pa.py_buffer(payload)))
@@ -148,7 +149,7 @@ def make_stable(path: Path) -> None:
     # the stores one after the other (the SDK interleaves them as its threads flush), each store's info first, its
     # chunks in the order of their first rows, the blueprint's activation last
     order = sorted(range(len(messages)), key=lambda i: (*_place(*messages[i]), first_row(i)))
-    chunk_rank = {}
+    chunk_rank: dict[bytes, int] = {}
     for i in order:
         for rb in batches.get(i, []):
             chunk_rank.setdefault((rb.schema.metadata or {}).get(CHUNK_ID, b""), len(chunk_rank) + 1)
@@ -182,10 +183,10 @@ def _place(kind: int, fields: list[Field]) -> tuple[int, int]:
     """(store kind: 1 recording, 2 blueprint; 0 info, 1 chunk, 2 activation) of a message."""
     d = {n: v for n, _, v in fields}
     if kind == STORE_INFO:
-        info = {n: v for n, _, v in _fields(bytes(d.get(2, b"")))}  # type: ignore[arg-type]
-        store = bytes(info.get(2, b""))  # type: ignore[arg-type]
+        info = {n: v for n, _, v in _fields(bytes(d.get(2, b"")))}
+        store = bytes(info.get(2, b""))
     else:
-        store = bytes(d.get(1, b""))  # type: ignore[arg-type]
+        store = bytes(d.get(1, b""))
     store_kind = next((int(v) for n, w, v in _fields(store) if n == 1 and w == 0), 0)
     return store_kind, {STORE_INFO: 0, ARROW: 1}.get(kind, 2)
 

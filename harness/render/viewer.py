@@ -43,6 +43,7 @@ from typing import Any
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
+from numpy.typing import ArrayLike
 
 from ..diagnosis.replays import STAGES
 from ..ident import lti
@@ -111,7 +112,7 @@ def _markdown(rec: rr.RecordingStream, path: str, lines: list[str]) -> None:
 
 
 # ----------------------------------------------------------------------------------------------- 2D plots
-def _xy(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+def _xy(x: ArrayLike, y: ArrayLike) -> np.ndarray:
     """Plot coordinates -> Rerun 2D positions (y down): (x, -y)."""
     return np.column_stack([np.asarray(x, dtype=float), -np.asarray(y, dtype=float)])
 
@@ -665,11 +666,28 @@ def log_run(
     connect: str | None = None,
     results: RunResults | None = None,
 ) -> Path | None:
-    """Log a run directory to Rerun: always to ``rrd`` (default ``<run>/run.rrd``, written atomically), and
-    live to a spawned viewer (``spawn=True``) or a running one (``connect`` = gRPC URL such as
-    ``rerun+http://127.0.0.1:9876/proxy``). One recording, application id ``flexjoint``, recording id from
-    the manifest's spec hash; the blueprint travels with it. ``results``: the run already loaded
-    (:func:`harness.render.load.load_results`), shared with the report. Returns the path of the ``.rrd`` file.
+    """Log a run directory to Rerun: to a recording file, and live to a viewer when asked.
+
+    One recording, application id ``flexjoint``, recording id from the manifest's spec hash; the blueprint that
+    lays it out travels with it.
+
+    Parameters
+    ----------
+    run : Path
+        The run directory.
+    rrd : Path, optional
+        The recording to write (atomically); default ``<run>/run.rrd``.
+    spawn : bool
+        Also stream to a newly spawned viewer.
+    connect : str, optional
+        Also stream to a running viewer (``rerun+http://127.0.0.1:9876/proxy``).
+    results : RunResults, optional
+        The run already loaded, shared with the report.
+
+    Returns
+    -------
+    Path or None
+        The ``.rrd`` file written.
     """
     if connect is not None:
         _check_url(connect)

@@ -128,11 +128,29 @@ def simulate_spec(
     progress: Progress | None = None,
     scheduler: str | None = None,
 ) -> dict[str, dict[str, np.ndarray]]:
-    """Simulate experiments (default: all of the spec) and return ``{name: columns}`` in spec order.
+    """Simulate a spec's experiments and return their columns, without writing anything.
 
-    Experiments are tasks of a :class:`harness.executor.Executor` (``workers`` None: the default cluster or the
-    enclosing session's, 1: serial in this process; ``scheduler``: a Dask scheduler address); the FMUs travel as
-    bytes and each worker loads the rig once. Results do not depend on where they ran.
+    Experiments are tasks of a :class:`harness.Executor`; the FMUs travel as bytes and each worker loads the rig
+    once. Results do not depend on where they ran.
+
+    Parameters
+    ----------
+    spec : Spec
+        The campaign.
+    fmus : mapping of str to Path or FmuBytes
+        The built plant, DAQ (and controller) FMUs (:func:`harness.build_all`).
+    experiments : list of Experiment, optional
+        Which to run; default all of the spec's, calibration experiments first.
+    workers, scheduler : optional
+        Where to run (:class:`harness.Executor`): None the default cluster, 1 serial, or a scheduler's address.
+    progress : callable, optional
+        Called with one line of text as each experiment is done.
+
+    Returns
+    -------
+    dict of str to dict of str to numpy.ndarray
+        ``{experiment: {column: values}}`` in spec order: ``t`` [s], ``u`` [V], ``theta_v``, ``alpha_v`` [V] as
+        the DAQ measured them, the true ``theta``, ``alpha`` [deg], and ``ref`` [deg] for a closed loop.
     """
     exps = spec.all_experiments() if experiments is None else experiments
     shipped = {k: v if isinstance(v, FmuBytes) else fmu_bytes(v) for k, v in fmus.items()}
@@ -165,9 +183,33 @@ def run_campaign(
     scheduler: str | None = None,
     force: bool = False,
 ) -> Manifest:
-    """Run a spec's campaign into run directory ``out`` (simulated by :func:`simulate_spec`, written here, by
-    the client only, aside and moved into place: :func:`harness.rundir.new_run`; over an existing run only with
-    ``force``); returns the manifest."""
+    """Run a spec's experiments on the rig twin into a new run directory.
+
+    The experiments are simulated by :func:`simulate_spec`; the run is written by this process only, aside, and
+    moved into place when complete (:func:`harness.rundir.new_run`).
+
+    Parameters
+    ----------
+    spec : Spec
+        The campaign (:func:`harness.load_spec`).
+    out : Path
+        The run directory to write: ``manifest.json`` and ``data/<experiment>.parquet``.
+    fmus : dict of str to Path, optional
+        The built FMUs; default :func:`harness.build_all`.
+    workers : int, optional
+        Local worker processes (None: the default cluster or the enclosing session's; 1: serial, in-process).
+    progress : callable, optional
+        Called with one line of text as each experiment is done.
+    scheduler : str, optional
+        A Dask scheduler's address (``tcp://HOST:8786``) to run on instead.
+    force : bool
+        Replace a run already in ``out`` (every file of it removed).
+
+    Returns
+    -------
+    Manifest
+        The run's manifest, as written.
+    """
     with new_run(out, force) as work:
         return _campaign(spec, work, fmus, workers, progress, scheduler)
 

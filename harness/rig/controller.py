@@ -24,7 +24,7 @@ from a record.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -165,7 +165,9 @@ CUTOFFS = (5.0, 10.0, 15.0, 25.0, 50.0, 100.0)  # Hz: velocity-filter cutoffs tr
 MAX_REF_DELAY_S = 0.02  # s: reference delays tried when identifying a controller, up to this
 
 
-def _regressors(kind: str, ref: np.ndarray, theta: np.ndarray, alpha: np.ndarray, Ts: float, cutoff: float):
+def _regressors(
+    kind: str, ref: np.ndarray, theta: np.ndarray, alpha: np.ndarray, Ts: float, cutoff: float
+) -> np.ndarray:
     """The columns u is regressed on: state feedback (ref - theta, -alpha, -theta_dot, -alpha_dot); PID (e,
     integral of e, -theta_dot)."""
     th_dot = filtered_rate(theta, Ts, cutoff)
@@ -297,7 +299,7 @@ def identify_controller(
         if beyond.sum() >= max(3, 0.002 * u.size):
             lim = float(np.median(np.abs(u[beyond])))
     gains = [float(v) for v in k]
-    common = {"cutoff": c, "u_limit": lim, "ref_delay": dly, "source": "identified", "r2": r2}
+    found = Controller(cutoff=c, u_limit=lim, ref_delay=dly, source="identified", r2=r2)
     if kind == "state_feedback":
-        return Controller(K=gains, **common)
-    return Controller(kind="pid", kp=gains[0], ki=gains[1], kd=gains[2], **common)
+        return replace(found, K=gains)
+    return replace(found, kind="pid", kp=gains[0], ki=gains[1], kd=gains[2])

@@ -43,9 +43,9 @@ becomes the dataset's ``ref`` [deg] and makes the experiment closed loop. Its co
 multiple shooting. A given controller is checked against the logged command (its R^2 said, a warning below
 ``R2_MIN``) and kept as given; given for a record without a reference: refused. A reference of another length than
 the record or with NaN: refused, one line naming the file and the column. ``theta_sensor="encoder"`` (or theta in
-encoder counts) with ``counts_per_rev`` > 0: theta has no pot wrap or dead band (resampling does not treat its
-jumps as wraps) and its step is the count, 360 / counts_per_rev deg (``lattice_deg``), whatever unit it was
-written in.
+encoder counts, or ``counts_per_rev`` given for a theta in deg or rad) with ``counts_per_rev`` > 0: theta has no pot
+wrap or dead band (resampling does not treat its jumps as wraps) and its step is the count, 360 / counts_per_rev deg
+(``lattice_deg``), whatever unit it was written in.
 
 The dataset written (``data/<name>.parquet``) is the same whatever the format: ``t`` [s], ``u`` [V],
 ``theta_v``, ``alpha_v`` [V] as the lab's DAQ reads them (angles converted with the calibration: theta_v =
@@ -58,7 +58,7 @@ from __future__ import annotations
 import hashlib
 import math
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -71,6 +71,7 @@ import scipy.io
 
 from ..diagnosis.experiments import MIN_FOLD_SAMPLES, MIN_FOLD_SECONDS
 from ..diagnosis.noise import decimal_resolution, value_step
+from ..fmu.modeldesc import source_model
 from ..ident.calibration import LAB1_CALIBRATION, Calibration, alpha_deg, theta_deg
 from ..rundir import (
     DataError,
@@ -377,7 +378,7 @@ def _read_csv(path: Path) -> RawTable:
     if header and len(rows) > 1 and not any(_is_num(c, dec) for c in rows[1]):
         cells = rows[1]
         if all(unit_name(c) for c in cells if c):
-            units.update({n: unit_name(c) for n, c in zip(names, cells, strict=True) if c})
+            units.update({n: u for n, c in zip(names, cells, strict=True) if c and (u := unit_name(c))})
             notes.append(f"line {lines[1][0]} under the header read as units: {', '.join(cells)}")
             start = 2
         else:
@@ -452,9 +453,26 @@ def _leaf_names(items: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     return {(k.rsplit(".", 1)[-1] if leaves.count(k.rsplit(".", 1)[-1]) == 1 else k): v for k, v in items.items()}
 
 
+def _first_line(exc: BaseException) -> str:
+    """An exception's first line of text (its type's name when it has none), for a one-line error."""
+    return str(exc).splitlines()[0] if str(exc).strip() else type(exc).__name__
+
+
 def _read_mat(path: Path) -> RawTable:
     items: dict[str, np.ndarray] = {}
     seen: list[str] = []
+    try:
+        form = _read_mat_items(path, items, seen)
+    except DataError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - scipy and h5py raise many types (IndexError, KeyError...) on a bad file
+        raise DataError(f"{path.name}: not a readable MATLAB .mat file ({_first_line(exc)})") from None
+    return _mat_columns(_leaf_names(items), path, form, seen)
+
+
+def _read_mat_items(path: Path, items: dict[str, np.ndarray], seen: list[str]) -> str:
+    """Fill ``items`` (numeric arrays by dotted name) and ``seen`` (every variable, for messages) from a .mat file;
+    returns its form."""
     if h5py.is_hdf5(path):
         form = "MATLAB v7.3 (HDF5)"
         with h5py.File(path, "r") as f:
@@ -479,23 +497,18 @@ def _read_mat(path: Path) -> RawTable:
             visit(f, "")
     else:
         form = "MATLAB v5"
-        try:
-            mat = scipy.io.loadmat(path, simplify_cells=True)
-        except (ValueError, NotImplementedError, TypeError, OSError) as exc:
-            first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-            raise DataError(f"{path.name}: not a readable MATLAB .mat file ({first})") from None
+        mat = scipy.io.loadmat(path, simplify_cells=True)
         for k, v in mat.items():
             if not k.startswith("__"):
                 _flatten(f"{k}.", v, items, seen)
-    return _mat_columns(_leaf_names(items), path, form, seen)
+    return form
 
 
 def _read_parquet(path: Path) -> RawTable:
     try:
         df = pq.read_table(path).to_pandas()
     except Exception as exc:  # noqa: BLE001 - pyarrow raises several types for a bad file
-        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise DataError(f"{path.name}: not a readable Parquet file ({first})") from None
+        raise DataError(f"{path.name}: not a readable Parquet file ({_first_line(exc)})") from None
     names = [str(c) for c in df.columns]
     values, bad = [], {}
     for name, col in zip(names, df.columns, strict=True):
@@ -622,6 +635,18 @@ def _bad_cells(table: RawTable, chans: dict[str, Channel]) -> None:
             )
 
 
+def _command_in_range(u: Channel, file: str) -> None:
+    """Refuse a command [V] that no DAQ of the twin can carry: beyond the range the DAQ FMU declares for its clamp
+    (``daq.out_limit``)."""
+    top = source_model("daq").variables["out_limit"].max
+    k = int(np.argmax(np.abs(u.values)))
+    if top is not None and abs(u.values[k]) > top:
+        raise DataError(
+            f"{file}: the command (column {u.column!r}) reaches {u.values[k]:.3g} V at row {k}, beyond the +-{top:g} V "
+            "a DAQ of the twin can carry (a command in mV, or a corrupt cell?)"
+        )
+
+
 def time_seconds(t: np.ndarray, unit: str | None, table: RawTable, column: str, note: Note) -> tuple[np.ndarray, str]:
     """(time [s], unit it was in) from a column in ``unit``; without one, by the sample-interval rule of the
     module docstring."""
@@ -744,7 +769,7 @@ def normalise(table: RawTable, opts: ImportOptions, cal: Calibration, note: Note
     if opts.controller is not None and "ref" not in chans:
         raise DataError(f"{table.file}: --controller given, but the record has no reference column: map it with "
                         f"--columns NAME=ref (a closed-loop record's reference of theta)")  # fmt: skip
-    sensor = _theta_sensor(chans["theta"], opts, table.file)
+    sensor = _theta_sensor(chans, opts, table.file)
     if "ref" in chans and chans["ref"].unit is None:
         chans["ref"].unit = chans["theta"].unit
         remark(f"reference {chans['ref'].column!r}: no unit given, taken as theta's ({chans['theta'].unit})")
@@ -759,6 +784,7 @@ def normalise(table: RawTable, opts: ImportOptions, cal: Calibration, note: Note
     if table.values[0].size < 16:
         raise DataError(f"{table.file}: only {table.values[0].size} rows; need at least 16 samples")
     _bad_cells(table, chans)
+    _command_in_range(chans["u"], table.file)
     t, chans["t"].unit = time_seconds(chans["t"].values, chans["t"].unit, table, chans["t"].column, remark)
     grid, worst, Ts = uniform_time(t, table, chans["t"].column)
     if Ts > 1.0 / MIN_RATE:
@@ -820,13 +846,13 @@ def normalise(table: RawTable, opts: ImportOptions, cal: Calibration, note: Note
         "units": {ch: c.unit for ch, c in chans.items()},
         "jitter_corrected_s": worst,
     }
+    lattice: dict[str, float] = {}  # the angle step [deg] per channel recorded on one
     for ch in ("theta", "alpha"):
         step = _step_deg(chans[ch], opts)
         if step:
-            entry.setdefault("lattice_deg", {})[ch] = step
+            lattice[ch] = step
     if sensor:  # an encoder's count is theta's step (its angle printed finer or not)
         step = 360.0 / sensor["counts_per_rev"]
-        lattice = entry.setdefault("lattice_deg", {})
         found = lattice.get("theta", 0.0)
         lattice["theta"] = found if found > step * (1 + 1e-6) else step  # the count, unless printed coarser
         off = _off_lattice(cols["theta"], step)
@@ -834,8 +860,8 @@ def normalise(table: RawTable, opts: ImportOptions, cal: Calibration, note: Note
         if off > 0.01 + 0.5 * printed / step:  # an angle printed to few decimals is that far off by its rounding
             remark(f"theta is not on the encoder's {step:.6g} deg steps (up to {off:.2g} of a step off: filtered or "
                    f"resampled?); its step is recorded as {step:.6g} deg all the same")  # fmt: skip
-    elif opts.counts_per_rev and "counts" not in (chans["theta"].unit, chans["alpha"].unit):
-        remark(f"--counts-per-rev {opts.counts_per_rev:g} not used: theta is a pot's (say --theta-sensor encoder)")
+    if lattice:
+        entry["lattice_deg"] = lattice
     entry.update(sensor)
     if "ref" in cols:
         entry["loop"] = "closed"
@@ -861,13 +887,20 @@ def _step_deg(c: Channel, opts: ImportOptions) -> float:
     return math.degrees(step) if c.unit == "rad" else step
 
 
-def _theta_sensor(theta: Channel, opts: ImportOptions, file: str) -> dict[str, Any]:
-    """The manifest's ``theta_sensor`` (and ``counts_per_rev``) of a record: an encoder when said or when theta is
-    in counts."""
-    sensor = opts.theta_sensor or ("encoder" if theta.unit == "counts" else "pot")
+def _theta_sensor(chans: dict[str, Channel], opts: ImportOptions, file: str) -> dict[str, Any]:
+    """The manifest's ``theta_sensor`` (and ``counts_per_rev``) of a record: an encoder when said, when theta is in
+    counts, or when ``counts_per_rev`` is given for a theta in deg or rad (and no other channel is in counts); a
+    ``counts_per_rev`` that can describe nothing (a pot's theta, no channel in counts) is refused."""
+    theta, counted = chans["theta"], any(c.unit == "counts" for c in chans.values())
+    implied = bool(opts.counts_per_rev) and theta.unit != "V" and not counted
+    sensor = opts.theta_sensor or ("encoder" if theta.unit == "counts" or implied else "pot")
     if sensor not in THETA_SENSORS:
         raise DataError(f"--theta-sensor {sensor!r}: use {' or '.join(THETA_SENSORS)}")
     if sensor == "pot":
+        if opts.counts_per_rev and not counted:
+            why = "theta is in volts, a pot's" if opts.theta_sensor is None else "--theta-sensor pot"
+            raise DataError(f"{file}: --counts-per-rev {opts.counts_per_rev:g} describes no channel ({why}, none in "
+                            "counts); an encoder theta is --theta-sensor encoder")  # fmt: skip
         return {}
     if not opts.counts_per_rev and theta.unit == "counts":
         raise DataError(f"{file}: theta column {theta.column!r} is in encoder counts: give --counts-per-rev "
@@ -966,7 +999,7 @@ def calibration_option(kp: float | None, ke: float | None, file: Path | None) ->
         return cal
     if (kp is None) != (ke is None):
         raise DataError(f"--kp and --ke go together (got only {'--kp' if kp is not None else '--ke'})")
-    if kp is None:
+    if kp is None or ke is None:
         return None
     why = {"method": "given at import (--kp/--ke)"}
     return Calibration(Kp=kp, Ke=ke, source={"Kp": why, "Ke": why})
@@ -981,18 +1014,43 @@ def _calibration(opts: ImportOptions) -> Calibration:
 
 
 def import_records(
-    paths: list[Path | str],
+    paths: Sequence[Path | str],
     out: Path,
     opts: ImportOptions | None = None,
     note: Note | None = None,
     force: bool = False,
 ) -> list[Path]:
-    """Import records into run directory ``out``: ``data/<name>.parquet``, ``calibration.json`` and a
-    ``manifest.json`` of kind "import". A record is a file, or ``[NAME=]FILE+FILE+...`` (:func:`record_files`);
-    its ``sources`` entry names its files and their sha256 joined by "+". Every file is read and checked before
-    anything is written, aside and moved into place (:func:`harness.rundir.new_run`; over an existing run only with
-    ``force``); returns the dataset paths. ``note`` receives one-line remarks (units taken, resampling,
-    the calibration assumed)."""
+    """Import real records into a new run directory, as they were recorded.
+
+    Every file is read and checked before anything is written; the run is written aside and moved into place
+    (:func:`harness.rundir.new_run`). The rules (formats, units, time, encoders, closed loops) are in the module
+    docstring of :mod:`harness.rig.records`.
+
+    Parameters
+    ----------
+    paths : sequence of str or Path
+        The records: a file each, or ``[NAME=]FILE+FILE+...`` for one record written as several files that share
+        its time base (:func:`record_files`).
+    out : Path
+        The run directory to write: ``data/<name>.parquet``, ``calibration.json``, a ``manifest.json`` of kind
+        "import" (each record's files and their sha256, units, sensors, controller).
+    opts : ImportOptions, optional
+        Column map, units, link length, encoder counts, calibration, controller (``flexjoint import``'s options).
+    note : callable, optional
+        Called with each one-line remark (units taken, resampling, the calibration assumed, a warning).
+    force : bool
+        Replace a run already in ``out``.
+
+    Returns
+    -------
+    list of Path
+        The datasets written.
+
+    Raises
+    ------
+    harness.DataError
+        One line naming the file, the column and the row of what cannot be read; nothing is written.
+    """
     opts = opts or ImportOptions()
     say = note or (lambda _m: None)
     if not paths:

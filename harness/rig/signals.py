@@ -356,11 +356,26 @@ def check_params(kind: str, Ts: float, params: dict[str, Any]) -> None:
 
 
 def generate(kind: str, n: int, Ts: float, params: dict[str, Any], seed: int = 0) -> np.ndarray:
-    """Build an excitation [V] of ``n`` samples at ``Ts`` s from a campaign spec entry.
+    """Build an excitation of ``n`` samples at ``Ts`` s from a campaign spec entry.
 
-    ``kind`` is one of :data:`SIGNAL_KINDS`; ``params`` holds the keyword names of the generator (for
-    "multisine", ``period`` is in seconds and must be a whole number of samples dividing n). ``seed`` drives
-    "prbs" and "multisine" and is ignored by the deterministic kinds.
+    Parameters
+    ----------
+    kind : str
+        One of :data:`SIGNAL_KINDS`: constant, prbs, square, step, ramp, chirp, multisine.
+    n : int
+        Number of samples; sample ``k`` is at ``t = k Ts``.
+    Ts : float
+        Sample period [s].
+    params : dict
+        The generator's keyword parameters (``{"B": 0.1, "amplitude": 1.0}`` for a PRBS); for "multisine",
+        ``period`` is in seconds and must be a whole number of samples dividing ``n``.
+    seed : int
+        Drives "prbs" and "multisine"; ignored by the deterministic kinds.
+
+    Returns
+    -------
+    numpy.ndarray
+        The signal, float64, in the unit of its amplitude (V for a command, deg for a closed loop's reference).
     """
     if kind not in _SPECS:
         raise ValueError(f"unknown signal kind {kind!r}; valid: {', '.join(SIGNAL_KINDS)}")
