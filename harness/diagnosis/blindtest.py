@@ -69,7 +69,7 @@ from ..rig.campaign import run_campaign
 from ..rundir import Manifest, RunDir, record_inputs, write_json
 from .diagnose import diagnose_run
 from .effects import EFFECTS
-from .reallike import make_unit, offsets_ok, plan_units
+from .reallike import NUISANCE, make_unit, offsets_ok, plan_units
 from .result import Diagnosis
 from .rigmodel import combos, to_plant
 from .simulation import fmu_value
@@ -84,14 +84,6 @@ KNOWN_FAMILIES = (*FAMILIES, *EXTRA_FAMILIES)
 LOOP_FAMILIES = ("closed", "wrong_sheet")  # run under state feedback on specs/blind_closed.toml
 CLOSED_RATES = (500.0, 1000.0)  # Hz: the closed-loop families' cases alternate between these sample rates
 
-# linear parameter -> (low factor, high factor, log-uniform) of the textbook value: a real rig's spread
-NUISANCE: dict[str, tuple[float, float, bool]] = {
-    "plant.Ks": (0.75, 1.25, False),
-    "plant.Beq": (0.5, 2.0, True),
-    "plant.zeta_link": (0.5, 3.0, True),
-    "plant.Jeq": (0.85, 1.15, False),
-    "plant.kt": (0.9, 1.1, False),  # the motor gain kt eta_g eta_m
-}
 OUT_OF_LIBRARY = ("gauge_drift", "pot_nonlinearity")
 MAG_TOL = 0.25  # fitted magnitude within 25 %
 KS_TOL, BEQ_TOL = 0.10, 0.25  # recalibrated Ks and Beq within 10 % and 25 % of the rig's

@@ -33,8 +33,16 @@ from ..rundir import Manifest
 from .effects import EFFECTS
 from .simulation import fmu_value, offset_key
 
-__all__ = ["OFFSET_TOL_DEG", "OFFSET_TOL_V", "RECORDS", "make_unit", "offsets_ok", "plan_units"]
+__all__ = ["NUISANCE", "OFFSET_TOL_DEG", "OFFSET_TOL_V", "RECORDS", "make_unit", "offsets_ok", "plan_units"]
 
+# linear parameter -> (low factor, high factor, log-uniform) of the textbook value: a real rig's spread
+NUISANCE: dict[str, tuple[float, float, bool]] = {
+    "plant.Ks": (0.75, 1.25, False),
+    "plant.Beq": (0.5, 2.0, True),
+    "plant.zeta_link": (0.5, 3.0, True),
+    "plant.Jeq": (0.85, 1.15, False),
+    "plant.kt": (0.9, 1.1, False),  # the motor gain kt eta_g eta_m
+}
 SHEET = "cu_flexible_arm"
 RECORDS = (  # name, controller, reference amplitude [deg]
     ("p_only", {"kind": "pid", "kp": 6.0, "cutoff": 25.0}, 5.7),
@@ -59,8 +67,6 @@ def plan_units(n: int, seed: int) -> list[dict[str, Any]]:
     drawn as the other families draw them), the rest none, shuffled; each with its nuisance (:data:`NUISANCE` factors
     on the sheet's values, the link's damping, the command offset), each record's gauge offset and ring, and its
     simulator (our twin, or the independent one for every other unit)."""
-    from .blindtest import NUISANCE  # the family's linear spread is the other families'
-
     rng = np.random.Generator(np.random.PCG64([seed, 2]))  # a stream of its own: the other families' draws unchanged
     lib = list(EFFECTS)
     first = int(rng.integers(len(lib)))
