@@ -203,7 +203,7 @@ def _plan(n: int, seed: int, families: tuple[str, ...]) -> list[dict[str, Any]]:
     n_out = max(1, round(0.16 * n)) if n >= 4 else 0
     n_single = n - n_none - n_two - n_out
     lib = list(EFFECTS)
-    kinds = [("single", lib[i % len(lib)]) for i in range(n_single)]
+    kinds: list[tuple[str, str | None]] = [("single", lib[i % len(lib)]) for i in range(n_single)]
     kinds += [("none", None)] * n_none + [("two", None)] * n_two
     first = int(rng.integers(len(OUT_OF_LIBRARY)))
     kinds += [("out", OUT_OF_LIBRARY[(first + i) % len(OUT_OF_LIBRARY)]) for i in range(n_out)]
@@ -214,7 +214,7 @@ def _plan(n: int, seed: int, families: tuple[str, ...]) -> list[dict[str, Any]]:
         family = families[i % len(families)]
         truth: dict[str, Any] = {}
         effects: list[str] = []
-        if kind == "single":
+        if kind == "single" and what is not None:
             effects = [what]
         elif kind == "two":
             a, b = rng.choice(len(lib), size=2, replace=False)
@@ -403,8 +403,9 @@ def sheet_scores(truth: dict[str, float], diag: Diagnosis) -> dict[str, Any]:
     for row in SHEET_ROWS:
         p = params.get(row)
         status[row] = "not fitted" if p is None else "kept" if p.kept else "fitted"
-        errors[row] = None if p is None else _rel_err(truth[row], p.fitted)
-        ok[row] = bool(errors[row] is not None and errors[row] <= SHEET_TOL + 1e-12)
+        err = None if p is None else _rel_err(truth[row], p.fitted)
+        errors[row] = err
+        ok[row] = bool(err is not None and err <= SHEET_TOL + 1e-12)
     plant = {k.split(".", 1)[1]: p.fitted for k, p in params.items() if k.startswith("plant.")}
     implied = combos({**_sheet_plant(), **plant})
     implied_err = {k: _rel_err(truth[k], implied[k]) for k in ("rig.drive_gain", "rig.drive_tau")}

@@ -28,7 +28,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from .. import spec as specmod
-from ..executor import fmu_bytes
+from ..executor import FmuBytes, fmu_bytes
 from ..fmu.build import build_all
 from ..ident.calibration import load_calibration
 from ..rundir import Manifest, RunDir, record_inputs, write_json
@@ -124,7 +124,7 @@ def _caveats(
         fits = "; ".join(
             f"{recal.LINEAR[n].label} {a:.4g} [{lo_a:.4g}-{hi_a:.4g}] and {b:.4g} [{lo_b:.4g}-{hi_b:.4g}]"
             for n in apart
-            for (a, lo_a, hi_a), (b, lo_b, hi_b) in [parameters[n].folds]
+            for (a, lo_a, hi_a), (b, lo_b, hi_b) in [parameters[n].folds or []]
         )
         which = f" ({', '.join(folds.A)} | {', '.join(folds.B)})" if folds else ""
         out.append(
@@ -203,7 +203,7 @@ def diagnose_run(
             x.daq = {**x.daq, "gauge_delay": timing.samples}
     experiments, folds = fold_experiments(records)
     fmus = fmus or build_all()
-    shipped = {k: fmu_bytes(fmus[k]) for k in ("flexjoint", "daq", "controller") if k in fmus}
+    shipped: dict[str, FmuBytes] = {k: fmu_bytes(fmus[k]) for k in ("flexjoint", "daq", "controller") if k in fmus}
     noise, _ = noise_floor(records, adc_range, cal, experiments)
     sigma = {"theta": noise.theta_deg, "alpha": noise.alpha_deg}  # [deg], an ADC's quantisation included
     for x in experiments.values():  # a channel within twice its noise's variance carries nothing a model can fit
@@ -265,7 +265,7 @@ def diagnose_run(
     diagnosis.write(RunDir(dest).diagnosis)
     write_replays(RunDir(dest).diagnosis_replays, experiments, dict(zip(stages, traces, strict=True)))
     record_inputs(dest, "diagnosis.json", source=real)
-    timing = time.perf_counter() - t0
-    write_json(RunDir(dest).diagnosis_timing, {"timing_s": timing, "workers": workers, "scheduler": scheduler})
+    wall = time.perf_counter() - t0
+    write_json(RunDir(dest).diagnosis_timing, {"timing_s": wall, "workers": workers, "scheduler": scheduler})
     say(f"verdict {diagnosis.verdict}")
     return diagnosis

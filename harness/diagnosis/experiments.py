@@ -369,8 +369,9 @@ def load_experiments(
         u = df["u"].to_numpy(float)
         th_v, al_v = df["theta_v"].to_numpy(float), df["alpha_v"].to_numpy(float)
         th, al = theta_deg(th_v, cal), alpha_deg(al_v, cal)
-        table = next((d for d in raw_spec.get("experiment", []) if d.get("name") == e.name), None) if raw_spec else None
-        multisine = table is not None and table.get("signal") == "multisine"
+        table: dict[str, Any] = next(
+            (d for d in raw_spec.get("experiment", []) if d.get("name") == e.name), {}) if raw_spec else {}  # fmt: skip
+        multisine = table.get("signal") == "multisine"
         hint = int(round(float(table["period"]) / Ts)) if multisine and "period" in table else 0
         se = sim_exps.get(e.name)
         x = RigExperiment(
@@ -449,7 +450,8 @@ def split_folds(experiments: dict[str, RigExperiment]) -> tuple[list[str], list[
     kinds: dict[str, list[str]] = {}
     for n in names:
         kinds.setdefault(experiments[n].kind, []).append(n)
-    a, b = [], []
+    a: list[str] = []
+    b: list[str] = []
     for g, kind in enumerate(sorted(kinds)):
         grp = sorted(kinds[kind], key=lambda n: (round(experiments[n].peak_command_v, 6), n))
         for i, n in enumerate(grp):
@@ -457,7 +459,7 @@ def split_folds(experiments: dict[str, RigExperiment]) -> tuple[list[str], list[
     if not b:  # every kind a singleton of the same parity
         b.append(a.pop())
     order = {n: i for i, n in enumerate(names)}
-    return sorted(a, key=order.get), sorted(b, key=order.get)
+    return sorted(a, key=lambda n: order[n]), sorted(b, key=lambda n: order[n])
 
 
 def _cubic_start(t: np.ndarray, y: np.ndarray, order: int) -> tuple[float, float]:
@@ -666,7 +668,7 @@ def _parts(x: RigExperiment, cuts: list[int]) -> dict[str, RigExperiment]:
     """A lone record cut at ``cuts`` into parts (:func:`_part`); a periodic command keeps its multisine lines
     when every part holds >= 3 whole periods."""
     edges = [0, *cuts, x.u.size]
-    bla = x.lines is not None and x.period > 0 and min(np.diff(edges)) // x.period >= 3
+    bla = bool(x.lines is not None and x.period > 0 and min(np.diff(edges)) // x.period >= 3)
     state = measured_state(x)
     return {p.name: p for p in (_part(x, a, b, bla, state) for a, b in zip(edges[:-1], edges[1:], strict=True))}
 

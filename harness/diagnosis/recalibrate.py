@@ -175,7 +175,7 @@ def fit(
         g = Fit({}, {}, float(np.sum(r**2)), 1, int(np.count_nonzero(r)))
     if g.cost > (1.0 + HOLD_TOLERANCE) * f.cost:
         return replace(f, nfev=f.nfev + g.nfev)  # the spec's value fits clearly worse: the free fit stands
-    values = {n: g.values.get(n, at_spec.get(n)) for n in bounds}
+    values = {n: g.values[n] if n in g.values else at_spec[n] for n in bounds}
     ci = {n: g.ci95.get(n, f.ci95[n]) for n in bounds}
     return Fit(values, ci, g.cost, f.nfev + g.nfev, g.n, tuple(loose), g.names, g.cov)
 
@@ -215,8 +215,9 @@ def _fit(
             last[:] = [(x.tobytes(), residuals(params(x)))]
         return last[0][1]
 
-    sel = np.array([bool(prior) and n in prior and bounds[n].log for n in names])
-    sd = np.array([prior[n] if s else 1.0 for n, s in zip(names, sel, strict=True)]) if prior else np.ones(len(names))
+    priors = dict(prior or {})
+    sel = np.array([n in priors and bounds[n].log for n in names])
+    sd = np.array([priors[n] if s else 1.0 for n, s in zip(names, sel, strict=True)])
 
     def variance(x: np.ndarray) -> float:  # a prior's weight: the residual variance per independent sample
         r = data(x)
@@ -228,7 +229,7 @@ def _fit(
         return np.concatenate([data(x), math.sqrt(w2) * x[sel] / sd[sel]]) if sel.any() else data(x)
 
     masks = [None if local is None else local.get(n) for n in names]
-    jac = Broyden(full, lo_hi, masks, sel)
+    broyden = Broyden(full, lo_hi, masks, sel)
 
     nfev, before = 0, None
     for _ in range(PRIOR_PASSES):  # the start's variance overweights the prior: again with the solution's
@@ -240,7 +241,7 @@ def _fit(
                 x0,
                 bounds=([b[0] for b in lo_hi], [b[1] for b in lo_hi]),
                 method="trf",
-                jac=jac,
+                jac=broyden,
                 diff_step=1e-3,
                 x_scale=1.0,
                 max_nfev=max_nfev,

@@ -137,7 +137,7 @@ class FittedParameter:
     @property
     def folds_disagree(self) -> bool:
         """Are the two folds' own fits apart (:func:`apart`: model error, not noise)?"""
-        return bool(self.folds) and len(self.folds) == 2 and apart(*self.folds)
+        return self.folds is not None and len(self.folds) == 2 and apart(*self.folds)
 
     @property
     def kept(self) -> bool:

@@ -447,7 +447,7 @@ def forward_selection(cf: CrossFit, base: Model, candidates: list[str], say: Pro
         if entering is None:
             gainers = [m.effects[-1] for m in sorted(trials, key=lambda m: m.score.excess)
                        if m.score.excess < current.score.excess]  # fmt: skip
-            pairs = list(itertools.combinations(gainers, 2))
+            pairs: list[tuple[str, ...]] = list(itertools.combinations(gainers, 2))
             if pairs:
                 tried = fit_models(cf, current, pairs, {e: singles[e] for e in gainers})
                 trials += tried
@@ -560,7 +560,7 @@ def search(
     draws = parameter_draws(final, final_fit.names, final_fit.log, final_fit.cov, policy.behaviour_draws, 1,
                             final_fit.ranges)  # fmt: skip
     looped = closed_steps(experiments)
-    behaviour = {}
+    behaviour: dict[str, RecordBehaviour] = {}
     for part in pool.map([Behaviour(tuple(draws), (n,)) for n in looped]):
         behaviour |= bands(experiments, final, part)
     rec_alone = _recalibrated_alone(recal_model)  # shown beside the table's values, applied or not
@@ -844,7 +844,9 @@ def _found_effects(cf: CrossFit, base: Model, path: list[Model], final: Override
                     fitted_on=[cf.fits[0], cf.fits[1]],
                     held_out=[cf.helds[0], cf.helds[1]],
                     selected_by=(SELECTED_BY_SPREAD if eff.spread and cf.all_closed else eff.selected_by),
-                    against_record=against_record(p, final.get(p, m.fits[0].params[p]), cf.experiments),
+                    against_record=against_record(
+                        p, float(final[p] if p in final else m.fits[0].params[p]), cf.experiments
+                    ),
                 )
             )
         prev = m

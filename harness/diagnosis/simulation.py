@@ -151,7 +151,8 @@ def sim_rig(sim: specmod.Spec) -> tuple[dict[str, Any], dict[str, Any]]:
 
 def _split_overrides(over: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
     """{"plant.x": v, "daq.y": w} -> ({"x": v}, {"y": w}); the combos and sensor gains left out."""
-    plant, daq = {}, {}
+    plant: dict[str, Any] = {}
+    daq: dict[str, Any] = {}
     for k, v in over.items():
         table, name = k.split(".", 1)
         if table in ("plant", "daq"):
@@ -181,10 +182,8 @@ def rig_tables(
 def sim_calibration(daq: Mapping[str, Any], comb_angles: np.ndarray | None) -> Calibration:
     """The calibration that converts the simulated DAQ's volts (``daq``: its parameters, FMU defaults for the
     rest), made as the real rig's: :func:`harness.ident.calibration.daq_calibration`."""
-    return daq_calibration(
-        *(fmu_value(daq, "daq", k) for k in SENSOR_DAQ),
-        comb_angles=comb_angles,
-    )
+    pot_gain, pot_offset, gauge_gain, gauge_offset, gauge_cubic = (fmu_value(daq, "daq", k) for k in SENSOR_DAQ)
+    return daq_calibration(pot_gain, pot_offset, gauge_gain, gauge_offset, gauge_cubic, comb_angles=comb_angles)
 
 
 def offset_key(record: str) -> str:

@@ -553,7 +553,7 @@ def where(
     if window_s is None:
         window_s = max((t[-1] - t[0] + Ts) / 40.0, 10.0 * Ts)
     freq = residual_by_band(x, Ts, y=xr)
-    if lines is not None:
+    if lines is not None and period_samples:
         b_real = bla(u, xr, period_samples, lines)
         b_sim = bla(u, xs, period_samples, lines)
         freq["bla"] = b_real.to_dict()
@@ -650,7 +650,7 @@ def summarise_where(per_experiment: Mapping[str, Mapping[str, Any]]) -> dict[str
     # time
     conc = [_num((d.get("time") or {}).get("top10_share")) for d in per_experiment.values()]
     conc = [c for c in conc if math.isfinite(c)]
-    worst = None
+    worst: dict[str, Any] | None = None
     for name, d in per_experiment.items():
         tops = (d.get("time") or {}).get("top") or []
         if tops and math.isfinite(_num(tops[0].get("share"))):
@@ -759,10 +759,11 @@ def where_gap(setup: Setup, over: Mapping[str, Any] | None = None) -> dict[str, 
         th, al, on_track = simulate(rig, setup, x, over or {})
         th = _bridge(x.theta, th, x.valid["theta"] & on_track)
         al = _bridge(x.alpha, al, x.valid["alpha"])
-        ms = {"period_samples": x.period, "lines": x.lines} if x.lines is not None else {}
+        period, lines = (x.period, x.lines) if x.lines is not None else (None, None)
         for ch, yr, ys, dom in (("theta", x.theta, th, "rate"), ("alpha", x.alpha, al, "angle")):
             try:
-                per[ch][name] = where(x.t, x.u, yr, ys, x.Ts, theta_v=x.theta_v, theta_deg=x.theta, domain=dom, **ms)
+                per[ch][name] = where(x.t, x.u, yr, ys, x.Ts, theta_v=x.theta_v, theta_deg=x.theta, domain=dom,
+                                      period_samples=period, lines=lines)  # fmt: skip
             except ValueError as err:
                 per[ch][name] = {"error": str(err)}
     what = "as given" if not over else "with its linear parameters recalibrated"
