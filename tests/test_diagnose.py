@@ -158,7 +158,7 @@ def test_noise_sigma_period_to_period():
 def test_sim_gauge_calibration_matches_a_least_squares_line():
     ang = np.array([-5.3, -3.4, -1.6, 0.0, 2.0, 3.8, 5.6, 7.4])
     cal = daq_calibration(35.5, 0.02, -3.3636, 0.01, 0.08, ang)
-    v = (ang / -3.3636 + 0.01) * (1 + 0.08 * (ang / 10) ** 2)
+    v = 0.01 + ang / -3.3636 * (1 + 0.08 * (ang / 10) ** 2)  # the zero error outside the nonlinearity
     assert gauge_volts(ang, -3.3636, 0.01, 0.08) == pytest.approx(v, rel=1e-15)
     slope, icpt = np.polyfit(v, ang, 1)
     assert cal.Ke == pytest.approx(slope, rel=1e-12)

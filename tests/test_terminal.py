@@ -96,7 +96,7 @@ def test_the_progress_names_each_command_once(tmp_path):
     r = flexjoint("diagnose", "--real", tmp_path / "r", "--sim", tiny, env=one)
     assert r.returncode == 0, r.stderr
     lines = r.stderr.splitlines()
-    assert any(x.startswith("diagnose screen ") for x in lines), r.stderr
+    assert any(x.startswith("diagnose recalibrate ") for x in lines), r.stderr
     assert not any(x.startswith("diagnose diagnosis") for x in lines), r.stderr
 
 

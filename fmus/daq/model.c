@@ -29,7 +29,8 @@
  *                dead band, no noise, no ADC; reported on the pot's scale, v = counted / pot_gain + pot_offset,
  *                so that one calibration reads both.
  *                A linearity error (pot_bow) bows the track: wrapped + pot_bow 180 sin(pi wrapped / 180) degrees.
- * Strain gauge:  v_lin = alpha_deg / gauge_gain + gauge_offset, v = v_lin (1 + gauge_cubic (alpha_deg/10)^2);
+ * Strain gauge:  v = gauge_offset + alpha_deg / gauge_gain (1 + gauge_cubic (alpha_deg/10)^2): the bridge's
+ *                zero error (gauge_offset) is electrical, outside its nonlinearity;
  *                a gain drift (gauge_drift [1/s]) scales it about the offset: offset + (v - offset)(1 + drift t_k);
  *                then the amplifier's first-order low-pass of time constant gauge_tau [s], taken at the samples
  *                (y_k = y_(k-1) + (1 - exp(-1 / (sample_rate gauge_tau))) (v_k - y_(k-1)), y_0 = v_0; 0 = none),
@@ -138,7 +139,7 @@ static double potVoltage(const ModelData *d, double theta) {
 static double gaugeVoltage(const ModelData *d, double alpha, double t) {
     const double a = alpha * RAD2DEG;
     const double r = a / 10.0;
-    const double v = (a / d->gauge_gain + d->gauge_offset) * (1.0 + d->gauge_cubic * r * r);
+    const double v = d->gauge_offset + a / d->gauge_gain * (1.0 + d->gauge_cubic * r * r);
     if (d->gauge_drift == 0) return v;
     return d->gauge_offset + (v - d->gauge_offset) * (1.0 + d->gauge_drift * t); /* gain drift about the offset */
 }

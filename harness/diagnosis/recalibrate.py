@@ -15,10 +15,11 @@ white), P the priors' precisions: a parameter the data do not determine keeps it
 converted to angles with calibrated sensor gains whose own errors move the fit too: given how the residuals move
 with each gain (``calibration``: columns G and standard errors s_g), the intervals hold A diag(s_g^2) A^T, A = J^+ G.
 
-A closed loop through an ADC lattice is fitted without derivatives (``derivative_free``: Powell's search on the
-same sum of squares, steps down to :data:`POWELL_XTOL`). The controller acts on the quantised angles, so the whole
-trajectory is a staircase in the parameters: flat to a 0.1 % step, jumping at the next, and least squares stops
-at its start. The intervals then come from a Jacobian taken with steps of :data:`STAIRCASE_STEP`.
+A closed loop through an ADC lattice, or with a play, is fitted without derivatives (``derivative_free``: Powell's
+search on the same sum of squares, steps down to :data:`POWELL_XTOL`). The controller acts on the quantised angles,
+so the whole trajectory is a staircase in the parameters: flat to a 0.1 % step, jumping at the next; a play's
+contacts jump likewise; least squares stops at its start. The intervals then come from a Jacobian taken with steps
+of :data:`STAIRCASE_STEP`.
 
 Without priors, a parameter the data do not determine (its 95 % interval wider than a factor
 :data:`UNIDENTIFIABLE`) drifts along a flat valley of the cost; such a parameter (of those the caller names

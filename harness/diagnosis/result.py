@@ -366,6 +366,13 @@ class Band:
         """Is the measured value inside the band?"""
         return self.lo <= self.measured <= self.hi
 
+    @property
+    def interval_score(self) -> float:
+        """The band's interval score (Gneiting and Raftery's proper score of a central 95 % interval, in the metric's
+        unit, lower is better): its width, plus 2 / 0.05 times how far the measured value lies outside it; a band
+        wider than it needs to be pays its width, one that misses pays its miss."""
+        return self.hi - self.lo + 40.0 * (max(self.lo - self.measured, 0.0) + max(self.measured - self.hi, 0.0))
+
 
 @dataclass
 class StepBehaviour:

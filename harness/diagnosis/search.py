@@ -1,9 +1,9 @@
 """The search for the effects behind the gap, by one rule for every record.
 
 Every model is fitted on one fold and scored on the other (2-fold cross-fitting), and every decision is taken on
-one held-out score (:class:`Score`): window by window, how far the record's gap to the replay is from the spread the
-replay itself predicts there (:func:`harness.diagnosis.simulation.evaluate`: a closed loop's replays with other
-noise draws, the noise an open loop's record carries). The thresholds are those of :class:`Policy`, each used once.
+one held-out score (:class:`Score`): window by window, how far the record's gap to the replays is from the spread
+they predict there (:func:`harness.diagnosis.simulation.evaluate`: a closed loop's replays with other noise draws,
+the noise an open loop's record carries). The thresholds are those of :class:`Policy`, each used once.
 
 1. The linear model (:data:`harness.diagnosis.recalibrate.LINEAR`, the command offset, each closed-loop record's
    gauge offset): recalibrated on each fold from a grid of the sheet's values, and again from the other fold's fit,
@@ -12,10 +12,10 @@ noise draws, the noise an open loop's record carries). The thresholds are those 
    with the linear parameters and the effects chosen (:func:`fit_models`), from the best of its values on the
    current rig and from the other fold's refit; an effect that a loop does not reproduce sample by sample (a gear's
    play, ``Effect.spread``) sized by the score itself on the fitted fold. The candidate that lowers the held-out
-   score most enters when it closes ``Policy.min_gain`` of the excess left; where none does, every pair of those
-   that lower it is refitted together.
-3. Backward elimination (:func:`eliminate`): an effect stays while removing it reopens ``Policy.min_gain`` of the
-   excess it left; an effect is kept only where its replays' behaviour covers the record's as well as without it.
+   score most enters when it pays (:func:`pays`: it closes ``Policy.min_gain`` of the excess left above its own
+   floor); where none does, every pair of those that lower it is refitted together.
+3. Backward elimination (:func:`eliminate`): an effect stays while it pays; an effect is kept only where its
+   replays' behaviour bands describe the records' as well as without it (:func:`bands_worse`).
 4. Verdict (:func:`verdict`).
 """
 
@@ -33,10 +33,20 @@ from . import recalibrate as recal
 from .bands import bands, closed_steps, parameter_draws
 from .effects import BY_PARAM, EFFECTS, SECONDARY, SELECTED_BY_SPREAD, Effect, effect_params
 from .experiments import CHANNELS, RigExperiment
-from .result import Candidate, Decomposition, FittedParameter, FoundEffect, Gap, HeldOutGap, RecordBehaviour, Step
+from .result import (
+    Band,
+    Candidate,
+    Decomposition,
+    FittedParameter,
+    FoundEffect,
+    Gap,
+    HeldOutGap,
+    RecordBehaviour,
+    Step,
+)
 from .rigmodel import COMBOS, plant_value, to_plant
-from .simulation import ALPHA_OFFSET, SSE, channel_fits, fit_pct, gap_summary, mean_squared_gap
-from .tasks import Behaviour, Cost, Evaluate, FitResult, Grid, Pool, Recalibrate, Refit, effect_values
+from .simulation import ALPHA_OFFSET, LOOP_NOISE_SEEDS, SSE, channel_fits, fit_pct, gap_summary, mean_squared_gap
+from .tasks import Behaviour, Cost, Evaluate, FitResult, Grid, Pool, Recalibrate, Refit, mean_effective
 
 __all__ = [
     "POLICY",
@@ -60,8 +70,9 @@ Overrides = dict[str, Any]
 @dataclass(frozen=True)
 class Policy:
     """How the diagnosis decides, the same for every record. The score (:class:`Score`) of a model is its held-out
-    effective gap: window by window, the record's gap to the replay beside the spread the replays predict there (an
-    open loop's noise; a closed loop's, from replays with other noise draws: the noise its controller fed back), as
+    effective gap: window by window, the record's gap to the replays beside the spread they predict there (an open
+    loop's noise; a closed loop's, from replays with other noise draws, each one realisation: the record beside
+    their mean, the spread their variance), as
     the profile Gaussian likelihood of the record under that spread plus a model-error variance, given as the mean
     squared gap a replay without spread would need to score the same
     (:func:`harness.diagnosis.simulation.effective_gap`), mean over experiments and channels. Without spread it is
@@ -71,10 +82,10 @@ class Policy:
     Four thresholds, each applied in one place:
 
     - ``none_level``: no gap beyond noise when the linear model's held-out score is within this ratio of the floor's,
-      as a gap (its square as a mean squared gap, :func:`verdict`);
+      as a gap (its square as a mean squared gap, :func:`verdict`); a model within it of its own floor covers what
+      a model without its effect left (:meth:`CrossFit.share`);
     - ``min_gain``: an effect (or a pair) enters when it closes this share of the held-out score left above the
-      floor, and stays while removing it reopens this share of what it left (:func:`forward_selection`,
-      :func:`eliminate`);
+      floor of the model with it, and stays while it still does (:func:`pays`);
     - ``explained``: the verdict names an effect when the effects close this share of what the linear model left
       above the floor (else ``unexplained``, :func:`verdict`);
     - ``resolution``: a gap below this share of a record's RMS (a fit of 99.9 %) is no sensor calibration's to
@@ -94,14 +105,17 @@ class Policy:
         """The rule in one paragraph, for diagnosis.json."""
         return (
             "score = held-out effective gap: the record's gap to the replay beside the replays' own spread, window by "
-            "window (spread: an open loop's noise, a closed loop's replays with other noise draws), as the profile "
+            "window (spread: an open loop's noise; a closed loop's replays with other noise draws, the record beside "
+            "their mean), as the profile "
             "Gaussian likelihood of the record under that spread and a model-error variance, given as the mean "
             "squared gap a replay without spread would need to score the same, mean over experiments and channels; "
             "floor: the score of a replay against another noise draw of itself; none: the recalibrated linear "
             f"model's score within none_level ({self.none_level:g}) of the floor's as a gap; an effect (or a pair, "
             f"where no single one does) enters when it closes >= min_gain ({self.min_gain:g}) of the score left "
-            "above the floor and stays while removing it reopens as much, and only where its replays' behaviour "
-            "covers the record's as well as without it; the verdict names the effect whose removal reopens most when "
+            "above the floor of the model with it (all of it when that model is within none_level of its own floor "
+            "and scores better) and stays while it still does, and only where its replays' behaviour bands (their "
+            "interval scores) are no worse than without it; the verdict names the effect whose removal reopens most "
+            "when "
             "the effects close >= "
             f"explained ({self.explained:g}) of what the linear model left above the floor, else unexplained; no "
             "spread below "
@@ -163,23 +177,28 @@ class CrossFit:
 
     def _merge(self, parts: list[dict[str, Any]]) -> Score:
         ev = {n: e for part in parts for n, e in part.items()}
-        excess, spread, msg = [], [], []
+        spread, msg = [], []
         for n, e in ev.items():
             x = self.experiments[n]
             for c in CHANNELS:
                 if x.moves(c):
-                    excess.append(e.effective[c])
                     spread.append(e.spread[c] / x.sst[c])
                     msg.append(e.sse[c] / x.sst[c])
         closed = [n for n in ev if self.experiments[n].replay == "closed"]
         offsets = {self.experiments[n].record: ev[n].offset for n in closed}
         return Score(
-            excess=float(np.mean(excess)) if excess else math.nan,
+            excess=mean_effective(ev, self.experiments),
             spread=float(np.mean(spread)) if spread else math.nan,
             msg=float(np.mean(msg)) if msg else math.nan,
             sse={n: dict(e.sse) for n, e in ev.items()},
             offsets=offsets,
         )
+
+    @property
+    def seeds(self) -> tuple[int, ...]:
+        """The noise draws a closed loop's replay is averaged over where it plays or sticks where the noise decides
+        (``Effect.spread``): as many as the score's replays have (``Policy.draws``)."""
+        return LOOP_NOISE_SEEDS[: self.policy.draws]
 
     def draws(self, fit: FitResult | Overrides) -> tuple[Overrides, ...]:
         """``Policy.draws`` draws of a fold's fit from its covariance (its overrides each time where it has none)."""
@@ -197,9 +216,15 @@ class CrossFit:
         return [self._merge(res[2 * i : 2 * i + 2]) for i in range(len(folds))]
 
     def share(self, before: Score, after: Score, floor: Score) -> float:
-        """Share of ``before``'s excess above the ``floor`` that ``after`` closes (may be negative)."""
+        """Share of ``before``'s excess above ``floor`` (the floor of the model scored ``after``: what it leaves if
+        it is right) that ``after`` closes (may be negative). Where ``before`` is already within that floor (a
+        model whose own spread covers the gap before it), all of it when ``after`` scores better and is within
+        ``none_level`` of its floor, none otherwise."""
         room = before.excess - floor.excess
-        return (before.excess - after.excess) / room if room > 0 else 0.0
+        if room > 0:
+            return (before.excess - after.excess) / room
+        within = after.excess < before.excess and after.excess <= self.policy.none_level**2 * floor.excess
+        return 1.0 if within else 0.0
 
 
 @dataclass
@@ -229,10 +254,18 @@ def floored(cf: CrossFit, model: Model) -> Model:
     """``model`` with its floor: its held-out score against records it would make itself, another noise draw
     (:func:`harness.diagnosis.simulation.evaluate`'s ``pseudo``): what it leaves if it is right, its own spread
     included (a loop that sticks where the noise decides leaves much more than one that does not)."""
-    if model.floor is not None:
-        return model
-    (floor,) = cf.scores([list(model.fits)], pseudo=True)
-    return replace(model, floor=floor)
+    (out,) = floored_all(cf, [model])
+    return out
+
+
+def floored_all(cf: CrossFit, models: Sequence[Model]) -> list[Model]:
+    """:func:`floored` of each of ``models``, in one map."""
+    missing = [i for i, m in enumerate(models) if m.floor is None]
+    floors = cf.scores([list(models[i].fits) for i in missing], pseudo=True) if missing else []
+    out = list(models)
+    for i, f in zip(missing, floors, strict=True):
+        out[i] = replace(out[i], floor=f)
+    return out
 
 
 def _params(fit: FitResult | Overrides) -> Overrides:
@@ -264,9 +297,11 @@ def combine(prm: str, values: Sequence[float]) -> float:
     return float(math.exp(np.mean(np.log(values)))) if log else float(np.mean(values))
 
 
-def _free(effects: Sequence[str], table: dict[str, Effect]) -> tuple[str, ...]:
-    """The effect parameters a joint refit moves: the continuous ones not sized by their spread."""
-    return tuple(table[e].param for e in effects if table[e].continuous and not table[e].spread)
+def _free(effects: Sequence[str], cf: CrossFit) -> tuple[str, ...]:
+    """The effect parameters a joint refit moves: the continuous ones, but those sized by their spread where every
+    replay is a closed loop (``Effect.spread``)."""
+    return tuple(cf.effects[e].param for e in effects
+                 if cf.effects[e].continuous and not (cf.effects[e].spread and cf.all_closed))  # fmt: skip
 
 
 def _without(over: Overrides, effects: Sequence[str]) -> Overrides:
@@ -296,53 +331,61 @@ def fit_models(
 ) -> list[Model]:
     """``current`` with each group of effects of ``adds`` added, refitted on each fold jointly with the linear
     parameters and the effects of ``current``, and scored held out. Each effect starts at the best of its values
-    (:func:`harness.diagnosis.tasks.effect_values`) on the current fold's rig, and at its best on the sheet's linear
-    rig (the fitted linear parameters may have bent to mimic it: a limit as a heavy, damped hub), or at its fit in
-    ``hints`` (its model alone); each fold is refitted again from the other fold's refit where that costs less; the
-    lowest cost kept. An effect that a
-    closed loop does not reproduce sample by sample (``Effect.spread``) is sized instead by the score on the fitted
-    fold over its values, the linear parameters then refitted with it held."""
+    (:class:`harness.diagnosis.tasks.Grid`) on the current fold's rig, and at its best on the sheet's linear rig (the
+    fitted linear parameters may have bent to mimic it: a limit as a heavy, damped hub), or at its fit in ``hints``
+    (its model alone); each fold is refitted from every start and again from the other fold's refit where that costs
+    less; the lowest cost kept. An effect that a closed loop does not reproduce sample by sample (``Effect.spread``)
+    is sized instead by the score on the fitted fold (its values replayed beside their spread), held in the refit
+    of the linear parameters, sized again on each refitted rig, and the start whose rig then scores best kept."""
     hints = hints or {}
-    table = cf.effects
-    spread = cf.all_closed
-    starts: list[list[Overrides]] = [[current.params(k) for k in (0, 1)] for _ in adds]
+    table, p = cf.effects, cf.policy
+    sized = [{e for e in group if table[e].spread and cf.all_closed} for group in adds]
+    starts: list[list[list[Overrides]]] = [[[current.params(k)] for k in (0, 1)] for _ in adds]
     grid_tasks, grid_slots = [], []
     for i, group in enumerate(adds):
         for e in group:
             if e in hints:
                 for k in (0, 1):
                     hint = hints[e].params(k)
-                    starts[i][k].update({q: hint[q] for q in table[e].params if q in hint})
-            elif table[e].spread and spread:
-                continue  # sized by the score below
-            else:
-                for k in (0, 1):
-                    for j, rig in enumerate((starts[i][k], _sheet_linear(starts[i][k]))):
-                        grid_slots.append((i, k, e, j))
-                        grid_tasks.append(Grid(table[e], rig, tuple(cf.fits[k])))
-    others: list[list[list[Overrides]]] = [[[], []] for _ in adds]
+                    starts[i][k][0].update({q: hint[q] for q in table[e].params if q in hint})
+                continue
+            by_score = (p.draws, p.resolution) if e in sized[i] else ()
+            for k in (0, 1):
+                for j, rig in enumerate((starts[i][k][0], _sheet_linear(starts[i][k][0]))):
+                    grid_slots.append((i, k, e, j))
+                    grid_tasks.append(Grid(table[e], rig, tuple(cf.fits[k]), *by_score))
     best: dict[tuple[int, int, str, int], tuple[float | int, float]] = {}
     for (i, k, e, j), costs in zip(grid_slots, cf.pool.map(grid_tasks), strict=True):
         best[(i, k, e, j)] = min(costs, key=lambda vc: (vc[1], vc[0]))
     for (i, k, e, j), (value, _) in sorted(best.items()):
         if j == 0:
-            starts[i][k][table[e].param] = value
+            starts[i][k][0][table[e].param] = value
         else:  # the fitted linear parameters may have bent to mimic it: a start from the sheet's too
-            others[i][k].append({**_sheet_linear(starts[i][k]), table[e].param: value})
-    _size_by_spread(cf, adds, starts, hints)
-    free = [_free((*current.effects, *group), table) for group in adds]
-    slots = [(i, k, st) for i in range(len(adds)) for k in (0, 1) for st in [starts[i][k], *others[i][k]]]
-    first = cf.pool.map([Refit(st, free[i], tuple(cf.fits[k])) for i, k, st in slots])
+            starts[i][k].append({**_sheet_linear(starts[i][k][0]), table[e].param: value})
+    free = [_free((*current.effects, *group), cf) for group in adds]
+    slots = [(i, k, st) for i in range(len(adds)) for k in (0, 1) for st in starts[i][k]]
+    first = cf.pool.map([Refit(st, free[i], tuple(cf.fits[k]), seeds=cf.seeds if sized[i] else ())
+                         for i, k, st in slots])  # fmt: skip
     fits: list[list[FitResult]] = [[None, None] for _ in adds]  # type: ignore[list-item]
-    for (i, k, _), r in zip(slots, first, strict=True):
-        if fits[i][k] is None or r.cost < fits[i][k].cost:
+    resize = [(i, k, e, r) for (i, k, _), r in zip(slots, first, strict=True) for e in sized[i]]
+    if resize:  # a spread effect sized again on each refitted rig, the start that then scores best kept
+        grids = cf.pool.map([Grid(table[e], r.params, tuple(cf.fits[k]), p.draws, p.resolution)
+                             for i, k, e, r in resize])  # fmt: skip
+        chosen: dict[tuple[int, int], tuple[float, FitResult]] = {}
+        for (i, k, e, r), costs in zip(resize, grids, strict=True):
+            value, score = min(costs, key=lambda vc: (vc[1], vc[0]))
+            if (i, k) not in chosen or score < chosen[(i, k)][0]:
+                chosen[(i, k)] = (score, replace(r, params={**r.params, table[e].param: value}))
+        for (i, k), (_, r) in chosen.items():
             fits[i][k] = r
-    _cross_started(cf, fits, free)
+    for (i, k, _), r in zip(slots, first, strict=True):
+        if not sized[i] and (fits[i][k] is None or r.cost < fits[i][k].cost):
+            fits[i][k] = r
+    _cross_started(cf, fits, free, [not s for s in sized])
     scores = cf.scores([list(fs) for fs in fits])
     models = []
-    for group, fs, sc in zip(adds, fits, scores, strict=True):
-        how = "by its spread, the linear parameters refitted with it" if any(
-            table[e].spread for e in group) and spread else "jointly with the linear parameters"  # fmt: skip
+    for group, fs, sc, sz in zip(adds, fits, scores, sized, strict=True):
+        how = "by its spread, the linear parameters refitted with it" if sz else "jointly with the linear parameters"
         models.append(Model((*current.effects, *group), (fs[0], fs[1]), sc, how))
     return models
 
@@ -353,13 +396,15 @@ def _sheet_linear(over: Overrides) -> Overrides:
     return {k: v for k, v in over.items() if k not in recal.LINEAR}
 
 
-def _cross_started(cf: CrossFit, fits: list[list[FitResult]], free: list[tuple[str, ...]]) -> None:
-    """Each fold's refit started again from the other fold's, where the other's parameters cost less on this fold's
-    own records than this fold's refit did (its least squares stopped in another basin, or where its records hardly
-    move an effect); the lower cost kept, in place."""
-    costs = cf.pool.map([Cost({**fs[1 - k].params, **_records_of(fs[k].params)}, tuple(cf.fits[k])) for fs in fits
-                         for k in (0, 1)])  # fmt: skip
-    slots = [(i, k) for i, fs in enumerate(fits) for k in (0, 1) if costs[2 * i + k] < fs[k].cost]
+def _cross_started(cf: CrossFit, fits: list[list[FitResult]], free: list[tuple[str, ...]], which: list[bool]
+                   ) -> None:  # fmt: skip
+    """Each fold's refit of the groups ``which`` started again from the other fold's, where the other's parameters
+    cost less on this fold's own records than this fold's refit did (its least squares stopped in another basin, or
+    where its records hardly move an effect); the lower cost kept, in place."""
+    groups = [i for i, w in enumerate(which) if w]
+    costs = cf.pool.map([Cost({**fits[i][1 - k].params, **_records_of(fits[i][k].params)}, tuple(cf.fits[k]))
+                         for i in groups for k in (0, 1)])  # fmt: skip
+    slots = [(i, k) for n, i in enumerate(groups) for k in (0, 1) if costs[2 * n + k] < fits[i][k].cost]
     again = cf.pool.map([Refit({**fits[i][1 - k].params, **_records_of(fits[i][k].params)}, free[i],
                                tuple(cf.fits[k])) for i, k in slots])  # fmt: skip
     for (i, k), r in zip(slots, again, strict=True):
@@ -370,34 +415,6 @@ def _cross_started(cf: CrossFit, fits: list[list[FitResult]], free: list[tuple[s
 def _records_of(over: Overrides) -> Overrides:
     """A fold's own records' gauge offsets (kept when the fold is refitted from the other fold's parameters)."""
     return {k: v for k, v in over.items() if k.startswith(ALPHA_OFFSET)}
-
-
-def _size_by_spread(
-    cf: CrossFit, adds: list[tuple[str, ...]], starts: list[list[Overrides]], hints: dict[str, Model]
-) -> None:
-    """A spread effect of each group (without a hint) sized on each fold by the score on that fold's own experiments
-    over its values (each replayed beside its spread), in place in ``starts``."""
-    if not cf.all_closed:
-        return
-    p = cf.policy
-    slots, tasks = [], []
-    for i, group in enumerate(adds):
-        for e in group:
-            if cf.effects[e].spread and e not in hints:
-                for k in (0, 1):
-                    for v in effect_values(cf.effects[e]):
-                        slots.append((i, k, e, v))
-                        over = {**starts[i][k], cf.effects[e].param: v}
-                        tasks.append(Evaluate(over, tuple(cf.fits[k]), cf.draws(over), p.resolution))
-    if not tasks:
-        return
-    best: dict[tuple[int, int, str], tuple[float, float]] = {}
-    for (i, k, e, v), res in zip(slots, cf.pool.map(tasks), strict=True):
-        score = cf._merge([res]).excess
-        if (i, k, e) not in best or score < best[(i, k, e)][0]:
-            best[(i, k, e)] = (score, v)
-    for (i, k, e), (_, v) in best.items():
-        starts[i][k][cf.effects[e].param] = v
 
 
 def _entry(cf: CrossFit, m: Model, current: Model, floor: Score) -> dict[str, Any]:
@@ -439,21 +456,21 @@ def forward_selection(cf: CrossFit, base: Model, candidates: list[str], say: Pro
         assert floor is not None
         if current.score.excess <= p.none_level**2 * floor.excess:
             break
-        trials = fit_models(cf, current, [(e,) for e in remaining])
+        trials = _better_floored(cf, current, fit_models(cf, current, [(e,) for e in remaining]))
         singles |= {m.effects[-1]: m for m in trials}
         best = min(trials, key=lambda m: (m.score.excess, m.effects))
-        entering = best if cf.share(current.score, best.score, floor) >= p.min_gain else None
-        entries = [_entry(cf, m, current, floor) for m in trials]
+        entering = best if pays(cf, current, best) else None
+        entries = [_entry(cf, m, current, m.floor or floor) for m in trials]
         if entering is None:
             gainers = [m.effects[-1] for m in sorted(trials, key=lambda m: m.score.excess)
                        if m.score.excess < current.score.excess]  # fmt: skip
             pairs: list[tuple[str, ...]] = list(itertools.combinations(gainers, 2))
             if pairs:
-                tried = fit_models(cf, current, pairs, {e: singles[e] for e in gainers})
+                tried = _better_floored(cf, current, fit_models(cf, current, pairs, {e: singles[e] for e in gainers}))
                 trials += tried
-                entries += [_entry(cf, m, current, floor) for m in tried]
+                entries += [_entry(cf, m, current, m.floor or floor) for m in tried]
                 pair = min(tried, key=lambda m: (m.score.excess, m.effects))
-                entering = pair if cf.share(current.score, pair.score, floor) >= p.min_gain else None
+                entering = pair if pays(cf, current, pair) else None
         entries.sort(key=lambda r: (-r["held_out_share_pct"], r["effect"]))
         fw.rounds.append(entries)
         fw.trials.append(trials)
@@ -461,17 +478,33 @@ def forward_selection(cf: CrossFit, base: Model, candidates: list[str], say: Pro
                                                      for r in entries))  # fmt: skip
         if entering is None:
             break
-        fw.path.append(floored(cf, entering))
+        fw.path.append(entering)
         remaining = [e for e in remaining if e not in entering.effects]
         say(f"  {' and '.join(e for e in entering.effects if e not in current.effects)} enters: held-out fit "
             f"{fit_pct(entering.score.msg):.2f} %")  # fmt: skip
     return fw
 
 
+def pays(cf: CrossFit, without: Model, with_: Model) -> bool:
+    """The rule an effect enters and stays by: the model ``with_`` it closes at least ``min_gain`` of what the model
+    ``without`` it leaves above ``with_``'s own floor (:meth:`CrossFit.share`)."""
+    if with_.score.excess >= without.score.excess:
+        return False
+    assert with_.floor is not None
+    return cf.share(without.score, with_.score, with_.floor) >= cf.policy.min_gain
+
+
+def _better_floored(cf: CrossFit, current: Model, models: list[Model]) -> list[Model]:
+    """``models`` with the floors of those that score better than ``current`` (the others cannot enter)."""
+    better = [m for m in models if m.score.excess < current.score.excess]
+    done = dict(zip([id(m) for m in better], floored_all(cf, better), strict=True))
+    return [done.get(id(m), m) for m in models]
+
+
 def eliminate(cf: CrossFit, model: Model) -> tuple[Model, dict[str, Score]]:
     """Backward elimination on held-out data: each effect of ``model`` removed (the others and the jointly refitted
-    linear parameters kept); the effect whose removal reopens least goes while what the model with it closes is less
-    than ``min_gain`` of what the model without it leaves above its own floor (the rule an effect entered by).
+    linear parameters kept); the effect whose removal reopens least goes while it does not pay (:func:`pays`, the
+    rule it entered by).
     Returns the model kept and {effect: its score without it}."""
     while model.effects:
         less = {e: Model(tuple(x for x in model.effects if x != e),
@@ -480,10 +513,10 @@ def eliminate(cf: CrossFit, model: Model) -> tuple[Model, dict[str, Score]]:
                 for e in model.effects}  # fmt: skip
         scores = dict(zip(less, cf.scores([list(m.fits) for m in less.values()]), strict=True))
         weakest = min(model.effects, key=lambda e: (scores[e].excess, e))
-        reduced = floored(cf, replace(less[weakest], score=scores[weakest]))
-        assert reduced.floor is not None
-        if cf.share(reduced.score, model.score, reduced.floor) >= cf.policy.min_gain:
-            return floored(cf, model), scores
+        reduced = replace(less[weakest], score=scores[weakest], floor=None)
+        model = floored(cf, model)
+        if pays(cf, reduced, model):
+            return model, scores
         model = reduced
     return model, {}
 
@@ -549,10 +582,14 @@ def search(
         fits = tuple(FitResult(**{**model.fits[k].__dict__, "params": {**model.params(k), **{
             c.param: c.values[0] for c in signature}}}) for k in (0, 1))  # fmt: skip
         (sig_score,) = cf.scores([list(fits)])
-        final_model = Model((*model.effects, *(c.name for c in signature)), (fits[0], fits[1]), sig_score,
-                            "adc lattice in the data")  # fmt: skip
-    name, explained = verdict(cf, base, model, shares, signature)
-    floor = model.floor
+        final_model = floored(cf, Model((*model.effects, *(c.name for c in signature)), (fits[0], fits[1]),
+                                        sig_score, "adc lattice in the data"))  # fmt: skip
+        # what each removal reopens: a searched effect's on the model without the signature, the signature's on it
+        shift = final_model.score.excess - model.score.excess
+        shares = importance(final_model, {**{e: replace(s, excess=s.excess + shift) for e, s in without.items()},
+                                          **{c.name: model.score for c in signature}})  # fmt: skip
+    name, explained = verdict(cf, base, final_model, shares, signature)
+    floor = final_model.floor
     assert floor is not None
     final, final_fit, table_rows = final_params(cf, final_model)
     own = dict(zip(records or [], pool.map([Recalibrate((r,), final) for r in records or []]), strict=True))
@@ -629,10 +666,10 @@ def search(
     )
 
 
-def held_out_coverage(cf: CrossFit, fits: Sequence[FitResult]) -> dict[tuple[str, int, str], bool]:
-    """Whether each of the held-out closed-loop records' behaviour metrics (every reference step's) lies inside the
-    band of ``Policy.behaviour_draws`` replays with other draws of the fold's fitted parameters and of the noise, each
-    fold's model replaying the records it was not fitted on: {(experiment, step, metric): inside}, where defined."""
+def held_out_bands(cf: CrossFit, fits: Sequence[FitResult]) -> dict[tuple[str, int, str], Band]:
+    """Each of the held-out closed-loop records' behaviour metrics (every reference step's) beside the band of
+    ``Policy.behaviour_draws`` replays with other draws of the fold's fitted parameters and of the noise, each fold's
+    model replaying the records it was not fitted on: {(experiment, step, metric): band}, where defined."""
     n = cf.policy.behaviour_draws
     tasks, slots = [], []
     for k in (0, 1):
@@ -646,26 +683,26 @@ def held_out_coverage(cf: CrossFit, fits: Sequence[FitResult]) -> dict[tuple[str
         for j, st in enumerate(bands(cf.experiments, fits[k].params, res)[name].steps):
             for m, b in st.metrics.items():
                 if math.isfinite(b.measured) and math.isfinite(b.lo):
-                    out[(name, j, m)] = b.inside
+                    out[(name, j, m)] = b
     return out
 
 
-def covers_less(with_it: dict[tuple[str, int, str], bool], without: dict[tuple[str, int, str], bool]) -> bool:
-    """Does a model cover the records' behaviour less than the model without its effect, beyond chance: McNemar's
-    test at 95 % on the metrics both define (those only the model without it covers against those only the model
-    with it covers)?"""
+def bands_worse(with_it: dict[tuple[str, int, str], Band], without: dict[tuple[str, int, str], Band]) -> bool:
+    """Do a model's bands describe the records' behaviour worse than those of the model without its effect, beyond
+    chance: a sign test at 95 % of the metrics' interval scores (:attr:`Band.interval_score`: a band pays its width
+    and its miss, so a vague band is not rewarded for covering), on the metrics both define?"""
     common = with_it.keys() & without.keys()
-    only_without = sum(without[k] and not with_it[k] for k in common)
-    only_with = sum(with_it[k] and not without[k] for k in common)
-    return only_without - only_with > 1.96 * math.sqrt(only_without + only_with)
+    worse = sum(with_it[k].interval_score > without[k].interval_score for k in common)
+    better = sum(with_it[k].interval_score < without[k].interval_score for k in common)
+    return worse - better > 1.96 * math.sqrt(worse + better)
 
 
 def _behaviour_kept(cf: CrossFit, model: Model, without: dict[str, Score], path: list[Model]
                     ) -> tuple[Model, dict[str, Score]]:  # fmt: skip
-    """An effect is kept only where the behaviour of its replays covers the held-out records' behaviour as well as
-    the model's without it (:func:`held_out_coverage`, :func:`covers_less`; the model the forward selection had
-    without it, ``path``, else the model with it removed): removed, the least important first, while its model's
-    replays cover less of the records' behaviour."""
+    """An effect is kept only where the behaviour bands of its replays describe the held-out records' behaviour as
+    well as those of the model without it (:func:`held_out_bands`, :func:`bands_worse`; the model the forward
+    selection had without it, ``path``, else the model with it removed): removed, the least important first, while
+    its model's bands are worse."""
     if not model.effects or not closed_steps(cf.experiments):
         return model, without
     for e in sorted(model.effects, key=lambda e: (without[e].excess, e)):
@@ -675,7 +712,7 @@ def _behaviour_kept(cf: CrossFit, model: Model, without: dict[str, Score], path:
         prev = next((m for m in reversed(path) if set(m.effects) == set(rest)), None)
         less = prev.fits if prev is not None else tuple(
             FitResult(**{**f.__dict__, "params": _without(f.params, [e])}) for f in model.fits)  # fmt: skip
-        if not covers_less(held_out_coverage(cf, model.fits), held_out_coverage(cf, less)):
+        if not bands_worse(held_out_bands(cf, model.fits), held_out_bands(cf, less)):
             continue
         model = prev if prev is not None else Model(rest, (less[0], less[1]), without[e], model.how)
         model, without = eliminate(cf, model) if model.effects else (model, {})
@@ -735,9 +772,10 @@ def final_params(cf: CrossFit, model: Model) -> tuple[Overrides, FitResult, dict
             res = cf.pool.map([Evaluate({**start, eff.param: v}, tuple(cf.names), (), cf.policy.resolution)
                                for v in opts])  # fmt: skip
             start[eff.param] = min(zip(opts, res, strict=True), key=lambda o: cf._merge([o[1]]).msg)[0]
-    free = _free(model.effects, cf.effects)
+    free = _free(model.effects, cf)
     linear = any(prm in f.params for f in model.fits for prm in recal.LINEAR)
-    fit = cf.pool.refit(start, free, cf.names, 20, linear)
+    spread = cf.all_closed and any(cf.effects[e].spread for e in model.effects if e in cf.effects)
+    fit = cf.pool.refit(start, free, cf.names, 20, linear, cf.seeds if spread else ())
     final = fit.params
     table: dict[str, FittedParameter] = {}
     extras = [x for p in free for x in BY_PARAM[p].extra]

@@ -254,7 +254,12 @@ def replay(rig: Any, setup: Setup, exp: RigExperiment, over: Mapping[str, Any], 
     d_over = _split_overrides(over)[1]
     delta = gauge_offset(exp, over)
     plant, daq, believed = rig_tables(setup, exp, over)
-    daq["gauge_offset"] = fmu_value(daq, "daq", "gauge_offset") + delta / fmu_value(believed, "daq", "gauge_gain")
+    # the gauge reads as the lab's did, before the import zeroed the record (the zero it took is the controller's
+    # alpha_bias): its raw zero error through the ADC's lattice and into the controller, the zero taken off after
+    zero = float((exp.controller or {}).get("alpha_bias", 0.0)) if exp.replay == "closed" else 0.0
+    daq["gauge_offset"] = fmu_value(daq, "daq", "gauge_offset") + (delta + zero) / fmu_value(
+        believed, "daq", "gauge_gain"
+    )
     noise = setup.lattice_noise if setup.lattice_noise and _quantises(setup, exp, d_over) else setup.loop_noise
     if exp.replay == "closed" and noise:
         daq = {**daq, **{k: v for k, v in noise.items() if k not in d_over}}
@@ -267,7 +272,7 @@ def replay(rig: Any, setup: Setup, exp: RigExperiment, over: Mapping[str, Any], 
         start["alpha_dot_start"] = math.radians(float(over.get(r, exp.link_start[1])))
     plant = {**plant, **true_state(start, over, delta)}
     if exp.replay == "closed":
-        c = Controller(**exp.controller)  # type: ignore[arg-type]
+        c = Controller(**{**(exp.controller or {}), "alpha_bias": 0.0})  # reads it raw
         ctrl = c.fmu_parameters(1.0 / exp.Ts)
         ctrl = {k: fmu_value(believed, "daq", v) for k, v in CALIBRATION.items()} | ctrl  # the lab's calibration
         ctrl |= {k: v for k, v in start.items() if k.endswith("_dot_start")}  # its velocity filter too
@@ -285,7 +290,7 @@ def replay(rig: Any, setup: Setup, exp: RigExperiment, over: Mapping[str, Any], 
         edge = 180.0 - 0.5 * fmu_value(daq, "daq", "pot_deadband") - DEADBAND_GUARD
         on_track = np.abs(reading) < edge
     th = np.unwrap(reading, period=360.0)
-    al = alpha_deg(res["alpha_v"], cal)
+    al = alpha_deg(res["alpha_v"], cal) - zero
     if exp.replay == "open":
         ok = on_track & exp.valid["theta"][: th.size]
         d = exp.theta[: th.size] - th
@@ -323,11 +328,18 @@ def _shooting(
 
 
 def residuals(
-    rig: Any, setup: Setup, exp: RigExperiment, over: Mapping[str, Any], n: int | None = None
+    rig: Any, setup: Setup, exp: RigExperiment, over: Mapping[str, Any], n: int | None = None, seeds: Sequence[int] = ()
 ) -> dict[str, np.ndarray]:
     """Residual y_real - y_sim [deg] per channel of one experiment (first ``n`` samples), 0 where a sample is not
-    valid on either side (pot dead band, ADC clipping)."""
+    valid on either side (pot dead band, ADC clipping). ``seeds``: a closed loop's replay is the mean of its replay
+    and its replays with these noise draws (each one realisation of a loop that plays or sticks where the noise
+    decides: least squares on one realisation would favour the rig whose realisations spread least)."""
     th, al, on_track = simulate(rig, setup, exp, over, n)
+    if seeds and exp.replay == "closed" and setup.loop_noise:
+        more = [simulate(rig, setup, exp, {**over, "daq.seed": s}, n) for s in seeds]
+        th = np.mean([th, *(r[0] for r in more)], axis=0)
+        al = np.mean([al, *(r[1] for r in more)], axis=0)
+        on_track = np.logical_and.reduce([on_track, *(r[2] for r in more)])
     m = th.size
     e_th = np.where(exp.valid["theta"][:m] & on_track, exp.theta[:m] - th, 0.0)
     e_al = np.where(exp.valid["alpha"][:m], exp.alpha[:m] - al, 0.0)
@@ -411,14 +423,15 @@ def replay_noise(daq: Mapping[str, Any], sigma_deg: Mapping[str, float]) -> dict
 @dataclass(frozen=True)
 class Evaluation:
     """One experiment replayed beside its own spread, per channel: ``sse`` the squared residual of the record to the
-    replay [deg^2 summed over its valid samples]; ``spread`` what the replay itself predicts there [deg^2, summed
-    likewise], window by window (SPREAD_SECONDS): a closed loop's mean squared difference between the replay and its
-    replays with other noise draws (LOOP_NOISE_SEEDS: the noise its controller fed back, and both replays'
-    measurement noise), an open loop's the data's measurement noise, at least the resolution's; ``effective`` the
-    record's gap beside that spread as one mean squared gap in units of the record's variance
-    (:func:`effective_gap`: the gap itself where the replay has no spread). ``own``: the replay's own parameters it
-    was replayed with (its record's gauge offset, its link at its start: fitted on it where the fit left them
-    out)."""
+    replay [deg^2 summed over its valid samples]; ``spread`` the variance the replays predict about their centre
+    [deg^2, summed likewise], window by window (SPREAD_SECONDS): a closed loop's replays (with other noise draws,
+    LOOP_NOISE_SEEDS, and other draws of the fitted parameters) are each one realisation of the loop, their centre
+    their mean and the spread their variance as a new realisation's about that mean; an open loop's centre is the
+    replay, its spread the data's measurement noise and the parameter draws' spread; at least the resolution's.
+    ``effective``: the record's gap to the centre beside that spread as one mean squared gap in units of the
+    record's variance (:func:`effective_gap`: the gap itself where the replay has no spread). ``own``: the replay's
+    own parameters it was replayed with (its record's gauge offset, its link at its start: fitted on it where the
+    fit left them out)."""
 
     sse: dict[str, float]
     effective: dict[str, float]
@@ -535,21 +548,23 @@ def evaluate(
     out: dict[str, dict[str, float]] = {"sse": {}, "effective": {}, "spread": {}}
     for c in CHANNELS:
         ok = exp.valid[c][:m] & (on0 if c == "theta" else True)
-        r2 = (data[c] - sims[c]) ** 2
-        gap, count = _windows(r2, ok, w)
+        gap, count = _windows((data[c] - sims[c]) ** 2, ok, w)
         floor = max(setup.sigma_deg.get(c, 0.0) ** 2, resolution**2 * exp.sst[c] / max(exp.u.size, 1))
+        centre, spread, valid = sims[c], np.full(gap.shape, floor), ok
         if others:
-            spread = np.zeros_like(gap) if closed else np.full(gap.shape, setup.sigma_deg.get(c, 0.0) ** 2)
-            for th, al, on in others:
-                y = th if c == "theta" else al
-                sub = ok & (on if c == "theta" else True)
-                s_sum, s_cnt = _windows((y - sims[c]) ** 2, sub, w)
-                spread += np.divide(s_sum, s_cnt, out=np.zeros_like(s_sum), where=s_cnt > 0) / len(others)
-            spread = np.maximum(spread, floor)
-        else:
-            spread = np.full(gap.shape, floor)
+            ys = [th if c == "theta" else al for th, al, _ in others]
+            valid = ok & (np.logical_and.reduce([on for _, _, on in others]) if c == "theta" else True)
+            if closed:  # each replay one realisation of the loop: their mean, and a new one's spread about it
+                ys.append(sims[c])
+                centre = np.mean(ys, axis=0)
+                dev = sum((y - centre) ** 2 for y in ys) / (len(ys) - 1) * (1.0 + 1.0 / len(ys))
+            else:  # the replay without noise: the fitted parameters' spread about it, and the data's noise
+                dev = sum((y - sims[c]) ** 2 for y in ys) / len(ys) + setup.sigma_deg.get(c, 0.0) ** 2
+            s_sum, s_cnt = _windows(dev, valid, w)
+            spread = np.maximum(np.divide(s_sum, s_cnt, out=np.zeros_like(s_sum), where=s_cnt > 0), floor)
+        off, n_off = _windows((data[c] - centre) ** 2, valid, w)
         out["sse"][c] = float(np.sum(gap))
         out["spread"][c] = float(np.sum(count * spread))
-        out["effective"][c] = effective_gap(gap, count, spread, exp.sst[c] / max(exp.u.size, 1))
+        out["effective"][c] = effective_gap(off, n_off, spread, exp.sst[c] / max(exp.u.size, 1))
     own = {k: float(v) for k, v in over.items() if k in nuisance_keys(exp) or k == key}
     return Evaluation(out["sse"], out["effective"], out["spread"], own)

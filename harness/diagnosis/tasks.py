@@ -51,6 +51,7 @@ __all__ = [
     "Where",
     "joint_refit",
     "least_squares_refit",
+    "mean_effective",
     "moving_channels",
     "own_rows",
     "recalibrate",
@@ -63,6 +64,7 @@ Progress = Callable[[str], None]
 _CTX: dict[str, Any] = {}
 
 CORRELATION_SECONDS = 0.05  # s: the longest a residual's correlation time counts (smoother: model error, not noise)
+RECAL_STARTS = 2  # the best points of each grid plane carried on, least squares from the last plane's: two basins
 RECAL_NFEV = 60  # least squares steps from a grid point: a factor sqrt(3) from the truth takes more than a refit
 REFIT_NFEV = 15  # least squares steps of a joint refit from a rig already near
 
@@ -95,16 +97,26 @@ def moving_channels(setup: Setup, names: list[str]) -> int:
     return sum(1 for n in names for c in CHANNELS if setup.experiments[n].moves(c, "fit"))
 
 
-def residual_vector(over: Overrides, names: list[str], k: int | None = None) -> np.ndarray:
+def mean_effective(ev: dict[str, Evaluation], experiments: dict[str, Any]) -> float:
+    """The score of replays ``ev`` ({experiment: Evaluation}): the mean effective gap over the experiment-channels
+    that move (:meth:`harness.diagnosis.experiments.RigExperiment.moves`); NaN when none does."""
+    vals = [e.effective[c] for n, e in ev.items() for c in CHANNELS if experiments[n].moves(c)]
+    return float(np.mean(vals)) if vals else math.nan
+
+
+def residual_vector(over: Overrides, names: list[str], k: int | None = None, seeds: tuple[int, ...] = ()
+                    ) -> np.ndarray:  # fmt: skip
     """The fit windows' residuals of ``names``, each channel scaled by 1 / sqrt(K sst) so that the sum of
     squares is the mean squared gap (K = number of experiment-channels that move, :func:`moving_channels` of
-    ``names`` unless given: ``names`` are then a stretch of a longer vector): what least squares minimises."""
+    ``names`` unless given: ``names`` are then a stretch of a longer vector): what least squares minimises.
+    ``seeds``: closed loops replayed as the mean of their replays with these noise draws too
+    (:func:`harness.diagnosis.simulation.residuals`)."""
     setup: Setup = _CTX["setup"]
     parts = []
     k = moving_channels(setup, names) if k is None else k
     for n in names:
         x = setup.experiments[n]
-        e = residuals(_CTX["rig"], setup, x, over, x.n_fit)
+        e = residuals(_CTX["rig"], setup, x, over, x.n_fit, seeds)
         parts += [e[c] / math.sqrt(k * x.sst_fit[c]) for c in CHANNELS if x.moves(c, "fit")]
     return np.concatenate(parts)
 
@@ -149,6 +161,16 @@ def gain_columns(setup: Setup, names: list[str], fitted: Collection[str] = ()) -
             col[:, i] = y / math.sqrt(k * x.sst_fit[c])
             blocks.append(col)
     return np.concatenate(blocks), se
+
+
+def rough(setup: Setup, over: Overrides, names: list[str]) -> bool:
+    """Is the replay of one of the experiments ``names`` with ``over`` rough in the parameters, so that least squares'
+    differences tell nothing: a closed loop through an ADC lattice (a staircase), or one with an effect switched on
+    that no replay follows sample by sample (``Effect.spread``: a play, each replay one realisation of where the
+    noise lets it sit)?"""
+    closed = any(setup.experiments[n].replay == "closed" for n in names)
+    spread = any(BY_PARAM[p].spread and float(v) > 0 for p, v in over.items() if p in BY_PARAM)
+    return lattice_in_loop(setup, over, names) or (closed and spread)
 
 
 def least_squares_refit(
@@ -198,7 +220,7 @@ def least_squares_refit(
             fixed=fixed,
             max_nfev=max_nfev,
             hold=() if prior else recal.LINEAR,
-            derivative_free=lattice_in_loop(setup, fixed, names),
+            derivative_free=rough(setup, fixed, names),
             calibration=gains,
             prior=prior,
             max_rho=math.exp(-min(setup.experiments[n].Ts for n in names) / CORRELATION_SECONDS),
@@ -256,17 +278,18 @@ def recalibrate(fit: list[str], start: Overrides | None = None) -> FitResult:
     kept."""
     setup: Setup = _CTX["setup"]
     kept = {p: v for p, v in (start or {}).items() if p not in recal.LINEAR}  # another fit's effects, kept as fitted
-    best: Overrides = dict(kept)
+    bests: list[Overrides] = [dict(kept)]
     evaluations = 0
     for grid in GRIDS:
         axes = [p for p in grid if p in setup.linear()]
-        scored = []
-        for factors in itertools.product(*(grid[p] for p in axes)):
-            over = {**best, **{p: setup.nominal(p) * f for p, f in zip(axes, factors, strict=True)}}
-            scored.append((float(np.sum(residual_vector(over, fit) ** 2)), over))
+        scored: list[tuple[float, int, Overrides]] = []
+        for best in bests:
+            for factors in itertools.product(*(grid[p] for p in axes)):
+                over = {**best, **{p: setup.nominal(p) * f for p, f in zip(axes, factors, strict=True)}}
+                scored.append((float(np.sum(residual_vector(over, fit) ** 2)), len(scored), over))
         evaluations += len(scored)
-        best = min(scored, key=lambda c: c[0])[1]
-    fits = [joint_refit(best, [], fit, RECAL_NFEV)]
+        bests = [over for _, _, over in sorted(scored, key=lambda c: c[:2])[:RECAL_STARTS]]
+    fits = [joint_refit(best, [], fit, RECAL_NFEV) for best in bests]
     if start:
         fits.append(joint_refit(dict(start), [], fit, RECAL_NFEV))
     res = min(fits, key=lambda r: r.cost)
@@ -300,14 +323,16 @@ class Recalibrate:
 
 @dataclass(frozen=True)
 class Refit:
-    """:func:`joint_refit` of the experiments ``fit`` from ``base``, the effect parameters ``free`` with the linear
-    ones (``linear`` False: the linear ones held)."""
+    """:func:`least_squares_refit` of the experiments ``fit`` from ``base``, the effect parameters ``free`` with the
+    linear ones (``linear`` False: the linear ones held); ``seeds``: closed loops replayed as the mean of their
+    replays with these noise draws too (:func:`residual_vector`)."""
 
     base: Overrides
     free: tuple[str, ...]
     fit: tuple[str, ...]
     max_nfev: int = REFIT_NFEV
     linear: bool = True
+    seeds: tuple[int, ...] = ()
 
     @property
     def label(self) -> str:
@@ -320,20 +345,23 @@ class Refit:
     def run(self) -> FitResult:
         setup: Setup = _CTX["setup"]
         fit = list(self.fit)
-        return least_squares_refit(
-            setup, lambda over: residual_vector(over, fit), self.base, self.free, fit, self.max_nfev, self.linear
-        )
+        return least_squares_refit(setup, lambda over: residual_vector(over, fit, seeds=self.seeds), self.base,
+                                   self.free, fit, self.max_nfev, self.linear)  # fmt: skip
 
 
 @dataclass(frozen=True)
 class Grid:
-    """Each of an effect's values (:func:`effect_values`) on top of ``base``, with the least-squares cost (mean
-    squared gap) of the experiments ``fit``, and a continuous effect's best value refined between its neighbours by
-    bounded Brent (in log for a log scale): [(value, cost)]."""
+    """Each of an effect's values (:func:`effect_values`) on top of ``base``, with its cost on the experiments
+    ``fit``, and a continuous effect's best value refined between its neighbours by bounded Brent (in log for a log
+    scale): [(value, cost)]. The cost is least squares' (the mean squared gap), or with ``draws`` > 0 the score
+    (:func:`mean_effective`: the gap beside the spread of that many replays with other noise draws; an effect no
+    replay follows sample by sample, ``Effect.spread``)."""
 
     effect: Effect
     base: Overrides
     fit: tuple[str, ...]
+    draws: int = 0
+    resolution: float = 0.0
     weight = 1
 
     @property
@@ -342,9 +370,15 @@ class Grid:
 
     def run(self) -> list[tuple[float | int, float]]:
         fit, eff = list(self.fit), self.effect
+        setup: Setup = _CTX["setup"]
 
         def cost(v: float | int) -> float:
-            return float(np.sum(residual_vector({**self.base, eff.param: v}, fit) ** 2))
+            over = {**self.base, eff.param: v}
+            if not self.draws:
+                return float(np.sum(residual_vector(over, fit) ** 2))
+            ev = {n: evaluate(_CTX["rig"], setup, setup.experiments[n], over, [over] * self.draws, False,
+                              self.resolution) for n in fit}  # fmt: skip
+            return mean_effective(ev, setup.experiments)
 
         values = effect_values(eff)
         out = [(v, cost(v)) for v in values]
@@ -417,16 +451,18 @@ class Behaviour:
 
 @dataclass(frozen=True)
 class Residual:
-    """:func:`residual_vector` of a stretch ``names`` of a longer vector (``k`` its moving channels)."""
+    """:func:`residual_vector` of a stretch ``names`` of a longer vector (``k`` its moving channels; ``seeds`` its
+    noise draws)."""
 
     over: Overrides
     names: tuple[str, ...]
     k: int
+    seeds: tuple[int, ...] = ()
     label = "residuals"
     weight = 0
 
     def run(self) -> np.ndarray:
-        return residual_vector(self.over, list(self.names), self.k)
+        return residual_vector(self.over, list(self.names), self.k, self.seeds)
 
 
 @dataclass(frozen=True)
@@ -488,16 +524,16 @@ class Pool:
             out[i] = r
         return out
 
-    def refit(self, base: Overrides, free: Collection[str], names: list[str], max_nfev: int, linear: bool = True
-              ) -> FitResult:  # fmt: skip
+    def refit(self, base: Overrides, free: Collection[str], names: list[str], max_nfev: int, linear: bool = True,
+              seeds: tuple[int, ...] = ()) -> FitResult:  # fmt: skip
         """:func:`least_squares_refit` on every experiment of ``names``, its least squares run here and each residual
         vector computed over the workers, one task per worker of consecutive experiments (:func:`stretches`): the
-        same vector as one task computes, so the same path."""
+        same vector as one task computes, so the same path (``seeds``: :func:`residual_vector`'s)."""
         parts = stretches(self.setup, names, self.ex.n_workers)
         k = moving_channels(self.setup, names)
 
         def resid(over: Overrides) -> np.ndarray:
-            tasks = [Residual(over, tuple(part), k) for part in parts]
+            tasks = [Residual(over, tuple(part), k, seeds) for part in parts]
             return np.concatenate(self.ex.map(_run_task, tasks, self.setup, quiet=True))
 
         with one_blas_thread():  # as in a task: the same BLAS, the same numbers in every backend

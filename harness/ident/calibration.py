@@ -219,11 +219,11 @@ def kp_from_table(angle_deg: Any, volts: Any) -> float:
 
 
 def gauge_volts(alpha_deg: Any, gain: float, offset_v: float, cubic: float = 0.0) -> np.ndarray:
-    """The strain gauge's static map, as the DAQ FMU models it: volts [V] = (alpha / gain + offset_v) (1 + cubic
+    """The strain gauge's static map, as the DAQ FMU models it: volts [V] = offset_v + alpha / gain (1 + cubic
     (alpha / 10 deg)^2) for a deflection ``alpha_deg`` [deg], ``gain`` [deg/V] (Ke of a linear gauge), ``cubic``
-    the relative cubic term at 10 deg."""
+    the relative cubic term at 10 deg (the bridge's zero error outside its nonlinearity)."""
     a = np.asarray(alpha_deg, dtype=float)
-    return (a / gain + offset_v) * (1.0 + cubic * (a / 10.0) ** 2)
+    return offset_v + a / gain * (1.0 + cubic * (a / 10.0) ** 2)
 
 
 def daq_calibration(

@@ -920,7 +920,8 @@ def _gauge_zero(cols: dict[str, np.ndarray], Ts: float) -> tuple[float, str]:
     """The deflection's zero [deg] and what it was read on: its median over the record's quietest stretch of
     ZERO_SECONDS where the shaft is at rest (it moves less than AT_REST_DEG) and the link too (its deflection's RMS
     about its mean within REST_SIGMAS times its noise: the MAD of its third differences, at least its lattice's
-    step / sqrt 12); (NaN, why) where the link never rests."""
+    step / sqrt 12, the step there where the lattice is not uniform: a length read as an angle); (NaN, why) where
+    the link never rests."""
     th, al = cols["theta"], cols["alpha"]
     n = max(4, int(round(ZERO_SECONDS / Ts)))
     if al.size < 2 * n:
@@ -934,6 +935,9 @@ def _gauge_zero(cols: dict[str, np.ndarray], Ts: float) -> tuple[float, str]:
         return math.nan, f"the shaft never rests for {ZERO_SECONDS:g} s"
     quiet = min(still, key=lambda a: (float(np.std(al[a : a + n])), a))
     rms = float(np.std(al[quiet : quiet + n]))
+    levels = np.unique(al[quiet : quiet + n])
+    if levels.size > 1:  # its resolution there (continuous values: far below their noise)
+        sigma = max(sigma, float(np.median(np.diff(levels))) / math.sqrt(12.0))
     if rms > REST_SIGMAS * sigma:
         return math.nan, (f"the link never rests: its quietest {ZERO_SECONDS:g} s (at {quiet * Ts:.3g} s) swings "
                           f"{rms:.3g} deg RMS, {rms / max(sigma, 1e-12):.0f}x its noise")  # fmt: skip
