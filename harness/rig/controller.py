@@ -35,6 +35,7 @@ import numpy as np
 
 __all__ = [
     "CUTOFFS",
+    "IDENTIFIABLE",
     "KINDS",
     "NX_MAX",
     "Estimator",
@@ -51,6 +52,7 @@ __all__ = [
 ]
 
 KINDS = {"state_feedback": 1, "pid": 2, "lqg": 3}  # kind name -> the FMU's Integer parameter ``kind``
+IDENTIFIABLE = ("state_feedback", "pid")  # the kinds identify_controller fits to a record's command
 NX_MAX = 10  # the LQG's largest number of states: NX_MAX in fmus/controller/config.h
 ESTIMATOR_SHAPES = {"A": ("n", "n"), "B": ("n",), "C": (2, "n"), "L": ("n", 2), "K": ("n",), "N": ("n",),
                     "X0": ("n", 2)}  # fmt: skip
@@ -326,8 +328,10 @@ def identify_controller(
     ``u`` [V], ``Ts`` [s]; ``cutoff`` [Hz] and ``ref_delay`` [samples] given or chosen by R^2 as there.
     ``u_limit``: the exact clamp (:func:`output_limit`), else the median |u| where the fit's command passes the
     largest logged one (when at least 3 samples and 0.2 % of them do), else 0. ``r2`` over the samples fitted."""
-    if kind not in ("state_feedback", "pid"):
-        raise ValueError(f"controller kind {kind!r} cannot be identified from a record; valid: state_feedback, pid")
+    if kind not in IDENTIFIABLE:
+        raise ValueError(
+            f"controller kind {kind!r} cannot be identified from a record; valid: {', '.join(IDENTIFIABLE)}"
+        )
     ref, theta, alpha, u = (np.asarray(v, dtype=float) for v in (ref, theta, alpha, u))
     if not ref.size == theta.size == alpha.size == u.size:
         raise ValueError("ref, theta, alpha and u must have the same length")
