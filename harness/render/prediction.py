@@ -36,8 +36,8 @@ LABELS = {
     "overshoot_pct": "overshoot [%]",
     "settling_s": "settling [s]",
     "stop_error_deg": "stopping error [deg]",
-    "peak_alpha_deg": "peak |alpha| [deg]",
-    "peak_u_v": "peak |u| [V]",
+    "peak_alpha_deg": "peak deflection [deg]",
+    "peak_u_v": "peak command [V]",
     "ring_alpha_deg": "alpha ringing, RMS [deg]",
     "ring_hz": "ringing frequency [Hz]",
     "stop_error_up_deg": "stopping error, steps up [deg]",
@@ -174,7 +174,7 @@ def markdown(doc: dict[str, Any], design: dict[str, Any] | None) -> str:
             inside = meas is not None and b["lo"] is not None and b["hi"] is not None and b["lo"] <= meas <= b["hi"]
             row += f" {_num(meas)} | {'yes' if inside else 'no'} |"
         lines.append(row)
-    lines.append("")
+    lines += ["", "—: infinite (a loop that diverged, a step that never settled), or for the frequency no ringing.", ""]
     if doc.get("specs"):
         lines += ["| spec | predicted (band's end) | met |", "|---|---|---|"]
         for v in doc["specs"].values():
