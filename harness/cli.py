@@ -644,7 +644,12 @@ def design(
         str | None, typer.Option(help="lqr/lqg weights q=Q1,Q2,Q3,Q4;r=R[;w=W] (default: searched to the specs)")
     ] = None,
     rate: Annotated[float | None, typer.Option(help="the controller's sample rate [Hz] (default the rig's)")] = None,
-    cutoff: Annotated[float | None, typer.Option(help="lqr/pd: the velocity filters' cutoff [Hz] (default 25)")] = None,
+    cutoff: Annotated[
+        float | None,
+        typer.Option(
+            help="lqr/pd: the velocity filters' cutoff [Hz] (default the diagnosed record's controller's, else 25)"
+        ),
+    ] = None,
     reference: Annotated[
         str | None,
         typer.Option(

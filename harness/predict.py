@@ -31,6 +31,7 @@ import numpy as np
 from .behaviour import METRICS, POOLED_BY, step_metrics, summarize
 from .executor import Executor, FmuBytes, fmu_bytes, worker_rig
 from .fmu.build import build_all
+from .ident.armax import fit_percent
 from .rig.controller import Controller, delayed, parse_controller
 from .rig.signals import SIGNAL_KINDS, generate
 from .rundir import DataError
@@ -96,8 +97,8 @@ class LoopSpecs:
                 band = v
             else:
                 limits[SPEC_KEYS[key][0]] = v
-        if not limits and band == 5.0 and str(text).strip():
-            raise ValueError(f"--specs {text!r}: no spec given")
+        if not limits:
+            raise ValueError(f"--specs {text!r}: no spec given (band sets the settling spec's band)")
         return cls(limits, band)
 
     def describe(self, metric: str) -> str:
@@ -106,9 +107,6 @@ class LoopSpecs:
         _, unit, what = SPEC_KEYS[key]
         mag = "|stopping error|" if metric == "stop_error_deg" else what
         return f"{mag} <= {self.limits[metric]:g} {unit}"
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"limits": dict(self.limits), "band_pct": self.band_pct}
 
 
 @dataclass(frozen=True)
@@ -386,9 +384,11 @@ DEFINITIONS = {
 
 
 def _fit(y: np.ndarray, yhat: np.ndarray) -> float:
-    d = y - np.mean(y)
-    den = float(np.linalg.norm(d))
-    return 100.0 * (1.0 - float(np.linalg.norm(y - yhat)) / den) if den > 0 else math.nan
+    """MATLAB ``compare``'s fit [%] (:func:`harness.ident.armax.fit_percent`), NaN for a channel that does not move."""
+    try:
+        return fit_percent(y, yhat)
+    except ValueError:
+        return math.nan
 
 
 def predict(

@@ -2,8 +2,9 @@
 
 ``load_twin(RIG)`` reads RIG as a spec (a path or a bundled name: its rig as written, its ``[uncertainty]`` the spread
 of its sheet values) or as a diagnosis directory (``diagnosis.json``: the sim spec it judged against, with the
-diagnosis's fitted linear parameters and the effects it found applied on top, the data's noise, the spread of the
-fitted values). A :class:`Twin` holds the sheet's tables and the overrides on top of them, in the diagnosis's names:
+diagnosis's fitted linear parameters and the effects it found applied on top, the data's noise floor (without an ADC
+or encoder lattice's share where the twin's own DAQ quantises), the spread of the fitted values). A :class:`Twin`
+holds the sheet's tables and the overrides on top of them, in the diagnosis's names:
 
 - ``rig.drive_gain``, ``rig.drive_tau``, ``rig.inertia_ratio``: the drive, mapped onto the plant's kt, km, Beq and Jeq
   by :func:`harness.diagnosis.rigmodel.to_plant`;
@@ -256,7 +257,7 @@ def twin_of_diagnosis(where: Path, spec: specmod.Spec | None = None) -> Twin:
     total = {"theta": nf.theta_deg, "alpha": nf.alpha_deg}
     noise = {c: (nf.estimated_deg or total)[c] if _quantises(daq, c) else total[c] for c in total}
     over, spread = spread_of_diagnosis(doc)
-    name = f"diagnosis of {Path(diag.real).name}"
+    name = f"diagnosis of {run.name}"
     return Twin(name, "diagnosis", spec, float(rate), plant, daq, over, noise, spread, run)
 
 
@@ -306,8 +307,7 @@ def _bounds(name: str) -> tuple[float, float]:
 @dataclass(frozen=True, eq=False)
 class Record:
     """A closed-loop record as read: ``t`` [s], reference ``ref``, ``theta``, ``alpha`` [deg] (the run's calibration,
-    theta unwrapped), command ``u`` [V], at ``Ts`` [s], with its ``controller`` (None when the run has none) and
-    ``theta0`` its first shaft angle [deg]."""
+    theta unwrapped), command ``u`` [V], at ``Ts`` [s], with its ``controller`` (None when the run has none)."""
 
     run: Path
     name: str

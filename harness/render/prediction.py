@@ -128,9 +128,8 @@ def _metrics_figure(doc: dict[str, Any], members: pd.DataFrame, path: Path) -> N
 
 
 def _num(x: Any) -> str:
-    return (
-        fmt_any(float(x)) if isinstance(x, (int, float)) else ("∞ (diverged or never settled)" if x is None else str(x))
-    )
+    """A number to 4 significant digits; "—" for JSON's null (infinite, or no ringing: the report's footnote)."""
+    return fmt_any(float(x)) if isinstance(x, (int, float)) else "—" if x is None else str(x)
 
 
 def markdown(doc: dict[str, Any], design: dict[str, Any] | None) -> str:
@@ -172,9 +171,10 @@ def markdown(doc: dict[str, Any], design: dict[str, Any] | None) -> str:
         if has_meas:
             meas = b.get("measured")
             inside = meas is not None and b["lo"] is not None and b["hi"] is not None and b["lo"] <= meas <= b["hi"]
-            row += f" {_num(meas)} | {'yes' if inside else 'no'} |"
+            row += f" {_num(meas)} | {'—' if meas is None else 'yes' if inside else 'no'} |"
         lines.append(row)
-    lines += ["", "—: infinite (a loop that diverged, a step that never settled), or for the frequency no ringing.", ""]
+    lines += ["", "—: infinite (a loop that diverged, a step that never settled), or none (no ringing, no step that "
+              "way).", ""]  # fmt: skip
     if doc.get("specs"):
         lines += ["| spec | predicted (band's end) | met |", "|---|---|---|"]
         for v in doc["specs"].values():
