@@ -350,7 +350,8 @@ def design(
 ) -> Design:
     """Design a ``method`` controller on ``twin`` to ``specs`` (default :data:`DEFAULT_SPECS`) for ``reference`` (at
     ``rate`` [Hz], default the twin's), then predict it with ``n`` members (see the module docstring). ``strict``: a
-    search that meets no spec raises :class:`DesignError`; otherwise its last round's design is returned, judged."""
+    search that meets no spec raises :class:`DesignError`; otherwise the closest design on the linear loop, or the last
+    round's, is returned, judged."""
     if method not in METHODS:
         raise ValueError(f"--method {method!r} unknown; valid: {', '.join(METHODS)}")
     say = progress or (lambda _m: None)
@@ -384,10 +385,12 @@ def design(
     for r in range(ROUNDS if weights is None else 1):
         feasible = [i for i, c in enumerate(cands) if slack(c.metrics, targets) >= 0 or weights is not None]
         if not feasible:
-            if r == 0:
-                closest = max(cands, key=lambda c: slack(c.metrics, targets)) if cands else None
-                raise DesignError(_linear_miss(method, specs, closest))
-            break
+            if r > 0:
+                break
+            closest = max(range(len(cands)), key=lambda i: slack(cands[i].metrics, targets)) if cands else None
+            if strict or closest is None or cands[closest].metrics is None:
+                raise DesignError(_linear_miss(method, specs, cands[closest] if closest is not None else None))
+            feasible = [closest]  # not strict: the closest design, judged by its prediction
         for i in feasible:
             if i not in margins:
                 margins[i] = ranking.disk_margin(cands[i].controller)["disk_margin"]

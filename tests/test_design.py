@@ -100,6 +100,8 @@ def test_the_files_a_design_writes(lab, tmp_path):
     assert r.returncode == 0 and "settling time <= 1 s" in r.stdout
     r = flexjoint("accept", str(tmp_path), "--specs", "settling=0.05")
     assert r.returncode == 1 and "settling time <= 0.05 s: predicted up to" in r.stderr and "NOT met" in r.stderr
+    r = flexjoint("report", str(tmp_path))  # the report again from the files, with its recording
+    assert r.returncode == 0 and (tmp_path / "prediction.rrd").stat().st_size > 10_000, r.stderr
 
 
 def test_given_weights_are_designed_as_they_are(lab):

@@ -14,7 +14,6 @@ design inside its predicted 95 % band (``band_hits``, pooled over rigs and metri
 
 from __future__ import annotations
 
-import math
 import shutil
 import tempfile
 import time
@@ -26,7 +25,7 @@ import tomllib
 from .. import spec as specmod
 from ..design import Design, controller_toml, design
 from ..executor import FmuBytes, fmu_file, worker_rig
-from ..predict import SPEC_KEYS, LoopSpecs, Reference, pooled, reference_from, simulate_loop
+from ..predict import SPEC_KEYS, LoopSpecs, MetricBand, Reference, judge_specs, pooled, reference_from, simulate_loop
 from ..rig.campaign import run_campaign
 from ..rig.controller import Controller
 from ..twin import RigTables, twin_of_diagnosis, twin_of_spec
@@ -74,7 +73,8 @@ def _true_metrics(rig: Any, tables: RigTables, c: Controller, ref: Reference) ->
 
 
 def _meets(values: dict[str, float], specs: LoopSpecs) -> bool:
-    return all(math.isfinite(values[m]) and abs(values[m]) <= limit for m, limit in specs.limits.items())
+    """Does one loop's behaviour meet every spec (the rule :func:`harness.predict.judge_specs` applies to a band)?"""
+    return all(v["met"] for v in judge_specs({m: MetricBand(x, x, x) for m, x in values.items()}, specs).values())
 
 
 def design_scores(identified: Design, true_id: dict[str, float], true_sheet: dict[str, float]) -> dict[str, Any]:
