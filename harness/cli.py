@@ -842,7 +842,7 @@ def diagnosis_summary(d: Diagnosis) -> str:
         lines.append("held-out fit per channel: " + ", ".join(
             f"{k.replace('_', ' ')} " + " ".join(f"{c} {v:.1f} %" for c, v in by.items())
             for k, by in dec.channel_stages()
-        ) + (f"; what is left is within {ratio:g}x the noise floor" if dec.at_floor(ratio := d.thresholds.none_ratio)
+        ) + ("; what is left is within the replays' own spread" if dec.at_floor()
              else f"; the gap is in {dec.gap_channel()}"))  # fmt: skip
     if d.gap.records:
         lines.append("each record's fit, recalibrated alone -> with the joint parameters: " + ", ".join(

@@ -125,7 +125,7 @@ def minimal_doc() -> dict[str, Any]:
         "rounds": [[{"effect": "backlash", "held_out_share_pct": 80.0}]],
         "sim_spec": "nominal",
         "sim_spec_file": "nominal.toml",
-        "thresholds": {"explained": 0.5, "meaning": "...", "min_closure": 0.3, "none_ratio": 2.0, "resolution": 0.001},
+        "thresholds": {"explained": 0.5, "meaning": "...", "min_gain": 0.25, "none_level": 1.0, "resolution": 0.001},
         "verdict": "backlash",
         "where": {"masked": {"alpha": 0.0, "theta": 0.01}},
     }
@@ -206,14 +206,17 @@ def test_fits_are_apart_only_when_their_intervals_exclude_each_other_and_they_di
     assert row.records_apart == [("a", "c"), ("b", "c")]
 
 
-def test_a_gap_left_within_the_none_ratio_of_the_floor_is_not_put_in_a_channel():
-    """The two-controller twin's gap with its friction found (0.0126 against a floor of 0.0106) is within 2x the
-    floor: its worse channel (theta 98.6 against alpha 98.9 %) is noise, not a place. The CU records' 0.137 is not."""
-    dec = Decomposition(before=0.58, after_recalibration=0.78, after_effects=0.0126, noise_floor=0.0106,
-                        resolution=1e-3, steps=[], definition="",
-                        channels={"after_effects": {"theta": 98.6, "alpha": 98.9}})  # fmt: skip
-    assert dec.at_floor(2.0) and not dec.at_floor(1.1) and dec.gap_channel() == "theta"
-    dec.after_effects = 0.137
-    assert not dec.at_floor(2.0)
-    dec.channels = {}
-    assert not dec.at_floor(2.0)  # no fit per channel: the stage is "before"
+def test_a_gap_left_within_the_replays_spread_is_not_put_in_a_channel():
+    """Where what is left is within the replays' own spread (the search says so: ``within_noise``), the worse channel
+    is noise, not a place, and the report says so instead of naming it; otherwise it names the channel that fits
+    worse."""
+    from harness.render.gap_text import diagnosis_markdown
+
+    doc = minimal_doc()
+    doc["gap"]["decomposition"]["channels"] = {"after_effects": {"theta": 98.6, "alpha": 98.9}}
+    doc["gap"]["decomposition"]["within_noise"] = True
+    d = Diagnosis.from_dict(doc)
+    assert d.gap.decomposition.gap_channel() == "theta"
+    assert any("within the replays' own spread" in line for line in diagnosis_markdown(d))
+    d.gap.decomposition.within_noise = False
+    assert any("the gap is in theta" in line for line in diagnosis_markdown(d))

@@ -57,7 +57,7 @@ def test_priors_follow_the_sheet_kind():
     sd_lab, sd_sheet = prior_sd(lab.plant, lab.factor), prior_sd(sheet.plant, sheet.factor)
     assert sd_lab["plant.Ks"] == pytest.approx(math.log(2.0) / 1.96)
     assert sd_sheet["plant.Ks"] == pytest.approx(math.log(1.2) / 1.96)
-    assert sd_lab["plant.zeta_link"] == sd_sheet["plant.zeta_link"] == pytest.approx(math.log(3.0) / 1.96)
+    assert sd_lab["plant.zeta_link"] == sd_sheet["plant.zeta_link"] == pytest.approx(math.log(10.0) / 1.96)
     for p in COMBOS:
         assert sd_lab[p] > 3 * sd_sheet[p]
     # a parameter's own uncertainty wins over its sheet's

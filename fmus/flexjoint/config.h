@@ -38,7 +38,8 @@
     X(alpha_start, 22, 0.0)      \
     X(theta_dot_start, 23, 0.0)  \
     X(alpha_dot_start, 24, 0.0)  \
-    X(stribeck_speed, 25, 0.0)
+    X(stribeck_speed, 25, 0.0)  \
+    X(u_offset, 26, 0.0)
 #define INTEGER_PARAMETERS(X)    \
     X(n_modes, 12, 1)            \
     X(hub_locked, 20, 0)

@@ -16,7 +16,7 @@
  * static tip load (a_i = tau / k_i) reads the static tip deflection.
  *
  * Motor at the load shaft: tau_m = G v - Bemf omega_m, G = eta_g Kg eta_m kt / Rm, Bemf = G Kg km,
- * v = clamp(u, +-amp_limit) when amp_limit > 0.
+ * v = clamp(u + u_offset, +-amp_limit) (no clamp when amp_limit = 0): u_offset is the amplifier's input offset.
  *
  * Integration: classical RK4 with a fixed internal step h = comm_step / ceil(comm_step / h_max),
  * h_max = min(internal_step, 2 / rho), rho an upper estimate of the spectral radius of the linear
@@ -606,8 +606,8 @@ static fmi2Status integrate(ModelInstance *comp, double h, double u, double tau)
     const double tau_now = d->tau_tip;
     double nsub_d;
     long nsub, k;
-    d->v_amp = u;
-    if (d->amp_limit > 0) d->v_amp = fmin(fmax(u, -d->amp_limit), d->amp_limit);
+    d->v_amp = u + d->u_offset;
+    if (d->amp_limit > 0) d->v_amp = fmin(fmax(d->v_amp, -d->amp_limit), d->amp_limit);
     nsub_d = ceil(h / d->h_max - 1e-9);
     if (nsub_d < 1) nsub_d = 1;
     if (nsub_d > 1e9) {

@@ -26,21 +26,7 @@ The data flow, one module per step:
    the verdict: a recalibrated parameter at its search bound (the spec may not describe the rig), one the data do
    not determine (95 % interval wider than a factor 100).
 
-Verdict: ``none`` when the held-out gap after recalibration is within NONE_RATIO (2) x the floor and no lattice
-(``quantization`` with one; NONE_RATIO_LOOP, 1.25, where every experiment is a closed-loop replay and the floor
-is therefore simulated: a replay runs with the data's noise, and the floor is what another noise draw leaves);
-otherwise the effect found whose removal reopens most of the gap (drop-one), if the effects found close >=
-EXPLAINED (50 %) of the excess squared gap left after recalibration on held-out data;
-else ``unexplained`` (no candidate closes a meaningful part of the gap; they stay listed with their honest
-shrink). A candidate enters when its screening or joint closure reaches MIN_CLOSURE (0.25; effects that only pay
-together, like the lab's delay, friction and second mode once the linear parameters compensate each alone, enter
-on their screening against the spec's rig) and it lowers the held-out gap; an effect whose removal reopens less
-than DROP_MIN (5 %) of the excess gap is dropped again, unless it still closes MIN_CLOSURE of what is left without
-it. Measured on the blind test, twin and independent simulator
-(tests/indeprig.py): in-library effects on the twin close 99-100 %; on the independent rigs 99-100 %, except a
-contact-spring backlash that bounces, against the twin's plastic impacts, 53-71 % (named, fitted within 10 %);
-the nearest candidate to an out-of-library sensor effect (a drifting gauge gain, the pot's linearity error)
-closes 0-18 %.
+Verdict and the rule that reaches it: :class:`harness.diagnosis.search.Policy`.
 """
 
 from __future__ import annotations
@@ -63,45 +49,50 @@ from .experiments import REPLAYS, RigExperiment, fold_experiments, load_experime
 from .gauge import gauge_delay
 from .noise import noise_floor
 from .replays import write_replays
-from .result import Diagnosis, FittedParameter, Folds, SensorCalibration, Thresholds
+from .result import Diagnosis, FittedParameter, Folds, RecordSensors, RigFit, SensorCalibration, Thresholds
 from .rigmodel import prior_sd
-from .search import (
-    EXPLAINED,
-    GAP_RESOLUTION,
-    MIN_CLOSURE,
-    NONE_RATIO,
-    NONE_RATIO_LOOP,
-    SPREAD_DIVERGENCE,
-    SPREAD_GAIN,
-    search,
-)
-from .simulation import Setup, fit_pct, fmu_value, lattice_in_loop, replay_noise, sim_rig
-from .tasks import SENSOR_CHANNELS, Pool
+from .search import POLICY, Policy, SearchResult, search
+from .simulation import Setup, fit_pct, fmu_value, lattice_in_loop, offset_key, replay_noise, sim_rig
+from .tasks import SENSOR_CHANNELS, Pool, Replay, Where
 
-__all__ = ["EXPLAINED", "GAP_RESOLUTION", "MIN_CLOSURE", "NONE_RATIO", "NONE_RATIO_LOOP", "THRESHOLDS", "diagnose_run"]
+__all__ = ["diagnose_run", "priors", "thresholds"]
 
 Progress = Callable[[str], None]
 MIN_RECORDS = 2  # an import of this many records or more: each also recalibrated alone, the effects found held
 
-THRESHOLDS = Thresholds(
-    none_ratio=NONE_RATIO,
-    min_closure=MIN_CLOSURE,
-    explained=EXPLAINED,
-    resolution=GAP_RESOLUTION,
-    meaning="floor = max(noise gap, resolution); none: the held-out gap after recalibrating the linear "
-    "parameters <= none_ratio x floor (and no ADC lattice); an effect is added when, fitted on top of the "
-    "recalibrated rig, it closes >= min_closure of the excess squared gap left on held-out data; the verdict "
-    "names the effect whose removal reopens most of the gap when the effects together close >= explained "
-    "of the excess left after recalibration, else unexplained; none_ratio_loop in place of none_ratio when every "
-    "experiment is a closed-loop replay on no ADC lattice (the floor then simulated: the replay with the data's "
-    "noise against the same with another noise draw); where every experiment is a closed-loop replay and a gap "
-    "beyond the floor is left, an effect the loop does not reproduce sample by sample (backlash) is tested by its "
-    "spread: kept when, with it, the replays' gap is their own spread between noise draws window by window "
-    "(held-out divergence <= spread_divergence and <= spread_gain x that without it)",
-    none_ratio_loop=NONE_RATIO_LOOP,
-    spread_divergence=SPREAD_DIVERGENCE,
-    spread_gain=SPREAD_GAIN,
-)
+
+def thresholds(policy: Policy) -> Thresholds:
+    """The policy's thresholds as diagnosis.json records them."""
+    return Thresholds(policy.none_level, policy.min_gain, policy.explained, policy.resolution, policy.meaning())
+
+
+def _rig_fit(found: SearchResult) -> RigFit:
+    """The fitted rig as its replays use it, with the covariance of what was fitted."""
+    fit = found.final_fit
+    over = {k: float(v) for k, v in sorted(found.final.items())}
+    return RigFit(over, list(fit.names), list(fit.log), [list(r) for r in fit.cov])
+
+
+def _sensors(found: SearchResult, experiments: dict[str, RigExperiment]) -> dict[str, RecordSensors]:
+    """Each record's gauge offset as fitted (a closed loop's, with its interval) or as an open loop's least squares
+    took it (its reading at rest), and where its replay started the link."""
+    out: dict[str, RecordSensors] = {}
+    for x in experiments.values():
+        if x.record in out:
+            continue
+        key = offset_key(x.record)
+        if key in found.final:
+            lo, hi = found.final_fit.ci95.get(key, (math.nan, math.nan))
+            offset = [float(found.final[key]), float(lo), float(hi)]
+        else:
+            offset = [float(x.alpha_rest), math.nan, math.nan]
+        start = x.start_state
+        out[x.record] = RecordSensors(
+            gauge_offset_deg=offset,
+            link_start_deg=math.degrees(start["alpha_start"]) - offset[0] if "alpha_start" in start else None,
+            link_rate_start_deg_s=math.degrees(start["alpha_dot_start"]) if "alpha_dot_start" in start else None,
+        )
+    return out
 
 
 def _replays(experiments: dict[str, RigExperiment]) -> dict[str, dict[str, str]]:
@@ -182,6 +173,7 @@ def diagnose_run(
     fmus: dict[str, Path] | None = None,
     replay: str = "auto",
     force: bool = False,
+    policy: Policy = POLICY,
 ) -> Diagnosis:
     """Diagnose the gap between run directory ``real`` and the simulation spec ``sim`` (a path, a name in specs/ or a
     loaded Spec); the candidates are fitted as tasks of a :class:`harness.executor.Executor` (``workers`` processes of
@@ -194,7 +186,8 @@ def diagnose_run(
     and its replays beside the record, per stage (as given, recalibrated, with the effects:
     ``diagnosis.replays.parquet``, :mod:`harness.diagnosis.replays`), and returns it as a
     :class:`harness.diagnosis.result.Diagnosis`; the sha256 of the real run's data and calibration go to out's manifest,
-    the wall-clock seconds to ``diagnosis.timing.json``, so that diagnosis.json is byte-stable."""
+    the wall-clock seconds to ``diagnosis.timing.json``, so that diagnosis.json is byte-stable. ``policy``: the rule
+    that decides (:class:`harness.diagnosis.search.Policy`)."""
 
     t0 = time.perf_counter()
     say = progress or (lambda _m: None)
@@ -222,42 +215,34 @@ def diagnose_run(
     experiments, folds = fold_experiments(records)
     fmus = fmus or build_all()
     shipped = {k: fmu_bytes(fmus[k]) for k in ("flexjoint", "daq", "controller") if k in fmus}
-    noise, e_noise = noise_floor(records, adc_range, cal, experiments)
-    closed = any(x.replay == "closed" for x in experiments.values())
+    noise, _ = noise_floor(records, adc_range, cal, experiments)
     sigma = {"theta": noise.theta_deg, "alpha": noise.alpha_deg}  # [deg], an ADC's quantisation included
     lattice = replay_noise(daq, noise.estimated_deg) if noise.adc_lattice_bits and noise.estimated_deg else {}
     prior, rel_se = priors(sim_spec, cal.gain_rel_se(), all(x.encoder for x in experiments.values()))
-    setup = Setup(plant, daq, cal.comb_angles, experiments, shipped, replay_noise(daq, sigma), lattice, rel_se, prior)
+    setup = Setup(plant, daq, cal.comb_angles, experiments, shipped, replay_noise(daq, sigma), lattice, rel_se, prior,
+                  sigma)  # fmt: skip
     top = max(x.peak_command_v for x in experiments.values())
     cands = candidates(CandidateContext(plant, daq, top, noise.adc_lattice_bits))
     pool = Pool(setup, workers, scheduler, progress)
     try:
         imported = Manifest.load(real).kind == "import"
         unit = list(experiments) if imported and len(records) >= MIN_RECORDS else None
-        found = search(
-            pool, experiments, (folds.A, folds.B), cands, e_noise, say, sigma, unit, imported and len(records) > 1
-        )
+        found = search(pool, experiments, (folds.A, folds.B), cands, say, policy, unit)
         # after recalibration: what recalibration alone fitted (the waterfall's stage), not the final joint refit
         stages = {"given": {}, "recalibrated": found.recalibrated, "effects": found.final}
-        before, after, *traces = pool.map(
-            [("where", {}), ("where", found.recalibrated), *(("replay", over) for over in stages.values())]
-        )  # as tasks: side by side
+        before, after, *traces = pool.map([Where({}), Where(found.recalibrated), *(Replay(o) for o in stages.values())])
     finally:
         pool.close()
     after["parameters"] = dict(sorted(found.recalibrated.items()))
     where = {"before": before, "after_recalibration": after, "masked": masked_share(experiments)}
-    if closed:
+    noise = replace(noise, gap=math.sqrt(found.floor.msg), fit_pct=fit_pct(found.floor.msg))
+    if any(x.replay == "closed" for x in experiments.values()):
         less = " (less the lattice's LSB^2 / 12 where the replay's ADC quantises: it adds that)" if lattice else ""
         adc_in_loop = lattice_in_loop(setup, found.final, list(experiments))
         powell = "; a replay through an ADC fitted without derivatives" if adc_in_loop else ""
-        loop = (
-            f"closed-loop replays: each simulated with the data's noise{less} fed back through its controller, the "
-            f"floor what another noise draw leaves on the recalibrated rig{powell}; none within "
-            f"{found.none_ratio:g}x it"
-        )
-        noise = replace(
-            noise, gap=math.sqrt(found.noise), fit_pct=fit_pct(found.noise), method=f"{noise.method}; {loop}"
-        )
+        loop = (f"closed-loop replays: each simulated with the data's noise{less} fed back through its controller, "
+                f"its spread the replays with {policy.draws} other noise draws{powell}")  # fmt: skip
+        noise = replace(noise, method=f"{noise.method}; {loop}")
     diagnosis = Diagnosis(
         real=os.path.relpath(real, dest),  # relative to diagnosis.json, so a moved run dir stays the same bytes
         sim_spec=sim_spec.name if isinstance(sim, specmod.Spec) else str(sim),
@@ -278,10 +263,12 @@ def diagnose_run(
         rounds=found.rounds,
         gap=found.gap,
         noise_floor=noise,
-        thresholds=THRESHOLDS,
+        thresholds=thresholds(policy),
         where=where,
         replays=_replays(experiments),
         caveats=_caveats(found.parameters, found.verdict, folds, [e.effect for e in found.effects]),
+        rig=_rig_fit(found),
+        sensors=_sensors(found, experiments),
     ).rounded()
     diagnosis.write(RunDir(dest).diagnosis)
     write_replays(RunDir(dest).diagnosis_replays, experiments, dict(zip(stages, traces, strict=True)))

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy.optimize import least_squares
 from scipy.signal import savgol_filter
 
 from .. import spec as specmod
@@ -70,6 +71,8 @@ LINK_START_SHARE = 0.1  # ... or its link is deflected by this share of its larg
 SMOOTH_SECONDS = 0.02  # s: window of the smoothed rates of the measured state (a multiple-shooting start)
 START_WINDOWS = 4  # a record's start rates: a cubic over SMOOTH_SECONDS x 1, 2, 4, 8, the widest that agrees ...
 START_AGREE = 3.0  # ... with every narrower one's slope within this many of that one's standard errors
+RING_SECONDS = 1.0  # s: a record's first stretch, where its link's ring at the start is read, is at most this long
+RING_PERIODS = 1.5  # ... and holds at least this many periods of what it shows
 
 
 @dataclass
@@ -112,8 +115,11 @@ class RigExperiment:
     replay_reason: str = "an open-loop experiment: its command replayed as logged"
     encoder: bool = False
     lattice_deg: dict[str, float] | None = None
+    record: str = ""
+    measured_start: dict[str, float] | None = None
 
     def __post_init__(self) -> None:
+        self.record = self.record or self.name
         self.n_fit = min(self.u.size, max(16, int(round(FIT_SECONDS / self.Ts))))
         for c in CHANNELS:
             self.valid.setdefault(c, np.ones(self.u.size, dtype=bool))
@@ -127,15 +133,20 @@ class RigExperiment:
 
     @cached_property
     def start_state(self) -> dict[str, float]:
-        """The measured state a replay of a record that starts in motion starts from, as plant parameters
-        (alpha_start [rad], theta_dot_start, alpha_dot_start [rad/s]): a record cut from a longer run, whose hub rate
-        at its first sample (a cubic through its first SMOOTH_SECONDS) is above the hub rate's RMS over the record and
-        START_SE of its standard errors, or whose link is deflected there (from the median reading) by more than
-        LINK_START_SHARE of its largest deflection and START_SE standard errors (a soft link still swinging where a
-        cut found the hub slow); {} for one that starts at rest (one driven from rest, by its reference's step, has
-        no rate at its first sample: the cubic's slope there is its noise; a parabola's is not, where the drive's
-        torque jerks the hub). The link's state is read ``gauge_delay`` samples on (the DAQ's, when the gauge reads
-        late)."""
+        """The state a replay starts from, as the sensors read it (plant parameters alpha_start [rad of the
+        gauge's reading, its offset included], theta_dot_start, alpha_dot_start [rad/s]; the replay converts them
+        with the fitted gains and the record's gauge offset, :func:`harness.diagnosis.simulation.true_state`).
+
+        A part cut from a record starts where the record was (:attr:`measured_start`). Otherwise the link's state
+        comes from its ring at the start (:attr:`link_ring`: amplitude and phase from the data), where the record's
+        first stretch holds one; else from a cubic through its first SMOOTH_SECONDS where it is deflected there
+        (from the median reading) by more than LINK_START_SHARE of its largest deflection and START_SE standard
+        errors. The hub's rate is set where it is above the hub rate's RMS over the record and START_SE of its
+        standard errors (a record cut from a longer run; one driven from rest by its reference's step has no rate
+        at its first sample: the cubic's slope there is its noise). The link's state is read ``gauge_delay``
+        samples on (the DAQ's, when the gauge reads late)."""
+        if self.measured_start is not None:
+            return dict(self.measured_start)
         head = max(6, int(round(SMOOTH_SECONDS / self.Ts)))
         lag = int(self.daq.get("gauge_delay", 0))
         if self.u.size < 4 * head + lag:
@@ -143,14 +154,43 @@ class RigExperiment:
         t = np.arange(head) * self.Ts
         x = measured_state(self)
         v0, se = (abs(v) for v in _cubic_start(t, x[:head, 0], 1))
+        moving = v0 > START_SE * se and v0 > float(np.sqrt(np.mean(x[:, 2] ** 2)))
+        state = {"theta_dot_start": _start_rate(x[:, 0], self.Ts)} if moving else {}
+        ring = self.link_ring
+        if ring is not None:
+            return {**state, **ring.start()}
         rest = float(np.median(x[:, 1]))  # the gauge's zero as the record shows it: an offset is no deflection
         a0, se_a = (abs(v) for v in _cubic_start(t, x[lag : lag + head, 1] - rest, 0))
-        moving = v0 > START_SE * se and v0 > float(np.sqrt(np.mean(x[:, 2] ** 2)))
         deflected = a0 > START_SE * se_a and a0 > LINK_START_SHARE * float(np.max(np.abs(x[:, 1] - rest)))
         if not (moving or deflected):
             return {}
         rates = {"theta_dot_start": _start_rate(x[:, 0], self.Ts), "alpha_dot_start": _start_rate(x[lag:, 1], self.Ts)}
         return {"alpha_start": float(x[lag, 1]), **rates}
+
+    @cached_property
+    def link_ring(self) -> Ring | None:
+        """The link's ring over the record's first stretch (until its reference, or an open loop's command, first
+        changes; at most RING_SECONDS), read ``gauge_delay`` samples on: :func:`fit_ring`; None where that stretch
+        is too short to hold RING_PERIODS periods of what it shows."""
+        lag = int(self.daq.get("gauge_delay", 0))
+        drive = self.ref if self.ref is not None else self.u
+        moved = np.flatnonzero(np.abs(drive - drive[0]) > 1e-9 * max(float(np.max(np.abs(drive))), 1e-12))
+        end = min(int(moved[0]) if moved.size else drive.size, int(round(RING_SECONDS / self.Ts)), self.u.size - lag)
+        return fit_ring(self.alpha[lag : lag + end], self.Ts) if end > 0 else None
+
+    @cached_property
+    def alpha_rest(self) -> float:
+        """The gauge's reading of the link at rest [deg] as the record shows it (its offset: where a replay's gauge
+        offset starts): the ring's centre where the record starts with one (:attr:`link_ring`), else the median of
+        alpha over the record's quietest QUIET_SECONDS (:func:`_quietness`)."""
+        ring = self.link_ring
+        if ring is not None:
+            return ring.offset_deg
+        w = max(1, int(round(QUIET_SECONDS / self.Ts)))
+        if self.u.size <= w:
+            return float(np.median(self.alpha))
+        i = int(np.argmin(_quietness(self)[w // 2 : self.u.size - w // 2])) if self.u.size > w else 0
+        return float(np.median(self.alpha[i : i + w]))
 
     def window(self, which: str) -> tuple[int, dict[str, float]]:
         """(samples, sst per channel) of a window: "all", "fit" (first FIT_SECONDS), "screen" (SCREEN_SECONDS)."""
@@ -164,6 +204,57 @@ class RigExperiment:
     def peak_command_v(self) -> float:
         """max |u| [V]."""
         return float(np.max(np.abs(self.u)))
+
+
+@dataclass(frozen=True)
+class Ring:
+    """A link ringing freely over a record's first stretch, as the gauge reads it [deg]: alpha(t) = offset_deg +
+    exp(-decay t) (a_deg cos(omega t) + b_deg sin(omega t)), ``omega`` [rad/s], ``decay`` [1/s]."""
+
+    offset_deg: float
+    a_deg: float
+    b_deg: float
+    omega: float
+    decay: float
+
+    def start(self) -> dict[str, float]:
+        """The link's state at t = 0 as the gauge reads it, as plant parameters: alpha_start [rad] (the offset
+        included) and alpha_dot_start [rad/s]."""
+        return {
+            "alpha_start": math.radians(self.offset_deg + self.a_deg),
+            "alpha_dot_start": math.radians(self.omega * self.b_deg - self.decay * self.a_deg),
+        }
+
+
+def _ring_basis(t: np.ndarray, omega: float, decay: float) -> np.ndarray:
+    env = np.exp(-decay * t)
+    return np.column_stack([np.ones_like(t), env * np.cos(omega * t), env * np.sin(omega * t)])
+
+
+def fit_ring(y: np.ndarray, Ts: float) -> Ring | None:
+    """A damped sinusoid about an offset fitted to ``y`` [deg] sampled at ``Ts`` [s] (:class:`Ring`): the frequency
+    of the largest peak of its spectrum (zero-padded), then frequency and decay by least squares with the offset and
+    the amplitudes solved linearly at each step. None when ``y`` holds less than RING_PERIODS periods of it (or fewer
+    than 16 samples)."""
+    n = y.size
+    if n < 16 or np.ptp(y) <= 0:
+        return None
+    t = np.arange(n) * Ts
+    spec = np.abs(np.fft.rfft((y - y.mean()) * np.hanning(n), 8 * n))
+    f = np.fft.rfftfreq(8 * n, Ts)
+    k = 1 + int(np.argmax(spec[1:]))
+    omega0 = 2.0 * math.pi * float(f[k])
+    if omega0 * n * Ts < 2.0 * math.pi * RING_PERIODS:
+        return None
+
+    def resid(p: np.ndarray) -> np.ndarray:
+        basis = _ring_basis(t, p[0], p[1])
+        return basis @ np.linalg.lstsq(basis, y, rcond=None)[0] - y
+
+    fit = least_squares(resid, [omega0, 0.0], bounds=([0.5 * omega0, -0.5 * omega0], [2.0 * omega0, omega0]))
+    omega, decay = (float(v) for v in fit.x)
+    c, a, b = (float(v) for v in np.linalg.lstsq(_ring_basis(t, omega, decay), y, rcond=None)[0])
+    return Ring(c, a, b, omega, decay) if omega * n * Ts >= 2.0 * math.pi * RING_PERIODS else None
 
 
 def command_period(u: np.ndarray, hint: int = 0) -> int:
@@ -514,7 +605,8 @@ def _part(x: RigExperiment, a: int, b: int, bla: bool, state: np.ndarray) -> Rig
     (command, angles, volts, valid samples, reference), the replay, controller and sensor kept. Its replay starts
     at the measured angle (the simulation's own default); an open-loop part after the first starts from the
     measured state (``state``: :func:`measured_state` of the record: theta, alpha and their rates as the plant's
-    start values), since the rig may be moving there and nothing pulls an open-loop replay back; a closed-loop one
+    start values, as read: :attr:`RigExperiment.measured_start`), since the rig may be moving there and nothing
+    pulls an open-loop replay back; a closed-loop one
     at rest (its feedback does, and the measured rates at a quiet point are the noise's), a multiple-shooting one
     from the measured state at each window (its own restarts). A periodic command's period is kept when the part
     starts on a whole period and holds >= 2, its multisine lines when ``bla`` too (its BLA)."""
@@ -531,8 +623,9 @@ def _part(x: RigExperiment, a: int, b: int, bla: bool, state: np.ndarray) -> Rig
         alpha=x.alpha[s],
         theta_v=x.theta_v[s],
         alpha_v=x.alpha_v[s],
-        plant={**x.plant, **start},
+        plant=dict(x.plant),
         daq=dict(x.daq),
+        measured_start=start or None,
         period=x.period if periodic else 0,
         lines=x.lines if periodic and bla else None,
         valid={c: v[s] for c, v in x.valid.items()},

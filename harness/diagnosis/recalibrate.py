@@ -29,7 +29,8 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Collection, Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 from scipy.optimize import OptimizeResult, least_squares, minimize
@@ -62,7 +63,12 @@ LINEAR: dict[str, Bound] = {
     "plant.zeta_link": Bound(0.05, 30.0, "1", "link damping ratio", part=LINK),
     "sensor.theta_gain": Bound(0.25, 4.0, "1", "hub angle sensor's gain (reading per true angle)", part=SENSOR),
     "sensor.alpha_gauge_gain": Bound(0.1, 10.0, "1", "strain gauge's gain (reading per true angle)", part=SENSOR),
+    "plant.u_offset": Bound(-2.0, 2.0, "V", "command offset (the amplifier's input zero)", log=False, part=DRIVE),
 }
+# a record's own gauge offset [deg] as the record reads it (harness.diagnosis.simulation.offset_key), fitted with the
+# linear parameters where a closed loop acts on it
+RECORD_OFFSET = Bound(-30.0, 30.0, "deg", "gauge offset (the gauge's reading of the link at rest)", log=False,
+                      part=SENSOR)  # fmt: skip
 # the physical values the fitted combos imply (rigmodel.to_plant), reported beside them: (plain name, unit)
 IMPLIED: dict[str, tuple[str, str]] = {
     "plant.Jeq": ("hub inertia", "kg m^2"),
@@ -89,7 +95,8 @@ POWELL_XTOL = 0.01  # a derivative-free fit's smallest step: 1 % of a parameter 
 class Fit:
     """Least-squares result: ``values`` (parameter -> fitted value), ``ci95`` (parameter -> (lo, hi)), ``cost``
     = sum of squared residuals at the solution, ``nfev`` simulations used, ``n`` residuals that count, ``held``
-    the parameters the data did not determine, kept at their nominal value."""
+    the parameters the data did not determine, kept at their nominal value; ``cov`` the covariance of the fitted
+    parameters ``names`` in the fit's coordinates (the log of the value on a log scale, the value otherwise)."""
 
     values: dict[str, float]
     ci95: dict[str, tuple[float, float]]
@@ -97,6 +104,8 @@ class Fit:
     nfev: int
     n: int
     held: tuple[str, ...] = ()
+    names: tuple[str, ...] = ()
+    cov: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
 
 
 def _to_x(value: float, nominal: float, b: Bound) -> float:
@@ -123,6 +132,7 @@ def fit(
     calibration: tuple[np.ndarray, np.ndarray] | None = None,
     prior: Mapping[str, float] | None = None,
     max_rho: float = 0.999,
+    local: Mapping[str, np.ndarray] | None = None,
 ) -> Fit:
     """Fit the parameters of ``bounds`` (FMU names, "plant.Ks") by bounded least squares on ``residuals``
     (parameter dict -> residual vector; ``fixed`` overrides are added to every call), from ``start`` (default
@@ -130,10 +140,12 @@ def fit(
     lattice, see the module; up to (parameters + 1) ``max_nfev`` evaluations); ``calibration``: how the residuals
     move with the log of each sensor gain (residuals x gains) and the gains' standard errors, which the intervals
     hold; ``prior``: a parameter's prior standard deviation [log] about ``nominal``, weighed against the residuals'
-    variance per independent sample (:func:`effective_samples` up to ``max_rho``; see the module). Returns the fit
+    variance per independent sample (:func:`effective_samples` up to ``max_rho``; see the module); ``local``: a
+    parameter that moves only some residuals (a record's own gauge offset), with the mask of those residuals: such
+    parameters with disjoint masks share one simulation of the Jacobian (:func:`grouped_jacobian`). Returns the fit
     with 95 % intervals from the Jacobian (and the priors); those of ``hold`` that the data do not determine are
     kept at ``nominal`` (see the module)."""
-    f = _fit(residuals, bounds, nominal, start, fixed, max_nfev, derivative_free, calibration, prior, max_rho)
+    f = _fit(residuals, bounds, nominal, start, fixed, max_nfev, derivative_free, calibration, prior, max_rho, local)
     loose = [n for n in bounds if n in hold and not identifiable(f.ci95[n])]
     if not loose:
         return f
@@ -152,6 +164,7 @@ def fit(
             calibration,
             prior,
             max_rho,
+            local,
         )
     else:  # nothing left to fit: the cost at the spec's values
         r = residuals({**(fixed or {}), **at_spec})
@@ -160,7 +173,7 @@ def fit(
         return replace(f, nfev=f.nfev + g.nfev)  # the spec's value fits clearly worse: the free fit stands
     values = {n: g.values.get(n, at_spec.get(n)) for n in bounds}
     ci = {n: g.ci95.get(n, f.ci95[n]) for n in bounds}
-    return Fit(values, ci, g.cost, f.nfev + g.nfev, g.n, tuple(loose))
+    return Fit(values, ci, g.cost, f.nfev + g.nfev, g.n, tuple(loose), g.names, g.cov)
 
 
 def _fit(
@@ -174,6 +187,7 @@ def _fit(
     calibration: tuple[np.ndarray, np.ndarray] | None = None,
     prior: Mapping[str, float] | None = None,
     max_rho: float = 0.999,
+    local: Mapping[str, np.ndarray] | None = None,
 ) -> Fit:
     """:func:`fit`'s one bounded least squares (or Powell search)."""
     names = list(bounds)
@@ -209,6 +223,13 @@ def _fit(
     def full(x: np.ndarray) -> np.ndarray:
         return np.concatenate([data(x), math.sqrt(w2) * x[sel] / sd[sel]]) if sel.any() else data(x)
 
+    masks = [None if local is None else local.get(n) for n in names]
+    jac: Any = "2-point"
+    if any(m is not None for m in masks):
+
+        def jac(x: np.ndarray) -> np.ndarray:
+            return grouped_jacobian(full, x, lo_hi, masks, sel)
+
     nfev, before = 0, None
     for _ in range(PRIOR_PASSES):  # the start's variance overweights the prior: again with the solution's
         if derivative_free:
@@ -219,6 +240,7 @@ def _fit(
                 x0,
                 bounds=([b[0] for b in lo_hi], [b[1] for b in lo_hi]),
                 method="trf",
+                jac=jac,
                 diff_step=1e-3,
                 x_scale=1.0,
                 max_nfev=max_nfev,
@@ -252,7 +274,58 @@ def _fit(
         lo = _from_x(float(res.x[i] - 1.96 * se[i]), nominal[n], bounds[n])
         hi = _from_x(float(res.x[i] + 1.96 * se[i]), nominal[n], bounds[n])
         ci[n] = (min(lo, hi), max(lo, hi))
-    return Fit({n: values[n] for n in names}, ci, float(np.sum(r**2)), nfev, n_eff)
+    sd_cov = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
+    cov = cov / np.outer(sd_cov, sd_cov) * np.outer(se, se)  # the correlations, with the variances as capped
+    return Fit({n: values[n] for n in names}, ci, float(np.sum(r**2)), nfev, n_eff, (), tuple(names), cov)
+
+
+def grouped_jacobian(
+    fun: Callable[[np.ndarray], np.ndarray],
+    x: np.ndarray,
+    lo_hi: list[tuple[float, float]],
+    masks: list[np.ndarray | None],
+    prior_rows: np.ndarray,
+    step: float = 1e-3,
+) -> np.ndarray:
+    """The forward-difference Jacobian of ``fun`` at ``x`` (steps of ``step`` x max(1, |x|), backward at an upper
+    bound, as least squares takes them) where a column with a mask (``masks[j]``: the data rows it moves; None: every
+    row) moves only those rows: columns whose masks are disjoint are stepped together, one evaluation for the group.
+    ``prior_rows``: which parameters have a prior row after the data rows (in order), each moved by its own column
+    only."""
+    f0 = fun(x)
+    n_data = f0.size - int(np.sum(prior_rows))
+    prior_row = np.cumsum(prior_rows) - 1 + n_data
+    groups: list[list[int]] = [[j] for j, m in enumerate(masks) if m is None]
+    local: list[tuple[list[int], np.ndarray]] = []
+    for j, m in enumerate(masks):
+        if m is None:
+            continue
+        for cols, used in local:
+            if not np.any(used & m):
+                cols.append(j)
+                used |= m
+                break
+        else:
+            local.append(([j], m.copy()))
+    groups += [cols for cols, _ in local]
+    jac = np.zeros((f0.size, x.size))
+    for cols in groups:
+        h = np.zeros(x.size)
+        for j in cols:
+            h[j] = step * max(1.0, abs(float(x[j]))) * (1.0 if x[j] >= 0 else -1.0)
+            if not lo_hi[j][0] <= x[j] + h[j] <= lo_hi[j][1]:
+                h[j] = -h[j]
+        df = fun(x + h) - f0
+        for j in cols:
+            rows = np.zeros(f0.size, dtype=bool)
+            if masks[j] is None:
+                rows[:] = True
+            else:
+                rows[:n_data] = masks[j]
+            if prior_rows[j]:
+                rows[prior_row[j]] = True
+            jac[rows, j] = df[rows] / h[j]
+    return jac
 
 
 def effective_samples(r: np.ndarray, max_rho: float = 0.999) -> float:
@@ -365,6 +438,15 @@ def kept_finding(name: str, nominal: float) -> str:
     the held-out fit (not fitted)."""
     label, unit = _label_unit(name)
     return f"{label} kept at the spec's {nominal:.4g}{unit}: recalibrating did not improve the held-out fit"
+
+
+def offset_finding(name: str, fitted: float, ci95: tuple[float, float]) -> str:
+    """The sentence of an offset fitted about 0 (the command offset): "command offset (the amplifier's input zero)
+    -0.121 V (95 % interval -0.123..-0.119)", "... 0.002 V: none (95 % interval ...)" when the interval holds 0."""
+    b = LINEAR.get(name)
+    label, unit = (b.label, b.unit) if b else (name, "")
+    none = ": none" if ci95[0] <= 0.0 <= ci95[1] else ""
+    return f"{label} {fitted:+.3g} {unit}{none} (95 % interval {ci95[0]:+.3g}..{ci95[1]:+.3g})"
 
 
 def finding(name: str, nominal: float, fitted: float, ci95: tuple[float, float], prior: float | None = None) -> str:

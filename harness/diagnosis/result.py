@@ -42,6 +42,8 @@ __all__ = [
     "HeldOutGap",
     "NoiseFloor",
     "SensorCalibration",
+    "RecordSensors",
+    "RigFit",
     "Step",
     "Thresholds",
     "apart",
@@ -256,6 +258,7 @@ class Decomposition:
     steps: list[Step]
     definition: str
     channels: dict[str, dict[str, float]] | None = None
+    within_noise: bool | None = None
 
     def gap_channel(self, stage: str | None = None) -> str | None:
         """The channel that holds the gap at ``stage`` (default: the last one measured): the one that fits worse,
@@ -267,10 +270,10 @@ class Decomposition:
         """(stage, fit [%] per channel) for each stage of CHANNEL_STAGES that has them, in that order."""
         return [(s, self.channels[s]) for s in CHANNEL_STAGES if self.channels and s in self.channels]
 
-    def at_floor(self, ratio: float) -> bool:
-        """Is the gap left at the last stage with a fit per channel within ``ratio`` x the floor (max of the noise
-        floor and the resolution)? Then no channel holds a gap worth naming."""
-        return getattr(self, self.last_stage()) <= ratio * max(self.noise_floor, self.resolution)
+    def at_floor(self) -> bool:
+        """Is what is left at the last stage within the replays' own spread (:attr:`within_noise`)? Then no channel
+        holds a gap worth naming."""
+        return bool(self.within_noise)
 
     def last_stage(self) -> str:
         """The last stage whose fit per channel is known: "after_effects", "after_recalibration" or "before"."""
@@ -322,16 +325,37 @@ class NoiseFloor:
 
 @dataclass
 class Thresholds:
-    """The decision thresholds of the verdict (see :mod:`harness.diagnosis.diagnose`) and what they mean."""
+    """The decision thresholds of the verdict (:class:`harness.diagnosis.search.Policy`) and what they mean."""
 
-    none_ratio: float
-    min_closure: float
+    none_level: float
+    min_gain: float
     explained: float
     resolution: float
     meaning: str
-    none_ratio_loop: float | None = None  # in place of none_ratio where the floor is simulated, not estimated
-    spread_divergence: float | None = None  # an effect tested by its spread: held-out divergence at most this
-    spread_gain: float | None = None  # ... and at most this share of the divergence without it
+
+
+@dataclass
+class RigFit:
+    """The rig as the diagnosis fitted it: ``overrides`` exactly as its replays use them (the linear parameters as
+    the data determine them, ``rig.drive_gain`` ..., the effects found, the command offset, each record's gauge
+    offset ``sensor.alpha_offset@<record>`` [deg]), and the covariance of the fitted ones (``names``, in the fit's
+    coordinates: the natural log of the value where ``log``, the value otherwise)."""
+
+    overrides: dict[str, float]
+    names: list[str]
+    log: list[bool]
+    covariance: list[list[float]]
+
+
+@dataclass
+class RecordSensors:
+    """One record's sensors as fitted: the gauge's offset [deg] (its reading of the link at rest, in the record's own
+    zero: [fitted, lo, hi] where a closed loop fitted it, [value, nan, nan] where an open loop's least squares took
+    it), and where the replay started the link (its reading [deg] and rate [deg/s] at the first sample)."""
+
+    gauge_offset_deg: list[float]
+    link_start_deg: float | None = None
+    link_rate_start_deg_s: float | None = None
 
 
 # ----------------------------------------------------------------------------------------------- the file
@@ -364,6 +388,9 @@ class Diagnosis:
     where: dict[str, Any]
     replays: dict[str, dict[str, str]] | None = None
     caveats: list[str] | None = None
+    rig: RigFit | None = None
+    sensors: dict[str, RecordSensors] | None = None
+    behaviour: dict[str, Any] | None = None
 
     @classmethod
     def load(cls, path: str | os.PathLike[str]) -> Diagnosis:

@@ -22,8 +22,8 @@ keeps it: the feedback (or the restart) fixes the offset.
 
 Gap. Per experiment and channel q = ||y_real - y_sim||^2 / ||y_real - mean||^2 over valid samples; the mean
 squared gap E = mean q over experiments and channels (channels with no motion skipped), the gap g = sqrt(E), fit %
-= 100 (1 - g) (MATLAB ``compare``'s fit, pooled). A closed-loop replay's gap is also set beside its own spread
-between noise draws, window by window (:func:`loop_spread`), for effects the loop does not reproduce sample by sample.
+= 100 (1 - g) (MATLAB ``compare``'s fit, pooled). A replay's gap is also set beside its own spread, window by
+window (:func:`evaluate`): what the search scores.
 """
 
 from __future__ import annotations
@@ -54,9 +54,11 @@ __all__ = [
     "fit_pct",
     "fmu_value",
     "gap_summary",
-    "loop_noise_gap",
-    "loop_spread",
+    "gauge_offset",
+    "evaluate",
+    "fit_offset",
     "mean_squared_gap",
+    "offset_key",
     "replay_noise",
     "replay_traces",
     "residuals",
@@ -65,13 +67,16 @@ __all__ = [
     "simulate",
 ]
 
+ALPHA_OFFSET = "sensor.alpha_offset"  # a record's gauge offset [deg], per record: :func:`offset_key`
 SENSOR_DAQ = ("pot_gain", "pot_offset", "gauge_gain", "gauge_offset", "gauge_cubic")  # the calibration's DAQ parameters
 SSE = dict[str, dict[str, float]]  # experiment -> channel -> sum of squared residuals [deg^2]
 MODELS = {"plant": "flexjoint", "daq": "daq"}  # the FMU behind each rig table
 SENSOR_KNOWN = 0.01  # a sensor gain known to 1 % (sd, log) is not fitted: its error goes into the intervals
 REPLAY_NOISE_SEED = 7  # noise seed of every closed-loop replay (:attr:`Setup.loop_noise`)
-LOOP_NOISE_SEEDS = (1, 2)  # other seeds, whose replays against it measure what noise fed back leaves
-SPREAD_SECONDS = 0.25  # s: the windows in which a closed-loop replay's gap is set beside its spread (loop_spread)
+LOOP_NOISE_SEEDS = (1, 2, 3, 4)  # other seeds, whose replays against it show what noise fed back spreads
+PSEUDO_SEED = 11  # the noise draw of the record a right model would leave (:func:`evaluate`'s floor)
+OFFSET_STEP = 0.1  # deg: the step of a held-out record's gauge offset fit (:func:`fit_offset`)
+SPREAD_SECONDS = 0.25  # s: the windows in which a replay's gap is set beside its spread (:func:`evaluate`)
 
 
 @dataclass
@@ -83,7 +88,9 @@ class Setup:
     that noise without the LSB^2 / 12 of the ADC lattice the data sit on, for a replay whose own ADC quantises (its
     quantiser adds that share; {}: the data sit on no lattice, ``loop_noise`` throughout). ``gain_rel_se``: the
     relative standard error of the data's calibration gain per channel ({"theta": Kp's, "alpha": Ke's}; {}: not
-    known), which the fitted parameters' intervals hold (:func:`harness.diagnosis.recalibrate.fit`)."""
+    known), which the fitted parameters' intervals hold (:func:`harness.diagnosis.recalibrate.fit`); ``prior_sd``:
+    the prior sd [log] of each linear parameter; ``sigma_deg``: the data's noise RMS [deg] per channel (an ADC's
+    quantisation included)."""
 
     plant: dict[str, Any]
     daq: dict[str, Any]
@@ -94,6 +101,7 @@ class Setup:
     lattice_noise: dict[str, float] = field(default_factory=dict)
     gain_rel_se: dict[str, float] = field(default_factory=dict)
     prior_sd: dict[str, float] = field(default_factory=dict)
+    sigma_deg: dict[str, float] = field(default_factory=dict)
 
     @cached_property
     def sheet(self) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -170,30 +178,48 @@ def sim_calibration(daq: Mapping[str, Any], comb_angles: np.ndarray | None) -> C
     )
 
 
-def true_state(state: Mapping[str, float], over: Mapping[str, Any]) -> dict[str, float]:
+def offset_key(record: str) -> str:
+    """The override of a record's gauge offset: "sensor.alpha_offset@<record>" [deg, as the record reads it]."""
+    return f"{ALPHA_OFFSET}@{record}"
+
+
+def gauge_offset(exp: RigExperiment, over: Mapping[str, Any]) -> float:
+    """The gauge offset [deg] of ``exp``'s record in a replay with ``over``: the record's own override
+    (:func:`offset_key`), else its reading at rest (:attr:`RigExperiment.alpha_rest`)."""
+    return float(over.get(offset_key(exp.record), exp.alpha_rest))
+
+
+def true_state(state: Mapping[str, float], over: Mapping[str, Any], alpha_offset_deg: float = 0.0) -> dict[str, float]:
     """A measured start state (plant parameters theta_start, alpha_start [rad], theta_dot_start, alpha_dot_start
-    [rad/s], as read) as the true angles and rates that sensors with ``over``'s gains (reading = gain x true angle)
-    read so."""
+    [rad/s], as read) as the true angles and rates that sensors with ``over``'s gains (reading = gain x true angle +
+    offset, the gauge's ``alpha_offset_deg``) read so."""
     gain = {
         c: float(over.get(s, 1.0)) for c, s in (("theta", "sensor.theta_gain"), ("alpha", "sensor.alpha_gauge_gain"))
     }
-    return {k: v / gain[k.split("_", 1)[0]] for k, v in state.items()}
+    offset = {"alpha_start": math.radians(alpha_offset_deg)}
+    return {k: (v - offset.get(k, 0.0)) / gain[k.split("_", 1)[0]] for k, v in state.items()}
 
 
 def simulate(
     rig: Any, setup: Setup, exp: RigExperiment, over: Mapping[str, Any], n: int | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Simulated (theta, alpha) [deg] of one experiment (its first ``n`` samples) on the sim rig with ``over``
-    ({"plant.x": v, ...}), and the mask of the theta samples where the simulated pot is on its track."""
+    ({"plant.x": v, ...}), and the mask of the theta samples where the simulated pot is on its track.
+
+    The gauge reads its record's offset (:func:`gauge_offset`), which a closed loop's controller acts on; an
+    open-loop replay's offsets are then fitted by least squares (theta's: the integrator's unknown initial state, as
+    MATLAB's ``compare`` estimates it; alpha's: the gauge's zero, which nothing feeds back there)."""
     d_over = _split_overrides(over)[1]
+    delta = gauge_offset(exp, over)
     plant, daq, believed = rig_tables(setup, exp, over)
+    daq["gauge_offset"] = fmu_value(daq, "daq", "gauge_offset") + delta / fmu_value(believed, "daq", "gauge_gain")
     noise = setup.lattice_noise if setup.lattice_noise and _quantises(setup, exp, d_over) else setup.loop_noise
     if exp.replay == "closed" and noise:
         daq = {**daq, **{k: v for k, v in noise.items() if k not in d_over}}
         daq["seed"] = d_over.get("seed", REPLAY_NOISE_SEED)
-    # at the angle read first, and a closed-loop record cut from a longer run where it was, as the sensors read them
-    start = {"theta_start": math.radians(float(exp.theta[0])), **(exp.start_state if exp.replay == "closed" else {})}
-    plant = {**true_state(start, over), **plant}
+    # at the angle read first, the link as the record shows it there, as the sensors read them
+    start = {"theta_start": math.radians(float(exp.theta[0])), **(exp.start_state if exp.replay != "shooting" else {})}
+    plant = {**plant, **true_state(start, over, delta)}
     if exp.replay == "closed":
         c = Controller(**exp.controller)  # type: ignore[arg-type]
         ctrl = c.fmu_parameters(1.0 / exp.Ts)
@@ -202,7 +228,7 @@ def simulate(
         ref = np.radians(delayed(exp.ref, c.ref_delay)[:n])  # type: ignore[arg-type]  # what the controller acted on
         res = rig.run_closed(ref, exp.Ts, ctrl, plant=plant, daq=daq, diverged="hold")
     elif exp.replay == "shooting":
-        res = _shooting(rig, exp, plant, daq, n, over)
+        res = _shooting(rig, exp, plant, daq, n, over, delta)
     else:
         res = rig.run(exp.u[:n], exp.Ts, plant=plant, daq=daq)
     cal = sim_calibration(believed, setup.comb_angles)
@@ -213,21 +239,31 @@ def simulate(
         edge = 180.0 - 0.5 * fmu_value(daq, "daq", "pot_deadband") - DEADBAND_GUARD
         on_track = np.abs(reading) < edge
     th = np.unwrap(reading, period=360.0)
+    al = alpha_deg(res["alpha_v"], cal)
     if exp.replay == "open":
         ok = on_track & exp.valid["theta"][: th.size]
         d = exp.theta[: th.size] - th
         th += float(np.mean(d[ok])) if ok.any() else float(np.mean(d))  # initial shaft angle: least squares
+        ok_a = exp.valid["alpha"][: al.size]
+        if ok_a.any():
+            al += float(np.mean((exp.alpha[: al.size] - al)[ok_a]))  # the gauge's zero: least squares
     else:  # started at the measured angle: only whole turns of the pot's wrap to restore
         th += 360.0 * np.round((exp.theta[0] - th[0]) / 360.0)
-    return th, alpha_deg(res["alpha_v"], cal), on_track
+    return th, al, on_track
 
 
 def _shooting(
-    rig: Any, exp: RigExperiment, plant: dict[str, Any], daq: dict[str, Any], n: int | None, over: Mapping[str, Any]
+    rig: Any,
+    exp: RigExperiment,
+    plant: dict[str, Any],
+    daq: dict[str, Any],
+    n: int | None,
+    over: Mapping[str, Any],
+    alpha_offset_deg: float,
 ) -> dict:
     """Multiple-shooting replay: the logged command open loop in windows of SHOOTING_SECONDS, each started from
-    the measured state (:func:`measured_state`, as the sensors of ``over`` read it); the windows' outputs end to
-    end."""
+    the measured state (:func:`measured_state`, as the sensors of ``over`` read it, the gauge with
+    ``alpha_offset_deg``); the windows' outputs end to end."""
     m = exp.u[:n].size
     w = max(2, int(round(SHOOTING_SECONDS / exp.Ts)))
     x0 = measured_state(exp)
@@ -235,7 +271,8 @@ def _shooting(
     for s in range(0, m, w):
         start = {"theta_start": x0[s, 0], "alpha_start": x0[s, 1], "theta_dot_start": x0[s, 2]}
         start["alpha_dot_start"] = x0[s, 3]
-        parts.append(rig.run(exp.u[s : min(s + w, m)], exp.Ts, plant={**plant, **true_state(start, over)}, daq=daq))
+        plant_s = {**plant, **true_state(start, over, alpha_offset_deg)}
+        parts.append(rig.run(exp.u[s : min(s + w, m)], exp.Ts, plant=plant_s, daq=daq))
     return {k: np.concatenate([p[k] for p in parts]) for k in ("theta_v", "alpha_v")}
 
 
@@ -325,73 +362,104 @@ def replay_noise(daq: Mapping[str, Any], sigma_deg: Mapping[str, float]) -> dict
     }
 
 
-def _loop_replays(rig: Any, setup: Setup, x: RigExperiment, over: Mapping[str, Any]) -> list[tuple[np.ndarray, ...]]:
-    """A closed-loop experiment's replay with the noise seed REPLAY_NOISE_SEED, then with each of LOOP_NOISE_SEEDS:
-    (theta, alpha, on_track) each (:func:`simulate`)."""
-    return [simulate(rig, setup, x, {**over, **({"daq.seed": s} if s else {})}) for s in (None, *LOOP_NOISE_SEEDS)]
+@dataclass(frozen=True)
+class Evaluation:
+    """One experiment replayed beside its own spread, per channel [deg^2 summed over its valid samples]: ``sse`` the
+    squared residual of the record to the replay; ``spread`` what the replay itself predicts there, window by window
+    (SPREAD_SECONDS): a closed loop's mean squared difference between the replay and its replays with other noise
+    draws (LOOP_NOISE_SEEDS: the noise its controller fed back, and both replays' measurement noise), an open loop's
+    the data's measurement noise, at least the resolution's; ``excess`` how far the record's gap is from that
+    spread, window by window (the sum of n |gap - spread| over windows of n samples: a replay that is right leaves
+    the noise's fluctuation, one that misses leaves its misfit, one that spreads more than the record its excess
+    spread). ``offset``: the record's gauge offset the replay read [deg] (fitted on it where the fit left none)."""
+
+    sse: dict[str, float]
+    excess: dict[str, float]
+    spread: dict[str, float]
+    offset: float
 
 
-def loop_noise_gap(
-    rig: Any, setup: Setup, over: Mapping[str, Any] | None = None, names: list[str] | None = None
-) -> dict[str, float]:
-    """The mean squared gap that measurement noise alone leaves on each closed-loop replay. The real rig's controller
-    acted on noisy samples, so its command, and the motion, carry noise fed back through the loop; a replay is
-    simulated with noise of the data's RMS (:attr:`Setup.loop_noise`, seed REPLAY_NOISE_SEED), which reproduces what
-    noise does on average (a dither that smooths Coulomb friction) but not its realisation. What remains is measured
-    as the gap between the replay and the same replay with the other LOOP_NOISE_SEEDS, on the rig as recalibrated
-    (``over``, {"plant.Ks": ...}; default the sim as given: how much a loop amplifies noise depends on the rig),
-    normalised as :func:`mean_squared_gap`. {experiment: E} for the experiments of ``names`` (default all) replayed
-    in closed loop (the measurement noise of both sides is part of it); none without :attr:`Setup.loop_noise`."""
-    over = dict(over or {})
-    out: dict[str, float] = {}
-    if not setup.loop_noise:
-        return out
-    for name in names if names is not None else list(setup.experiments):
-        x = setup.experiments[name]
-        if x.replay != "closed":
-            continue
-        (th0, al0, on0), *others = _loop_replays(rig, setup, x, over)
-        qs = []
-        for th, al, on in others:
-            ok = on & on0 & x.valid["theta"][: th.size]
-            sse = {"theta": float(np.sum((th - th0)[ok] ** 2)), "alpha": float(np.sum((al - al0) ** 2))}
-            qs += [sse[c] / x.sst[c] for c in CHANNELS if x.sst[c] > 0]
-        out[name] = float(np.mean(qs)) if qs else 0.0
-    return out
+def _weighted(exp: RigExperiment, th: np.ndarray, al: np.ndarray, on: np.ndarray) -> np.ndarray:
+    """An experiment's residuals to a replay, both channels, each over its valid samples and scaled by
+    1 / sqrt(sst) (what least squares weighs them by)."""
+    m = th.size
+    parts = []
+    for c, y in (("theta", th), ("alpha", al)):
+        if exp.sst[c] > 0:
+            ok = exp.valid[c][:m] & (on if c == "theta" else True)
+            parts.append(np.where(ok, (exp.theta if c == "theta" else exp.alpha)[:m] - y, 0.0) / math.sqrt(exp.sst[c]))
+    return np.concatenate(parts) if parts else np.zeros(0)
 
 
-def _window_sums(v: np.ndarray, w: int) -> np.ndarray:
-    """Sums of ``v`` over its consecutive whole windows of ``w`` samples (a last partial window left out)."""
-    n = v.size // w
-    return v[: n * w].reshape(n, w).sum(axis=1)
+def fit_offset(rig: Any, setup: Setup, exp: RigExperiment, over: Mapping[str, Any]) -> float:
+    """The gauge offset [deg] of ``exp``'s record that fits its replay with ``over`` best, by one Gauss-Newton step
+    from its reading at rest (:attr:`RigExperiment.alpha_rest`; exact where the loop is linear in it, as a loop
+    without friction or play is): a held-out record's own zero, fitted on it as its initial state would be."""
+    key, d0, h = offset_key(exp.record), exp.alpha_rest, OFFSET_STEP
+    r0 = _weighted(exp, *simulate(rig, setup, exp, {**over, key: d0}))
+    j = (_weighted(exp, *simulate(rig, setup, exp, {**over, key: d0 + h})) - r0) / h
+    jj = float(np.dot(j, j))
+    return d0 - float(np.dot(j, r0)) / jj if jj > 0 else d0
 
 
-def loop_spread(rig: Any, setup: Setup, over: Mapping[str, Any], names: list[str]) -> dict[str, dict[str, Any]]:
-    """A closed-loop replay's gap beside its own spread, window by window (SPREAD_SECONDS). Per experiment of
-    ``names`` replayed in closed loop and per channel: ``gap``, the squared residual of the data to the replay
-    [deg^2] summed over each window, and ``spread``, the same between the replay and its replays with the other
-    LOOP_NOISE_SEEDS (their mean), on the rig with overrides ``over``; ``samples``: a window's length. Where the
-    replay is right but the loop does not reproduce itself (a gear's play rattling in a phase the noise sets), the
-    two agree in every window; a systematic misfit shows where it lies. Samples not valid on either side count 0;
-    none without :attr:`Setup.loop_noise`."""
-    out: dict[str, dict[str, Any]] = {}
-    if not setup.loop_noise:
-        return out
-    for name in names:
-        x = setup.experiments[name]
-        if x.replay != "closed":
-            continue
-        (th0, al0, on0), *others = _loop_replays(rig, setup, x, over)
-        m = th0.size
-        w = max(1, int(round(SPREAD_SECONDS / x.Ts)))
-        ok0 = {"theta": on0 & x.valid["theta"][:m], "alpha": x.valid["alpha"][:m]}
-        sim0 = {"theta": th0, "alpha": al0}
-        data = {"theta": x.theta[:m], "alpha": x.alpha[:m]}
-        gap = {c: _window_sums(np.where(ok0[c], data[c] - sim0[c], 0.0) ** 2, w) for c in CHANNELS}
-        spread = {c: np.zeros(m // w) for c in CHANNELS}
-        for th, al, on in others:
-            ok = {"theta": ok0["theta"] & on, "alpha": ok0["alpha"]}
-            for c, y in (("theta", th), ("alpha", al)):
-                spread[c] += _window_sums(np.where(ok[c], y - sim0[c], 0.0) ** 2, w) / len(others)
-        out[name] = {"gap": gap, "spread": spread, "samples": w}
-    return out
+def _windows(v: np.ndarray, ok: np.ndarray, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """Sums of ``v`` over its valid samples (``ok``) and their counts, per window of ``w`` samples (the last one
+    partial)."""
+    edges = np.arange(0, v.size, w)
+    return np.add.reduceat(np.where(ok, v, 0.0), edges), np.add.reduceat(ok.astype(float), edges)
+
+
+def evaluate(
+    rig: Any,
+    setup: Setup,
+    exp: RigExperiment,
+    over: Mapping[str, Any],
+    draws: int,
+    pseudo: bool = False,
+    resolution: float = 0.0,
+) -> Evaluation:
+    """``exp`` replayed with ``over`` beside its own spread (:class:`Evaluation`): a closed loop with ``draws`` other
+    noise draws, its record's gauge offset fitted on it where ``over`` has none (:func:`fit_offset`). ``pseudo``:
+    the record replaced by what the replay itself would record with another noise draw (a closed loop's replay with
+    PSEUDO_SEED, an open loop's replay with the data's white noise): what a right model leaves, the floor.
+    ``resolution``: the smallest gap that counts, as a share of the record's RMS about its mean (a spread below it
+    is taken at it)."""
+    over = dict(over)
+    key = offset_key(exp.record)
+    closed = exp.replay == "closed" and bool(setup.loop_noise)
+    if exp.replay == "closed" and key not in over:
+        over[key] = fit_offset(rig, setup, exp, over)
+    th0, al0, on0 = simulate(rig, setup, exp, over)
+    m = th0.size
+    sims = {"theta": th0, "alpha": al0}
+    others = [simulate(rig, setup, exp, {**over, "daq.seed": s}) for s in LOOP_NOISE_SEEDS[:draws]] if closed else []
+    if pseudo and closed:
+        th, al, on = simulate(rig, setup, exp, {**over, "daq.seed": PSEUDO_SEED})
+        data, on0 = {"theta": th, "alpha": al}, on0 & on
+    elif pseudo:
+        rng = np.random.default_rng(PSEUDO_SEED)
+        data = {c: sims[c] + rng.normal(0.0, setup.sigma_deg.get(c, 0.0), m) for c in CHANNELS}
+    else:
+        data = {"theta": exp.theta[:m], "alpha": exp.alpha[:m]}
+    w = max(1, int(round(SPREAD_SECONDS / exp.Ts)))
+    out: dict[str, dict[str, float]] = {"sse": {}, "excess": {}, "spread": {}}
+    for c in CHANNELS:
+        ok = exp.valid[c][:m] & (on0 if c == "theta" else True)
+        r2 = (data[c] - sims[c]) ** 2
+        gap, count = _windows(r2, ok, w)
+        floor = max(setup.sigma_deg.get(c, 0.0) ** 2, resolution**2 * exp.sst[c] / max(exp.u.size, 1))
+        if others:
+            spread = np.zeros_like(gap)
+            for th, al, on in others:
+                y = th if c == "theta" else al
+                sub = ok & (on if c == "theta" else True)
+                s_sum, s_cnt = _windows((y - sims[c]) ** 2, sub, w)
+                spread += np.divide(s_sum, s_cnt, out=np.zeros_like(s_sum), where=s_cnt > 0) / len(others)
+            spread = np.maximum(spread, floor)
+        else:
+            spread = np.full(gap.shape, floor)
+        mean_gap = np.divide(gap, count, out=np.zeros_like(gap), where=count > 0)
+        out["sse"][c] = float(np.sum(gap))
+        out["excess"][c] = float(np.sum(count * np.abs(mean_gap - spread)))
+        out["spread"][c] = float(np.sum(count * spread))
+    return Evaluation(out["sse"], out["excess"], out["spread"], float(over.get(key, exp.alpha_rest)))

@@ -1,20 +1,17 @@
 """The diagnosis's simulations as tasks of a :class:`harness.executor.Executor`.
 
 The setup (simulation, real experiments, FMU bytes) is sent to every worker once and each worker loads the rig
-once. Nine tasks, given as ``(kind, *args)`` calls to :meth:`Pool.map`:
+once. A task is a frozen dataclass whose :meth:`run` does its work on the worker's rig:
 
-- ``("sse", over, names[, window])``: squared errors per experiment and channel with overrides ``over``;
-- ``("fit", effect, base, fit, every)``: :func:`screen_effect`, one effect's parameter alone on top of ``base``;
-- ``("refit", base, free, fit, every[, max_nfev])``: :func:`joint_refit`, the linear parameters (and the
-  continuous effect parameters ``free``) by output-error least squares;
-- ``("recal", fit, every[, start])``: :func:`recalibrate`, the linear parameters from a grid of the sheet's values
-  (and from ``start``);
-- ``("resid", over, names, k)``: :func:`residual_vector`, a stretch of a residual vector, for a least squares run
-  by the client (:meth:`Pool.refit`);
-- ``("where", over)``: :func:`where`, where the gap lies;
-- ``("loopnoise", over, names)``: :func:`loop_noise`, what the noise a closed loop feeds back leaves, per experiment;
-- ``("spread", over, names)``: :func:`spread`, a closed-loop replay's gap beside its own spread, window by window;
-- ``("replay", over)``: :func:`replay`, every experiment's simulated angles, for the report's replay figures.
+- :class:`Recalibrate`: the linear parameters fitted from a grid of the sheet's values (:func:`recalibrate`);
+- :class:`Refit`: the linear parameters and some effect parameters refitted jointly by output-error least squares
+  (:func:`joint_refit`);
+- :class:`Grid`: one effect's values (its log grid, or its integers) on top of a rig, each with the least-squares
+  cost of the fit experiments (where a joint refit starts);
+- :class:`Evaluate`: experiments replayed beside their own spread (:func:`harness.diagnosis.simulation.evaluate`),
+  what the held-out score is made of;
+- :class:`Residual`: a stretch of a residual vector, for a least squares run by the client (:meth:`Pool.refit`);
+- :class:`Where`: where the gap lies; :class:`Replay`: every experiment's simulated angles, for the report.
 """
 
 from __future__ import annotations
@@ -22,47 +19,48 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Callable, Collection
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.optimize import minimize_scalar
 
 from ..executor import Executor, one_blas_thread, worker_rig
 from . import recalibrate as recal
 from .effects import BY_PARAM, Effect
 from .experiments import CHANNELS
-from .simulation import (
-    SSE,
-    Setup,
-    lattice_in_loop,
-    loop_noise_gap,
-    loop_spread,
-    mean_squared_gap,
-    replay_traces,
-    residuals,
-)
+from .simulation import Evaluation, Setup, evaluate, lattice_in_loop, offset_key, replay_traces, residuals
 from .where import where_gap
 
 SENSOR_CHANNELS = {"theta": "sensor.theta_gain", "alpha": "sensor.alpha_gauge_gain"}
+Overrides = dict[str, Any]  # {"plant.Ks": 1.5, "daq.delay_samples": 1, "sensor.alpha_offset@rec": 0.3, ...}
 
 __all__ = [
+    "Cost",
+    "Evaluate",
+    "FitResult",
+    "Grid",
     "Pool",
+    "Recalibrate",
+    "Refit",
+    "Replay",
+    "Residual",
+    "Where",
     "joint_refit",
     "least_squares_refit",
-    "loop_noise",
     "moving_channels",
-    "replay",
+    "record_rows",
+    "recalibrate",
     "residual_vector",
-    "screen_effect",
-    "spread",
-    "squared_errors",
     "stretches",
-    "where",
 ]
 
 Progress = Callable[[str], None]
 
 _CTX: dict[str, Any] = {}
+
+CORRELATION_SECONDS = 0.05  # s: the longest a residual's correlation time counts (smoother: model error, not noise)
+RECAL_NFEV = 60  # least squares steps from a grid point: a factor sqrt(3) from the truth takes more than a refit
+REFIT_NFEV = 15  # least squares steps of a joint refit from a rig already near
 
 
 def _bind(setup: Setup) -> None:
@@ -71,16 +69,19 @@ def _bind(setup: Setup) -> None:
     _CTX["rig"] = worker_rig(setup.fmus)
 
 
-def squared_errors(over: dict[str, Any], names: list[str], window: str = "all") -> SSE:
-    """Squared errors [deg^2] per experiment and channel for overrides ``over`` over a window (see
-    :meth:`harness.diagnosis.experiments.RigExperiment.window`)."""
-    setup: Setup = _CTX["setup"]
-    out = {}
-    for n in names:
-        x = setup.experiments[n]
-        e = residuals(_CTX["rig"], setup, x, over, x.window(window)[0])
-        out[n] = {c: float(np.sum(e[c] ** 2)) for c in CHANNELS}
-    return out
+@dataclass(frozen=True)
+class FitResult:
+    """A least-squares fit: the overrides fitted (``params``, with the fixed ones), each fitted parameter's 95 %
+    interval, ``cost`` the mean squared gap on the fit windows, the simulations it took, and the covariance of the
+    fitted parameters in the fit's coordinates (``names``; log of the value for a parameter on a log scale)."""
+
+    params: Overrides
+    ci95: dict[str, tuple[float, float]]
+    cost: float
+    evaluations: int
+    names: tuple[str, ...] = ()
+    cov: tuple[tuple[float, ...], ...] = ()
+    log: tuple[bool, ...] = ()
 
 
 def moving_channels(setup: Setup, names: list[str]) -> int:
@@ -88,7 +89,7 @@ def moving_channels(setup: Setup, names: list[str]) -> int:
     return sum(1 for n in names for c in CHANNELS if setup.experiments[n].sst_fit[c] > 0)
 
 
-def residual_vector(over: dict[str, Any], names: list[str], k: int | None = None) -> np.ndarray:
+def residual_vector(over: Overrides, names: list[str], k: int | None = None) -> np.ndarray:
     """The fit windows' residuals of ``names``, each channel scaled by 1 / sqrt(K sst) so that the sum of
     squares is the mean squared gap (K = number of experiment-channels that move, :func:`moving_channels` of
     ``names`` unless given: ``names`` are then a stretch of a longer vector): what least squares minimises."""
@@ -100,6 +101,23 @@ def residual_vector(over: dict[str, Any], names: list[str], k: int | None = None
         e = residuals(_CTX["rig"], setup, x, over, x.n_fit)
         parts += [e[c] / math.sqrt(k * x.sst_fit[c]) for c in CHANNELS if x.sst_fit[c] > 0]
     return np.concatenate(parts)
+
+
+def record_rows(setup: Setup, names: list[str]) -> dict[str, np.ndarray]:
+    """Per record of a closed-loop replay among ``names``: the mask of its rows in :func:`residual_vector` of
+    ``names`` (what its own gauge offset moves)."""
+    sizes = [(n, setup.experiments[n].n_fit * sum(1 for c in CHANNELS if setup.experiments[n].sst_fit[c] > 0))
+             for n in names]  # fmt: skip
+    total = sum(m for _, m in sizes)
+    out: dict[str, np.ndarray] = {}
+    at = 0
+    for n, m in sizes:
+        x = setup.experiments[n]
+        if x.replay == "closed":
+            mask = out.setdefault(x.record, np.zeros(total, dtype=bool))
+            mask[at : at + m] = True
+        at += m
+    return out
 
 
 def gain_columns(setup: Setup, names: list[str], fitted: Collection[str] = ()) -> tuple[np.ndarray, np.ndarray] | None:
@@ -119,7 +137,7 @@ def gain_columns(setup: Setup, names: list[str], fitted: Collection[str] = ()) -
                 continue
             ok = x.valid[c][: x.n_fit]
             y = np.where(ok, (x.theta if c == "theta" else x.alpha)[: x.n_fit], 0.0)
-            if c == "theta" and x.replay == "open" and ok.any():
+            if x.replay == "open" and ok.any():
                 y = np.where(ok, y - float(np.mean(y[ok])), 0.0)
             col = np.zeros((y.size, len(CHANNELS)))
             col[:, i] = y / math.sqrt(k * x.sst_fit[c])
@@ -127,114 +145,24 @@ def gain_columns(setup: Setup, names: list[str], fitted: Collection[str] = ()) -
     return np.concatenate(blocks), se
 
 
-def _screen_msg(over: dict[str, Any], names: list[str]) -> float:
-    """Mean squared gap of ``names`` over their screening windows."""
-    return mean_squared_gap(squared_errors(over, names, "screen"), _CTX["setup"].experiments, names, "screen")
-
-
-def _fit_continuous(eff: Effect, base: dict[str, Any], names: list[str]) -> tuple[float, float, int]:
-    """Coarse grid over [lo, hi] (log or linear) then bounded Brent on the best bracket; returns (value, mean
-    squared gap on ``names``' screening windows, evaluations)."""
-    log = eff.kind == "log"
-    fwd = (lambda x: math.log(x)) if log else (lambda x: x)
-    inv = (lambda s: math.exp(s)) if log else (lambda s: s)
-    s_lo, s_hi = fwd(eff.lo), fwd(eff.hi)
-    pts = np.linspace(s_lo, s_hi, eff.grid)
-    vals = [_screen_msg({**base, eff.param: inv(s)}, names) for s in pts]
-    i = int(np.argmin(vals))
-    best_s, best_v = float(pts[i]), float(vals[i])
-    res = minimize_scalar(
-        lambda s: _screen_msg({**base, eff.param: inv(s)}, names),
-        bounds=(pts[max(i - 1, 0)], pts[min(i + 1, eff.grid - 1)]),
-        method="bounded",
-        options={"xatol": 0.01 if log else 0.002 * (s_hi - s_lo), "maxiter": 10},
-    )
-    if res.fun < best_v:
-        best_s, best_v = float(res.x), float(res.fun)
-    return inv(best_s), best_v, eff.grid + int(res.nfev)
-
-
-def screen_effect(eff: Effect, base: dict[str, Any], fit: list[str], every: list[str]) -> dict[str, Any]:
-    """Screen one effect on top of ``base`` on experiments ``fit`` (their first SCREEN_SECONDS): integers
-    enumerated, continuous parameters on a coarse grid and a bounded Brent refinement; squared errors on
-    ``every`` experiment. Returns effect, params, fit_msg (mean squared gap on the fit), sse, evaluations."""
-    if eff.kind == "int":
-        scores = [(_screen_msg({**base, eff.param: v}, fit), v) for v in eff.values]
-        msg_fit, value = min(scores, key=lambda s: (s[0], s[1]))
-        value, n = int(value), len(scores)
-    else:
-        value, msg_fit, n = _fit_continuous(eff, base, fit)
-    return {
-        "effect": eff.name,
-        "params": {eff.param: value},
-        "fit_msg": msg_fit,
-        "sse": squared_errors({**base, eff.param: value}, every),
-        "evaluations": n + len(every),
-    }
-
-
-def joint_refit(
-    base: dict[str, Any], free: list[str], fit: list[str], every: list[str], max_nfev: int = 30
-) -> dict[str, Any]:
-    """Output-error least squares of the linear parameters (:data:`harness.diagnosis.recalibrate.LINEAR`) and the
-    continuous effect parameters named in ``free`` (with their secondary parameters), from their values in
-    ``base`` (linear ones default to the sim's), on the fit windows of ``fit`` (:func:`least_squares_refit`);
-    squared errors on ``every``. Returns params, ci95, fit_msg (the mean squared gap at the solution), evaluations,
-    sse."""
-    res = least_squares_refit(_CTX["setup"], lambda over: residual_vector(over, fit), base, free, fit, max_nfev)
-    return {**res, "sse": squared_errors(res["params"], every) if every else {}}
-
-
-# the global search's grids, factors of the sheet's value, one plane after the other: the drive within a factor 3,
-# then the link within a factor 2 and the inertia ratio within 3
-GRIDS: tuple[dict[str, tuple[float, ...]], ...] = (
-    {"rig.drive_gain": (1 / 3, 3**-0.5, 1.0, 3**0.5, 3.0), "rig.drive_tau": (1 / 3, 3**-0.5, 1.0, 3**0.5, 3.0)},
-    {"plant.Ks": (0.5, 2**-0.5, 1.0, 2**0.5, 2.0), "rig.inertia_ratio": (1 / 3, 1.0, 3.0)},
-)
-
-
-CORRELATION_SECONDS = 0.05  # s: the longest a residual's correlation time counts (smoother: model error, not noise)
-RECAL_NFEV = 60  # least squares steps from a grid point: a factor sqrt(3) from the truth takes more than a refit
-
-
-def recalibrate(fit: list[str], every: list[str], start: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Recalibration of the linear parameters on ``fit`` that does not hinge on the sheet being close: the residuals
-    on each grid of :data:`GRIDS` in turn (the best point of one kept for the next), then :func:`joint_refit` from
-    the best point and from ``start`` (another fit's parameters; its effects stay as they are there), the lower cost
-    kept (squared errors on ``every``). Returns what :func:`joint_refit` returns, ``evaluations`` in all."""
-    setup: Setup = _CTX["setup"]
-    kept = {p: v for p, v in (start or {}).items() if p not in recal.LINEAR}  # another fit's effects, kept as fitted
-    best: dict[str, Any] = dict(kept)
-    evaluations = 0
-    for grid in GRIDS:
-        axes = [p for p in grid if p in setup.linear()]
-        scored = []
-        for factors in itertools.product(*(grid[p] for p in axes)):
-            over = {**best, **{p: setup.nominal(p) * f for p, f in zip(axes, factors, strict=True)}}
-            scored.append((float(np.sum(residual_vector(over, fit) ** 2)), over))
-        evaluations += len(scored)
-        best = min(scored, key=lambda c: c[0])[1]
-    fits = [joint_refit(best, [], fit, every, RECAL_NFEV)]
-    if start:
-        fits.append(joint_refit(dict(start), [], fit, every, RECAL_NFEV))
-    res = min(fits, key=lambda r: r["fit_msg"])
-    return {**res, "evaluations": evaluations + sum(r["evaluations"] for r in fits)}
-
-
 def least_squares_refit(
     setup: Setup,
-    resid: Callable[[dict[str, Any]], np.ndarray],
-    base: dict[str, Any],
-    free: list[str],
+    resid: Callable[[Overrides], np.ndarray],
+    base: Overrides,
+    free: Collection[str],
     names: list[str],
     max_nfev: int,
     linear: bool = True,
-) -> dict[str, Any]:
-    """:func:`joint_refit`'s least squares on the residual vector ``resid(overrides)`` (:func:`residual_vector` of
-    the experiments ``names``, computed here or over the workers); a linear parameter the data do not determine keeps
-    the sim's value, and a closed loop through an ADC lattice is fitted without derivatives
-    (:func:`harness.diagnosis.recalibrate.fit`). ``linear`` False: the linear parameters keep the sim's values, only
-    the effects' are fitted. Returns params, ci95, fit_msg, evaluations."""
+) -> FitResult:
+    """Output-error least squares on the residual vector ``resid(overrides)`` (:func:`residual_vector` of the
+    experiments ``names``, computed here or over the workers) of the linear parameters
+    (:data:`harness.diagnosis.recalibrate.LINEAR`; ``linear`` False: they keep their values in ``base``), the
+    continuous effect parameters ``free`` (with their secondary parameters) and the gauge offset of each record a
+    closed loop acts on (:func:`harness.diagnosis.simulation.offset_key`, from its reading at rest), from their
+    values in ``base`` (linear ones default to the sim's); a closed loop through an ADC lattice is fitted without
+    derivatives (:func:`harness.diagnosis.recalibrate.fit`). An integer effect parameter in ``base`` (a delay, chosen
+    on a rig whose linear parameters had compensated it) has its neighbours tried on the refitted rig, and is moved
+    where a refit there is better."""
     bounds: dict[str, recal.Bound] = {}
     nominal: dict[str, float] = {}
     encoder = any(setup.experiments[n].encoder for n in names)
@@ -245,11 +173,16 @@ def least_squares_refit(
         bounds[prm], nominal[prm] = eff.bound(float(base[prm])), float(base[prm])
         for x, b in eff.extra.items():
             bounds[x], nominal[x] = b, setup.nominal(x)
+    local = {}
+    for record, mask in record_rows(setup, names).items():
+        key = offset_key(record)
+        rest = next(x.alpha_rest for x in setup.experiments.values() if x.record == record)
+        bounds[key], nominal[key], local[key] = recal.RECORD_OFFSET, rest, mask
     fixed = {k: v for k, v in base.items() if k not in bounds}
     gains = gain_columns(setup, names, [c for c, s in SENSOR_CHANNELS.items() if s in bounds])
     prior = {p: sd for p, sd in setup.prior_sd.items() if p in bounds}
 
-    def refit(fixed: dict[str, Any], start: dict[str, Any]) -> recal.Fit:
+    def refit(fixed: Overrides, start: Overrides) -> recal.Fit:
         if not bounds:  # nothing to fit: the cost as given
             r = resid(fixed)
             return recal.Fit({}, {}, float(np.sum(r**2)), 1, int(np.count_nonzero(r)))
@@ -265,13 +198,12 @@ def least_squares_refit(
             calibration=gains,
             prior=prior,
             max_rho=math.exp(-min(setup.experiments[n].Ts for n in names) / CORRELATION_SECONDS),
+            local=local,
         )
 
     f = refit(fixed, base)
     nfev = f.nfev
     for prm in [p for p in fixed if p in BY_PARAM and BY_PARAM[p].kind == "int"]:
-        # an integer effect parameter (a delay) was chosen on the rig before this refit, whose linear parameters
-        # had compensated it: its neighbours get a look on the refitted rig, and a refit where one is better
         eff, cur = BY_PARAM[prm], int(fixed[prm])
         near = [v for v in eff.values if abs(int(v) - cur) == 1]
         here = {**fixed, **f.values}
@@ -283,72 +215,203 @@ def least_squares_refit(
             nfev += g.nfev
             if g.cost < f.cost:
                 f, fixed = g, {**fixed, prm: best}
-    return {"params": {**fixed, **f.values}, "ci95": f.ci95, "fit_msg": f.cost, "evaluations": nfev}
+    return FitResult(
+        params={**fixed, **f.values},
+        ci95=f.ci95,
+        cost=f.cost,
+        evaluations=nfev,
+        names=tuple(f.names),
+        cov=tuple(tuple(float(v) for v in row) for row in f.cov),
+        log=tuple(bounds[n].log for n in f.names),
+    )
 
 
-def where(over: dict[str, Any]) -> dict[str, Any]:
-    """Where the gap lies with overrides ``over``: :func:`harness.diagnosis.where.where_gap`."""
-    return where_gap(_CTX["setup"], over)
+def joint_refit(base: Overrides, free: Collection[str], fit: list[str], max_nfev: int = REFIT_NFEV) -> FitResult:
+    """:func:`least_squares_refit` of the experiments ``fit`` on this worker's rig."""
+    return least_squares_refit(_CTX["setup"], lambda over: residual_vector(over, fit), base, free, fit, max_nfev)
 
 
-def loop_noise(over: dict[str, Any], names: list[str]) -> dict[str, float]:
-    """The mean squared gap the noise fed back through each closed loop of ``names`` leaves, on the rig with
-    overrides ``over``: :func:`harness.diagnosis.simulation.loop_noise_gap`."""
-    return loop_noise_gap(_CTX["rig"], _CTX["setup"], over, names)
+# the global search's grids, factors of the sheet's value, one plane after the other: the drive within a factor 3,
+# then the link within a factor 2 and the inertia ratio within 3
+GRIDS: tuple[dict[str, tuple[float, ...]], ...] = (
+    {"rig.drive_gain": (1 / 3, 3**-0.5, 1.0, 3**0.5, 3.0), "rig.drive_tau": (1 / 3, 3**-0.5, 1.0, 3**0.5, 3.0)},
+    {"plant.Ks": (0.5, 2**-0.5, 1.0, 2**0.5, 2.0), "rig.inertia_ratio": (1 / 3, 1.0, 3.0)},
+)
 
 
-def spread(over: dict[str, Any], names: list[str]) -> dict[str, dict[str, Any]]:
-    """Each closed-loop replay of ``names`` with overrides ``over``, its gap beside its own spread per window:
-    :func:`harness.diagnosis.simulation.loop_spread`."""
-    return loop_spread(_CTX["rig"], _CTX["setup"], over, names)
+def recalibrate(fit: list[str], start: Overrides | None = None) -> FitResult:
+    """Recalibration of the linear parameters on ``fit`` that does not hinge on the sheet being close: the residuals
+    on each grid of :data:`GRIDS` in turn (the best point of one kept for the next), then :func:`joint_refit` from
+    the best point and from ``start`` (another fit's parameters; its effects stay as they are there), the lower cost
+    kept."""
+    setup: Setup = _CTX["setup"]
+    kept = {p: v for p, v in (start or {}).items() if p not in recal.LINEAR}  # another fit's effects, kept as fitted
+    best: Overrides = dict(kept)
+    evaluations = 0
+    for grid in GRIDS:
+        axes = [p for p in grid if p in setup.linear()]
+        scored = []
+        for factors in itertools.product(*(grid[p] for p in axes)):
+            over = {**best, **{p: setup.nominal(p) * f for p, f in zip(axes, factors, strict=True)}}
+            scored.append((float(np.sum(residual_vector(over, fit) ** 2)), over))
+        evaluations += len(scored)
+        best = min(scored, key=lambda c: c[0])[1]
+    fits = [joint_refit(best, [], fit, RECAL_NFEV)]
+    if start:
+        fits.append(joint_refit(dict(start), [], fit, RECAL_NFEV))
+    res = min(fits, key=lambda r: r.cost)
+    return FitResult(**{**res.__dict__, "evaluations": evaluations + sum(r.evaluations for r in fits)})
 
 
-def replay(over: dict[str, Any]) -> dict[str, dict[str, np.ndarray]]:
-    """Every experiment's simulated (theta, alpha) [deg] with overrides ``over``:
+def effect_values(eff: Effect) -> list[float | int]:
+    """An effect's values tried for a start: its integers, or its grid over [lo, hi] (log or linear)."""
+    if eff.kind == "int":
+        return list(eff.values)
+    pts = np.linspace(math.log(eff.lo), math.log(eff.hi), eff.grid) if eff.kind == "log" else np.linspace(
+        eff.lo, eff.hi, eff.grid)  # fmt: skip
+    return [float(math.exp(p)) if eff.kind == "log" else float(p) for p in pts]
+
+
+# ------------------------------------------------------------------------------------------------- the tasks
+
+
+@dataclass(frozen=True)
+class Recalibrate:
+    """:func:`recalibrate` on the experiments ``fit`` (from ``start`` too, when given)."""
+
+    fit: tuple[str, ...]
+    start: Overrides | None = None
+    label = "recalibrate"
+    weight = 10
+
+    def run(self) -> FitResult:
+        return recalibrate(list(self.fit), self.start)
+
+
+@dataclass(frozen=True)
+class Refit:
+    """:func:`joint_refit` of the experiments ``fit`` from ``base``, the effect parameters ``free`` with the linear
+    ones (``linear`` False: the linear ones held)."""
+
+    base: Overrides
+    free: tuple[str, ...]
+    fit: tuple[str, ...]
+    max_nfev: int = REFIT_NFEV
+    linear: bool = True
+
+    @property
+    def label(self) -> str:
+        return "refit linear" + "".join(f" + {p.split('.', 1)[1]}" for p in self.free)
+
+    @property
+    def weight(self) -> int:
+        return 2 + 3 * len(self.free)
+
+    def run(self) -> FitResult:
+        setup: Setup = _CTX["setup"]
+        fit = list(self.fit)
+        return least_squares_refit(
+            setup, lambda over: residual_vector(over, fit), self.base, self.free, fit, self.max_nfev, self.linear
+        )
+
+
+@dataclass(frozen=True)
+class Grid:
+    """Each of an effect's values (:func:`effect_values`) on top of ``base``, with the least-squares cost (mean
+    squared gap) of the experiments ``fit``: [(value, cost)]."""
+
+    effect: Effect
+    base: Overrides
+    fit: tuple[str, ...]
+    weight = 1
+
+    @property
+    def label(self) -> str:
+        return f"grid {self.effect.name}"
+
+    def run(self) -> list[tuple[float | int, float]]:
+        fit = list(self.fit)
+        return [(v, float(np.sum(residual_vector({**self.base, self.effect.param: v}, fit) ** 2)))
+                for v in effect_values(self.effect)]  # fmt: skip
+
+
+@dataclass(frozen=True)
+class Cost:
+    """The least-squares cost (mean squared gap on the fit windows) of the experiments ``fit`` with ``over``."""
+
+    over: Overrides
+    fit: tuple[str, ...]
+    label = "cost"
+    weight = 0
+
+    def run(self) -> float:
+        return float(np.sum(residual_vector(self.over, list(self.fit)) ** 2))
+
+
+@dataclass(frozen=True)
+class Evaluate:
+    """The experiments ``names`` replayed with ``over`` beside their own spread
+    (:func:`harness.diagnosis.simulation.evaluate`, ``draws`` other noise draws, ``pseudo`` the floor's record):
+    {experiment: Evaluation}."""
+
+    over: Overrides
+    names: tuple[str, ...]
+    draws: int
+    resolution: float
+    pseudo: bool = False
+    label = "score"
+    weight = 0
+
+    def run(self) -> dict[str, Evaluation]:
+        setup: Setup = _CTX["setup"]
+        return {
+            n: evaluate(_CTX["rig"], setup, setup.experiments[n], self.over, self.draws, self.pseudo, self.resolution)
+            for n in self.names
+        }
+
+
+@dataclass(frozen=True)
+class Residual:
+    """:func:`residual_vector` of a stretch ``names`` of a longer vector (``k`` its moving channels)."""
+
+    over: Overrides
+    names: tuple[str, ...]
+    k: int
+    label = "residuals"
+    weight = 0
+
+    def run(self) -> np.ndarray:
+        return residual_vector(self.over, list(self.names), self.k)
+
+
+@dataclass(frozen=True)
+class Where:
+    """Where the gap lies with ``over``: :func:`harness.diagnosis.where.where_gap`."""
+
+    over: Overrides = field(default_factory=dict)
+    label = "where"
+    weight = 0
+
+    def run(self) -> dict[str, Any]:
+        return where_gap(_CTX["setup"], self.over)
+
+
+@dataclass(frozen=True)
+class Replay:
+    """Every experiment's simulated (theta, alpha) [deg] with ``over``:
     :func:`harness.diagnosis.simulation.replay_traces`."""
-    return replay_traces(_CTX["rig"], _CTX["setup"], over)
+
+    over: Overrides = field(default_factory=dict)
+    label = "replay"
+    weight = 0
+
+    def run(self) -> dict[str, dict[str, np.ndarray]]:
+        return replay_traces(_CTX["rig"], _CTX["setup"], self.over)
 
 
-TASKS: dict[str, Callable[..., Any]] = {
-    "sse": squared_errors,
-    "fit": screen_effect,
-    "refit": joint_refit,
-    "recal": recalibrate,
-    "resid": residual_vector,
-    "where": where,
-    "loopnoise": loop_noise,
-    "spread": spread,
-    "replay": replay,
-}
-
-
-def _run_call(call: tuple[Any, ...], setup: Setup) -> Any:
+def _run_task(task: Any, setup: Setup) -> Any:
     _bind(setup)
-    kind, *args = call
-    return TASKS[kind](*args)
-
-
-def _label(call: tuple[Any, ...]) -> str:
-    """What a task does, for the progress line: "screen backlash", "refit linear + coulomb_torque", "score"."""
-    kind = call[0]
-    if kind == "fit":
-        return f"screen {call[1].name}"
-    if kind == "refit":
-        return "refit linear" + "".join(f" + {p.split('.', 1)[1]}" for p in call[2])
-    if kind == "recal":
-        return "recalibrate"
-    return {"where": "where", "loopnoise": "loop noise", "spread": "loop spread", "replay": "replay"}.get(kind, "score")
-
-
-def _weight(call: tuple[Any, ...]) -> int:
-    """A rough rank of what a task costs: a recalibration (grids and least squares), then a refit (the more so with
-    an effect's parameters free: its rig is no longer linear), then a screening, then a single score."""
-    kind = call[0]
-    if kind == "recal":
-        return 10
-    if kind == "refit":
-        return 2 + 3 * len(call[2])
-    return 1 if kind == "fit" else 0
+    return task.run()
 
 
 def stretches(setup: Setup, names: list[str], n: int) -> list[list[str]]:
@@ -361,7 +424,7 @@ def stretches(setup: Setup, names: list[str], n: int) -> list[list[str]]:
 
 class Pool:
     """The diagnosis's simulations as tasks of a :class:`harness.executor.Executor` (the setup is sent to every
-    worker once; each worker loads the rig once): ``map`` takes ``(kind, *args)`` calls (see the module)."""
+    worker once; each worker loads the rig once): :meth:`map` takes tasks (see the module)."""
 
     def __init__(
         self, setup: Setup, workers: int | None, scheduler: str | None = None, progress: Progress | None = None
@@ -370,34 +433,32 @@ class Pool:
         self.progress = progress
         self.ex = Executor(workers, scheduler, progress)
 
-    def map(self, calls: list[tuple[Any, ...]]) -> list[Any]:
-        """The calls' results in their order; the longest are started first (:func:`_weight`), so that no worker
+    def map(self, tasks: list[Any]) -> list[Any]:
+        """The tasks' results in their order; the longest are started first (their ``weight``), so that no worker
         is left with a long refit while the others idle."""
-        order = sorted(range(len(calls)), key=lambda i: -_weight(calls[i]))
-        done = self.ex.map(_run_call, [calls[i] for i in order], self.setup, labels=[_label(calls[i]) for i in order])
-        out: list[Any] = [None] * len(calls)
+        order = sorted(range(len(tasks)), key=lambda i: -tasks[i].weight)
+        done = self.ex.map(_run_task, [tasks[i] for i in order], self.setup, labels=[tasks[i].label for i in order])
+        out: list[Any] = [None] * len(tasks)
         for i, r in zip(order, done, strict=True):
             out[i] = r
         return out
 
-    def refit(
-        self, base: dict[str, Any], free: list[str], names: list[str], max_nfev: int, linear: bool = True
-    ) -> dict[str, Any]:
-        """:func:`joint_refit` on every experiment of ``names`` (no held-out squared errors), its least squares run
-        here and each residual vector computed over the workers, one task per worker of consecutive experiments
-        (:func:`stretches`): the same vector as one task computes, so the same path. One task was one worker's work
-        while the other idled (the lab's final refit: 31 residual vectors of 10 experiments, 2.3 s)."""
+    def refit(self, base: Overrides, free: Collection[str], names: list[str], max_nfev: int, linear: bool = True
+              ) -> FitResult:  # fmt: skip
+        """:func:`least_squares_refit` on every experiment of ``names``, its least squares run here and each residual
+        vector computed over the workers, one task per worker of consecutive experiments (:func:`stretches`): the
+        same vector as one task computes, so the same path."""
         parts = stretches(self.setup, names, self.ex.n_workers)
         k = moving_channels(self.setup, names)
 
-        def resid(over: dict[str, Any]) -> np.ndarray:
-            calls = [("resid", over, part, k) for part in parts]
-            return np.concatenate(self.ex.map(_run_call, calls, self.setup, quiet=True))
+        def resid(over: Overrides) -> np.ndarray:
+            tasks = [Residual(over, tuple(part), k) for part in parts]
+            return np.concatenate(self.ex.map(_run_task, tasks, self.setup, quiet=True))
 
         with one_blas_thread():  # as in a task: the same BLAS, the same numbers in every backend
             res = least_squares_refit(self.setup, resid, base, free, names, max_nfev, linear)
         if self.progress is not None:
-            self.progress(f"{_label(('refit', base, free))} on every experiment")
+            self.progress(f"{Refit(base, tuple(free), ()).label} on every experiment")
         return res
 
     def close(self) -> None:

@@ -266,12 +266,12 @@ def sliding_friction(p: PlantParams, w: float) -> float:
 def steady_speed(p: PlantParams, V: float) -> float:
     """Steady hub speed [rad/s] for a constant command V [V], starting from rest.
 
-    Effects off this is eta_g Kg eta_m kt V / (Rm Beq + eta_g eta_m kt km Kg^2); the amplifier limit and
-    the friction (breakaway, Coulomb level and Stribeck drop) are applied when set (zero if the hub cannot break
+    Effects off this is eta_g Kg eta_m kt V / (Rm Beq + eta_g eta_m kt km Kg^2); the amplifier's input offset, its limit
+    and the friction (breakaway, Coulomb level and Stribeck drop) are applied when set (zero if the hub cannot break
     away; with a Stribeck drop, the first speed from rest where the drive equals friction and damping).
     """
     p.validate()
-    v = float(V)
+    v = float(V) + p.u_offset
     if p.amp_limit > 0:
         v = min(max(v, -p.amp_limit), p.amp_limit)
     G, Bemf = motor_constants(p)

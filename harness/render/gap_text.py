@@ -25,7 +25,7 @@ LATTICE = "ADC lattice"
 FOUND_BY = {
     "held-out closure": "closes the held-out gap",
     "adc lattice in the data": f"{LATTICE} of the data (kept without closing the gap)",
-    SELECTED_BY_SPREAD: "its own spread in closed loop (kept although the gap grew)",
+    SELECTED_BY_SPREAD: "its own spread in closed loop (sized where the replays' spread matches the record's gap)",
 }
 _ORDINAL = {1: "first", 2: "second", 3: "third", 4: "fourth", 5: "fifth", 6: "sixth"}
 
@@ -132,14 +132,13 @@ def _effects_lines(diag: Diagnosis) -> list[str]:
             "importance for the same reason).",
             "",
         ]
-    for t in (r for rnd in diag.rounds for r in rnd if r.get("test") == "spread" and r.get("kept")):
+    for e in (e for e in diag.effects if e.selected_by == SELECTED_BY_SPREAD):
         lines += [
-            f"{t['effect']} is not found by closing the gap but by its spread: in a closed loop it makes the motion "
-            "depend on the noise the controller feeds back (a gear's play rattles in a phase the noise sets), so no "
-            "replay reproduces the record sample by sample and the replay with it scores a larger gap than one "
-            f"without it. With it, the replays' held-out gap ({fmt(t['gap_after'], 4)}) is their own spread between "
-            f"noise draws ({fmt(t['spread_gap'], 4)}) window by window: divergence {fmt(t['divergence_with'], 3)}, "
-            f"against {fmt(t['divergence_without'], 3)} without it (0 when the gap is the spread everywhere).",
+            f"{e.effect} is sized by its spread: in a closed loop it makes the motion depend on the noise the "
+            "controller feeds back (a gear's play rattles in a phase the noise sets), so no replay reproduces the "
+            "record sample by sample and a least-squares fit would take it to zero. Its size is the one whose "
+            "replays' spread between noise draws matches the record's gap window by window on the fitted fold, and "
+            "it is kept, as every effect is, by the held-out score that counts that spread.",
             "",
         ]
     return lines
@@ -287,8 +286,8 @@ def _overall_lines(diag: Diagnosis) -> list[str]:
             "",
             f"{stages[dec.last_stage()].capitalize()}, "
             + (
-                f"what is left is within {ratio:g}x the noise floor."
-                if dec.at_floor(ratio := diag.thresholds.none_ratio)
+                "what is left is within the replays' own spread."
+                if dec.at_floor()
                 else f"the gap is in {dec.gap_channel()}: the channel that fits worse."
             ),
             "",
