@@ -3,7 +3,7 @@
 Three methods, each on the rig's linear model as the controller sees it (:func:`harness.linloop.design_model`: the
 twin's own parameters, its effects left out):
 
-- ``lqr``: discrete LQR (python-control ``dlqr``) on the rigid hub and the first link mode sampled at the loop's rate,
+- ``lqr``: discrete LQR on the rigid hub and the first link mode sampled at the loop's rate,
   Q = diag(q_theta, q_alpha, q_theta_dot, q_alpha_dot) on the angles and rates as read, R = r; implemented as the
   labs implement it, state feedback with the rates by filtered differences (:mod:`harness.rig.controller`);
 - ``lqg``: the same weights on the whole model (every mode the twin has, the DAQ's command delay and the gauge's
@@ -14,13 +14,16 @@ twin's own parameters, its effects left out):
   tau - 1) / K with K, tau the drive's gain and time constant as read), the tip's as ratios of them.
 
 Weights given (``--weights q=160,60,0.25,1;r=1[;w=1]``) are designed as they are. Otherwise a grid of weights (or the
-PD's w_n, zeta and tip ratios) is searched: each candidate's linear loop (its velocity filters, the DAQ's delays) runs
-the reference's largest step for its shortest step's time and is measured (:mod:`harness.behaviour`); the candidate
-with the most slack on its worst spec (1 - value / limit) is checked by :func:`harness.predict.predict` on the twin with
-its effects, parameter spread and noise. Where a spec's band misses its limit, that spec's target is tightened by the
-factor it missed by and the slackest candidate under the new targets is checked again, up to :data:`ROUNDS` times.
-When no candidate meets the specs on the linear model, or none the prediction passes, no design meets them: one line
-naming the spec and by how much.
+PD's w_n, zeta and tip ratios) is searched: each candidate's linear loop (its velocity filters or estimator, the DAQ's
+delays) runs the reference's largest step for its shortest step's time and is measured (:mod:`harness.behaviour`; its
+stopping error gets the band that friction and a command offset hold a hub in without integral action, (breakaway
+voltage + |u_offset|) / k_theta); of the candidates that meet every spec there, the one with the largest disk margin
+(:class:`harness.linloop.Frequencies`) is checked by :func:`harness.predict.predict` on the twin with its effects,
+parameter spread and noise. Where a spec's band misses its limit, that spec's target is tightened by the factor it
+missed by and the most robust candidate under the new targets is checked again, up to :data:`ROUNDS` times. When no
+candidate meets the specs on the linear model, or none the prediction passes, no design meets them: one line naming
+the spec and by how much. The gains are python-control's ``dlqr`` and the Kalman filter's Riccati solution, by
+:func:`harness.linloop.dare` (the same numbers, 30x faster over hundreds of candidates).
 """
 
 from __future__ import annotations
@@ -51,6 +54,7 @@ from .linloop import (
 )
 from .predict import LoopSpecs, Prediction, Reference, predict
 from .rig.controller import NX_MAX, Controller, Estimator
+from .spec import fmu_value
 from .twin import Twin
 
 __all__ = [
@@ -230,9 +234,10 @@ def linear_metrics(
 
 
 def stick_band_deg(c: Controller, dead_zone_v: float) -> float:
-    """How far from its reference [deg] a hub can stick under ``c`` where friction breaks away at ``dead_zone_v`` [V]:
-    dead_zone_v / k_theta, the proportional gain on the hub's angle at rest (an LQG's on its hub state); 0 with an
-    integral (a PID's ki > 0) or without friction, infinite without a proportional gain."""
+    """How far from its reference [deg] a hub can stop under ``c`` where a static ``dead_zone_v`` [V] holds it (the
+    friction's breakaway voltage plus the magnitude of a command offset): dead_zone_v / k_theta, the proportional gain
+    on the hub's angle at rest (an LQG's on its hub state); 0 with an integral (a PID's ki > 0) or without either,
+    infinite without a proportional gain."""
     if dead_zone_v <= 0.0 or (c.kind == "pid" and c.ki > 0):
         return 0.0
     k = c.kp if c.kind == "pid" else c.estimator.K[0] if c.estimator is not None else c.K[0]
@@ -364,7 +369,7 @@ def design(
     models = {"full": design_model(tables, 1.0 / rate), "gain": design_model(tables, 1.0 / rate, n_modes=1)}
     noise_rad = (math.radians(twin.noise_deg["theta"]), math.radians(twin.noise_deg["alpha"]))
     size, steps = design_step(reference)
-    dead_zone = dead_zone_voltage(plant_params(tables.plant))
+    dead_zone = dead_zone_voltage(plant_params(tables.plant)) + abs(fmu_value(tables.plant, "flexjoint", "u_offset"))
     grid = [weights.params()] if weights is not None else list(_grid(method))
     cands = []
     for params in grid:

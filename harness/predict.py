@@ -278,13 +278,15 @@ def pooled(
 
 @dataclass(frozen=True, eq=False)
 class LoopJob:
-    """What every member shares: the twin, the controller, the reference, the settling band, the FMUs as bytes."""
+    """What every member shares: the twin, the controller, the reference, the settling band, the FMUs as bytes, and
+    the diagnosed record whose gauge offset the gauge reads (None: a record the diagnosis did not fit, or none)."""
 
     twin: Twin
     controller: Controller
     reference: Reference
     band_pct: float
     fmus: dict[str, FmuBytes]
+    record: str | None = None
 
 
 def _members(batch: list[tuple[int, dict[str, float], int]], job: LoopJob) -> list[dict[str, Any]]:
@@ -293,7 +295,7 @@ def _members(batch: list[tuple[int, dict[str, float], int]], job: LoopJob) -> li
     ref = job.reference
     out = []
     for i, over, seed in batch:
-        tables = job.twin.tables(over, seed)
+        tables = job.twin.tables(over, seed, record=job.record)
         gain = float(over.get("sensor.theta_gain", 1.0))
         res = simulate_loop(rig, tables, job.controller, ref.ref_deg, ref.Ts, ref.theta0_deg, gain)
         vals = pooled(ref.t, ref.ref_deg, res["theta"], res["alpha"], res["u"], job.band_pct, ref.initial_deg,
@@ -421,7 +423,8 @@ def predict(
     seeds = [int(s) for s in rng.integers(1, 2**31 - 1, size=n)]
     items = [(i, draws[i], seeds[i]) for i in range(n)]
     batches = [items[i : i + BATCH] for i in range(0, n, BATCH)]
-    job = LoopJob(twin, controller, reference, band_pct, shipped)
+    own = record is not None and twin.run is not None and record.run.resolve() == twin.run.resolve()
+    job = LoopJob(twin, controller, reference, band_pct, shipped, record.name if own and record else None)
     if len(batches) == 1 and scheduler is None:
         workers = 1
     with Executor(workers, scheduler, progress) as ex:

@@ -10,7 +10,9 @@ holds the sheet's tables and the overrides on top of them, in the diagnosis's na
   by :func:`harness.diagnosis.rigmodel.to_plant`;
 - ``plant.<name>``, ``daq.<name>``: an FMU parameter (``plant.Ks``, an effect's ``plant.coulomb_torque``);
 - ``sensor.theta_gain``, ``sensor.alpha_gauge_gain``: a sensor's reading per true angle (the DAQ's gain divided by
-  it: the data, and the controller, read through the sheet's calibration).
+  it: the data, and the controller, read through the sheet's calibration);
+- ``sensor.alpha_offset@<record>``: a record's gauge reading at rest [deg], which its controller acted on (applied
+  when that record is predicted).
 
 :meth:`Twin.tables` gives the plant and DAQ FMU parameters of one set of overrides (noise on: the data's RMS per
 channel) and the calibration the controller reads the DAQ with; :func:`draw` samples sets of overrides from the
@@ -20,9 +22,10 @@ controller).
 The spread, in one function (:func:`spread_of_diagnosis`): a diagnosis's top-level ``rig`` (overrides and their
 covariance in the fit's coordinates, the log of a positive parameter) when it has one; otherwise its ``parameters``
 rows, each drawn independently, lognormal for a positive parameter (normal otherwise) with the standard deviation of
-its 95 % interval (width / 3.92 in log) plus the spread between its fits on the two folds or on each record (their
-variance about their mean: fits on parts of the data that exclude each other are model error, which the interval of
-the fit on all of them leaves out). A spec's spread is its sheet's (:func:`harness.diagnosis.rigmodel.prior_sd`: the
+its 95 % interval (width / 3.92 in log). Either way each parameter's variance gets the spread between its fits on the
+two folds or on each record added (their variance about their mean: fits on parts of the data that exclude each other
+are model error, which the covariance of the fit on all of them leaves out).
+A spec's spread is its sheet's (:func:`harness.diagnosis.rigmodel.prior_sd`: the
 95 % factor of each sheet value in ``[uncertainty]``) about its own values.
 """
 
@@ -40,6 +43,7 @@ from . import spec as specmod
 from .diagnosis.recalibrate import IMPLIED, LINEAR
 from .diagnosis.result import Diagnosis
 from .diagnosis.rigmodel import COMBOS, SENSORS, combos, prior_sd, to_plant
+from .diagnosis.simulation import offset_key
 from .fmu.cosim import CALIBRATION
 from .fmu.modeldesc import source_model
 from .ident.calibration import alpha_deg, load_calibration, theta_deg
@@ -99,9 +103,12 @@ class Twin:
     spread: Spread = field(default_factory=Spread)
     run: Path | None = None
 
-    def tables(self, over: dict[str, float] | None = None, seed: int = 0, noise: bool = True) -> RigTables:
+    def tables(
+        self, over: dict[str, float] | None = None, seed: int = 0, noise: bool = True, record: str | None = None
+    ) -> RigTables:
         """The rig with the overrides ``over`` (default: the twin's own), the DAQ's noise seed ``seed`` and its
-        measurement noise (``noise`` False: off)."""
+        measurement noise (``noise`` False: off); ``record``: the record whose gauge offset the gauge reads (its
+        ``sensor.alpha_offset@<record>`` [deg as read] where the diagnosis fitted it, else none)."""
         over = dict(self.overrides if over is None else over)
         drive = {k: float(v) for k, v in over.items() if k in COMBOS}
         plant = {**self.plant, **(to_plant(drive, self.plant) if drive else {})}
@@ -117,6 +124,10 @@ class Twin:
         for c, (vn, gain) in NOISE.items():
             daq[vn] = self.noise_deg[c] / abs(specmod.fmu_value(believed, "daq", gain)) if noise else 0.0
         daq["seed"] = int(seed) % (2**31 - 1)
+        offset = float(over.get(offset_key(record), 0.0)) if record is not None else 0.0
+        daq["gauge_offset"] = specmod.fmu_value(believed, "daq", "gauge_offset") + offset / specmod.fmu_value(
+            believed, "daq", "gauge_gain"
+        )  # the reading at rest, which the controller acts on
         cal = {k: specmod.fmu_value(believed, "daq", v) for k, v in CALIBRATION.items()}
         return RigTables(plant, daq, cal)
 
@@ -171,21 +182,22 @@ def _positive(p: dict[str, Any]) -> bool:
 def spread_of_diagnosis(doc: dict[str, Any]) -> tuple[dict[str, float], Spread]:
     """The overrides a diagnosis applies (name -> value) and their spread, from its JSON content ``doc``.
 
-    With a top-level ``rig`` (``{"overrides": {name: value}, "covariance": {"names": [...], "log": [...], "matrix":
-    [[...]]}}``): those, as they are. Otherwise from ``parameters`` and ``effects``: the linear parameters fitted
+    With a top-level ``rig`` (:class:`harness.diagnosis.result.RigFit`: ``overrides`` as its replays use them,
+    ``names``, ``log`` and ``covariance`` of the fitted ones in the fit's coordinates): those, each variance widened by
+    the spread of its row's fits on the parts of the data (:func:`_parts_var`).
+    Otherwise from ``parameters`` and ``effects``: the linear parameters fitted
     (:data:`harness.diagnosis.recalibrate.LINEAR`, not the physical values they imply) and every effect's parameters,
     each row with a finite 95 % interval drawn independently (see the module docstring); a row kept at the spec's
     value, or an Integer parameter (a delay in samples), is not drawn."""
-    if "rig" in doc:
+    params: dict[str, Any] = doc.get("parameters", {})
+    if doc.get("rig"):
         rig = doc["rig"]
         over = {str(k): float(v) for k, v in rig["overrides"].items()}
-        cov = rig.get("covariance") or {}
-        names = tuple(cov.get("names", ()))
-        center = tuple(over[n] for n in names)
-        logs = tuple(bool(v) for v in cov.get("log", [over[n] > 0 for n in names]))
-        matrix = tuple(tuple(float(x) for x in row) for row in cov.get("matrix", ()))
-        return over, Spread(names, center, logs, matrix)
-    params: dict[str, Any] = doc.get("parameters", {})
+        names = tuple(str(n) for n in rig.get("names", ()))
+        logs = tuple(bool(v) for v in rig.get("log", ()))
+        cov = np.array(rig.get("covariance", ()), dtype=float).reshape(len(names), len(names))
+        cov += np.diag([_parts_var(params.get(n, {}), lg) for n, lg in zip(names, logs, strict=True)])
+        return over, Spread(names, tuple(over[n] for n in names), logs, tuple(map(tuple, cov.tolist())))
     effect_params = {k: float(v) for e in doc.get("effects", []) for k, v in e.get("params", {}).items()}
     over: dict[str, float] = {}
     for name, p in params.items():
@@ -204,11 +216,7 @@ def spread_of_diagnosis(doc: dict[str, Any]) -> tuple[dict[str, float], Spread]:
             continue
         log = _positive(p)
         f = math.log if log else (lambda x: x)
-        s2 = ((f(hi) - f(lo)) / (2 * 1.96)) ** 2
-        parts = [v[0] for v in (p.get("folds") or [])] or [v[0] for v in (p.get("records") or {}).values()]
-        parts = [v for v in parts if v is not None and math.isfinite(v) and (not log or v > 0)]
-        if len(parts) >= 2:
-            s2 += float(np.var([f(v) for v in parts]))
+        s2 = ((f(hi) - f(lo)) / (2 * 1.96)) ** 2 + _parts_var(p, log)
         names.append(name)
         center.append(value)
         logs.append(log)
@@ -216,6 +224,14 @@ def spread_of_diagnosis(doc: dict[str, Any]) -> tuple[dict[str, float], Spread]:
     n = len(names)
     cov = tuple(tuple(var[i] if i == j else 0.0 for j in range(n)) for i in range(n))
     return over, Spread(tuple(names), tuple(center), tuple(logs), cov)
+
+
+def _parts_var(p: dict[str, Any], log: bool) -> float:
+    """The variance [in log where ``log``] of a parameter row's fits on the parts of the data (its two folds, or each
+    record of a unit): 0 with fewer than two."""
+    parts = [v[0] for v in (p.get("folds") or [])] or [v[0] for v in (p.get("records") or {}).values()]
+    parts = [v for v in parts if v is not None and math.isfinite(v) and (not log or v > 0)]
+    return float(np.var(np.log(parts) if log else parts)) if len(parts) >= 2 else 0.0
 
 
 def _sim_spec(diag: Diagnosis, where: Path) -> specmod.Spec:

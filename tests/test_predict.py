@@ -96,15 +96,21 @@ def test_a_diagnosis_spread_is_its_intervals_plus_its_folds():
 
 
 def test_a_rig_object_gives_its_overrides_and_covariance():
+    """diagnosis.json's ``rig`` (harness.diagnosis.result.RigFit): its overrides as they are, its covariance in the
+    fit's coordinates, a row's fold spread added to its variance."""
     cov = [[0.01, 0.008], [0.008, 0.01]]
-    names = ["rig.drive_gain", "rig.drive_tau"]
     doc = {"rig": {"overrides": {"rig.drive_gain": 2.0, "rig.drive_tau": 0.05, "plant.Ks": 1.4},
-                   "covariance": {"names": names, "log": [True, True], "matrix": cov}}}  # fmt: skip
+                   "names": ["rig.drive_gain", "rig.drive_tau"], "log": [True, True], "covariance": cov},
+           "parameters": {"rig.drive_tau": {"fitted": 0.05, "ci95": [0.04, 0.06],
+                                            "folds": [[0.045, 0.04, 0.05], [0.055, 0.05, 0.06]]}}}  # fmt: skip
     over, sp = spread_of_diagnosis(doc)
-    assert over["plant.Ks"] == 1.4 and sp.names == ("rig.drive_gain", "rig.drive_tau")
+    assert over == {"rig.drive_gain": 2.0, "rig.drive_tau": 0.05, "plant.Ks": 1.4}
+    assert sp.names == ("rig.drive_gain", "rig.drive_tau") and sp.cov[0][1] == 0.008
+    assert sp.cov[1][1] == pytest.approx(0.01 + np.var(np.log([0.045, 0.055])))
     twin = dataclasses.replace(twin_of_spec(specmod.load("nominal")), overrides=over, spread=sp)
     z = np.log([[d["rig.drive_gain"], d["rig.drive_tau"]] for d in draw(twin, 3000, 0)])
-    assert np.corrcoef(z.T)[0, 1] == pytest.approx(0.8, abs=0.05)
+    want = 0.008 / math.sqrt(0.01 * sp.cov[1][1])
+    assert np.corrcoef(z.T)[0, 1] == pytest.approx(want, abs=0.05)
 
 
 def test_specs_and_their_judgement():
