@@ -667,6 +667,7 @@ def design(
     from .design import METHODS, parse_weights, write_design
     from .design import design as run_design
     from .predict import LoopSpecs, reference_from
+    from .rundir import DataError
     from .twin import load_record, load_twin
 
     if method not in METHODS:
@@ -678,7 +679,7 @@ def design(
     hz = float(rate or twin.sample_rate)
     rec = None
     if reference is None and twin.run is not None:
-        with contextlib.suppress(Exception):  # a diagnosed run without a closed-loop record: the default square
+        with contextlib.suppress(DataError):  # a diagnosed run without a closed-loop record: the default square
             rec = load_record(twin.run)
         rec = rec if rec is not None and abs(rec.Ts * hz - 1.0) < 1e-9 else None
     ref = reference_from(reference, hz, rec)

@@ -272,7 +272,7 @@ def dare(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray, tol: float 
         Gk, Ak = Gk + Ak @ WG @ Ak.T, Ak @ WA
         if not np.all(np.isfinite(Hn)):
             break
-        if np.linalg.norm(Hn - Hk, 1) <= tol * max(np.linalg.norm(Hn, 1), 1e-300):
+        if float(np.linalg.norm(Hn - Hk, 1)) <= tol * max(float(np.linalg.norm(Hn, 1)), 1e-300):
             return 0.5 * (Hn + Hn.T)
         Hk = Hn
     raise ValueError("the Riccati equation has no stabilising solution for these weights")

@@ -191,13 +191,7 @@ def spread_of_diagnosis(doc: dict[str, Any]) -> tuple[dict[str, float], Spread]:
     value, or an Integer parameter (a delay in samples), is not drawn."""
     params: dict[str, Any] = doc.get("parameters", {})
     if doc.get("rig"):
-        rig = doc["rig"]
-        over = {str(k): float(v) for k, v in rig["overrides"].items()}
-        names = tuple(str(n) for n in rig.get("names", ()))
-        logs = tuple(bool(v) for v in rig.get("log", ()))
-        cov = np.array(rig.get("covariance", ()), dtype=float).reshape(len(names), len(names))
-        cov += np.diag([_parts_var(params.get(n, {}), lg) for n, lg in zip(names, logs, strict=True)])
-        return over, Spread(names, tuple(over[n] for n in names), logs, tuple(map(tuple, cov.tolist())))
+        return _rig_spread(doc["rig"], params)
     effect_params = {k: float(v) for e in doc.get("effects", []) for k, v in e.get("params", {}).items()}
     over: dict[str, float] = {}
     for name, p in params.items():
@@ -205,8 +199,10 @@ def spread_of_diagnosis(doc: dict[str, Any]) -> tuple[dict[str, float], Spread]:
             continue
         over[name] = float(p["fitted"])
     over |= {k: v for k, v in effect_params.items() if k not in over}
-    names, center, logs, var = [], [], [], []
-    for name, value in over.items():
+    names: list[str] = []
+    logs: list[bool] = []
+    var: list[float] = []
+    for name in over:
         p = params.get(name)
         table, key = name.split(".", 1)
         if p is None or (table in MODELS and specmod.fmu_parameters(MODELS[table]).get(key, ("Real",))[0] != "Real"):
@@ -215,15 +211,24 @@ def spread_of_diagnosis(doc: dict[str, Any]) -> tuple[dict[str, float], Spread]:
         if not (math.isfinite(lo) and math.isfinite(hi)) or hi <= lo:
             continue
         log = _positive(p)
-        f = math.log if log else (lambda x: x)
-        s2 = ((f(hi) - f(lo)) / (2 * 1.96)) ** 2 + _parts_var(p, log)
+        width = math.log(hi / lo) if log else hi - lo
         names.append(name)
-        center.append(value)
         logs.append(log)
-        var.append(s2)
-    n = len(names)
-    cov = tuple(tuple(var[i] if i == j else 0.0 for j in range(n)) for i in range(n))
-    return over, Spread(tuple(names), tuple(center), tuple(logs), cov)
+        var.append((width / (2 * 1.96)) ** 2 + _parts_var(p, log))
+    cov = tuple(tuple(v if i == j else 0.0 for j in range(len(var))) for i, v in enumerate(var))
+    return over, Spread(tuple(names), tuple(over[n] for n in names), tuple(logs), cov)
+
+
+def _rig_spread(rig: dict[str, Any], params: dict[str, Any]) -> tuple[dict[str, float], Spread]:
+    """A diagnosis's ``rig`` (RigFit) as overrides and spread, each variance widened by its row's parts
+    (:func:`_parts_var`)."""
+    over = {str(k): float(v) for k, v in rig["overrides"].items()}
+    names = tuple(str(n) for n in rig.get("names", ()))
+    logs = tuple(bool(v) for v in rig.get("log", ()))
+    cov = np.array(rig.get("covariance", ()), dtype=float).reshape(len(names), len(names))
+    cov += np.diag([_parts_var(params.get(n, {}), lg) for n, lg in zip(names, logs, strict=True)])
+    matrix = tuple(tuple(float(x) for x in row) for row in cov)
+    return over, Spread(names, tuple(over[n] for n in names), logs, matrix)
 
 
 def _parts_var(p: dict[str, Any], log: bool) -> float:
