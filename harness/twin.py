@@ -132,9 +132,11 @@ class Twin:
         return RigTables(plant, daq, cal)
 
     def value(self, name: str) -> float:
-        """An override's value in the twin (a combo's, an FMU parameter's or a sensor gain's when not overridden)."""
-        if name in self.overrides:
-            return float(self.overrides[name])
+        """An override's value in the twin (the sheet's when not overridden: :meth:`sheet_value`)."""
+        return float(self.overrides[name]) if name in self.overrides else self.sheet_value(name)
+
+    def sheet_value(self, name: str) -> float:
+        """A parameter's value on the sheet: a combo's of its plant table, an FMU parameter's, 1 for a sensor gain."""
         table, key = name.split(".", 1)
         if table == "rig":
             return combos(self.plant)[name]
@@ -167,7 +169,7 @@ def twin_of_spec(spec: specmod.Spec) -> Twin:
     sd = prior_sd(plant, spec.factor)
     names = [*COMBOS, "plant.Ks", "plant.zeta_link", *SENSORS]
     base = Twin(spec.name, "spec", spec, spec.sample_rate, plant, daq, {}, _spec_noise(spec))
-    center = [base.value(n) for n in names]
+    center = [base.sheet_value(n) for n in names]
     var = [sd[n] ** 2 for n in names]
     cov = tuple(tuple(var[i] if i == j else 0.0 for j in range(len(names))) for i in range(len(names)))
     spread = Spread(tuple(names), tuple(center), (True,) * len(names), cov)
@@ -299,15 +301,19 @@ def load_twin(rig: str | Path) -> Twin:
 
 def draw(twin: Twin, n: int, seed: int) -> list[dict[str, float]]:
     """``n`` sets of overrides drawn from the twin's spread (multivariate normal in its coordinates, a positive
-    parameter's log; an FMU parameter drawn beyond the range its modelDescription.xml declares is put on the bound:
-    a static friction at least the Coulomb level), each on top of the twin's own overrides."""
+    parameter's log), each on top of the twin's own overrides; a value drawn beyond its bounds (:func:`_bounds`: the
+    fit's walls, an FMU's range) is put on the bound (a static friction at least the Coulomb level; a parameter the
+    data did not determine, whose standard error is capped far out, within the walls its fit had)."""
     sp = twin.spread
     rng = np.random.Generator(np.random.PCG64([int(seed), 35]))
     if not sp.names:
         return [dict(twin.overrides) for _ in range(n)]
     mu = np.array([math.log(c) if lg else c for c, lg in zip(sp.center, sp.log, strict=True)])
-    z = rng.multivariate_normal(mu, np.array(sp.cov), size=n, method="eigh")
-    bounds = [_bounds(nm) for nm in sp.names]
+    cov = np.array(sp.cov, dtype=float)
+    w, v = np.linalg.eigh(0.5 * (cov + cov.T))
+    cov = (v * np.clip(w, 0.0, None)) @ v.T  # the nearest positive semidefinite covariance
+    z = rng.multivariate_normal(mu, cov, size=n, method="eigh")
+    bounds = [_bounds(twin, nm) for nm in sp.names]
     out = []
     for row in z:
         vals = {nm: float(np.clip(math.exp(v) if lg else v, *b))
@@ -316,8 +322,14 @@ def draw(twin: Twin, n: int, seed: int) -> list[dict[str, float]]:
     return out
 
 
-def _bounds(name: str) -> tuple[float, float]:
-    """The range an FMU parameter's modelDescription.xml declares (a combo's or a sensor gain's: any)."""
+def _bounds(twin: Twin, name: str) -> tuple[float, float]:
+    """Where a drawn parameter is clipped: a linear parameter's search walls (:data:`harness.diagnosis.recalibrate.
+    LINEAR`, factors of the sheet's value), else the range an FMU parameter's modelDescription.xml declares, else none
+    (a record's gauge offset)."""
+    if name in LINEAR:
+        b = LINEAR[name]
+        nominal = twin.sheet_value(name)
+        return (b.lo * nominal, b.hi * nominal) if b.log else (b.lo, b.hi)
     table, key = name.split(".", 1)
     v = source_model(MODELS[table]).parameters().get(key) if table in MODELS else None
     if v is None:
