@@ -602,13 +602,16 @@ def predict(
     each behaviour metric's median and 95 % band, with a record the measured ones beside them: prediction.json."""
     import json
 
+    from .executor import prestart
+
+    _out_dir(out_dir)
+    prestart(workers, scheduler, ["harness.predict"])  # the workers start while the twin loads
     from .predict import LoopSpecs, loop_rate, reference_from
     from .predict import controller_from as pick_controller
     from .predict import predict as run_predict
     from .render.prediction import write_prediction
     from .twin import load_record, load_twin
 
-    _out_dir(out_dir)
     twin = load_twin(rig)
     rec = load_record(record) if record is not None else None
     ctrl = pick_controller(controller, str(controller_from) if controller_from else None, rec)
@@ -664,6 +667,10 @@ def design(
 ) -> None:
     """Design a controller on the rig (its identified twin or a spec) to a lab's specs, checked by predicting its loop
     with the rig's effects, intervals and noise: design.json, controller.toml, loop.ssp and the prediction."""
+    from .executor import prestart, session
+
+    _out_dir(out_dir)
+    prestart(workers, scheduler, ["harness.predict"])  # the workers start while the search runs
     from .design import METHODS, parse_weights, write_design
     from .design import design as run_design
     from .predict import LoopSpecs, reference_from
@@ -672,7 +679,6 @@ def design(
 
     if method not in METHODS:
         raise ValueError(f"--method {method!r} unknown; valid: {', '.join(METHODS)}")
-    _out_dir(out_dir)
     twin = load_twin(rig)
     wt = parse_weights(weights, method) if weights is not None else None
     judged = LoopSpecs.parse(specs) if specs is not None else None
@@ -685,10 +691,11 @@ def design(
     ref = reference_from(reference, hz, rec)
     if cutoff is None and rec is not None and rec.controller is not None and rec.controller.kind != "lqg":
         cutoff = rec.controller.cutoff  # the lab's own velocity filter
-    d = run_design(
-        twin, method, ref, specs=judged, weights=wt, rate=hz, cutoff=cutoff, n=n, seed=seed,
-        progress=_progress("design"), **_parallel(workers, scheduler),
-    )  # fmt: skip
+    with session(workers, scheduler):  # one cluster for every round's prediction
+        d = run_design(
+            twin, method, ref, specs=judged, weights=wt, rate=hz, cutoff=cutoff, n=n, seed=seed,
+            progress=_progress("design"),
+        )  # fmt: skip
     path = write_design(d, twin, out_dir)
     doc = d.to_json()
     out.print(f"{method}: {doc['parameters']}; disk margin {doc['linear']['disk_margin']:.3g}")

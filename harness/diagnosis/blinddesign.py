@@ -48,14 +48,11 @@ def _reference(rate: float, quick: bool) -> Reference:
     return reference_from(text, rate)
 
 
-def sheet_design(
-    sheet: specmod.Spec, quick: bool, fmus: dict[str, FmuBytes] | None = None, workers: int | None = None,
-    scheduler: str | None = None,
-) -> Controller:  # fmt: skip
+def sheet_design(sheet: specmod.Spec, quick: bool, fmus: dict[str, FmuBytes] | None = None) -> Controller:
     """The controller a lab designs on its sheet (``sheet``: the family's spec at a sample rate): :data:`METHOD` to
     :data:`SPECS`, checked on the sheet with its own uncertainty (the best the search found when that check misses)."""
     d = design(twin_of_spec(sheet), METHOD, _reference(sheet.sample_rate, quick), LoopSpecs.parse(SPECS), n=N_CHECK,
-               strict=False, fmus=fmus, workers=workers, scheduler=scheduler)  # fmt: skip
+               strict=False, fmus=fmus)  # fmt: skip
     return d.controller
 
 

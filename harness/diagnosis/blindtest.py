@@ -51,6 +51,7 @@ and 25 % of the rig's on the nuisance, independent and closed families; out-of-l
 
 from __future__ import annotations
 
+import contextlib
 import math
 import shutil
 import tempfile
@@ -65,7 +66,7 @@ import numpy as np
 
 from .. import clone
 from .. import spec as specmod
-from ..executor import Executor, FmuBytes, fmu_bytes, fmu_file
+from ..executor import Executor, FmuBytes, fmu_bytes, fmu_file, session
 from ..fmu.build import build_all
 from ..ident.calibration import Calibration
 from ..rig.campaign import run_campaign
@@ -682,14 +683,15 @@ def blindtest(
         say(f"skipped family {skipped[-1]}")
     cases = plan(n, seed, families)
     fmus = {k: fmu_bytes(v) for k, v in build_all().items()}
-    sheets = {}
-    for c in cases:  # a design case is logged under its sheet's design: one per sample rate, designed here once
-        if c.get("family") == "design":
+    sheets: dict[tuple[str, ...], dict[str, Any]] = {}
+    designs = [c for c in cases if c.get("family") == "design"]
+    with session(workers, scheduler) if designs else contextlib.nullcontext():  # one cluster for the sheet designs
+        for c in designs:  # a design case is logged under its sheet's design: one per sample rate, designed here once
             rate_sets = case_sets(c)[1:]
             if tuple(rate_sets) not in sheets:
                 say(f"design on the sheet ({', '.join(rate_sets)})")
                 sheet = campaign_spec(quick, rate_sets, "design")
-                sheets[tuple(rate_sets)] = blinddesign.sheet_design(sheet, quick, fmus, workers, scheduler).to_dict()
+                sheets[tuple(rate_sets)] = blinddesign.sheet_design(sheet, quick, fmus).to_dict()
             c["sheet_controller"] = sheets[tuple(rate_sets)]
     out = Path(out)
     root = out.resolve() / "blind_cases" if keep else None
