@@ -528,6 +528,35 @@ def bench_unit(workers: int = 2) -> dict[str, Any]:
     }
 
 
+def bench_predict(n: int = 200, duration_s: float = 10.0, rate_hz: float = 1000.0) -> dict[str, Any]:
+    """``flexjoint predict`` with ``n`` members on a ``duration_s`` loop at ``rate_hz``: the lab rig (friction, second
+    mode, 12-bit ADC, noise, a command delay, its datasheet's spread) under its LQR tracking a +-30 deg square, serially
+    in this process and on the executor's local Dask cluster of 2 workers (its start-up included, as a user runs it),
+    the same numbers both ways; beside them what two plain processes get from the machine right now."""
+    from harness.predict import predict, reference_from
+    from harness.twin import twin_of_spec
+
+    twin = twin_of_spec(specmod.load("closed_loop", [f"campaign.sample_rate={rate_hz:g}"]))
+    ref = reference_from(f"square:f=0.25;amplitude=30;duration={duration_s:g}", rate_hz)
+    assert twin.spec.controller is not None
+    walls, docs = {}, {}
+    for label, workers in (("serial", 1), ("dask_2_workers", 2)):
+        t0 = time.perf_counter()
+        pred = predict(twin, twin.spec.controller, ref, n=n, seed=0, workers=workers)
+        walls[label] = time.perf_counter() - t0
+        docs[label] = json.dumps(pred.to_json(), sort_keys=True)
+    return {
+        "members": n,
+        "samples_per_member": ref.ref_deg.size,
+        "serial_s": walls["serial"],
+        "dask_2_workers_s": walls["dask_2_workers"],
+        "target_s": 30.0,
+        "speedup": walls["serial"] / walls["dask_2_workers"],
+        "same_numbers": docs["serial"] == docs["dask_2_workers"],
+        "machine_parallel_efficiency_pct": machine_parallel_efficiency(),
+    }
+
+
 def run_all(quick: bool = False, progress: Any = None, table: bool = False, blind: int = 0) -> dict[str, Any]:
     """Every benchmark, each side by side with its peer, as one JSON-able dict; ``run`` is ``flexjoint run`` end to
     end with its stages' times and the command line's start-up; ``parallel`` is every parallel
@@ -545,6 +574,7 @@ def run_all(quick: bool = False, progress: Any = None, table: bool = False, blin
         ("executor", lambda: bench_executor(20 if quick else 40)),
         ("parallel", lambda: bench_parallel(rounds=1 if quick else 2, blind_n=8 if quick else 24)),
         ("unit", bench_unit),
+        ("predict", lambda: bench_predict(50 if quick else 200)),
     ]
     if table:
         steps.append(("diagnosis_table", bench_diagnosis_table))
