@@ -694,9 +694,10 @@ def design(
 
     _out_dir(out_dir)
     prestart(workers, scheduler, ["harness.predict"])  # the workers start while the search runs
-    from .design import METHODS, parse_weights, write_design
+    from .design import METHODS, parse_weights
     from .design import design as run_design
     from .predict import LoopSpecs, reference_from
+    from .render.prediction import write_design
     from .rundir import DataError
     from .twin import load_record, load_twin
 

@@ -29,10 +29,10 @@ the spec and by how much. The gains are python-control's ``dlqr`` and the Kalman
 from __future__ import annotations
 
 import math
+import tomllib
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from itertools import product
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -76,7 +76,6 @@ __all__ = [
     "stick_band_deg",
     "design_step",
     "twin_spec",
-    "write_design",
 ]
 
 Progress = Callable[[str], None]
@@ -476,7 +475,7 @@ def twin_spec(twin: Twin, c: Controller, reference: Reference, seed: int) -> spe
     plant = dict(tables.plant)
     step = float(plant.pop("internal_step", twin.spec.internal_step))
     plant["theta_start"] = math.radians(reference.theta0_deg) / float(twin.overrides.get("sensor.theta_gain", 1.0))
-    table = {k: v for k, v in specmod.tomllib.loads(controller_toml(c, "")).get("controller", {}).items()}
+    table = {k: v for k, v in tomllib.loads(controller_toml(c, "")).get("controller", {}).items()}
     kind, params = reference.signal or (
         "constant",
         {"amplitude": 0.0, "duration": reference.ref_deg.size * reference.Ts},
@@ -491,24 +490,3 @@ def twin_spec(twin: Twin, c: Controller, reference: Reference, seed: int) -> spe
         "experiment": [exp],
     }  # fmt: skip
     return specmod.from_dict(raw, "")
-
-
-def write_design(d: Design, twin: Twin, out: Path, rrd: bool = True) -> Path:
-    """A design's files into ``out``: design.json, controller.toml, loop.ssp (the twin under the controller tracking
-    the reference, as SSP 1.0: ``flexjoint ssp``'s archive), then the prediction's (:func:`harness.render.prediction.
-    write_prediction`: prediction.json, the traces, report.md with the design, figures, prediction.rrd)."""
-    from .render.prediction import write_prediction
-    from .rundir import atomic_write_bytes, atomic_write_text, write_json
-    from .ssp import ssp_bytes
-
-    ref = d.prediction.reference
-    spec = twin_spec(twin, d.controller, ref, d.prediction.seed)
-    ssp = ssp_bytes(spec, "loop", "closed", None if ref.signal else ref.ref_deg)
-    out = Path(out)
-    write_json(out / "design.json", d.to_json())
-    note = (
-        f"{d.method} designed by flexjoint design on {twin.name} for {ref.label}\n(design.json: its specs and margins)"
-    )
-    atomic_write_text(out / "controller.toml", controller_toml(d.controller, note))
-    atomic_write_bytes(out / "loop.ssp", ssp)
-    return write_prediction(d.prediction, out, rrd=rrd)

@@ -20,7 +20,9 @@ result does not depend on where they ran.
 
 from __future__ import annotations
 
+import json
 import math
+import tomllib
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -35,7 +37,7 @@ from .ident.armax import fit_percent
 from .rig.controller import Controller, delayed, parse_controller
 from .rig.signals import SIGNAL_KINDS, generate
 from .rundir import DataError
-from .spec import SpecError
+from .spec import SpecError, controller_table
 from .twin import Record, RigTables, Twin, draw, load_record
 
 __all__ = [
@@ -212,10 +214,6 @@ def controller_from(text: str | None, source: str | None, record: Record | None)
 
 
 def _controller_file(p: Path) -> Controller:
-    import tomllib
-
-    from .spec import controller_table
-
     toml = p / "controller.toml" if p.is_dir() else p
     if p.is_dir() and not toml.is_file():
         rec = load_record(p)
@@ -471,8 +469,6 @@ def with_specs(pred: Prediction, specs: LoopSpecs | None) -> Prediction:
 def accept_prediction(where: Path, specs: str | None = None) -> tuple[bool, list[str]]:
     """``flexjoint accept`` on what predict or design wrote: each spec (its own, or ``specs`` given now) against the
     band of prediction.json. Returns (every spec met, one phrase per spec); one line when there is no spec."""
-    import json
-
     doc = json.loads((Path(where) / "prediction.json").read_text(encoding="utf-8"))
     if specs is not None:
         judged_specs = LoopSpecs.parse(specs)

@@ -28,12 +28,11 @@ import copy
 import hashlib
 import json
 import math
+import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypedDict, cast
-
-import tomllib
 
 from .fmu.modeldesc import Variable, source_model
 from .fmu.sources import bundled_dir

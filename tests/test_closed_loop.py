@@ -308,7 +308,7 @@ def _blind_closed_run(
          "truth_effects": [], "sensor": sensor or {}, "campaign_seed": seed}  # fmt: skip
     run = tmp_path / f"case_{case}"
     bt.make_rig_run(c, run, quick=True)
-    return run, bt.campaign_spec(True, bt._case_sets(c)[1:], "closed")
+    return run, bt.campaign_spec(True, bt.case_sets(c)[1:], "closed")
 
 
 def test_a_closed_loop_replay_carries_the_datas_noise_so_friction_is_not_viscous(tmp_path):

@@ -17,10 +17,9 @@ from __future__ import annotations
 import shutil
 import tempfile
 import time
+import tomllib
 from pathlib import Path
 from typing import Any
-
-import tomllib
 
 from .. import spec as specmod
 from ..design import Design, controller_toml, design
@@ -29,7 +28,7 @@ from ..predict import SPEC_KEYS, LoopSpecs, MetricBand, Reference, judge_specs, 
 from ..rig.campaign import run_campaign
 from ..rig.controller import Controller
 from ..twin import RigTables, twin_of_diagnosis, twin_of_spec
-from . import blindtest
+from .blindcase import campaign_spec, case_sets, hide_truth, score_case
 from .diagnose import diagnose_run
 
 __all__ = ["BAND_METRICS", "METHOD", "REFERENCE", "SPECS", "design_group", "design_scores", "run_design_case",
@@ -108,10 +107,10 @@ def run_design_case(case: dict[str, Any], root: Path | None, quick: bool, fmus: 
     tc = time.perf_counter()
     files = {k: fmu_file(v) for k, v in fmus.items()}
     sheet_c = Controller(**case["sheet_controller"])
-    seed = blindtest.case_sets(case)
-    sheet = with_controller(blindtest.campaign_spec(quick, seed[1:], case["family"]), sheet_c)
+    seed = case_sets(case)
+    sheet = with_controller(campaign_spec(quick, seed[1:], case["family"]), sheet_c)
     truth = [f"{k}={v}" for k, v in {**case.get("nuisance", {}), **case["truth_params"]}.items()]
-    true_spec = with_controller(blindtest.campaign_spec(quick, truth + seed, case["family"]), sheet_c)
+    true_spec = with_controller(campaign_spec(quick, truth + seed, case["family"]), sheet_c)
     ref = _reference(sheet.sample_rate, quick)
     specs = LoopSpecs.parse(SPECS)
     with tempfile.TemporaryDirectory(prefix="flexjoint-blind-") as tmp:
@@ -119,7 +118,7 @@ def run_design_case(case: dict[str, Any], root: Path | None, quick: bool, fmus: 
         if d.exists():
             shutil.rmtree(d)
         run_campaign(true_spec, d, fmus=files, workers=1)
-        blindtest.hide_truth(d, sheet, seed, sheet=True)
+        hide_truth(d, sheet, seed, sheet=True)
         diag = diagnose_run(d, sheet, d, workers=1, fmus=files)
         twin = twin_of_diagnosis(d, spec=sheet)
         identified = design(twin, METHOD, ref, specs, n=N_CHECK, seed=int(case["campaign_seed"]) % 1000, strict=False,
@@ -128,7 +127,7 @@ def run_design_case(case: dict[str, Any], root: Path | None, quick: bool, fmus: 
     tables = _true_tables(true_spec, sheet, TRUE_SEED + int(case["case"]))
     true_id = _true_metrics(rig, tables, identified.controller, ref)
     true_sheet = _true_metrics(rig, tables, sheet_c, ref)
-    score = {**blindtest.score_case(case, diag), "design": design_scores(identified, true_id, true_sheet)}
+    score = {**score_case(case, diag), "design": design_scores(identified, true_id, true_sheet)}
     return {**case, "score": score, "timing_s": time.perf_counter() - tc}
 
 

@@ -22,12 +22,15 @@ import pandas as pd
 import rerun as rr
 import rerun.blueprint as rrb
 
-from ..rundir import DataError, atomic_write_text, write_dataset, write_json
+from ..design import Design, controller_toml, twin_spec
+from ..rundir import DataError, atomic_write_bytes, atomic_write_text, write_dataset, write_json
+from ..ssp import ssp_bytes
+from ..twin import Twin
 from .figures import new_figure, save_figure
 from .tables import fmt_any
 from .viewer import write_recording
 
-__all__ = ["FILES", "report_prediction", "write_prediction"]
+__all__ = ["FILES", "report_prediction", "write_design", "write_prediction"]
 
 FILES = {"json": "prediction.json", "traces": "prediction.parquet", "members": "prediction.members.parquet"}
 FIGURES = ("prediction_traces.png", "prediction_metrics.png")
@@ -68,6 +71,23 @@ def write_prediction(pred: Any, out: Path, rrd: bool = True) -> Path:
     members |= {k: np.asarray(v, dtype=float) for k, v in pred.values.items()}
     write_dataset(out / FILES["members"], members)
     return report_prediction(out, rrd=rrd)
+
+
+def write_design(d: Design, twin: Twin, out: Path, rrd: bool = True) -> Path:
+    """A design's files into ``out``: design.json, controller.toml, loop.ssp (the twin under the controller tracking
+    the reference, as SSP 1.0: ``flexjoint ssp``'s archive), then the prediction's (:func:`write_prediction`:
+    prediction.json, the traces, report.md with the design, figures, prediction.rrd)."""
+    ref = d.prediction.reference
+    spec = twin_spec(twin, d.controller, ref, d.prediction.seed)
+    ssp = ssp_bytes(spec, "loop", "closed", None if ref.signal else ref.ref_deg)
+    out = Path(out)
+    write_json(out / "design.json", d.to_json())
+    note = (
+        f"{d.method} designed by flexjoint design on {twin.name} for {ref.label}\n(design.json: its specs and margins)"
+    )
+    atomic_write_text(out / "controller.toml", controller_toml(d.controller, note))
+    atomic_write_bytes(out / "loop.ssp", ssp)
+    return write_prediction(d.prediction, out, rrd=rrd)
 
 
 def _load(out: Path) -> tuple[dict[str, Any], pd.DataFrame, pd.DataFrame, dict[str, Any] | None]:

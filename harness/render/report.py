@@ -12,13 +12,13 @@ import contextvars
 import math
 import re
 import threading
+import tomllib
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
-import tomllib
 
 from ..diagnosis.replays import STAGES
 from ..executor import Executor, in_session
