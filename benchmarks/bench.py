@@ -533,7 +533,7 @@ def bench_predict(n: int = 200, duration_s: float = 10.0, rate_hz: float = 1000.
     mode, 12-bit ADC, noise, a command delay, its datasheet's spread) under its LQR tracking a +-30 deg square, serially
     in this process and on the executor's local Dask cluster of 2 workers (its start-up included, as a user runs it),
     the same numbers both ways; beside them what two plain processes get from the machine right now."""
-    from harness.predict import predict, reference_from
+    from harness.prediction import predict, reference_from
     from harness.twin import twin_of_spec
 
     twin = twin_of_spec(specmod.load("closed_loop", [f"campaign.sample_rate={rate_hz:g}"]))

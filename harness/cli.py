@@ -538,7 +538,7 @@ def accept(
     predict or design wrote (prediction.json): 0 when every spec's predicted band meets its limit, 1 naming those that
     do not."""
     if (run_dir / "prediction.json").is_file():
-        from .predict import accept_prediction
+        from .prediction import accept_prediction
 
         ok, lines = accept_prediction(run_dir, specs)
         if ok:
@@ -628,10 +628,10 @@ def predict(
     from .executor import prestart
 
     _out_dir(out_dir)
-    prestart(workers, scheduler, ["harness.predict"])  # the workers start while the twin loads
-    from .predict import LoopSpecs, loop_rate, reference_from
-    from .predict import controller_from as pick_controller
-    from .predict import predict as run_predict
+    prestart(workers, scheduler, ["harness.prediction"])  # the workers start while the twin loads
+    from .prediction import LoopSpecs, loop_rate, reference_from
+    from .prediction import controller_from as pick_controller
+    from .prediction import predict as run_predict
     from .render.prediction import write_prediction
     from .twin import load_record, load_twin
 
@@ -693,10 +693,10 @@ def design(
     from .executor import prestart, session
 
     _out_dir(out_dir)
-    prestart(workers, scheduler, ["harness.predict"])  # the workers start while the search runs
+    prestart(workers, scheduler, ["harness.prediction"])  # the workers start while the search runs
     from .design import METHODS, parse_weights
     from .design import design as run_design
-    from .predict import LoopSpecs, reference_from
+    from .prediction import LoopSpecs, reference_from
     from .render.prediction import write_design
     from .rundir import DataError
     from .twin import load_record, load_twin

@@ -18,7 +18,7 @@ PD's w_n, zeta and tip ratios) is searched: each candidate's linear loop (its ve
 delays) runs the reference's largest step for its shortest step's time and is measured (:mod:`harness.behaviour`; its
 stopping error gets the band that friction and a command offset hold a hub in without integral action, (breakaway
 voltage + |u_offset|) / k_theta); of the candidates that meet every spec there, the one with the largest disk margin
-(:class:`harness.linloop.Frequencies`) is checked by :func:`harness.predict.predict` on the twin with its effects,
+(:class:`harness.linloop.Frequencies`) is checked by :func:`harness.prediction.predict` on the twin with its effects,
 parameter spread and noise. Where a spec's band misses its limit, that spec's target is tightened by the factor it
 missed by and the most robust candidate under the new targets is checked again, up to :data:`ROUNDS` times. When no
 candidate meets the specs on the linear model, or none the prediction passes, no design meets them: one line naming
@@ -52,7 +52,7 @@ from .linloop import (
     spectral_radius,
     step_response,
 )
-from .predict import LoopSpecs, Prediction, Reference, predict
+from .prediction import LoopSpecs, Prediction, Reference, predict
 from .rig.controller import NX_MAX, Controller, Estimator
 from .spec import fmu_value
 from .twin import Twin
@@ -352,10 +352,50 @@ def design(
     progress: Progress | None = None,
     fmus: dict[str, FmuBytes] | None = None,
 ) -> Design:
-    """Design a ``method`` controller on ``twin`` to ``specs`` (default :data:`DEFAULT_SPECS`) for ``reference`` (at
-    ``rate`` [Hz], default the twin's), then predict it with ``n`` members (see the module docstring). ``strict``: a
-    search that meets no spec raises :class:`DesignError`; otherwise the closest design on the linear loop, or the last
-    round's, is returned, judged."""
+    """Design a controller on a rig to a lab's specs, then check it by its prediction (see the module docstring).
+
+    Parameters
+    ----------
+    twin : Twin
+        The rig (:func:`harness.load_twin`).
+    method : str
+        ``lqr``, ``lqg`` (a Kalman filter in the controller FMU) or ``pd`` (the labs' four gains).
+    reference : Reference
+        What the loop is designed and checked for (:func:`harness.reference_from`), at ``rate``.
+    specs : LoopSpecs, optional
+        The limits to meet; default :data:`DEFAULT_SPECS` (the Quanser courseware's).
+    weights : Weights, optional
+        lqr/lqg weights to design with as they are (default: searched to meet the specs).
+    rate : float, optional
+        The controller's sample rate [Hz]; default the twin's.
+    cutoff : float, optional
+        lqr/pd: the velocity filters' cutoff [Hz].
+    n : int
+        Members of the prediction that checks each round's design.
+    seed : int
+        Seed of the prediction's draws.
+    strict : bool
+        Raise :class:`DesignError` when no design meets the specs on the linear loop; else return the closest.
+    workers : int, optional
+        Local worker processes of the predictions (None: the default cluster or the enclosing session's).
+    scheduler : str, optional
+        A Dask scheduler's address to run on instead.
+    progress : callable, optional
+        Called with one line of text per round.
+    fmus : dict of str to bytes, optional
+        The built FMUs as bytes; default :func:`harness.build_all`'s.
+
+    Returns
+    -------
+    Design
+        The chosen gains, the linear loop's disk margins, the prediction judged against the specs and the search's
+        rounds.
+
+    Raises
+    ------
+    DesignError
+        One line naming each spec no design meets and by how much (``strict``).
+    """
     if method not in METHODS:
         raise ValueError(f"--method {method!r} unknown; valid: {', '.join(METHODS)}")
     say = progress or (lambda _m: None)

@@ -285,8 +285,24 @@ def twin_of_diagnosis(where: Path, spec: specmod.Spec | None = None) -> Twin:
 
 
 def load_twin(rig: str | Path) -> Twin:
-    """RIG as given on the command line: a diagnosis directory (holding diagnosis.json) or a spec (a path or a
-    bundled name). A directory that holds no diagnosis has no model of the rig to close a loop on: one line."""
+    """The rig to design on and predict for, as ``RIG`` is given on the command line.
+
+    Parameters
+    ----------
+    rig : str or Path
+        A diagnosis directory (holding diagnosis.json: the identified twin, with the effects found, the intervals and
+        the data's noise) or a spec (a path or a bundled name: its rig, its ``[uncertainty]`` as its spread).
+
+    Returns
+    -------
+    Twin
+        The rig's tables, the fitted values on top and their spread.
+
+    Raises
+    ------
+    DataError
+        One line when a directory holds no diagnosis (no model of the rig to close a loop on).
+    """
     p = Path(rig)
     if p.is_dir():
         if not RunDir(p).diagnosis.is_file():

@@ -16,7 +16,7 @@ import pytest
 from harness import spec as specmod
 from harness.design import DesignError, controller_toml, design, pd_controller
 from harness.linloop import closed_loop, design_model, spectral_radius
-from harness.predict import LoopSpecs, reference_from
+from harness.prediction import LoopSpecs, reference_from
 from harness.render.prediction import write_design
 from harness.spec import controller_table
 from harness.twin import twin_of_spec

@@ -24,7 +24,7 @@ from harness.linloop import (
     lqr_gain,
     step_response,
 )
-from harness.predict import simulate_loop
+from harness.prediction import simulate_loop
 from harness.rig.controller import Controller
 from harness.twin import twin_of_spec
 

@@ -15,7 +15,7 @@ from harness import spec as specmod
 from harness.behaviour import POOLED_BY
 from harness.fmu.build import build_all
 from harness.fmu.cosim import Rig
-from harness.predict import (
+from harness.prediction import (
     LoopSpecs,
     MetricBand,
     judge_specs,

@@ -24,7 +24,7 @@ from typing import Any
 from .. import spec as specmod
 from ..design import Design, controller_toml, design
 from ..executor import FmuBytes, fmu_file, worker_rig
-from ..predict import SPEC_KEYS, LoopSpecs, MetricBand, Reference, judge_specs, pooled, reference_from, simulate_loop
+from ..prediction import SPEC_KEYS, LoopSpecs, MetricBand, Reference, judge_specs, pooled, reference_from, simulate_loop
 from ..rig.campaign import run_campaign
 from ..rig.controller import Controller
 from ..twin import RigTables, twin_of_diagnosis, twin_of_spec
@@ -69,7 +69,7 @@ def _true_metrics(rig: Any, tables: RigTables, c: Controller, ref: Reference) ->
 
 
 def _meets(values: dict[str, float], specs: LoopSpecs) -> bool:
-    """Does one loop's behaviour meet every spec (the rule :func:`harness.predict.judge_specs` applies to a band)?"""
+    """Does one loop's behaviour meet every spec (the rule :func:`harness.prediction.judge_specs` applies to a band)?"""
     return all(v["met"] for v in judge_specs({m: MetricBand(x, x, x) for m, x in values.items()}, specs).values())
 
 

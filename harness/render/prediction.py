@@ -1,6 +1,6 @@
 """A prediction's (and a design's) files, report.md, figures and recording, each from what its directory holds.
 
-``write_prediction(pred, out)`` writes ``prediction.json`` (:meth:`harness.predict.Prediction.to_json`),
+``write_prediction(pred, out)`` writes ``prediction.json`` (:meth:`harness.prediction.Prediction.to_json`),
 ``prediction.parquet`` (t, ref and the median and 95 % band of theta, alpha [deg] and u [V] per sample, and the
 record's where there is one) and ``prediction.members.parquet`` (per member its parameter draw and pooled metrics),
 then :func:`report_prediction`: ``report.md``, ``figures/prediction_traces.png`` (the bands over the record),
@@ -50,8 +50,23 @@ SHOWN = ("overshoot_pct", "settling_s", "stop_error_deg", "peak_alpha_deg", "pea
 
 
 def write_prediction(pred: Any, out: Path, rrd: bool = True) -> Path:
-    """The prediction's files into ``out`` (atomic each), then its report (:func:`report_prediction`); returns
-    report.md."""
+    """A prediction's files into a directory, each written atomically, then its report.
+
+    Parameters
+    ----------
+    pred : Prediction
+        What :func:`harness.predict_loop` returned.
+    out : Path
+        The directory: prediction.json, prediction.parquet, prediction.members.parquet, then
+        (:func:`report_prediction`) report.md, figures/ and prediction.rrd.
+    rrd : bool
+        Write the Rerun recording too.
+
+    Returns
+    -------
+    Path
+        The report (``out/report.md``).
+    """
     out = Path(out)
     write_json(out / FILES["json"], pred.to_json())
     cols: dict[str, np.ndarray] = {"t": pred.reference.t, "ref": pred.reference.ref_deg}
@@ -74,9 +89,26 @@ def write_prediction(pred: Any, out: Path, rrd: bool = True) -> Path:
 
 
 def write_design(d: Design, twin: Twin, out: Path, rrd: bool = True) -> Path:
-    """A design's files into ``out``: design.json, controller.toml, loop.ssp (the twin under the controller tracking
-    the reference, as SSP 1.0: ``flexjoint ssp``'s archive), then the prediction's (:func:`write_prediction`:
-    prediction.json, the traces, report.md with the design, figures, prediction.rrd)."""
+    """A design's files into a directory, each written atomically, then its prediction's.
+
+    Parameters
+    ----------
+    d : Design
+        What :func:`harness.design_controller` returned.
+    twin : Twin
+        The rig it was designed on (the loop's SSP runs it).
+    out : Path
+        The directory: design.json, controller.toml (a ``[controller]`` table for a spec), loop.ssp (the twin under
+        the controller tracking the reference, as SSP 1.0: ``flexjoint ssp``'s archive), then the prediction's
+        (:func:`write_prediction`; its report.md shows the design).
+    rrd : bool
+        Write the Rerun recording too.
+
+    Returns
+    -------
+    Path
+        The report (``out/report.md``).
+    """
     ref = d.prediction.reference
     spec = twin_spec(twin, d.controller, ref, d.prediction.seed)
     ssp = ssp_bytes(spec, "loop", "closed", None if ref.signal else ref.ref_deg)

@@ -267,8 +267,25 @@ def output_limit(u: np.ndarray) -> float:
 
 
 def parse_controller(text: str) -> Controller:
-    """A controller from its command-line form ``KIND:NAME=VALUE;...``: ``state_feedback:K=9.2,-18.8,1.2,0;cutoff=15;
-    u_limit=10`` or ``pid:kp=12;ki=40;kd=0.8;cutoff=30``; ``source="given"``."""
+    """A controller from its command-line form (``flexjoint predict --controller``).
+
+    Parameters
+    ----------
+    text : str
+        ``KIND:NAME=VALUE;...``: ``state_feedback:K=9.2,-18.8,1.2,0;cutoff=15;u_limit=10`` (gains on theta, alpha
+        [V/rad] and their rates [V s/rad]) or ``pid:kp=12;ki=40;kd=0.8;cutoff=30``. An lqg controller's arrays are
+        given as a ``[controller]`` table instead (a design's controller.toml).
+
+    Returns
+    -------
+    Controller
+        The controller, its ``source`` "given".
+
+    Raises
+    ------
+    ValueError
+        One line naming what is malformed.
+    """
     kind, sep, rest = str(text).partition(":")
     kind = kind.strip()
     if kind == "lqg":

@@ -180,8 +180,24 @@ def parse_signal(text: str) -> tuple[str, dict[str, Any]]:
 
 
 def reference_from(text: str | None, rate: float, record: Record | None = None) -> Reference:
-    """The reference: a run directory (its first closed-loop record's), a signal ``KIND:NAME=VALUE;...;duration=S``
-    at ``rate`` [Hz] from rest at 0, else the record's, else :data:`DEFAULT_REFERENCE`."""
+    """The reference a loop tracks, from its command-line form.
+
+    Parameters
+    ----------
+    text : str or None
+        A run directory (its first closed-loop record's reference), or a signal ``KIND:NAME=VALUE;...;duration=S``
+        (``square:f=0.25;amplitude=30;duration=8``, amplitude in deg) from rest at 0; None: the record's, else
+        :data:`DEFAULT_REFERENCE`.
+    rate : float
+        The loop's sample rate [Hz] a signal is generated at.
+    record : Record, optional
+        A closed-loop record (:func:`harness.twin.load_record`) whose reference is taken when ``text`` is None.
+
+    Returns
+    -------
+    Reference
+        The hub angle's reference [deg] per sample, its start and its label.
+    """
     if text is not None and Path(text).is_dir():
         record = load_record(text)
         text = None
@@ -405,9 +421,44 @@ def predict(
     scheduler: str | None = None,
     progress: Progress | None = None,
 ) -> Prediction:
-    """The ensemble of ``n`` closed loops (see the module docstring) of ``controller`` on ``twin`` tracking
-    ``reference``; parameter and noise draws from ``seed``; ``record``: the record to set the prediction beside.
-    Runs on the executor (``workers``/``scheduler``); the same inputs give the same numbers."""
+    """Predict a controller's loop on a rig: an ensemble of closed-loop co-simulations, with median and 95 % bands.
+
+    Member i runs the twin with the i-th draw of its parameters and its own measurement noise (see the module
+    docstring); the same inputs give the same numbers, serially or on a cluster.
+
+    Parameters
+    ----------
+    twin : Twin
+        The rig (:func:`harness.load_twin`): a spec's, or the twin a diagnosis identified.
+    controller : Controller
+        The control law (:func:`harness.parse_controller`, a design's, a record's).
+    reference : Reference
+        What the hub tracks (:func:`harness.reference_from`), sampled at the loop's rate.
+    n : int
+        Members of the ensemble.
+    seed : int
+        Seed of the parameter and noise draws.
+    band_pct : float
+        The settling band [% of the step].
+    record : Record, optional
+        A closed-loop record to set the prediction beside: its measured metrics and the median's fit.
+    specs : LoopSpecs, optional
+        Limits to judge each metric's band against.
+    fmus : dict of str to bytes, optional
+        The built FMUs as bytes; default :func:`harness.build_all`'s.
+    workers : int, optional
+        Local worker processes (None: the default cluster or the enclosing session's; 1: serial, in-process).
+    scheduler : str, optional
+        A Dask scheduler's address to run on instead.
+    progress : callable, optional
+        Called with one line of text as members are done.
+
+    Returns
+    -------
+    Prediction
+        Per metric the members' values (median and band by :meth:`Prediction.metric_bands`), the traces' pointwise
+        median and band, and with a record its measured values and fit.
+    """
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise ValueError(f"--n must be a positive number of members, got {n!r}")
     rate = loop_rate(controller, twin)
@@ -467,8 +518,25 @@ def with_specs(pred: Prediction, specs: LoopSpecs | None) -> Prediction:
 
 
 def accept_prediction(where: Path, specs: str | None = None) -> tuple[bool, list[str]]:
-    """``flexjoint accept`` on what predict or design wrote: each spec (its own, or ``specs`` given now) against the
-    band of prediction.json. Returns (every spec met, one phrase per spec); one line when there is no spec."""
+    """``flexjoint accept`` on what predict or design wrote: each spec against the band of prediction.json.
+
+    Parameters
+    ----------
+    where : Path
+        The directory predict or design wrote (holding prediction.json).
+    specs : str, optional
+        Specs to judge now (``settling=1.5,overshoot=5``) instead of those the prediction states.
+
+    Returns
+    -------
+    tuple of (bool, list of str)
+        Whether every spec's band is met, and one phrase per spec.
+
+    Raises
+    ------
+    ValueError
+        One line when the prediction states no spec and none is given.
+    """
     doc = json.loads((Path(where) / "prediction.json").read_text(encoding="utf-8"))
     if specs is not None:
         judged_specs = LoopSpecs.parse(specs)
