@@ -38,7 +38,7 @@ from .rig.controller import Controller, delayed, parse_controller
 from .rig.signals import SIGNAL_KINDS, generate
 from .rundir import DataError
 from .spec import SpecError, controller_table
-from .twin import Record, RigTables, Twin, draw, load_record
+from .twin import Record, RigTables, Twin, draw, load_record, with_record_offset
 
 __all__ = [
     "BAND",
@@ -293,7 +293,7 @@ def pooled(
 @dataclass(frozen=True, eq=False)
 class LoopJob:
     """What every member shares: the twin, the controller, the reference, the settling band, the FMUs as bytes, and
-    the diagnosed record whose gauge offset the gauge reads (None: a record the diagnosis did not fit, or none)."""
+    the record whose gauge offset the gauge reads (:func:`harness.twin.with_record_offset`; None: none)."""
 
     twin: Twin
     controller: Controller
@@ -467,13 +467,14 @@ def predict(
     if specs is not None:
         band_pct = specs.band_pct
     shipped = fmus or {k: fmu_bytes(v) for k, v in build_all().items() if k in ("flexjoint", "daq", "controller")}
+    if record is not None:
+        twin = with_record_offset(twin, record)  # its gauge reads the record's offset
     draws = draw(twin, n, seed)
     rng = np.random.Generator(np.random.PCG64([int(seed), 36]))
     seeds = [int(s) for s in rng.integers(1, 2**31 - 1, size=n)]
     items = [(i, draws[i], seeds[i]) for i in range(n)]
     batches = [items[i : i + BATCH] for i in range(0, n, BATCH)]
-    own = record is not None and twin.run is not None and record.run.resolve() == twin.run.resolve()
-    job = LoopJob(twin, controller, reference, band_pct, shipped, record.name if own and record else None)
+    job = LoopJob(twin, controller, reference, band_pct, shipped, record.name if record is not None else None)
     if len(batches) == 1 and scheduler is None:
         workers = 1
     with Executor(workers, scheduler, progress) as ex:

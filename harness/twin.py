@@ -12,7 +12,7 @@ holds the sheet's tables and the overrides on top of them, in the diagnosis's na
 - ``sensor.theta_gain``, ``sensor.alpha_gauge_gain``: a sensor's reading per true angle (the DAQ's gain divided by
   it: the data, and the controller, read through the sheet's calibration);
 - ``sensor.alpha_offset@<record>``: a record's gauge reading at rest [deg], which its controller acted on (applied
-  when that record is predicted).
+  when that record is predicted; a record the diagnosis did not fit gets its own, :func:`with_record_offset`).
 
 :meth:`Twin.tables` gives the plant and DAQ FMU parameters of one set of overrides (noise on: the data's RMS per
 channel) and the calibration the controller reads the DAQ with; :func:`draw` samples sets of overrides from the
@@ -33,13 +33,14 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from . import spec as specmod
+from .diagnosis.experiments import load_experiments
 from .diagnosis.recalibrate import IMPLIED, LINEAR
 from .diagnosis.result import Diagnosis
 from .diagnosis.rigmodel import COMBOS, SENSORS, combos, prior_sd, to_plant
@@ -50,7 +51,8 @@ from .ident.calibration import alpha_deg, load_calibration, theta_deg
 from .rig.controller import Controller
 from .rundir import DataError, Manifest, RunDir, read_dataset, sample_time
 
-__all__ = ["Record", "RigTables", "Spread", "Twin", "draw", "load_record", "load_twin", "spread_of_diagnosis"]
+__all__ = ["Record", "RigTables", "Spread", "Twin", "draw", "load_record", "load_twin", "spread_of_diagnosis",
+           "with_record_offset"]  # fmt: skip
 
 MODELS = {"plant": "flexjoint", "daq": "daq"}  # the FMU behind each table
 NOISE = {"theta": ("noise_theta", "pot_gain"), "alpha": ("noise_alpha", "gauge_gain")}  # channel -> DAQ noise, gain
@@ -336,6 +338,20 @@ def draw(twin: Twin, n: int, seed: int) -> list[dict[str, float]]:
                 for nm, v, lg, b in zip(sp.names, row, sp.log, bounds, strict=True)}  # fmt: skip
         out.append({**twin.overrides, **vals})
     return out
+
+
+def with_record_offset(twin: Twin, record: Record) -> Twin:
+    """The twin whose gauge reads ``record``'s offset (``sensor.alpha_offset@<record>`` [deg as read], which the
+    record's controller acted on): the diagnosis's fit for a record of the diagnosed run, else the record's reading at
+    rest as a diagnosis starts its replay (:attr:`harness.diagnosis.experiments.RigExperiment.alpha_rest`): a record
+    the twin was not identified from has a gauge zero of its own (an importer leaves it where the link never rests)."""
+    key = offset_key(record.name)
+    own = twin.run is not None and record.run.resolve() == twin.run.resolve()
+    if own and key in twin.overrides:
+        return twin
+    adc_range = specmod.fmu_value(twin.daq, "daq", "adc_range")
+    x = load_experiments(record.run, load_calibration(record.run), twin.spec, adc_range)[record.name]
+    return replace(twin, overrides={**twin.overrides, key: float(x.alpha_rest)})
 
 
 def _bounds(twin: Twin, name: str) -> tuple[float, float]:

@@ -87,11 +87,12 @@ def test_the_quanser_records_own_controller_predicted_against_what_it_did(quanse
 
 def test_the_cu_units_held_out_record_predicted_from_the_other(cu):
     """Diagnosed from flexibleArm_test_3 alone, the twin predicts flexibleArm_test_4 under its controller: theta fit
-    ~96 %; settling, stopping error, peak deflection and ringing inside the bands or within 20 % of the median. Not its
-    overshoot (1.5 % against 1.9..8.3 %) nor its peak command (5.3 V against 4.1..4.4 V: at each step the logged
-    voltage kicks 1 V beyond the identified controller's law)."""
+    ~97 %, alpha ~83 % (its gauge read at the record's own zero, -4.1 deg: the importer leaves alpha as read where the
+    link never rests; at the twin's zero alpha's fit was -93 %); settling, stopping error, peak deflection and ringing
+    inside the bands or within 20 % of the median. Not its peak command (5.3 V against 4.2..4.4 V: at each step the
+    logged voltage kicks 1 V beyond the identified controller's law)."""
     twin = twin_of_diagnosis(cu[0], spec=specmod.load("cu_flexible_arm"))
     rec = load_record(cu[1])
     pred = predict(twin, rec.controller, reference_from(None, twin.sample_rate, rec), n=100, record=rec, workers=1)
-    assert pred.fit_pct["theta"] > 90.0
+    assert pred.fit_pct["theta"] > 90.0 and pred.fit_pct["alpha"] > 70.0
     assert all(_held(pred, (*HELD, "stop_error_deg")).values()), pred.metric_bands()
