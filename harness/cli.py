@@ -790,8 +790,19 @@ def bench(
     blind: Annotated[
         int, typer.Option("--blind", min=0, help="add the full blind test of N rigs (~20 min for 45)")
     ] = 0,
+    vs_commit: Annotated[
+        str | None,
+        typer.Option(
+            "--vs-commit",
+            help="time every command side by side with this commit of the clone (a git worktree made and removed)",
+        ),
+    ] = None,
+    only: Annotated[
+        str | None,
+        typer.Option(help="only these, comma-separated: commands, campaign, armax, executor, parallel, unit"),
+    ] = None,
 ) -> None:
-    """Measure speed against the named peers (fmpy simulate_fmu, sippy-unipi) and write JSON."""
+    """Measure speed against the named peers (fmpy simulate_fmu, sippy-unipi, another commit) and write JSON."""
     from . import clone
     from .rundir import write_json
 
@@ -800,7 +811,10 @@ def bench(
         raise typer.BadParameter(
             f"the benchmarks live in a clone of the repository ({clone.ROOT / 'benchmarks'} not found)"
         )
-    result = bench.run_all(quick=quick, progress=_progress("bench"), table=table, blind=blind)
+    steps = tuple(x.strip() for x in only.split(",") if x.strip()) if only is not None else None
+    result = bench.run_all(
+        quick=quick, progress=_progress("bench"), table=table, blind=blind, vs_commit=vs_commit, only=steps
+    )
 
     write_json(out_file, result)
     out.print_json(data=result)
