@@ -326,13 +326,14 @@ def campaign(
     force: ForceOpt = False,
 ) -> None:
     """Run a spec's experiments on the rig twin: writes manifest.json and data/<experiment>.parquet."""
+    from .clusterprocess import prestart
+
+    prestart(workers, scheduler, ["harness.rig.campaign"])  # the workers start while the campaign loads
     from . import spec as specmod
-    from .executor import prestart
     from .rundir import check_new_run
 
     check_new_run(out_dir, force)
     s = specmod.load(spec, set_ or [])
-    prestart(workers, scheduler, ["harness.rig.campaign"])  # the workers start while the campaign loads
     from .rig.campaign import run_campaign
 
     t0 = time.perf_counter()
@@ -451,13 +452,15 @@ def identify(
     workers: WorkersOpt = None,
 ) -> None:
     """Calibrate, then the ARMAX grid per dataset, cross-validation and selection: grid.csv, models/."""
-    from . import spec as specmod
-    from .executor import prestart, session
+    from .clusterprocess import prestart
 
-    over = specmod.apply_overrides({}, set_ or []).get("identify", {})
     prestart(workers, scheduler, ["harness.ident.identify"])  # the workers start while the identification loads
+    from . import spec as specmod
+    from .executor import session
     from .ident.doubled_rate import doubled_rate_check
     from .pipeline import identify_run
+
+    over = specmod.apply_overrides({}, set_ or []).get("identify", {})
 
     with session(workers, scheduler):  # the grid's tasks run on this session's cluster
         res, _, cal, ident = identify_run(run_dir, over, progress=_progress("grid"))
@@ -543,7 +546,7 @@ def diagnose(
     force: Annotated[bool, typer.Option("--force", help="write into --out even when it is another run")] = False,
 ) -> None:
     """Where the sim-to-real gap lies, which unmodelled effect causes it, how far it shrinks: diagnosis.json."""
-    from .executor import prestart
+    from .clusterprocess import prestart
 
     if out_dir is not None:
         _out_dir(out_dir)
@@ -747,6 +750,10 @@ def blindtest_table(tot: dict):
     return t
 
 
+# the modules of flexjoint run's tasks: campaign, ARMAX grid, diagnosis, report figures
+PIPELINE_TASKS = ("harness.rig.campaign", "harness.ident.identify", "harness.diagnosis.tasks", "harness.render.figures")
+
+
 @app.command()
 def run(
     spec: Annotated[str, typer.Option("--spec", help="campaign spec")] = "lab",
@@ -761,15 +768,17 @@ def run(
     force: ForceOpt = False,
 ) -> None:
     """The whole pipeline: build, campaign, calibrate, identify, export, cross-fit, diagnose, report, Rerun."""
+    from .clusterprocess import prestart
+
+    prestart(workers, scheduler, PIPELINE_TASKS)  # the workers start (and import every stage's tasks) while it loads
     from . import spec as specmod
-    from .executor import prestart, session
+    from .executor import session
     from .rundir import check_new_run
 
     if out_dir is None:
         out_dir = Path("runs") / time.strftime("%Y%m%d-%H%M%S")
     check_new_run(out_dir, force)
     specmod.load(spec, set_ or [])  # a bad spec, or one too large for this machine, fails before any work
-    prestart(workers, scheduler, ["harness.rig.campaign"])  # the workers start while the pipeline loads
     from .pipeline import run_pipeline
 
     with session(workers, scheduler):  # one cluster for every parallel step of the pipeline

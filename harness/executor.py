@@ -63,13 +63,10 @@ import contextlib
 import contextvars
 import ctypes
 import hashlib
-import json
 import multiprocessing
 import os
 import pickle
 import shutil
-import signal
-import subprocess
 import sys
 import tempfile
 import threading
@@ -88,6 +85,7 @@ from distributed.diagnostics.plugin import WorkerPlugin
 from distributed.scheduler import KilledWorker
 from threadpoolctl import ThreadpoolController
 
+from .clusterprocess import LocalProcessCluster, adopt, prestart, scheduler_from_env
 from .fmu.build import build_master, install_master
 from .fmu.cosim import Rig
 from .localcluster import CLUSTER_CONFIG
@@ -116,9 +114,7 @@ __all__ = [
 T = TypeVar("T")
 Progress = Callable[[str], None]
 
-SCHEDULER_ENV = "FLEXJOINT_SCHEDULER"
 CONNECT_TIMEOUT_S = 10.0
-CLOSE_TIMEOUT_S = 10.0  # a local cluster not shut down by then is ended by signal
 CACHE_SIZE = 8  # worker_cache entries kept per process (least recently used dropped, and closed, first)
 RESUBMITS = 2  # a task the scheduler cancelled on its own (lost with its worker) is submitted this many times more
 BACKENDS = ("dask", "processes")
@@ -311,96 +307,6 @@ def in_worker() -> bool:
 
 
 # ----------------------------------------------------------------------------------------------- executor
-class LocalProcessCluster:
-    """The embedded local cluster, run by :mod:`harness.localcluster` in a process (and session) of its own: its
-    workers never re-import the caller's ``__main__``, a terminal's Ctrl-C does not reach them, and their logs go to
-    a scratch file (read only to say why the cluster did not start). ``scheduler_address`` to connect a client;
-    :meth:`close` (or leaving the ``with``) shuts it down."""
-
-    def __init__(self, n_workers: int, dashboard: str | None = None, preload: Sequence[str] = ()) -> None:
-        self.n_workers, self.dashboard = n_workers, dashboard
-        self._log = tempfile.TemporaryFile()
-        cmd = [sys.executable, "-m", "harness.localcluster", str(n_workers), dashboard or "", json.dumps(sys.path)]
-        cmd.append(json.dumps(list(preload)))
-        self._proc = subprocess.Popen(
-            cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=self._log, start_new_session=True
-        )
-        self._address: str | None = None
-
-    @property
-    def scheduler_address(self) -> str:
-        """The scheduler's address, once every worker is up (waits for it the first time)."""
-        if self._address is None:
-            try:
-                line = self._proc.stdout.readline().decode().strip() if self._proc.stdout else ""
-            except BaseException:  # a Ctrl-C while it starts: nothing left behind
-                self.close()
-                raise
-            if not line.startswith("tcp://"):
-                self.close()
-                raise RuntimeError(f"the local Dask cluster did not start: {self._last_log_line()}")
-            self._address = line
-        return self._address
-
-    def _last_log_line(self) -> str:
-        self._log.seek(0)
-        lines = [x.strip() for x in self._log.read().decode(errors="replace").splitlines() if x.strip()]
-        return lines[-1] if lines else f"its process ended with code {self._proc.returncode}"
-
-    def __enter__(self) -> LocalProcessCluster:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-    def _kill_group(self) -> None:
-        """SIGKILL to the cluster's session (its process group: scheduler, nannies, workers); the process alone where
-        there are no process groups (Windows)."""
-        with contextlib.suppress(ProcessLookupError, PermissionError, OSError):
-            if hasattr(os, "killpg"):
-                os.killpg(self._proc.pid, signal.SIGKILL)
-            elif self._proc.poll() is None:
-                self._proc.kill()
-
-    def close(self, abort: bool = False, timeout: float = CLOSE_TIMEOUT_S) -> None:
-        """Close its stdin (the cluster shuts down by itself; ``abort``: at once, its workers killed mid-task), wait
-        ``timeout`` seconds, then end its whole process group (scheduler, nannies, workers)."""
-        if self._proc.stdin is not None and not self._proc.stdin.closed:
-            with contextlib.suppress(OSError):
-                if abort:
-                    self._proc.stdin.write(b"k")
-                self._proc.stdin.close()
-        try:
-            self._proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            self._kill_group()
-            self._proc.wait()
-        self._kill_group()  # a worker its nanny left behind
-        if self._proc.stdout is not None:
-            self._proc.stdout.close()
-        self._log.close()
-
-
-_PRESTARTED: list[LocalProcessCluster] = []
-
-
-def prestart(workers: int | None = None, scheduler: str | None = None, preload: Sequence[str] = ()) -> None:
-    """Start, without waiting for it, the local cluster the next ``Executor(workers, scheduler)`` (or
-    :func:`session`) of this process would start; that executor adopts it, so a command imports what it runs while
-    the workers start, and each worker imports the modules ``preload`` meanwhile, not at its first task (the
-    campaign's stack took a worker 1.0-2.2 s before its first result). Does nothing where that executor would start
-    none (serially, on a scheduler, inside a worker or a session). A cluster never adopted ends with this process
-    (its stdin closes)."""
-    if workers is None:
-        workers = env_workers()
-    scheduler = scheduler or os.environ.get(SCHEDULER_ENV, "").strip() or None
-    if scheduler is not None or workers == 1 or _PRESTARTED or _SESSION.get() is not None or in_worker():
-        return
-    n = workers or default_workers()
-    if n > 1:
-        _PRESTARTED.append(LocalProcessCluster(n, preload=preload))
-
-
 def local_cluster(n_workers: int, dashboard: str | None = None) -> LocalProcessCluster:
     """The embedded local cluster (:class:`LocalProcessCluster`): ``n_workers`` processes of one thread on
     127.0.0.1, worker logs below CRITICAL silenced, the dashboard only at ``dashboard`` (e.g. ``":8787"``) when
@@ -456,7 +362,7 @@ class Executor:
                 self.pool = concurrent.futures.ProcessPoolExecutor(n, mp_context=ctx, initializer=_pool_init)
                 self.kind, self._owns_client, self._pool_size = "processes", True, n
         else:
-            scheduler = scheduler or os.environ.get(SCHEDULER_ENV, "").strip() or None
+            scheduler = scheduler_from_env(scheduler)
             if scheduler is None and single:
                 self.kind = "serial"  # one core: a one-worker cluster would only add its start-up
             else:
@@ -473,11 +379,7 @@ class Executor:
             self.client.register_plugin(MasterLibrary(fmu_bytes(build_master())))
         else:
             n = workers or default_workers()
-            pre = _PRESTARTED.pop() if _PRESTARTED else None
-            if pre is not None and (pre.n_workers, pre.dashboard) != (n, dashboard):
-                pre.close()
-                pre = None
-            self._cluster = pre or local_cluster(n, dashboard)
+            self._cluster = adopt(n, dashboard) or local_cluster(n, dashboard)
             try:
                 self.client = Client(self._cluster.scheduler_address, set_as_default=False)
             except BaseException:
