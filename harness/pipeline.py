@@ -18,7 +18,7 @@ from .ident.crossfit import crossfit_run
 from .ident.doubled_rate import doubled_rate_check
 from .ident.identify import prepare, run_grid, write_grid
 from .render.load import load_results
-from .render.report import write_report
+from .render.report import begin_report
 from .render.viewer import log_run
 from .rig.campaign import run_campaign
 from .rundir import DataError, Manifest, RunDir, load_run, new_run, recorded_spec, stale_artefacts, write_json
@@ -133,8 +133,9 @@ def _pipeline(
          f"{d.gap.shrink_pct:.1f} %)")  # fmt: skip
     now("report.md, figures and run.rrd")
     results = load_results(out)
-    write_report(out, results)
+    report = begin_report(out, results)  # its figures drawn on the workers while this process writes the recording
     log_run(out, rrd=rrd, spawn=spawn, connect=connect, results=results)
+    report.write()
     verdict = accept(out)
     done("report", "report.md and run.rrd written")
     write_json(RunDir(out).run_timing, {"stages_s": stages, "total_s": sum(stages.values())})
