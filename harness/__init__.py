@@ -56,7 +56,7 @@ _API: dict[str, tuple[str, str]] = {
     "write_report": ("render.report", "write_report"),
     "log_run": ("render.viewer", "log_run"),
     "report_directory": ("render.directory", "report_directory"),
-    "identify_run": ("pipeline", "identify_run"),
+    "identify_run": ("ident.identify", "identify_run"),
     "run_pipeline": ("pipeline", "run_pipeline"),
     "run_sweep": ("sweep", "run_sweep"),
     "Executor": ("executor", "Executor"),

@@ -458,7 +458,7 @@ def identify(
     from . import spec as specmod
     from .executor import session
     from .ident.doubled_rate import doubled_rate_check
-    from .pipeline import identify_run
+    from .ident.identify import identify_run
 
     over = specmod.apply_overrides({}, set_ or []).get("identify", {})
 

@@ -1,5 +1,5 @@
 """The whole ``flexjoint run`` (spec -> campaign -> calibration -> identification -> cross-fit -> diagnosis ->
-report and recording), and the identification step over a run directory."""
+report and recording)."""
 
 from __future__ import annotations
 
@@ -7,42 +7,22 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 from . import spec as specmod
 from .diagnosis.diagnose import diagnose_run
 from .fmu.build import build_all
 from .ident.accept import accept
-from .ident.calibration import calibrate_run, load_calibration
+from .ident.calibration import calibrate_run
 from .ident.crossfit import crossfit_run
 from .ident.doubled_rate import doubled_rate_check
-from .ident.identify import prepare, run_grid, write_grid
+from .ident.identify import identify_run
 from .render.load import load_results
 from .render.report import begin_report
 from .render.viewer import log_run
 from .rig.campaign import run_campaign
-from .rundir import DataError, Manifest, RunDir, load_run, new_run, recorded_spec, stale_artefacts, write_json
+from .rundir import RunDir, new_run, write_json
 
 Progress = Callable[[str], None]
-
-
-def identify_run(run: Path, identify: dict[str, Any] | None = None, progress: Progress | None = None):
-    """Grid, cross-validation and selection on a run's identification datasets; writes grid.csv and models/. A
-    calibration.json made from other data than the run holds is made again from its calibration experiments."""
-
-    run = Path(run)
-    spec = recorded_spec(run)
-    ident = dict(specmod.IDENTIFY_DEFAULTS)
-    ident.update(spec.identify if spec else {})
-    ident.update(identify or {})
-    stale = stale_artefacts(run).get("calibration.json")
-    if stale and not Manifest.load(run).entries("calibration"):
-        raise DataError(stale.replace("re-run flexjoint identify", "import the records again"))
-    cal = calibrate_run(run) if stale else load_calibration(run)
-    prepared = prepare(load_run(run), cal, float(ident["af"]), str(ident["output"]))
-    res = run_grid(prepared, ident, progress=progress)
-    write_grid(res, run, ident, cal)
-    return res, prepared, cal, ident
 
 
 @dataclass

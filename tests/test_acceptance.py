@@ -16,7 +16,7 @@ from harness import spec as specmod
 from harness.ident import armax, lti
 from harness.ident.accept import accept
 from harness.ident.crossfit import crossfit_run
-from harness.pipeline import identify_run
+from harness.ident.identify import identify_run
 from harness.rig.campaign import run_campaign
 
 
