@@ -9,6 +9,7 @@ worker is up, then it runs until its stdin closes (a byte on stdin first: at onc
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import json
 import os
@@ -84,13 +85,16 @@ class LocalProcessCluster:
                 self._proc.kill()
 
     def close(self, abort: bool = False, timeout: float = CLOSE_TIMEOUT_S) -> None:
-        """Close its stdin (the cluster shuts down by itself; ``abort``: at once, its workers killed mid-task), wait
-        ``timeout`` seconds, then end its whole process group (scheduler, nannies, workers)."""
+        """Close its stdin (the cluster shuts down by itself; ``abort``: at once, its workers killed mid-task, even
+        while it starts), wait ``timeout`` seconds, then end its whole process group (scheduler, nannies, workers)."""
         if self._proc.stdin is not None and not self._proc.stdin.closed:
             with contextlib.suppress(OSError):
                 if abort:
                     self._proc.stdin.write(b"k")
                 self._proc.stdin.close()
+        if abort and os.name == "posix":
+            with contextlib.suppress(ProcessLookupError, PermissionError, OSError):
+                self._proc.send_signal(signal.SIGTERM)  # ends it at once, started or not
         try:
             self._proc.wait(timeout)
         except subprocess.TimeoutExpired:
@@ -105,14 +109,24 @@ class LocalProcessCluster:
 _PRESTARTED: list[LocalProcessCluster] = []
 
 
+def _end_unadopted() -> None:
+    """At exit: a prestarted cluster no executor adopted (the command failed, or needed none) ends at once instead
+    of starting up, for nothing, behind the finished command."""
+    while _PRESTARTED:
+        _PRESTARTED.pop().close(abort=True)
+
+
+atexit.register(_end_unadopted)
+
+
 def prestart(workers: int | None = None, scheduler: str | None = None, preload: Sequence[str] = ()) -> None:
     """Start, without waiting for it, the local cluster the next ``Executor(workers, scheduler)`` (or
     :func:`harness.executor.session`) of this process would start; that executor adopts it, so a command imports
     what it runs while the workers start, and the workers import the modules ``preload`` meanwhile, not at their
     first task. For a command line's own process, first thing (it is not checked here whether this process is a
     Dask worker or inside a session, where the executor starts no cluster: nothing there calls it). Does nothing
-    where that executor would start none (serially, on a scheduler). A cluster never adopted ends with this process
-    (its stdin closes: it shuts down once it is up)."""
+    where that executor would start none (serially, on a scheduler). A cluster never adopted ends at once when this
+    process exits."""
     if workers is None:
         workers = env_workers()
     if scheduler_from_env(scheduler) is not None or workers == 1 or _PRESTARTED:

@@ -17,8 +17,9 @@ sooner. Elsewhere (macOS, Windows) the workers are spawned, as Python does by de
 
 Protocol: the scheduler's address on the first line of stdout once every worker is up; then the cluster runs until
 stdin closes (its parent closed it, or died) and shuts down; a byte on stdin instead ends it at once (its workers
-killed mid-task: the command was interrupted, or failed, and waits for nothing). The workers' scratch files (FMUs
-written as files) live in a directory of the cluster's own (their ``TMPDIR``), removed either way.
+killed mid-task: the command was interrupted, or failed, and waits for nothing), and so does SIGTERM, even while the
+cluster starts (a command that failed before it needed its cluster). The workers' scratch files (FMUs written as
+files) live in a directory of the cluster's own (their ``TMPDIR``), removed in every case.
 """
 
 from __future__ import annotations
@@ -61,9 +62,10 @@ def serve(
     tasks: once by the fork server they are forked from, on Linux; by each worker as it starts elsewhere), print the
     scheduler's address on the real stdout, run until stdin closes, shut down."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when the cluster ends
+    scratch = tempfile.mkdtemp(prefix="flexjoint-cluster-")
+    signal.signal(signal.SIGTERM, lambda *_: _end_at_once(scratch))  # even while it starts
     if path is not None:
         sys.path[:] = path  # the spawned workers take this process's sys.path
-    scratch = tempfile.mkdtemp(prefix="flexjoint-cluster-")
     os.environ["TMPDIR"] = scratch  # the workers' scratch files, removed with the cluster
     address_out = os.fdopen(os.dup(sys.stdout.fileno()), "w")
     os.dup2(sys.stderr.fileno(), sys.stdout.fileno())  # what the workers print goes to the log, not the pipe
@@ -92,15 +94,20 @@ def serve(
                 address_out.write(cluster.scheduler_address + "\n")
                 address_out.close()
             if sys.stdin.buffer.read(1):  # a byte: end at once; nothing: closed (the parent is done, or died)
-                for p in psutil.Process().children(recursive=True):
-                    with contextlib.suppress(psutil.Error):
-                        p.kill()
-                shutil.rmtree(scratch, ignore_errors=True)
-                os._exit(0)
+                _end_at_once(scratch)
         if forked:
             _end_fork_server()
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
+
+
+def _end_at_once(scratch: str) -> None:
+    """End the cluster now: every process of it killed, its scratch directory removed, this process gone."""
+    for p in psutil.Process().children(recursive=True):
+        with contextlib.suppress(psutil.Error):
+            p.kill()
+    shutil.rmtree(scratch, ignore_errors=True)
+    os._exit(0)
 
 
 def _end_fork_server(timeout: float = 5.0) -> None:
