@@ -40,7 +40,8 @@ worker 3.7 s, 710 k faults and 1.3 s of system time; with the trim threshold rai
 220 k faults (the mmap threshold stays static); without the variable 2.2 s and no faults. So
 :func:`local_cluster` starts its workers without it, and a task in a worker whose environment has it anyway (a
 remote ``dask worker`` started by its nanny) first resets both thresholds once per process with ``mallopt`` (to
-glibc's own dynamic ceiling, :data:`MMAP_THRESHOLD`, and twice that for trimming).
+glibc's own dynamic ceiling, :data:`harness.workercall.MMAP_THRESHOLD`, and twice that for trimming: what a task runs
+in its worker is :mod:`harness.workercall`).
 
 Nor does a task share its worker's GIL with Dask's housekeeping more than it must. A Dask process wakes a thread
 that takes the GIL for its statistical profiler every 10 ms, its event loop's tick every 20 ms and its memory and
@@ -61,13 +62,10 @@ from __future__ import annotations
 import concurrent.futures
 import contextlib
 import contextvars
-import ctypes
 import hashlib
 import multiprocessing
-import os
 import pickle
 import shutil
-import sys
 import tempfile
 import threading
 import uuid
@@ -83,13 +81,13 @@ from distributed import Client, as_completed, get_worker
 from distributed.client import FutureCancelledError
 from distributed.diagnostics.plugin import WorkerPlugin
 from distributed.scheduler import KilledWorker
-from threadpoolctl import ThreadpoolController
 
 from .clusterprocess import LocalProcessCluster, adopt, prestart, scheduler_from_env
 from .fmu.build import build_master, install_master
 from .fmu.cosim import Rig
 from .localcluster import CLUSTER_CONFIG
 from .machine import default_workers, env_workers
+from .workercall import call, one_blas_thread, pack, run_packed
 
 __all__ = [
     "CLUSTER_CONFIG",
@@ -118,10 +116,6 @@ CONNECT_TIMEOUT_S = 10.0
 CACHE_SIZE = 8  # worker_cache entries kept per process (least recently used dropped, and closed, first)
 RESUBMITS = 2  # a task the scheduler cancelled on its own (lost with its worker) is submitted this many times more
 BACKENDS = ("dask", "processes")
-# glibc's ceiling for its dynamic mmap threshold on 64-bit (DEFAULT_MMAP_THRESHOLD_MAX): what a plain process
-# reaches after its first large free; a worker whose thresholds were fixed by hand gets it back (see the module)
-MMAP_THRESHOLD = 32 << 20
-_MALLOC_ENV = ("MALLOC_TRIM_THRESHOLD_", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TOP_PAD_", "MALLOC_MMAP_MAX_")
 _SESSION: contextvars.ContextVar[Executor | None] = contextvars.ContextVar("flexjoint_executor", default=None)
 
 
@@ -223,53 +217,6 @@ def worker_rig(fmus: Mapping[str, FmuBytes | Path | str]) -> Any:
     return worker_cache(key, lambda: Rig(files["flexjoint"], files["daq"], files.get("controller")))
 
 
-# ----------------------------------------------------------------------------------------------- BLAS
-_BLAS: list[Any] = []
-
-
-def one_blas_thread() -> contextlib.AbstractContextManager:
-    """Limit BLAS to one thread for the duration, as every task runs (the controller is built once per process:
-    ~0.01 ms a call); for numerical work the client does between maps that must give the tasks' numbers."""
-    if not _BLAS:
-        _BLAS.append(ThreadpoolController())
-    return _BLAS[0].limit(limits=1, user_api="blas")
-
-
-# ----------------------------------------------------------------------------------------------- allocator
-_MALLOC_TUNED: list[bool] = []
-
-
-def _malloc_as_plain_process() -> bool:
-    """Once per process, in a worker whose environment fixes a glibc malloc threshold (the nanny's default
-    ``MALLOC_TRIM_THRESHOLD_=65536``, which also freezes the mmap threshold at 128 KiB): set the mmap threshold
-    to glibc's dynamic ceiling and the trim threshold to twice that, as a plain process has them once it has freed
-    one large array. Returns whether it changed anything (False off glibc, or when nothing was fixed)."""
-    if _MALLOC_TUNED:
-        return False
-    _MALLOC_TUNED.append(True)
-    if not sys.platform.startswith("linux") or not any(k in os.environ for k in _MALLOC_ENV):
-        return False
-    try:
-        libc = ctypes.CDLL(None)
-        mallopt = libc.mallopt
-    except (OSError, AttributeError):
-        return False
-    m_trim_threshold, m_mmap_threshold = -1, -3  # glibc's malloc.h
-    return bool(mallopt(m_mmap_threshold, MMAP_THRESHOLD)) and bool(mallopt(m_trim_threshold, 2 * MMAP_THRESHOLD))
-
-
-def _call(fn: Callable[..., T], item: Any, *shared: Any) -> T:
-    with one_blas_thread():
-        return fn(item, *shared)
-
-
-def _worker_call(fn: Callable[..., T], item: Any, *shared: Any) -> T:
-    """A task on a Dask worker: the allocator set as in a plain process (once), BLAS at one thread."""
-    if not _MALLOC_TUNED:
-        _malloc_as_plain_process()
-    return _call(fn, item, *shared)
-
-
 # ----------------------------------------------------------------------------------------------- process pool
 _IN_POOL: list[bool] = []
 _SHARED: OrderedDict[str, tuple] = OrderedDict()
@@ -287,7 +234,7 @@ def _pool_call(fn: Callable[..., T], item: Any, token: str, blob: Path | None) -
         _SHARED[token] = pickle.loads(blob.read_bytes()) if blob is not None else ()
         while len(_SHARED) > 2:
             _SHARED.popitem(last=False)
-    return _call(fn, item, *_SHARED[token])
+    return call(fn, item, *_SHARED[token])
 
 
 def in_session() -> bool:
@@ -477,7 +424,7 @@ class Executor:
                 raise RuntimeError("executor is closed")
             out = []
             for i, item in enumerate(items):
-                out.append(_call(fn, item, *shared))
+                out.append(call(fn, item, *shared))
                 self._report(desc, names[i], i + 1, n, quiet)
             return out
         return self._map_dask(fn, items, shared, desc, names, quiet)
@@ -489,9 +436,9 @@ class Executor:
             return []
         refs = [self._scatter(s) for s in shared]
         stem = f"{desc or getattr(fn, '__name__', 'task')}-{uuid.uuid4().hex[:12]}".replace(" ", "_")
+        packed = [pack(fn, item) for item in items]  # opaque to the scheduler (harness.workercall)
         futures = [
-            self.client.submit(_worker_call, fn, item, *refs, key=f"{stem}-{i}", pure=False)
-            for i, item in enumerate(items)
+            self.client.submit(run_packed, task, *refs, key=f"{stem}-{i}", pure=False) for i, task in enumerate(packed)
         ]
         index = {f.key: i for i, f in enumerate(futures)}
         results: list[Any] = [None] * len(items)
@@ -509,7 +456,7 @@ class Executor:
                         raise RuntimeError(f"{desc or 'task'} {names[i]}: {exc}") from None
                     again[i] += 1
                     retry = self.client.submit(
-                        _worker_call, fn, items[i], *refs, key=f"{stem}-{i}-again{again[i]}", pure=False
+                        run_packed, packed[i], *refs, key=f"{stem}-{i}-again{again[i]}", pure=False
                     )
                     index[retry.key] = i
                     futures.append(retry)

@@ -273,8 +273,8 @@ def test_workers_allocate_as_a_plain_process():
         for env, faults in ex.map(_alloc_faults, [100, 100]):
             assert env is None and faults < 2000, (env, faults)
     code = (
-        "import sys; sys.path.insert(0, sys.argv[1]); import test_executor as t; from harness import executor as e;"
-        "print(*t._alloc_faults(100)[1:], *e._worker_call(t._alloc_faults, 100)[1:], e._MALLOC_TUNED)"
+        "import sys; sys.path.insert(0, sys.argv[1]); import test_executor as t; from harness import workercall as w;"
+        "print(*t._alloc_faults(100)[1:], *w.worker_call(t._alloc_faults, 100)[1:], w._MALLOC_TUNED)"
     )
     env = {**os.environ, "MALLOC_TRIM_THRESHOLD_": "65536"}
     out = subprocess.run([sys.executable, "-c", code, str(Path(__file__).parent)], env=env, capture_output=True,
