@@ -180,11 +180,12 @@ def _spread(xs: list[float]) -> dict[str, float]:
 
 
 def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
-    """A tree's runs of one command: wall and CPU as min, median, max; the stages' and the outside's medians."""
+    """A tree's runs of one command: wall and CPU as min, median, max; the stages' and the outside's medians; every
+    run as measured (:func:`measure`), in order."""
     out: dict[str, Any] = {
         "wall_s": _spread([r["wall_s"] for r in rows]),
         "cpu_s": _spread([r["cpu_s"] for r in rows]),
-        "walls_s": [r["wall_s"] for r in rows],
+        "runs": rows,
     }
     if rows and "stages_s" in rows[0]:
         stages = [s for s in rows[0]["stages_s"] if all(s in r["stages_s"] for r in rows)]
