@@ -18,10 +18,12 @@
   machine's own reference for the Dask backends (``flexjoint bench`` measures both on the same stage).
 
 ``ex.map(fn, items, *shared)`` returns ``[fn(item, *shared) for item in items]`` in item order. ``fn`` must be
-importable on the workers (a module-level function of an installed package: Dask pickles it by reference);
-``shared`` objects are sent to every worker once per executor (``scatter(broadcast=True)``), not once per task
-(the ``processes`` backend: pickled once per executor into a scratch file each process reads once); both know
-them by identity, so a shared object must not change between the maps of one executor.
+importable on the workers (a module-level function of an installed package: it is pickled by reference); the
+function and its item travel as bytes the scheduler does not read (:mod:`harness.workercall`: reading them made it
+import the package's stack before the first task of a fresh cluster ran); ``shared`` objects are sent to every
+worker once per executor (``scatter(broadcast=True)``), not once per task (the ``processes`` backend: pickled once
+per executor into a scratch file each process reads once); both know them by identity, so a shared object must not
+change between the maps of one executor.
 Every call runs with BLAS limited to one thread (threadpoolctl), on the workers and on the serial path alike:
 the project's numerical work is small matrices, where BLAS threads only oversubscribe the cores (the lab's
 identification grid: 26.7 s with them, 9.5 s without, 2 cores), and one thread everywhere keeps the results
@@ -338,8 +340,8 @@ class Executor:
     def __enter__(self) -> Executor:
         return self
 
-    def __exit__(self, exc_type: type[BaseException] | None, *exc: object) -> None:
-        self.close(abort=exc_type is not None)
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
     @property
     def n_workers(self) -> int:
@@ -350,10 +352,11 @@ class Executor:
             return 1
         return max(len(self.client.nthreads()), 1)
 
-    def close(self, abort: bool = False) -> None:
+    def close(self) -> None:
         """Release the scattered data (and the processes backend's scratch files), and close the client, the process
-        pool and the local cluster if this executor started them (``abort``, on an error or a Ctrl-C: a local cluster
-        ends at once, its running tasks killed, instead of after them)."""
+        pool and the local cluster if this executor started them. A local cluster ends at once, its processes killed:
+        after the last map nothing is lost but the time of a graceful shutdown, and on an error or a Ctrl-C its running
+        tasks end with it instead of being waited for."""
         self._scattered.clear()
         self._blobs.clear()
         if self._scratch is not None:
@@ -367,7 +370,7 @@ class Executor:
                     self.client.close()
             if self._cluster is not None:
                 with contextlib.suppress(Exception):
-                    self._cluster.close(abort=abort)
+                    self._cluster.close(abort=True)
         self.client, self.pool, self._cluster, self._owns_client = None, None, None, False
 
     def _scatter(self, obj: Any) -> Any:
@@ -523,8 +526,5 @@ def session(
     try:
         with use(ex):
             yield ex
-    except BaseException:
-        ex.close(abort=True)
-        raise
     finally:
         ex.close()
