@@ -32,6 +32,7 @@ import shutil
 import signal
 import sys
 import tempfile
+from typing import Any
 
 import dask
 import psutil
@@ -69,7 +70,7 @@ def serve(
     os.environ["TMPDIR"] = scratch  # the workers' scratch files, removed with the cluster
     address_out = os.fdopen(os.dup(sys.stdout.fileno()), "w")
     os.dup2(sys.stderr.fileno(), sys.stdout.fileno())  # what the workers print goes to the log, not the pipe
-    config = {**CLUSTER_CONFIG, "distributed.worker.profile.enabled": dashboard is not None}
+    config: dict[str, Any] = {**CLUSTER_CONFIG, "distributed.worker.profile.enabled": dashboard is not None}
     config["distributed.worker.preload"] = list(preload or [])
     forked = sys.platform.startswith("linux")
     if forked:
