@@ -175,7 +175,7 @@ def _section_data(res: RunResults, figdir: Path, drawings: Drawings) -> list[str
         link = figure_name("data", e.name)
         ref = df["ref"].to_numpy(dtype=float) if "ref" in df.columns and unit == "deg" else None
         u = df["u"].to_numpy(dtype=float)
-        job = (figures.experiment_data, (e.name, t - t[0], u, theta, alpha, unit), {"ref": ref})
+        job: figures.FigureJob = (figures.experiment_data, (e.name, t - t[0], u, theta, alpha, unit), {"ref": ref})
         drawings.append((job, figdir / Path(link).name))
         rows.append([e.name, e.role, e.signal or "—", str(t.size), fmt(float(t[-1] - t[0]), 2)])
         links += [f"![data of {e.name}]({link})", ""]
@@ -481,7 +481,11 @@ def _section_resid(res: RunResults, figdir: Path, drawings: Drawings) -> list[st
         ]
         for name, rt in tests.items()
     ]
-    job = (figures.residual_correlations, (tests[own], f"residuals of the selected model on {own}"), {})
+    job: figures.FigureJob = (
+        figures.residual_correlations,
+        (tests[own], f"residuals of the selected model on {own}"),
+        {},
+    )
     drawings.append((job, figdir / "residuals.png"))
     coloured = sum(not rt.white for rt in tests.values())
     dependent = sum(not rt.independent for rt in tests.values())
@@ -527,7 +531,7 @@ def _section_diagnosis(res: RunResults, figdir: Path, drawings: Drawings) -> lis
     d = res.diagnosis
     if d is None:
         return []
-    job = (figures.gap_waterfall, (d.waterfall(), d.gap.decomposition.noise_floor), {})
+    job: figures.FigureJob = (figures.gap_waterfall, (d.waterfall(), d.gap.decomposition.noise_floor), {})
     drawings.append((job, figdir / "gap_waterfall.png"))
     lines = ["## Sim-to-real gap diagnosis", ""]
     lines += [f"The data of this run against the simulation `{d.sim_spec}`; every number is in `diagnosis.json`.", ""]
@@ -559,7 +563,7 @@ def _replay_lines(res: RunResults, figdir: Path, drawings: Drawings) -> list[str
         link = figure_name("replay", name)
         miss = np.nan_to_num(rp.record["theta"] - rp.sim["given"]["theta"])  # where the simulation as given misses
         zoom = zoom_window(rp.t, miss, ZOOM_S)
-        job = (figures.replay, (name, rp.t, rp.record, rp.sim, dict(STAGES), fits[name], zoom), {})
+        job: figures.FigureJob = (figures.replay, (name, rp.t, rp.record, rp.sim, dict(STAGES), fits[name], zoom), {})
         drawings.append((job, figdir / Path(link).name))
         lines += [f"![replays of {name}]({link})", ""]
     return lines
