@@ -70,7 +70,7 @@ _API: dict[str, tuple[str, str]] = {
     "report_directory": ("render.directory", "report_directory"),
     "write_prediction": ("render.prediction", "write_prediction"),
     "write_design": ("render.prediction", "write_design"),
-    "identify_run": ("pipeline", "identify_run"),
+    "identify_run": ("ident.identify", "identify_run"),
     "run_pipeline": ("pipeline", "run_pipeline"),
     "run_sweep": ("sweep", "run_sweep"),
     "Executor": ("executor", "Executor"),

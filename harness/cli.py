@@ -346,13 +346,14 @@ def campaign(
     force: ForceOpt = False,
 ) -> None:
     """Run a spec's experiments on the rig twin: writes manifest.json and data/<experiment>.parquet."""
+    from .clusterprocess import prestart
+
+    prestart(workers, scheduler, ["harness.rig.campaign"])  # the workers start while the campaign loads
     from . import spec as specmod
-    from .executor import prestart
     from .rundir import check_new_run
 
     check_new_run(out_dir, force)
     s = specmod.load(spec, set_ or [])
-    prestart(workers, scheduler, ["harness.rig.campaign"])  # the workers start while the campaign loads
     from .rig.campaign import run_campaign
 
     t0 = time.perf_counter()
@@ -475,13 +476,15 @@ def identify(
     workers: WorkersOpt = None,
 ) -> None:
     """Calibrate, then the ARMAX grid per dataset, cross-validation and selection: grid.csv, models/."""
+    from .clusterprocess import prestart
+
+    prestart(workers, scheduler, ["harness.ident.identify"])  # the workers start while the identification loads
     from . import spec as specmod
-    from .executor import prestart, session
+    from .executor import session
+    from .ident.doubled_rate import doubled_rate_check
+    from .ident.identify import identify_run
 
     over = specmod.apply_overrides({}, set_ or []).get("identify", {})
-    prestart(workers, scheduler, ["harness.ident.identify"])  # the workers start while the identification loads
-    from .ident.doubled_rate import doubled_rate_check
-    from .pipeline import identify_run
 
     with session(workers, scheduler):  # the grid's tasks run on this session's cluster
         res, _, cal, ident = identify_run(run_dir, over, progress=_progress("grid"))
@@ -754,7 +757,7 @@ def diagnose(
     force: Annotated[bool, typer.Option("--force", help="write into --out even when it is another run")] = False,
 ) -> None:
     """Where the sim-to-real gap lies, which unmodelled effect causes it, how far it shrinks: diagnosis.json."""
-    from .executor import prestart
+    from .clusterprocess import prestart
 
     if out_dir is not None:
         _out_dir(out_dir)
@@ -968,6 +971,10 @@ def blindtest_table(tot: dict[str, Any]) -> Table:
     return t
 
 
+# the modules of flexjoint run's tasks: campaign, ARMAX grid, diagnosis, report figures
+PIPELINE_TASKS = ("harness.rig.campaign", "harness.ident.identify", "harness.diagnosis.tasks", "harness.render.figures")
+
+
 @app.command()
 def run(
     spec: Annotated[str, typer.Option("--spec", help="campaign spec")] = "lab",
@@ -982,15 +989,17 @@ def run(
     force: ForceOpt = False,
 ) -> None:
     """The whole pipeline: build, campaign, calibrate, identify, export, cross-fit, diagnose, report, Rerun."""
+    from .clusterprocess import prestart
+
+    prestart(workers, scheduler, PIPELINE_TASKS)  # the workers start (and import every stage's tasks) while it loads
     from . import spec as specmod
-    from .executor import prestart, session
+    from .executor import session
     from .rundir import check_new_run
 
     if out_dir is None:
         out_dir = Path("runs") / time.strftime("%Y%m%d-%H%M%S")
     check_new_run(out_dir, force)
     specmod.load(spec, set_ or [])  # a bad spec, or one too large for this machine, fails before any work
-    prestart(workers, scheduler, ["harness.rig.campaign"])  # the workers start while the pipeline loads
     from .pipeline import run_pipeline
 
     with session(workers, scheduler):  # one cluster for every parallel step of the pipeline
@@ -1011,8 +1020,19 @@ def bench(
     blind: Annotated[
         int, typer.Option("--blind", min=0, help="add the full blind test of N rigs (~20 min for 45)")
     ] = 0,
+    vs_commit: Annotated[
+        str | None,
+        typer.Option(
+            "--vs-commit",
+            help="time every command side by side with this commit of the clone (a git worktree made and removed)",
+        ),
+    ] = None,
+    only: Annotated[
+        str | None,
+        typer.Option(help="only these, comma-separated: commands, campaign, armax, executor, parallel, unit, predict"),
+    ] = None,
 ) -> None:
-    """Measure speed against the named peers (fmpy simulate_fmu, sippy-unipi) and write JSON."""
+    """Measure speed against the named peers (fmpy simulate_fmu, sippy-unipi, another commit) and write JSON."""
     from . import clone
     from .rundir import write_json
 
@@ -1021,7 +1041,10 @@ def bench(
         raise typer.BadParameter(
             f"the benchmarks live in a clone of the repository ({clone.ROOT / 'benchmarks'} not found)"
         )
-    result = bench.run_all(quick=quick, progress=_progress("bench"), table=table, blind=blind)
+    steps = tuple(x.strip() for x in only.split(",") if x.strip()) if only is not None else None
+    result = bench.run_all(
+        quick=quick, progress=_progress("bench"), table=table, blind=blind, vs_commit=vs_commit, only=steps
+    )
 
     write_json(out_file, result)
     out.print_json(data=result)
