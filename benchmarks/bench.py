@@ -33,6 +33,7 @@ from pathlib import Path
 import fmpy
 import psutil
 
+from benchmarks.commands import bench_commands
 from benchmarks.problems import demo_problem, demo_system
 from harness import spec as specmod
 from harness.diagnosis.blindtest import FAMILIES, blindtest
@@ -461,31 +462,6 @@ def bench_blindtest(n: int, workers: int | None = None, seed: int = 0) -> dict[s
     return {"n": n, "seed": seed, "wall_s": doc["timing_s"], "totals": doc["totals"], "skipped": doc["skipped"]}
 
 
-def _wall(args: list[str]) -> float:
-    """Wall time [s] of ``python -m harness ARGS`` in a fresh process, as a user's shell starts it."""
-    t0 = time.perf_counter()
-    subprocess.run([sys.executable, "-m", "harness", *args], check=True, capture_output=True)
-    return time.perf_counter() - t0
-
-
-def bench_run(spec: str = "lab", starts: int = 5) -> dict[str, Any]:
-    """``flexjoint run`` end to end on the default spec as a user starts it (a fresh process: the command line, the
-    local cluster, every stage, the report and the recording) with each stage's wall time (its run.timing.json),
-    and the command line's own start-up (``--version``, ``--help``: best of ``starts``)."""
-    with tempfile.TemporaryDirectory() as tmp:
-        run = Path(tmp) / "run"
-        wall = _wall(["run", "--spec", spec, "--out", str(run)])
-        timing = json.loads((run / "run.timing.json").read_text())
-    return {
-        "wall_s": wall,
-        "stages_s": timing["stages_s"],
-        "outside_stages_s": wall - timing["total_s"],  # interpreter, imports, spec check, cluster start and close
-        "cli_start_s": {arg: min(_wall([arg]) for _ in range(starts)) for arg in ("--version", "--help")},
-        "workers": 2,
-        "target": "flexjoint run < 60 s on 2 cores; --version and --help < 0.5 s",
-    }
-
-
 CU_FIXTURES = Path(__file__).resolve().parents[1] / "tests" / "fixtures" / "real"
 CU_IMPORT = ["--columns", "0=t,1=theta,2=-alpha,5=ref,6=u", "--units", "t=ms,theta=rad,alpha=m,ref=rad",
              "--link-length", "0.45", "--zero-alpha"]  # fmt: skip
@@ -528,29 +504,75 @@ def bench_unit(workers: int = 2) -> dict[str, Any]:
     }
 
 
-def run_all(quick: bool = False, progress: Any = None, table: bool = False, blind: int = 0) -> dict[str, Any]:
-    """Every benchmark, each side by side with its peer, as one JSON-able dict; ``run`` is ``flexjoint run`` end to
-    end with its stages' times and the command line's start-up; ``parallel`` is every parallel
-    stage serial, on 2 Dask workers and on 2 plain processes (``identify`` and ``diagnose`` are its 2-worker runs);
-    ``table`` adds the off-datasheet diagnosis table (~3 min), ``blind`` the full blind test of that many rigs (~20
-    min for 45)."""
+def bench_predict(n: int = 200, duration_s: float = 10.0, rate_hz: float = 1000.0) -> dict[str, Any]:
+    """``flexjoint predict`` with ``n`` members on a ``duration_s`` loop at ``rate_hz``: the lab rig (friction, second
+    mode, 12-bit ADC, noise, a command delay, its datasheet's spread) under its LQR tracking a +-30 deg square, serially
+    in this process and on the executor's local Dask cluster of 2 workers (its start-up included, as a user runs it),
+    the same numbers both ways; beside them what two plain processes get from the machine right now."""
+    from harness.prediction import predict, reference_from
+    from harness.twin import twin_of_spec
 
+    twin = twin_of_spec(specmod.load("closed_loop", [f"campaign.sample_rate={rate_hz:g}"]))
+    ref = reference_from(f"square:f=0.25;amplitude=30;duration={duration_s:g}", rate_hz)
+    assert twin.spec.controller is not None
+    walls, docs = {}, {}
+    for label, workers in (("serial", 1), ("dask_2_workers", 2)):
+        t0 = time.perf_counter()
+        pred = predict(twin, twin.spec.controller, ref, n=n, seed=0, workers=workers)
+        walls[label] = time.perf_counter() - t0
+        docs[label] = json.dumps(pred.to_json(), sort_keys=True)
+    return {
+        "members": n,
+        "samples_per_member": ref.ref_deg.size,
+        "serial_s": walls["serial"],
+        "dask_2_workers_s": walls["dask_2_workers"],
+        "target_s": 30.0,
+        "speedup": walls["serial"] / walls["dask_2_workers"],
+        "same_numbers": docs["serial"] == docs["dask_2_workers"],
+        "machine_parallel_efficiency_pct": machine_parallel_efficiency(),
+    }
+
+
+STEPS = ("commands", "campaign", "armax", "executor", "parallel", "unit", "predict")
+
+
+def run_all(
+    quick: bool = False,
+    progress: Any = None,
+    table: bool = False,
+    blind: int = 0,
+    vs_commit: str | None = None,
+    only: tuple[str, ...] | None = None,
+) -> dict[str, Any]:
+    """Every benchmark (or those named in ``only``, of :data:`STEPS`), each side by side with its peer, as one
+    JSON-able dict; ``commands`` is every command as a user starts it (``flexjoint run`` serially and on 2 workers
+    with each stage's time, ``identify`` serially and on 2 workers, the CU unit's ``diagnose``, ``--version``), with
+    ``vs_commit`` side by side with that commit (:func:`benchmarks.commands.bench_commands`); ``parallel`` is every
+    parallel stage serial, on 2 Dask workers and on 2 plain processes (``identify`` and ``diagnose`` are its 2-worker
+    runs); ``table`` adds the off-datasheet diagnosis table (~3 min), ``blind`` the full blind test of that many rigs
+    (~20 min for 45); ``predict`` is ``flexjoint predict`` serially and on 2 workers."""
+
+    if only is not None and (unknown := sorted(set(only) - set(STEPS))):
+        raise ValueError(f"--only: unknown benchmark(s) {', '.join(unknown)}; known: {', '.join(STEPS)}")
     result: dict[str, Any] = {
         "machine": {"python": platform.python_version(), "cpus": os.cpu_count(), "platform": platform.platform()},
     }
     steps = [
-        ("run", bench_run),
+        ("commands", lambda: bench_commands(vs_commit, rounds=1 if quick else 3, progress=progress)),
         ("campaign", lambda: bench_campaign(repeats=1 if quick else 3)),
         ("armax", lambda: bench_armax(5 if quick else 20)),
         ("executor", lambda: bench_executor(20 if quick else 40)),
         ("parallel", lambda: bench_parallel(rounds=1 if quick else 2, blind_n=8 if quick else 24)),
         ("unit", bench_unit),
+        ("predict", lambda: bench_predict(50 if quick else 200)),
     ]
     if table:
         steps.append(("diagnosis_table", bench_diagnosis_table))
     if blind:
         steps.append(("blindtest", lambda: bench_blindtest(blind)))
     for name, fn in steps:
+        if only is not None and name not in only:
+            continue
         result[name] = fn()
         if name == "parallel":  # its 2-worker runs are the identification and diagnosis benchmarks
             result["identify"] = result[name].pop("identify")

@@ -5,6 +5,7 @@ The package follows the data flow, one subpackage per stage::
     spec -> rig (campaign on the FMU twin, or real records) -> run directory (rundir)
          -> ident (calibration, preprocessing, ARMAX grid, models exported as FMUs, cross-fit, acceptance)
          -> diagnosis (recalibration, effects, where the gap lies; blind test)
+         -> twin, predict, design (the labs' Part II: a controller on the identified rig, its loop with bands)
          -> render (report.md and figures, the Rerun recording)
 
 ``fmu`` holds the FMUs' build, XML reader and binding; ``pipeline`` runs every stage for ``flexjoint run``.
@@ -30,6 +31,8 @@ _API: dict[str, tuple[str, str]] = {
     "run_campaign": ("rig.campaign", "run_campaign"),
     "simulate_spec": ("rig.campaign", "simulate_spec"),
     "import_records": ("rig.records", "import_records"),
+    "Controller": ("rig.controller", "Controller"),
+    "parse_controller": ("rig.controller", "parse_controller"),
     "DataError": ("rundir", "DataError"),
     "Manifest": ("rundir", "Manifest"),
     "RunDir": ("rundir", "RunDir"),
@@ -53,10 +56,21 @@ _API: dict[str, tuple[str, str]] = {
     "diagnose_run": ("diagnosis.diagnose", "diagnose_run"),
     "Diagnosis": ("diagnosis.result", "Diagnosis"),
     "blindtest": ("diagnosis.blindtest", "blindtest"),
+    "Twin": ("twin", "Twin"),
+    "load_twin": ("twin", "load_twin"),
+    "LoopSpecs": ("prediction", "LoopSpecs"),
+    "reference_from": ("prediction", "reference_from"),
+    "Prediction": ("prediction", "Prediction"),
+    "predict_loop": ("prediction", "predict"),  # harness.predict is ARMAX's k-step predictor (MATLAB's predict)
+    "accept_prediction": ("prediction", "accept_prediction"),
+    "Design": ("design", "Design"),
+    "design_controller": ("design", "design"),  # harness.design is the module
     "write_report": ("render.report", "write_report"),
     "log_run": ("render.viewer", "log_run"),
     "report_directory": ("render.directory", "report_directory"),
-    "identify_run": ("pipeline", "identify_run"),
+    "write_prediction": ("render.prediction", "write_prediction"),
+    "write_design": ("render.prediction", "write_design"),
+    "identify_run": ("ident.identify", "identify_run"),
     "run_pipeline": ("pipeline", "run_pipeline"),
     "run_sweep": ("sweep", "run_sweep"),
     "Executor": ("executor", "Executor"),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import atexit
+import contextlib
 import math
 import os
 import signal
@@ -345,13 +346,14 @@ def campaign(
     force: ForceOpt = False,
 ) -> None:
     """Run a spec's experiments on the rig twin: writes manifest.json and data/<experiment>.parquet."""
+    from .clusterprocess import prestart
+
+    prestart(workers, scheduler, ["harness.rig.campaign"])  # the workers start while the campaign loads
     from . import spec as specmod
-    from .executor import prestart
     from .rundir import check_new_run
 
     check_new_run(out_dir, force)
     s = specmod.load(spec, set_ or [])
-    prestart(workers, scheduler, ["harness.rig.campaign"])  # the workers start while the campaign loads
     from .rig.campaign import run_campaign
 
     t0 = time.perf_counter()
@@ -474,13 +476,15 @@ def identify(
     workers: WorkersOpt = None,
 ) -> None:
     """Calibrate, then the ARMAX grid per dataset, cross-validation and selection: grid.csv, models/."""
+    from .clusterprocess import prestart
+
+    prestart(workers, scheduler, ["harness.ident.identify"])  # the workers start while the identification loads
     from . import spec as specmod
-    from .executor import prestart, session
+    from .executor import session
+    from .ident.doubled_rate import doubled_rate_check
+    from .ident.identify import identify_run
 
     over = specmod.apply_overrides({}, set_ or []).get("identify", {})
-    prestart(workers, scheduler, ["harness.ident.identify"])  # the workers start while the identification loads
-    from .ident.doubled_rate import doubled_rate_check
-    from .pipeline import identify_run
 
     with session(workers, scheduler):  # the grid's tasks run on this session's cluster
         res, _, cal, ident = identify_run(run_dir, over, progress=_progress("grid"))
@@ -521,11 +525,32 @@ def crossval_table(res: GridResult) -> Table:
 
 @app.command()
 def accept(
-    run_dir: Annotated[Path, typer.Argument(help="run directory with an identified model")],
+    run_dir: Annotated[
+        Path, typer.Argument(help="run directory with an identified model, or what predict or design wrote")
+    ],
     min_fit: Annotated[float | None, typer.Option(help="override accept.min_fit (%)")] = None,
     min_average_fit: Annotated[float | None, typer.Option(help="override accept.min_average_fit (%)")] = None,
+    specs: Annotated[
+        str | None,
+        typer.Option(
+            help="a prediction or design: judge these specs instead of its own (settling=1.5,overshoot=5,...)"
+        ),
+    ] = None,
 ) -> None:
-    """Exit 0 when the selected model meets the spec's fit thresholds, 1 (naming the failing cells) when not."""
+    """Exit 0 when the selected model meets the spec's fit thresholds, 1 (naming the failing cells) when not. On what
+    predict or design wrote (prediction.json): 0 when every spec's predicted band meets its limit, 1 naming those that
+    do not."""
+    if (run_dir / "prediction.json").is_file():
+        from .prediction import accept_prediction
+
+        ok, lines = accept_prediction(run_dir, specs)
+        if ok:
+            out.print("accepted: " + "; ".join(lines), soft_wrap=True)
+            return
+        print("rejected: " + "; ".join(lines), file=sys.stderr)
+        raise typer.Exit(1)
+    if specs is not None:
+        raise ValueError(f"--specs judges a prediction; {run_dir} holds no prediction.json")
     from .ident.accept import accept as gate
 
     over = {k: v for k, v in (("min_fit", min_fit), ("min_average_fit", min_average_fit)) if v is not None}
@@ -538,6 +563,172 @@ def accept(
         return
     print(f"rejected ({v.source}): " + "; ".join(v.failures), file=sys.stderr)
     raise typer.Exit(1)
+
+
+RigArg = Annotated[
+    str,
+    typer.Argument(help="the rig: a diagnosis directory (its identified twin) or a spec (a path or a bundled name)"),
+]
+
+
+def _prediction_line(doc: dict) -> str:
+    """The terminal's summary of a prediction: each metric's median [band] (measured)."""
+    from .render.tables import fmt_any
+
+    parts = []
+    for m, b in doc["metrics"].items():
+        if m.startswith("stop_error_") or m == "ring_hz":
+            continue
+        meas = f", measured {fmt_any(b['measured'])}" if b.get("measured") is not None else ""
+        parts.append(f"{m} {fmt_any(b['median'])} [{fmt_any(b['lo'])}..{fmt_any(b['hi'])}]{meas}")
+    fit = doc.get("fit_pct")
+    tail = f"; median's fit theta {fit['theta']:.1f} %, alpha {fit['alpha']:.1f} %" if fit else ""
+    return "; ".join(parts) + tail
+
+
+@app.command()
+def predict(
+    rig: RigArg,
+    out_dir: Annotated[Path, typer.Option("--out", help="directory for prediction.json, report.md, figures/")],
+    controller: Annotated[
+        str | None,
+        typer.Option(help="the controller, KIND:NAME=VALUE;... in quotes, as flexjoint import takes it"),
+    ] = None,
+    controller_from: Annotated[
+        Path | None,
+        typer.Option(
+            help="a design's directory (controller.toml), a TOML file with a [controller] table, or a run "
+            "(its closed-loop record's controller)"
+        ),
+    ] = None,
+    reference: Annotated[
+        str | None,
+        typer.Option(
+            help="a run (its closed-loop record's reference) or a signal KIND:NAME=VALUE;...;duration=S "
+            "(default: the record's, else square:f=0.25;amplitude=30;duration=8)"
+        ),
+    ] = None,
+    record: Annotated[
+        Path | None,
+        typer.Option(
+            help="a closed-loop run: its reference and controller unless given, its behaviour measured "
+            "beside the bands and the median's fit to it"
+        ),
+    ] = None,
+    n: Annotated[int, typer.Option("--n", min=1, help="members of the ensemble")] = 200,
+    seed: Annotated[int, typer.Option("--seed", min=0, help="seed of the parameter and noise draws")] = 0,
+    specs: Annotated[
+        str | None,
+        typer.Option(help="specs to judge: settling=S,overshoot=PCT,alpha=DEG,voltage=V,stop=DEG,ring=DEG,band=PCT"),
+    ] = None,
+    scheduler: SchedulerOpt = None,
+    workers: WorkersOpt = None,
+) -> None:
+    """Predict a controller's loop on the rig as an ensemble (parameter draws from the rig's intervals, noise draws):
+    each behaviour metric's median and 95 % band, with a record the measured ones beside them: prediction.json."""
+    import json
+
+    from .executor import prestart
+
+    _out_dir(out_dir)
+    prestart(workers, scheduler, ["harness.prediction"])  # the workers start while the twin loads
+    from .prediction import LoopSpecs, loop_rate, reference_from
+    from .prediction import controller_from as pick_controller
+    from .prediction import predict as run_predict
+    from .render.prediction import write_prediction
+    from .twin import load_record, load_twin
+
+    twin = load_twin(rig)
+    rec = load_record(record) if record is not None else None
+    ctrl = pick_controller(controller, str(controller_from) if controller_from else None, rec)
+    ref = reference_from(reference, loop_rate(ctrl, twin), rec)
+    judged = LoopSpecs.parse(specs) if specs else None
+    pred = run_predict(
+        twin, ctrl, ref, n=n, seed=seed, record=rec, specs=judged, progress=_progress("predict"),
+        **_parallel(workers, scheduler),
+    )  # fmt: skip
+    path = write_prediction(pred, out_dir)
+    doc = json.loads((out_dir / "prediction.json").read_text())
+    out.print(_prediction_line(doc))
+    if judged is not None:
+        out.print(
+            f"specs: {'met' if doc['passed'] else 'NOT met'} ({', '.join(v['spec'] for v in doc['specs'].values())})"
+        )
+    out.print(f"{n} members -> {path.parent}")
+
+
+@app.command()
+def design(
+    rig: RigArg,
+    method: Annotated[str, typer.Option(help="lqr, lqg (Kalman filter in the controller FMU) or pd")],
+    out_dir: Annotated[Path, typer.Option("--out", help="directory for design.json, controller.toml, loop.ssp")],
+    specs: Annotated[
+        str | None,
+        typer.Option(
+            help="settling=S,overshoot=PCT,alpha=DEG,voltage=V,stop=DEG,ring=DEG,band=PCT (default the "
+            "Quanser courseware's settling=1.5,overshoot=5,band=4)"
+        ),
+    ] = None,
+    weights: Annotated[
+        str | None, typer.Option(help="lqr/lqg weights q=Q1,Q2,Q3,Q4;r=R[;w=W] (default: searched to the specs)")
+    ] = None,
+    rate: Annotated[float | None, typer.Option(help="the controller's sample rate [Hz] (default the rig's)")] = None,
+    cutoff: Annotated[
+        float | None,
+        typer.Option(
+            help="lqr/pd: the velocity filters' cutoff [Hz] (default the diagnosed record's controller's, else 25)"
+        ),
+    ] = None,
+    reference: Annotated[
+        str | None,
+        typer.Option(
+            help="a run or a signal KIND:NAME=VALUE;...;duration=S to design and check for (default: the "
+            "diagnosed record's at its rate, else square:f=0.25;amplitude=30;duration=8)"
+        ),
+    ] = None,
+    n: Annotated[int, typer.Option("--n", min=1, help="members of the prediction that checks each design")] = 100,
+    seed: Annotated[int, typer.Option("--seed", min=0, help="seed of the prediction's draws")] = 0,
+    scheduler: SchedulerOpt = None,
+    workers: WorkersOpt = None,
+) -> None:
+    """Design a controller on the rig (its identified twin or a spec) to a lab's specs, checked by predicting its loop
+    with the rig's effects, intervals and noise: design.json, controller.toml, loop.ssp and the prediction."""
+    from .executor import prestart, session
+
+    _out_dir(out_dir)
+    prestart(workers, scheduler, ["harness.prediction"])  # the workers start while the search runs
+    from .design import METHODS, parse_weights
+    from .design import design as run_design
+    from .prediction import LoopSpecs, reference_from
+    from .render.prediction import write_design
+    from .rundir import DataError
+    from .twin import load_record, load_twin
+
+    if method not in METHODS:
+        raise ValueError(f"--method {method!r} unknown; valid: {', '.join(METHODS)}")
+    twin = load_twin(rig)
+    wt = parse_weights(weights, method) if weights is not None else None
+    judged = LoopSpecs.parse(specs) if specs is not None else None
+    hz = float(rate or twin.sample_rate)
+    rec = None
+    if reference is None and twin.run is not None:
+        with contextlib.suppress(DataError):  # a diagnosed run without a closed-loop record: the default square
+            rec = load_record(twin.run)
+        rec = rec if rec is not None and abs(rec.Ts * hz - 1.0) < 1e-9 else None
+    ref = reference_from(reference, hz, rec)
+    if cutoff is None and rec is not None and rec.controller is not None and rec.controller.kind != "lqg":
+        cutoff = rec.controller.cutoff  # the lab's own velocity filter
+    with session(workers, scheduler):  # one cluster for every round's prediction
+        d = run_design(
+            twin, method, ref, specs=judged, weights=wt, rate=hz, cutoff=cutoff, n=n, seed=seed,
+            progress=_progress("design"),
+        )  # fmt: skip
+    path = write_design(d, twin, out_dir)
+    doc = d.to_json()
+    out.print(f"{method}: {doc['parameters']}; disk margin {doc['linear']['disk_margin']:.3g}")
+    out.print("; ".join(f"{v['spec']}: predicted {v['predicted']:.3g} ({'met' if v['met'] else 'NOT met'})"
+                        for v in (doc["specs"] or {}).values()))  # fmt: skip
+    out.print(f"-> {path.parent} (controller.toml, loop.ssp, design.json, prediction.json)")
 
 
 @app.command()
@@ -566,7 +757,7 @@ def diagnose(
     force: Annotated[bool, typer.Option("--force", help="write into --out even when it is another run")] = False,
 ) -> None:
     """Where the sim-to-real gap lies, which unmodelled effect causes it, how far it shrinks: diagnosis.json."""
-    from .executor import prestart
+    from .clusterprocess import prestart
 
     if out_dir is not None:
         _out_dir(out_dir)
@@ -780,6 +971,10 @@ def blindtest_table(tot: dict[str, Any]) -> Table:
     return t
 
 
+# the modules of flexjoint run's tasks: campaign, ARMAX grid, diagnosis, report figures
+PIPELINE_TASKS = ("harness.rig.campaign", "harness.ident.identify", "harness.diagnosis.tasks", "harness.render.figures")
+
+
 @app.command()
 def run(
     spec: Annotated[str, typer.Option("--spec", help="campaign spec")] = "lab",
@@ -794,15 +989,17 @@ def run(
     force: ForceOpt = False,
 ) -> None:
     """The whole pipeline: build, campaign, calibrate, identify, export, cross-fit, diagnose, report, Rerun."""
+    from .clusterprocess import prestart
+
+    prestart(workers, scheduler, PIPELINE_TASKS)  # the workers start (and import every stage's tasks) while it loads
     from . import spec as specmod
-    from .executor import prestart, session
+    from .executor import session
     from .rundir import check_new_run
 
     if out_dir is None:
         out_dir = Path("runs") / time.strftime("%Y%m%d-%H%M%S")
     check_new_run(out_dir, force)
     specmod.load(spec, set_ or [])  # a bad spec, or one too large for this machine, fails before any work
-    prestart(workers, scheduler, ["harness.rig.campaign"])  # the workers start while the pipeline loads
     from .pipeline import run_pipeline
 
     with session(workers, scheduler):  # one cluster for every parallel step of the pipeline
@@ -823,8 +1020,19 @@ def bench(
     blind: Annotated[
         int, typer.Option("--blind", min=0, help="add the full blind test of N rigs (~20 min for 45)")
     ] = 0,
+    vs_commit: Annotated[
+        str | None,
+        typer.Option(
+            "--vs-commit",
+            help="time every command side by side with this commit of the clone (a git worktree made and removed)",
+        ),
+    ] = None,
+    only: Annotated[
+        str | None,
+        typer.Option(help="only these, comma-separated: commands, campaign, armax, executor, parallel, unit, predict"),
+    ] = None,
 ) -> None:
-    """Measure speed against the named peers (fmpy simulate_fmu, sippy-unipi) and write JSON."""
+    """Measure speed against the named peers (fmpy simulate_fmu, sippy-unipi, another commit) and write JSON."""
     from . import clone
     from .rundir import write_json
 
@@ -833,7 +1041,10 @@ def bench(
         raise typer.BadParameter(
             f"the benchmarks live in a clone of the repository ({clone.ROOT / 'benchmarks'} not found)"
         )
-    result = bench.run_all(quick=quick, progress=_progress("bench"), table=table, blind=blind)
+    steps = tuple(x.strip() for x in only.split(",") if x.strip()) if only is not None else None
+    result = bench.run_all(
+        quick=quick, progress=_progress("bench"), table=table, blind=blind, vs_commit=vs_commit, only=steps
+    )
 
     write_json(out_file, result)
     out.print_json(data=result)

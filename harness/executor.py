@@ -18,10 +18,12 @@
   machine's own reference for the Dask backends (``flexjoint bench`` measures both on the same stage).
 
 ``ex.map(fn, items, *shared)`` returns ``[fn(item, *shared) for item in items]`` in item order. ``fn`` must be
-importable on the workers (a module-level function of an installed package: Dask pickles it by reference);
-``shared`` objects are sent to every worker once per executor (``scatter(broadcast=True)``), not once per task
-(the ``processes`` backend: pickled once per executor into a scratch file each process reads once); both know
-them by identity, so a shared object must not change between the maps of one executor.
+importable on the workers (a module-level function of an installed package: it is pickled by reference); the
+function and its item travel as bytes the scheduler does not read (:mod:`harness.workercall`: reading them made it
+import the package's stack before the first task of a fresh cluster ran); ``shared`` objects are sent to every
+worker once per executor (``scatter(broadcast=True)``), not once per task (the ``processes`` backend: pickled once
+per executor into a scratch file each process reads once); both know them by identity, so a shared object must not
+change between the maps of one executor.
 Every call runs with BLAS limited to one thread (threadpoolctl), on the workers and on the serial path alike:
 the project's numerical work is small matrices, where BLAS threads only oversubscribe the cores, and one thread
 everywhere keeps the results identical in every backend. A task that raises re-raises the same exception type and
@@ -30,13 +32,13 @@ worker lost mid-map (machine gone) is not an error: Dask reruns its tasks elsewh
 exactly once; a task the scheduler gave up on with its worker (cancelled, "already forgotten") is submitted again,
 up to RESUBMITS times.
 
-A task runs as fast in a Dask worker as in a plain process: :func:`local_cluster` starts its workers without the
-nanny's ``MALLOC_TRIM_THRESHOLD_`` (which makes glibc map and zero every array above 128 KiB afresh), a task in a
-worker whose environment has it anyway (a remote ``dask worker``) first resets both malloc thresholds once per
-process with ``mallopt`` (to :data:`MMAP_THRESHOLD`, and twice that for trimming), and the local cluster runs
-without Dask's statistical profiler and with a slow event-loop tick and monitors (:data:`CLUSTER_CONFIG`), which
-would otherwise take the GIL from a task's thread; a remote cluster keeps its own configuration. The measurements
-behind each are on the manual's validation page.
+A task runs as fast in a Dask worker as in a plain process: :func:`local_cluster` starts its workers without the nanny's
+``MALLOC_TRIM_THRESHOLD_`` (which makes glibc map and zero every array above 128 KiB afresh), a task in a worker whose
+environment has it anyway (a remote ``dask worker``) first resets both malloc thresholds once per process with
+``mallopt`` (to :data:`harness.workercall.MMAP_THRESHOLD`, and twice that for trimming), and the local cluster runs
+without Dask's statistical profiler and with a slow event-loop tick and monitors (:data:`CLUSTER_CONFIG`), which would
+otherwise take the GIL from a task's thread; a remote cluster keeps its own configuration. The measurements behind each
+are on the manual's validation page.
 
 No shared filesystem: built FMUs travel as :class:`FmuBytes` and :func:`fmu_file` writes each once per worker
 process; the co-simulation's step loops (``fmus/master``) reach a remote cluster's workers as bytes too
@@ -49,16 +51,10 @@ from __future__ import annotations
 import concurrent.futures
 import contextlib
 import contextvars
-import ctypes
 import hashlib
-import json
 import multiprocessing
-import os
 import pickle
 import shutil
-import signal
-import subprocess
-import sys
 import tempfile
 import threading
 import uuid
@@ -74,12 +70,13 @@ from distributed import Client, as_completed, get_worker
 from distributed.client import FutureCancelledError
 from distributed.diagnostics.plugin import WorkerPlugin
 from distributed.scheduler import KilledWorker
-from threadpoolctl import ThreadpoolController
 
+from .clusterprocess import LocalProcessCluster, adopt, prestart, scheduler_from_env
 from .fmu.build import build_master, install_master
 from .fmu.cosim import Rig
 from .localcluster import CLUSTER_CONFIG
 from .machine import default_workers, env_workers
+from .workercall import call, one_blas_thread, pack, run_packed
 
 __all__ = [
     "CLUSTER_CONFIG",
@@ -104,16 +101,10 @@ __all__ = [
 T = TypeVar("T")
 Progress = Callable[[str], None]
 
-SCHEDULER_ENV = "FLEXJOINT_SCHEDULER"
 CONNECT_TIMEOUT_S = 10.0
-CLOSE_TIMEOUT_S = 10.0  # a local cluster not shut down by then is ended by signal
 CACHE_SIZE = 8  # worker_cache entries kept per process (least recently used dropped, and closed, first)
 RESUBMITS = 2  # a task the scheduler cancelled on its own (lost with its worker) is submitted this many times more
 BACKENDS = ("dask", "processes")
-# glibc's ceiling for its dynamic mmap threshold on 64-bit (DEFAULT_MMAP_THRESHOLD_MAX): what a plain process
-# reaches after its first large free; a worker whose thresholds were fixed by hand gets it back (see the module)
-MMAP_THRESHOLD = 32 << 20
-_MALLOC_ENV = ("MALLOC_TRIM_THRESHOLD_", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TOP_PAD_", "MALLOC_MMAP_MAX_")
 _SESSION: contextvars.ContextVar[Executor | None] = contextvars.ContextVar("flexjoint_executor", default=None)
 
 
@@ -215,53 +206,6 @@ def worker_rig(fmus: Mapping[str, FmuBytes | Path | str]) -> Any:
     return worker_cache(key, lambda: Rig(files["flexjoint"], files["daq"], files.get("controller")))
 
 
-# ----------------------------------------------------------------------------------------------- BLAS
-_BLAS: list[Any] = []
-
-
-def one_blas_thread() -> contextlib.AbstractContextManager:
-    """Limit BLAS to one thread for the duration, as every task runs (the controller is built once per process:
-    ~0.01 ms a call); for numerical work the client does between maps that must give the tasks' numbers."""
-    if not _BLAS:
-        _BLAS.append(ThreadpoolController())
-    return _BLAS[0].limit(limits=1, user_api="blas")
-
-
-# ----------------------------------------------------------------------------------------------- allocator
-_MALLOC_TUNED: list[bool] = []
-
-
-def _malloc_as_plain_process() -> bool:
-    """Once per process, in a worker whose environment fixes a glibc malloc threshold (the nanny's default
-    ``MALLOC_TRIM_THRESHOLD_=65536``, which also freezes the mmap threshold at 128 KiB): set the mmap threshold
-    to glibc's dynamic ceiling and the trim threshold to twice that, as a plain process has them once it has freed
-    one large array. Returns whether it changed anything (False off glibc, or when nothing was fixed)."""
-    if _MALLOC_TUNED:
-        return False
-    _MALLOC_TUNED.append(True)
-    if not sys.platform.startswith("linux") or not any(k in os.environ for k in _MALLOC_ENV):
-        return False
-    try:
-        libc = ctypes.CDLL(None)
-        mallopt = libc.mallopt
-    except (OSError, AttributeError):
-        return False
-    m_trim_threshold, m_mmap_threshold = -1, -3  # glibc's malloc.h
-    return bool(mallopt(m_mmap_threshold, MMAP_THRESHOLD)) and bool(mallopt(m_trim_threshold, 2 * MMAP_THRESHOLD))
-
-
-def _call(fn: Callable[..., T], item: Any, *shared: Any) -> T:
-    with one_blas_thread():
-        return fn(item, *shared)
-
-
-def _worker_call(fn: Callable[..., T], item: Any, *shared: Any) -> T:
-    """A task on a Dask worker: the allocator set as in a plain process (once), BLAS at one thread."""
-    if not _MALLOC_TUNED:
-        _malloc_as_plain_process()
-    return _call(fn, item, *shared)
-
-
 # ----------------------------------------------------------------------------------------------- process pool
 _IN_POOL: list[bool] = []
 _SHARED: OrderedDict[str, tuple] = OrderedDict()
@@ -279,7 +223,7 @@ def _pool_call(fn: Callable[..., T], item: Any, token: str, blob: Path | None) -
         _SHARED[token] = pickle.loads(blob.read_bytes()) if blob is not None else ()
         while len(_SHARED) > 2:
             _SHARED.popitem(last=False)
-    return _call(fn, item, *_SHARED[token])
+    return call(fn, item, *_SHARED[token])
 
 
 def in_session() -> bool:
@@ -299,96 +243,6 @@ def in_worker() -> bool:
 
 
 # ----------------------------------------------------------------------------------------------- executor
-class LocalProcessCluster:
-    """The embedded local cluster, run by :mod:`harness.localcluster` in a process (and session) of its own: its
-    workers never re-import the caller's ``__main__``, a terminal's Ctrl-C does not reach them, and their logs go to
-    a scratch file (read only to say why the cluster did not start). ``scheduler_address`` to connect a client;
-    :meth:`close` (or leaving the ``with``) shuts it down."""
-
-    def __init__(self, n_workers: int, dashboard: str | None = None, preload: Sequence[str] = ()) -> None:
-        self.n_workers, self.dashboard = n_workers, dashboard
-        self._log = tempfile.TemporaryFile()
-        cmd = [sys.executable, "-m", "harness.localcluster", str(n_workers), dashboard or "", json.dumps(sys.path)]
-        cmd.append(json.dumps(list(preload)))
-        self._proc = subprocess.Popen(
-            cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=self._log, start_new_session=True
-        )
-        self._address: str | None = None
-
-    @property
-    def scheduler_address(self) -> str:
-        """The scheduler's address, once every worker is up (waits for it the first time)."""
-        if self._address is None:
-            try:
-                line = self._proc.stdout.readline().decode().strip() if self._proc.stdout else ""
-            except BaseException:  # a Ctrl-C while it starts: nothing left behind
-                self.close()
-                raise
-            if not line.startswith("tcp://"):
-                self.close()
-                raise RuntimeError(f"the local Dask cluster did not start: {self._last_log_line()}")
-            self._address = line
-        return self._address
-
-    def _last_log_line(self) -> str:
-        self._log.seek(0)
-        lines = [x.strip() for x in self._log.read().decode(errors="replace").splitlines() if x.strip()]
-        return lines[-1] if lines else f"its process ended with code {self._proc.returncode}"
-
-    def __enter__(self) -> LocalProcessCluster:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-    def _kill_group(self) -> None:
-        """SIGKILL to the cluster's session (its process group: scheduler, nannies, workers); the process alone where
-        there are no process groups (Windows)."""
-        with contextlib.suppress(ProcessLookupError, PermissionError, OSError):
-            if hasattr(os, "killpg"):
-                os.killpg(self._proc.pid, signal.SIGKILL)
-            elif self._proc.poll() is None:
-                self._proc.kill()
-
-    def close(self, abort: bool = False, timeout: float = CLOSE_TIMEOUT_S) -> None:
-        """Close its stdin (the cluster shuts down by itself; ``abort``: at once, its workers killed mid-task), wait
-        ``timeout`` seconds, then end its whole process group (scheduler, nannies, workers)."""
-        if self._proc.stdin is not None and not self._proc.stdin.closed:
-            with contextlib.suppress(OSError):
-                if abort:
-                    self._proc.stdin.write(b"k")
-                self._proc.stdin.close()
-        try:
-            self._proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            self._kill_group()
-            self._proc.wait()
-        self._kill_group()  # a worker its nanny left behind
-        if self._proc.stdout is not None:
-            self._proc.stdout.close()
-        self._log.close()
-
-
-_PRESTARTED: list[LocalProcessCluster] = []
-
-
-def prestart(workers: int | None = None, scheduler: str | None = None, preload: Sequence[str] = ()) -> None:
-    """Start, without waiting for it, the local cluster the next ``Executor(workers, scheduler)`` (or
-    :func:`session`) of this process would start; that executor adopts it, so a command imports what it runs while
-    the workers start, and each worker imports the modules ``preload`` meanwhile, not at its first task (the
-    campaign's stack took a worker 1.0-2.2 s before its first result). Does nothing where that executor would start
-    none (serially, on a scheduler, inside a worker or a session). A cluster never adopted ends with this process
-    (its stdin closes)."""
-    if workers is None:
-        workers = env_workers()
-    scheduler = scheduler or os.environ.get(SCHEDULER_ENV, "").strip() or None
-    if scheduler is not None or workers == 1 or _PRESTARTED or _SESSION.get() is not None or in_worker():
-        return
-    n = workers or default_workers()
-    if n > 1:
-        _PRESTARTED.append(LocalProcessCluster(n, preload=preload))
-
-
 def local_cluster(n_workers: int, dashboard: str | None = None) -> LocalProcessCluster:
     """The embedded local cluster (:class:`LocalProcessCluster`): ``n_workers`` processes of one thread on
     127.0.0.1, worker logs below CRITICAL silenced, the dashboard only at ``dashboard`` (e.g. ``":8787"``) when
@@ -444,7 +298,7 @@ class Executor:
                 self.pool = concurrent.futures.ProcessPoolExecutor(n, mp_context=ctx, initializer=_pool_init)
                 self.kind, self._owns_client, self._pool_size = "processes", True, n
         else:
-            scheduler = scheduler or os.environ.get(SCHEDULER_ENV, "").strip() or None
+            scheduler = scheduler_from_env(scheduler)
             if scheduler is None and single:
                 self.kind = "serial"  # one core: a one-worker cluster would only add its start-up
             else:
@@ -461,11 +315,7 @@ class Executor:
             self.client.register_plugin(MasterLibrary(fmu_bytes(build_master())))
         else:
             n = workers or default_workers()
-            pre = _PRESTARTED.pop() if _PRESTARTED else None
-            if pre is not None and (pre.n_workers, pre.dashboard) != (n, dashboard):
-                pre.close()
-                pre = None
-            self._cluster = pre or local_cluster(n, dashboard)
+            self._cluster = adopt(n, dashboard) or local_cluster(n, dashboard)
             try:
                 self.client = Client(self._cluster.scheduler_address, set_as_default=False)
             except BaseException:
@@ -477,8 +327,8 @@ class Executor:
     def __enter__(self) -> Executor:
         return self
 
-    def __exit__(self, exc_type: type[BaseException] | None, *exc: object) -> None:
-        self.close(abort=exc_type is not None)
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
     @property
     def n_workers(self) -> int:
@@ -489,10 +339,11 @@ class Executor:
             return 1
         return max(len(self.client.nthreads()), 1)
 
-    def close(self, abort: bool = False) -> None:
+    def close(self) -> None:
         """Release the scattered data (and the processes backend's scratch files), and close the client, the process
-        pool and the local cluster if this executor started them (``abort``, on an error or a Ctrl-C: a local cluster
-        ends at once, its running tasks killed, instead of after them)."""
+        pool and the local cluster if this executor started them. A local cluster ends at once, its processes killed:
+        after the last map nothing is lost but the time of a graceful shutdown, and on an error or a Ctrl-C its running
+        tasks end with it instead of being waited for."""
         self._scattered.clear()
         self._blobs.clear()
         if self._scratch is not None:
@@ -506,7 +357,7 @@ class Executor:
                     self.client.close()
             if self._cluster is not None:
                 with contextlib.suppress(Exception):
-                    self._cluster.close(abort=abort)
+                    self._cluster.close(abort=True)
         self.client, self.pool, self._cluster, self._owns_client = None, None, None, False
 
     def _scatter(self, obj: Any) -> Any:
@@ -563,7 +414,7 @@ class Executor:
                 raise RuntimeError("executor is closed")
             out = []
             for i, item in enumerate(items):
-                out.append(_call(fn, item, *shared))
+                out.append(call(fn, item, *shared))
                 self._report(desc, names[i], i + 1, n, quiet)
             return out
         return self._map_dask(fn, items, shared, desc, names, quiet)
@@ -575,9 +426,9 @@ class Executor:
             return []
         refs = [self._scatter(s) for s in shared]
         stem = f"{desc or getattr(fn, '__name__', 'task')}-{uuid.uuid4().hex[:12]}".replace(" ", "_")
+        packed = [pack(fn, item) for item in items]  # opaque to the scheduler (harness.workercall)
         futures = [
-            self.client.submit(_worker_call, fn, item, *refs, key=f"{stem}-{i}", pure=False)
-            for i, item in enumerate(items)
+            self.client.submit(run_packed, task, *refs, key=f"{stem}-{i}", pure=False) for i, task in enumerate(packed)
         ]
         index = {f.key: i for i, f in enumerate(futures)}
         results: list[Any] = [None] * len(items)
@@ -595,7 +446,7 @@ class Executor:
                         raise RuntimeError(f"{desc or 'task'} {names[i]}: {exc}") from None
                     again[i] += 1
                     retry = self.client.submit(
-                        _worker_call, fn, items[i], *refs, key=f"{stem}-{i}-again{again[i]}", pure=False
+                        run_packed, packed[i], *refs, key=f"{stem}-{i}-again{again[i]}", pure=False
                     )
                     index[retry.key] = i
                     futures.append(retry)
@@ -662,8 +513,5 @@ def session(
     try:
         with use(ex):
             yield ex
-    except BaseException:
-        ex.close(abort=True)
-        raise
     finally:
         ex.close()

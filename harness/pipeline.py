@@ -1,71 +1,28 @@
 """The whole ``flexjoint run`` (spec -> campaign -> calibration -> identification -> cross-fit -> diagnosis ->
-report and recording), and the identification step over a run directory."""
+report and recording)."""
 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, cast
 
 from . import spec as specmod
 from .diagnosis.diagnose import diagnose_run
 from .fmu.build import build_all
 from .ident.accept import accept
-from .ident.calibration import Calibration, calibrate_run, load_calibration
+from .ident.calibration import calibrate_run
 from .ident.crossfit import crossfit_run
 from .ident.doubled_rate import doubled_rate_check
-from .ident.identify import GridResult, PreparedExperiment, prepare, run_grid, write_grid
+from .ident.identify import identify_run
 from .render.load import load_results
-from .render.report import write_report
+from .render.report import begin_report
 from .render.viewer import log_run
 from .rig.campaign import run_campaign
-from .rundir import DataError, Manifest, RunDir, load_run, new_run, recorded_spec, stale_artefacts, write_json
+from .rundir import RunDir, new_run, write_json
 
 Progress = Callable[[str], None]
-
-
-def identify_run(
-    run: Path, identify: Mapping[str, Any] | None = None, progress: Progress | None = None
-) -> tuple[GridResult, dict[str, PreparedExperiment], Calibration, specmod.IdentifySettings]:
-    """Grid, cross-validation and selection on a run's identification datasets; writes grid.csv and models/. A
-    calibration.json made from other data than the run holds is made again from its calibration experiments.
-
-    Parameters
-    ----------
-    run : Path
-        The run directory (a campaign or an import).
-    identify : mapping, optional
-        Overrides of the spec's ``[identify]`` table (``na``, ``nb``, ``nc`` ranges, ``af``, ...).
-    progress : callable, optional
-        Called with one line of text per finished grid task.
-
-    Returns
-    -------
-    grid : GridResult
-        The order grid, the best model per dataset, the selected one and the rule that chose it.
-    prepared : dict of str to PreparedExperiment
-        Each identification dataset detrended and filtered as identified.
-    calibration : Calibration
-        Kp, Ke and the dead zone the angles were read with.
-    identify : IdentifySettings
-        The ``[identify]`` settings used.
-    """
-
-    run = Path(run)
-    spec = recorded_spec(run)
-    ident = cast(
-        specmod.IdentifySettings, {**(spec.identify if spec else specmod.IDENTIFY_DEFAULTS), **(identify or {})}
-    )
-    stale = stale_artefacts(run).get("calibration.json")
-    if stale and not Manifest.load(run).entries("calibration"):
-        raise DataError(stale.replace("re-run flexjoint identify", "import the records again"))
-    cal = calibrate_run(run) if stale else load_calibration(run)
-    prepared = prepare(load_run(run), cal, float(ident["af"]), str(ident["output"]))
-    res = run_grid(prepared, ident, progress=progress)
-    write_grid(res, run, ident, cal)
-    return res, prepared, cal, ident
 
 
 @dataclass
@@ -184,8 +141,9 @@ def _pipeline(
          f"{d.gap.shrink_pct:.1f} %)")  # fmt: skip
     now("report.md, figures and run.rrd")
     results = load_results(out)
-    write_report(out, results)
+    report = begin_report(out, results)  # its figures drawn on the workers while this process writes the recording
     log_run(out, rrd=rrd, spawn=spawn, connect=connect, results=results)
+    report.write()
     verdict = accept(out)
     done("report", "report.md and run.rrd written")
     write_json(RunDir(out).run_timing, {"stages_s": stages, "total_s": sum(stages.values())})

@@ -8,9 +8,10 @@ A spec has these tables (everything but ``[campaign]`` and one experiment is opt
     [[calibration]]  experiments for Kp (pot_ramp), Ke (comb) and the dead zone (ramp)
     [[experiment]]   identification experiments: name, signal, duration [s] and the signal's parameters,
                      optional ``plant = {...}`` / ``daq = {...}`` overrides for that experiment only
-    [controller] the closed loop's controller: kind ("state_feedback" or "pid"), K = [4 gains] or kp, ki, kd,
+    [controller] the closed loop's controller: kind ("state_feedback", "pid" or "lqg"), K = [4 gains] or kp, ki, kd,
                  cutoff [Hz] of its velocity filter, u_limit [V], sample_rate [Hz] (default the campaign's),
-                 alpha_gain [deg/V] the gauge calibration it reads alpha with (default the DAQ's gauge_gain)
+                 alpha_gain [deg/V] the gauge calibration it reads alpha with (default the DAQ's gauge_gain);
+                 an lqg's arrays in [controller.estimator] (A, B, C, L, K, N, X0: harness.rig.controller.Estimator)
     [[experiment]] with ``loop = "closed"``: run under the controller, its signal the theta reference [deg]
     [identify]   na, nb, nc ranges, nk, af, output, fit_threshold [%], selection tolerance [fit points]
     [accept]     min_fit [%] per dataset, min_average_fit [%] for the selected model
@@ -27,12 +28,11 @@ import copy
 import hashlib
 import json
 import math
+import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypedDict, cast
-
-import tomllib
 
 from .fmu.modeldesc import Variable, source_model
 from .fmu.sources import bundled_dir
@@ -45,7 +45,7 @@ SPEC_DIR = bundled_dir("specs")  # the bundled specs: harness/_specs in a wheel,
 CAMPAIGN_KEYS = {"name", "sample_rate", "seed", "internal_step", "description"}
 EXPERIMENT_KEYS = {"name", "signal", "duration", "plant", "daq", "role", "loop"}
 CONTROLLER_KEYS = {"kind", "K", "kp", "ki", "kd", "cutoff", "u_limit", "sample_rate", "ref_delay", "alpha_gain",
-                   "alpha_bias"}  # fmt: skip
+                   "alpha_bias", "estimator"}  # fmt: skip
 LOOPS = ("open", "closed")
 COMB_PARAMS = {"deflections_cm", "D_cm", "hold", "ramp"}
 
@@ -277,14 +277,16 @@ def _loop(where: str, loop: Any, signal: str) -> str:
     return loop
 
 
-def _controller(d: Any) -> Controller:
+def controller_table(d: Any) -> Controller:
     """The ``[controller]`` table as a :class:`Controller`; one :class:`SpecError` line for a bad one."""
     if not isinstance(d, dict):
         raise SpecError("[controller] must be a table")
     _check_keys("[controller]", d, CONTROLLER_KEYS)
+    if "estimator" in d and not isinstance(d["estimator"], dict):
+        raise SpecError("[controller].estimator must be a table of the LQG's arrays (A, B, C, L, K, N, X0)")
     for k, v in d.items():
         vals = v if k == "K" and isinstance(v, list) else [v]
-        if k != "kind" and any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in vals):
+        if k not in ("kind", "estimator") and any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in vals):
             raise SpecError(f"[controller].{k} must be {'a list of 4 numbers' if k == 'K' else 'a number'}, got {v!r}")
     if "K" in d and not isinstance(d["K"], list):
         raise SpecError(f"[controller].K must be a list of 4 numbers, got {d['K']!r}")
@@ -388,7 +390,7 @@ def from_dict(raw: dict[str, Any], path: str = "") -> Spec:
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
         raise SpecError(f"duplicate experiment name(s): {', '.join(dup)}")
-    controller = _controller(raw["controller"]) if "controller" in raw else None
+    controller = controller_table(raw["controller"]) if "controller" in raw else None
     closed = [e.name for e in (*cal, *exps) if e.loop == "closed"]
     if closed and controller is None:
         raise SpecError(f"experiment(s) {', '.join(closed)} run closed loop but the spec has no [controller] table")

@@ -89,9 +89,16 @@ def ssp_experiment(spec: Spec, experiment: str | None = None, loop: str | None =
     return exp
 
 
-def _parameters(spec: Spec, exp: Experiment) -> tuple[dict[str, dict[str, Any]], np.ndarray]:
-    """Each element's parameters and the signal table (n x 3: u [V], ref [rad], tau_tip [N m])."""
+def _parameters(
+    spec: Spec, exp: Experiment, reference_deg: np.ndarray | None = None
+) -> tuple[dict[str, dict[str, Any]], np.ndarray]:
+    """Each element's parameters and the signal table (n x 3: u [V], ref [rad], tau_tip [N m]); ``reference_deg``: a
+    closed loop's reference [deg] in place of the experiment's signal (a record's)."""
     u, plant, daq, tau, _ = experiment_inputs(spec, exp)
+    if reference_deg is not None:
+        if exp.loop != "closed":
+            raise SpecError(f"experiment {exp.name!r} runs open loop: it has no reference to replace")
+        u = np.asarray(reference_deg, dtype=float)
     fs = spec.sample_rate
     daq = {"sample_rate": fs, **daq}
     table = np.zeros((u.size, 3))
@@ -199,10 +206,13 @@ def _signal_fmu(table: np.ndarray, title: str) -> bytes:
     return zip_bytes(files)
 
 
-def ssp_bytes(spec: Spec, experiment: str | None = None, loop: str | None = None) -> bytes:
-    """The SSP archive of ``spec``'s rig running one experiment (see :func:`ssp_experiment`)."""
+def ssp_bytes(
+    spec: Spec, experiment: str | None = None, loop: str | None = None, reference_deg: np.ndarray | None = None
+) -> bytes:
+    """The SSP archive of ``spec``'s rig running one experiment (see :func:`ssp_experiment`); ``reference_deg``: a
+    closed loop's reference [deg], one per sample, in place of its signal (a record's reference)."""
     exp = ssp_experiment(spec, experiment, loop)
-    params, table = _parameters(spec, exp)
+    params, table = _parameters(spec, exp, reference_deg)
     files = {"SystemStructure.ssd": ssd_text(spec, exp, params, len(table)).encode()}
     for element in params:
         if element != "signal":

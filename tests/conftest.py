@@ -1,18 +1,49 @@
-"""Shared fixtures: the built rig-twin FMUs and a minimal fmpy stepping loop for tests."""
+"""Shared fixtures: the built rig-twin FMUs, a minimal fmpy stepping loop for tests, and the runs several test files
+read (the lab campaign, a diagnosed run: tests/shared_runs.py), each made once for the whole session and shared by
+the test processes of ``-n N``."""
 
 from __future__ import annotations
 
+import os
 import shutil
 import tempfile
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 import pytest
+from shared_runs import make_diagnosed_run, make_lab_campaign
 
 from harness.fmu import modeldesc
 from harness.fmu.build import build_all
+
+try:
+    import fcntl
+except ImportError:  # Windows: each test process makes its own
+    fcntl = None  # type: ignore[assignment]
+
+
+def shared_dir(tmp_path_factory: pytest.TempPathFactory, name: str, make: Callable[[Path], None]) -> Path:
+    """The directory ``name`` that ``make(path)`` fills (``path`` does not exist yet), made once for the whole
+    session: by the first test process that asks for it while the others (xdist's workers) wait for it on a lock
+    file, in the directory their temporary directories share. Read-only for the tests: one that writes into it
+    copies it first."""
+    base = tmp_path_factory.getbasetemp()
+    if fcntl is not None and os.environ.get("PYTEST_XDIST_WORKER"):
+        base = base.parent
+    path = base / name
+    with open(base / f"{name}.lock", "w") as lock:
+        if fcntl is not None:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+        if not path.is_dir():
+            work = Path(tempfile.mkdtemp(prefix=f".{name}-", dir=base))
+            try:
+                make(work / name)
+                (work / name).rename(path)
+            finally:
+                shutil.rmtree(work, ignore_errors=True)
+    return path
 
 
 @pytest.fixture
@@ -37,6 +68,19 @@ def lab1_model():
 def fmus() -> dict[str, Path]:
     """{"flexjoint": Path, "daq": Path} of the built FMUs (from the build cache when up to date)."""
     return build_all()
+
+
+@pytest.fixture(scope="session")
+def lab_campaign(tmp_path_factory, fmus) -> Path:
+    """The lab spec's campaign (:func:`shared_runs.make_lab_campaign`), once per session: copy it to write into it."""
+    return shared_dir(tmp_path_factory, "lab_campaign", lambda path: make_lab_campaign(path, fmus))
+
+
+@pytest.fixture(scope="session")
+def diagnosed_run(tmp_path_factory, fmus) -> Path:
+    """A run directory through every stage, diagnosed (:func:`shared_runs.make_diagnosed_run`: the blind rig with
+    Coulomb friction and a one-sample delay, three 10 s experiments), once per session: copy it to write into it."""
+    return shared_dir(tmp_path_factory, "diagnosed_run", make_diagnosed_run)
 
 
 class FmuRun:

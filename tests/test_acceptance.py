@@ -7,24 +7,27 @@ pole at z = 1 once the integrator is back).
 """
 
 import json
+import shutil
 
 import numpy as np
 import pandas as pd
 import pytest
 
-from harness import spec as specmod
+from harness.executor import session
 from harness.ident import armax, lti
 from harness.ident.accept import accept
 from harness.ident.crossfit import crossfit_run
-from harness.pipeline import identify_run
-from harness.rig.campaign import run_campaign
+from harness.ident.identify import identify_run
 
 
 @pytest.fixture(scope="module")
-def identified(tmp_path_factory):
-    run = tmp_path_factory.mktemp("lab_accept")
-    run_campaign(specmod.load("lab"), run, workers=1)
-    res, prepared, cal, ident = identify_run(run)
+def identified(tmp_path_factory, lab_campaign):
+    """A copy of the session's lab campaign identified on the spec's whole grid (serially: the suite's processes
+    keep the cores busy, a cluster would only add its start) and cross-fitted."""
+    run = tmp_path_factory.mktemp("lab_accept") / "run"
+    shutil.copytree(lab_campaign, run)
+    with session(workers=1):
+        res, prepared, cal, ident = identify_run(run)
     crossfit_run(run)
     return run, res, prepared, ident
 

@@ -2,12 +2,12 @@
 numbers recovered from the twin's own calibration experiments."""
 
 import json
+import shutil
 
 import numpy as np
 import pytest
 
 from harness import spec as specmod
-from harness.fmu.build import build_all
 from harness.fmu.plant import PlantParams, dead_zone_voltage
 from harness.pipeline import calibrate_run
 from harness.rig.campaign import run_campaign, simulate_spec
@@ -15,14 +15,10 @@ from harness.rundir import load_run, read_dataset
 
 
 @pytest.fixture(scope="module")
-def fmus():
-    return build_all()
-
-
-@pytest.fixture(scope="module")
-def lab_run(tmp_path_factory, fmus):
-    out = tmp_path_factory.mktemp("lab")
-    run_campaign(specmod.load("lab"), out, fmus=fmus, workers=1)
+def lab_run(tmp_path_factory, lab_campaign):
+    """A copy of the session's lab campaign (calibrate_run writes into it)."""
+    out = tmp_path_factory.mktemp("lab") / "run"
+    shutil.copytree(lab_campaign, out)
     return out
 
 

@@ -147,14 +147,24 @@ def test_specs_lists_the_bundled_specs_and_init_copies_one(tmp_path):
     assert bundled in _one_line_error(flexjoint("init", tmp_path, "--spec", "nope"))
 
 
-def test_build_failure_exits_non_zero(tmp_path):
+def test_build_failure_exits_non_zero(tmp_path, fmus):
+    """A model and then the co-simulation master that do not compile: one line each. The cache starts with what the
+    session built, so only the broken sources are compiled."""
+    from harness.fmu.build import build_fmu, build_master, cache_dir
     from harness.fmu.sources import bundled_dir
 
     src = tmp_path / "fmus"
     shutil.copytree(bundled_dir("fmus"), src)
     model = src / "flexjoint" / "model.c"
     model.write_text(model.read_text() + "\nint broken( {\n")
-    env = {"FLEXJOINT_FMU_SRC": str(src), "FLEXJOINT_CACHE": str(tmp_path / "cache")}
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    for built in (*fmus.values(), build_fmu("armax"), build_master()):
+        for f in (built, built.with_name(built.name + ".sha256")):
+            if f.is_file():
+                shutil.copy2(f, cache / f.name)
+    assert cache_dir() != cache
+    env = {"FLEXJOINT_FMU_SRC": str(src), "FLEXJOINT_CACHE": str(cache)}
     line = _one_line_error(flexjoint("build", env=env))
     assert line.startswith("error: building flexjoint failed: model.c:") and "error" in line[6:]
     model.write_text(model.read_text().replace("\nint broken( {\n", ""))

@@ -82,6 +82,18 @@ def test_the_command_line_loads_without_the_numerical_stack():
     assert r.returncode == 0 and r.stdout.startswith("flexjoint-harness "), r.stderr
 
 
+def test_the_modules_run_preloads_into_its_workers_exist():
+    """flexjoint run's workers import every stage's task modules as they start (harness.cli.PIPELINE_TASKS): a module
+    renamed away would stop the workers from starting (spawned workers import them one by one)."""
+    import importlib.util
+
+    from harness.cli import PIPELINE_TASKS
+
+    for name in PIPELINE_TASKS:
+        assert importlib.util.find_spec(name) is not None, name
+    assert set(PIPELINE_TASKS) >= {"harness.rig.campaign", "harness.ident.identify", "harness.render.figures"}
+
+
 @pytest.mark.parametrize(
     "module, how, args",
     [

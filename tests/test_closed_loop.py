@@ -31,7 +31,7 @@ from harness.fmu.build import build_all
 from harness.fmu.cosim import Rig
 from harness.ident.calibration import LAB1_CALIBRATION, Calibration, alpha_deg, load_calibration, theta_deg
 from harness.rig.campaign import run_campaign
-from harness.rig.controller import Controller, law
+from harness.rig.controller import Controller, Estimator, law
 from harness.rundir import Manifest, RunDir, read_dataset
 
 
@@ -135,7 +135,8 @@ def test_each_replay_of_a_closed_loop_record(closed_run):
 
 def test_controller_fmu_is_valid_and_equals_the_law():
     """The controller FMU alone, driven by recorded-looking samples: its command equals harness.rig.controller.law
-    (the same equations in numpy) for both kinds, through the output limit and the PID's anti-windup."""
+    (the same equations in numpy) for every kind, through the output limit, the PID's anti-windup and the LQG's
+    estimator fed the clamped command."""
     from fmpy.validation import validate_fmu
 
     from harness.fmu.binding import load
@@ -150,9 +151,15 @@ def test_controller_fmu_is_valid_and_equals_the_law():
     alpha = np.radians(3.0 * np.sin(2 * np.pi * 11.0 * t)) + 1e-4 * rng.standard_normal(n)
     kp, ka = 35.5145, -3.3636
     theta_v, alpha_v = np.degrees(theta) / kp + 0.01, np.degrees(alpha) / ka - 0.02
+    n_x = 6  # an LQG of 6 states, arrays drawn at random (a stable A): the FMU's recursion against the numpy one
+    A = 0.95 * np.linalg.qr(rng.standard_normal((n_x, n_x)))[0]
+    est = Estimator(A=A.tolist(), B=rng.normal(0, 0.01, n_x).tolist(), C=rng.normal(0, 1, (2, n_x)).tolist(),
+                    L=rng.normal(0, 0.02, (n_x, 2)).tolist(), K=rng.normal(0, 1, n_x).tolist(),
+                    N=rng.normal(0, 1, n_x).tolist(), X0=rng.normal(0, 1, (n_x, 2)).tolist())  # fmt: skip
     cases = [
         Controller(K=[9.231, -18.769, 1.203, -0.041], cutoff=15.0, u_limit=4.0),
         Controller(kind="pid", kp=12.0, ki=40.0, kd=0.8, cutoff=30.0, u_limit=3.0),
+        Controller(kind="lqg", estimator=est, u_limit=0.7),
     ]
     inst = load(fmu, "controller")
     try:
@@ -301,7 +308,7 @@ def _blind_closed_run(
          "truth_effects": [], "sensor": sensor or {}, "campaign_seed": seed}  # fmt: skip
     run = tmp_path / f"case_{case}"
     bt.make_rig_run(c, run, quick=True)
-    return run, bt.campaign_spec(True, bt._case_sets(c)[1:], "closed")
+    return run, bt.campaign_spec(True, bt.case_sets(c)[1:], "closed")
 
 
 def test_a_closed_loop_replay_carries_the_datas_noise_so_friction_is_not_viscous(tmp_path):

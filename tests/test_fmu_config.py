@@ -12,6 +12,18 @@ from harness.fmu.sources import fmu_source_dir
 
 LISTS = {"REAL_PARAMETERS": ("parameter", "Real"), "INTEGER_PARAMETERS": ("parameter", "Integer")}
 LISTS |= {"INPUTS": ("input", "Real"), "OUTPUTS": ("output", "Real")}
+ARRAYS = "ARRAY_PARAMETERS"  # X(name, first value reference, rows, columns): Real parameters name[i,j] or name[i]
+
+
+def array_elements(entry: tuple[str, ...], defines: dict[str, int]) -> dict[str, int]:
+    """{XML name: value reference} of an array parameter's elements, row-major from its first value reference."""
+    name, vr0, rows, cols = entry[0], int(entry[1]), *(defines.get(x, 0) or int(x) for x in entry[2:4])
+    out = {}
+    for i in range(rows):
+        for j in range(cols):
+            idx = f"{j + 1}" if rows == 1 else f"{i + 1}" if cols == 1 else f"{i + 1},{j + 1}"
+            out[f"{name}[{idx}]"] = vr0 + i * cols + j
+    return out
 
 
 def config_lists(text: str) -> dict[str, list[tuple[str, ...]]]:
@@ -26,9 +38,17 @@ def config_lists(text: str) -> dict[str, list[tuple[str, ...]]]:
 def test_config_h_variable_lists_equal_the_xml(model):
     src = fmu_source_dir() / model
     md = modeldesc.read(src)
-    lists = config_lists((src / "config.h").read_text())
+    text = (src / "config.h").read_text()
+    lists = config_lists(text)
+    arrays = lists.pop(ARRAYS, [])
     assert set(lists) == set(LISTS)
     seen = {}
+    defines = {k: int(v) for k, v in re.findall(r"^#define\s+(\w+)\s+(\d+)\s*$", text, re.M)}
+    for entry in arrays:
+        for name, vr in array_elements(entry, defines).items():
+            var = md.variables[name]
+            assert (var.value_reference, var.causality, var.type, var.start) == (vr, "parameter", "Real", 0.0), name
+            seen[name] = vr
     for name, (causality, kind) in LISTS.items():
         for entry in lists[name]:
             var = md.variables[entry[0]]
@@ -38,6 +58,7 @@ def test_config_h_variable_lists_equal_the_xml(model):
             seen[entry[0]] = var.value_reference
     assert seen == {n: v.value_reference for n, v in md.variables.items()}  # every variable, none twice
     params = [e[0] for e in lists["REAL_PARAMETERS"] + lists["INTEGER_PARAMETERS"]]
+    params += [n for e in arrays for n in array_elements(e, defines)]
     assert sorted(params, key=lambda n: md.variables[n].value_reference) == list(md.parameters())
 
 

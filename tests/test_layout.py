@@ -171,3 +171,11 @@ def test_public_functions_have_numpydoc_sections() -> None:
         if not ("Parameters\n----------" in doc and "Returns\n-------" in doc):
             bare.append(name)
     assert bare == []
+
+
+def test_no_public_name_is_a_module_of_the_package() -> None:
+    """A submodule ``harness.X`` becomes the package's attribute X when imported, hiding a public name X: a public
+    name that is also a top-level module would change meaning with what was imported before."""
+    top = {p.stem for p in PKG.glob("*.py")} | {p.parent.name for p in PKG.glob("*/__init__.py")}
+    assert "prediction" in top and "predict" in harness.__all__
+    assert sorted(top & set(harness.__all__)) == []

@@ -6,35 +6,28 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import re
 import shutil
 import subprocess
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
 from scipy.signal import lfilter
+from shared_runs import REAL_EXPERIMENTS
 
 from benchmarks.problems import demo_system
-from harness import spec as specmod
-from harness.diagnosis.blindtest import campaign_spec
-from harness.diagnosis.diagnose import diagnose_run
 from harness.diagnosis.experiments import CHANNELS
 from harness.diagnosis.result import Diagnosis
 from harness.ident import armax, lti
-from harness.ident.calibration import calibrate_run
-from harness.ident.crossfit import crossfit_run
-from harness.ident.identify import prepare, run_grid, write_grid
+from harness.render import figures
 from harness.render.analysis import estimates, measured_frf
 from harness.render.gap_text import diagnosis_markdown
 from harness.render.load import load_results
 from harness.render.report import write_report
-from harness.rig.campaign import run_campaign
-from harness.rundir import RunDir, load_run, write_dataset
+from harness.rundir import RunDir, write_dataset
 
 AF = 0.8
 TS = 0.02
@@ -42,33 +35,6 @@ KP, KE, OFFSET = 35.0, -3.4, 0.1
 NAMES = ("prbs_a", "prbs_b", "square_c")
 N = 600
 N_SAMPLES = N
-REAL_EXPERIMENTS = ("prbs_small", "square_large", "chirp_slow")  # 10 s each: ~30 s to diagnose on 2 cores
-REAL_GRID = {"na": [2, 4], "nb": [1, 2], "nc": [1, 2]}
-
-
-def real_run(tmp_path_factory) -> Path:
-    """A real run directory: the blind rig with Coulomb friction (0.05 N m) and a one-sample delay, three 10 s
-    experiments, calibrated, identified on a small grid, cross-fitted through the exported FMUs and diagnosed by
-    ``diagnose_run`` against the blind campaign's linear rig. Made once per test process (cached on disk)."""
-    base = tmp_path_factory.getbasetemp() / "real_run"
-    if (base / "diagnosis.json").exists():
-        return base
-    tmp = Path(tempfile.mkdtemp(dir=tmp_path_factory.getbasetemp()))
-    spec = campaign_spec(quick=True, overrides=["plant.coulomb_torque=0.05", "daq.delay_samples=1", "campaign.seed=11"])
-    raw = specmod.apply_overrides(spec.raw, [])
-    raw["experiment"] = [dict(e, duration=10.0) for e in raw["experiment"] if e["name"] in REAL_EXPERIMENTS]
-    run_campaign(specmod.from_dict(raw, spec.path), tmp, workers=1)
-    cal = calibrate_run(tmp)
-    ident = dict(specmod.IDENTIFY_DEFAULTS, **REAL_GRID)
-    prepared = prepare(load_run(tmp), cal, float(ident["af"]), str(ident["output"]))
-    write_grid(run_grid(prepared, ident, workers=1), tmp, ident, cal)
-    crossfit_run(tmp)
-    diagnose_run(tmp, campaign_spec(quick=True), workers=1)
-    try:
-        os.rename(tmp, base)
-    except OSError:  # made meanwhile by another module of this process
-        shutil.rmtree(tmp, ignore_errors=True)
-    return base
 
 
 def campaign_only(real: Path, dest: Path) -> Path:
@@ -189,9 +155,9 @@ def build_run(root: Path, diagnosis: dict) -> dict:
 
 
 @pytest.fixture(scope="module")
-def real(tmp_path_factory, fmus) -> tuple[Path, dict]:
-    path = real_run(tmp_path_factory)
-    return path, json.loads(RunDir(path).diagnosis.read_text())
+def real(diagnosed_run) -> tuple[Path, dict]:
+    """The session's diagnosed run (read-only) and its diagnosis."""
+    return diagnosed_run, json.loads(RunDir(diagnosed_run).diagnosis.read_text())
 
 
 @pytest.fixture(scope="module")
@@ -312,9 +278,11 @@ def test_bad_run_directories(tmp_path):
 
 
 @pytest.fixture(scope="module")
-def real_report(real) -> tuple[Path, dict, str]:
-    root, d = real
-    return root, d, write_report(root).read_text()
+def real_report(real, tmp_path_factory) -> tuple[Path, dict, str]:
+    """The report of a copy of the diagnosed run."""
+    root = tmp_path_factory.mktemp("real_report") / "run"
+    shutil.copytree(real[0], root)
+    return root, real[1], write_report(root).read_text()
 
 
 def test_real_report_is_compact_and_reproducible(real_report):
@@ -463,8 +431,6 @@ def test_report_of_a_run_directory_without_models(real, tmp_path):
 @pytest.fixture
 def drawn(monkeypatch) -> dict[str, object]:
     """Every matplotlib figure the report saves, by file name (the figures as drawn, for their axes and lines)."""
-    from harness.render import figures
-
     seen: dict[str, object] = {}
     save = figures.save_figure
 
@@ -555,12 +521,14 @@ def test_replays_against_the_record_per_experiment(real, drawn, tmp_path):
         assert e_ax.get_xlabel() == "t [s]"
 
 
-def test_crossfit_heat_map_names_and_readable_numbers(run, drawn):
+def test_crossfit_heat_map_names_and_readable_numbers(run):
     """Datasets and models by name on the heat map; each value black on a light cell, white on a dark one."""
     root, truth = run
     write_report(root)
-    ax = drawn["crossfit.png"].axes[0]
     cf = truth["crossfit"]
+    fig = figures.crossfit_figure(cf)
+    assert (root / "figures" / "crossfit.png").read_bytes() == figures.png_bytes(fig)  # the report's figure is this
+    ax = fig.axes[0]
     assert [t.get_text() for t in ax.get_xticklabels()] == list(cf.columns)
     assert [t.get_text() for t in ax.get_yticklabels()] == list(cf.index)
     im = ax.get_images()[0]
@@ -647,7 +615,6 @@ def test_report_of_a_blind_test(tmp_path, monkeypatch):
     """`flexjoint report DIR` on a blind test's output: the scores per family with their intervals and counts,
     a target no case scores said so (not "met"), every case, the figure's bars the shares."""
     from harness.diagnosis.blindtest import totals
-    from harness.render import figures
 
     def case(i, family, kind, truth, verdict, top1):
         score = {"verdict": verdict, "top1": top1, "param_ok": top1, "param_ok_20": top1, "shrink_pct": 90.0 + i,

@@ -18,7 +18,7 @@ from harness import spec as specmod
 from harness.ident.accept import accept
 from harness.ident.calibration import calibrate_run
 from harness.ident.crossfit import crossfit_run
-from harness.pipeline import identify_run
+from harness.ident.identify import identify_run
 from harness.render import viewer
 from harness.render.load import load_results
 from harness.render.report import write_report

@@ -280,3 +280,26 @@ def test_a_master_on_fmpy_jacobi_or_gauss_seidel_gives_the_campaigns_theta(tmp_p
     order = None if order is None else [*order, *(e for e in ("signal",) if e not in order)]
     got = _fmpy_master(ssp_bytes(s, "square_30"), tmp_path, len(want), order)
     np.testing.assert_allclose(got, want[1:], rtol=0, atol=1e-9)
+
+
+def test_libcosim_runs_an_lqg_loop_to_the_campaigns_theta(tmp_path):
+    """The controller FMU's LQG (kind 3: a Kalman filter in current form on theta and alpha, 7 states: the lab rig's
+    two modes and its command delay) in the SSP of the lab rig under it (friction, 12-bit ADC, noise): libcosim runs
+    it to the campaign's theta, to the bit."""
+    import tomllib
+
+    from harness.design import Weights, controller_toml, lqg_controller
+    from harness.linloop import design_model
+    from harness.twin import twin_of_spec
+
+    s = specmod.load("closed_loop", [])
+    model = design_model(twin_of_spec(s).tables(noise=False), s.Ts)
+    c = lqg_controller(model, Weights((100.0, 30.0, 1.0, 0.1), 1.0, 1.0), (1e-3, 1e-3), s.sample_rate)
+    assert c.estimator is not None and c.estimator.n == 7
+    raw = specmod.apply_overrides(s.raw, [])
+    raw["controller"] = tomllib.loads(controller_toml(c, "an LQG"))["controller"]
+    lqg = specmod.from_dict(raw, s.path)
+    want = _campaign(lqg, "square_30")["theta"]
+    got = _libcosim_theta(ssp_bytes(lqg, "square_30"), tmp_path, len(want), s.Ts)
+    assert np.ptp(want) > 50.0  # the loop tracks the +-30 deg square
+    np.testing.assert_allclose(got, want[1:], rtol=0, atol=1e-9)

@@ -10,11 +10,11 @@ import shutil
 import signal
 import sys
 import tempfile
+import tomllib
 
 import numpy as np
 import pandas as pd
 import pytest
-import tomllib
 from scipy import stats
 from test_executor import TINY_SPEC, DaskCluster, tiny_spec
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 
@@ -65,10 +66,12 @@ def test_help_wraps_its_examples_instead_of_cutting_them():
     assert "time=t,Vm=u,hub=theta,tip=alpha" in r.stdout and "theta=deg,alpha=rad,u=V,t=s" in r.stdout
 
 
-def test_identify_table_fits_80_columns_and_keeps_every_number(tmp_path):
-    one = {"FLEXJOINT_WORKERS": "1"}
-    assert flexjoint("campaign", "lab", "--out", tmp_path / "r", env=one).returncode == 0
-    r = flexjoint("identify", tmp_path / "r", env=one)
+def test_identify_table_fits_80_columns_and_keeps_every_number(tmp_path, lab_campaign):
+    """The lab's 9 datasets (a copy of the session's campaign) on a small corner of its grid: the table's shape is
+    the whole grid's (test_acceptance identifies that)."""
+    shutil.copytree(lab_campaign, tmp_path / "r")
+    grid = ["identify.na=[3, 5]", "identify.nb=[1, 2]", "identify.nc=[1, 2]"]
+    r = flexjoint("identify", tmp_path / "r", *(x for g in grid for x in ("--set", g)), env={"FLEXJOINT_WORKERS": "1"})
     assert r.returncode == 0, r.stderr
     _fits(r.stdout)
     sel = [x.split() for x in r.stdout.splitlines() if x.strip().startswith("sel (")]

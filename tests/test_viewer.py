@@ -22,9 +22,9 @@ from harness.render.viewer import APPLICATION_ID, CORR_HEIGHT, DB_PER_UNIT, log_
 from harness.rundir import Manifest, RunDir
 
 try:
-    from test_report import AF, NAMES, REAL_EXPERIMENTS, TS, build_run, campaign_only, exp_gap, real_run
+    from test_report import AF, NAMES, REAL_EXPERIMENTS, TS, build_run, campaign_only, exp_gap
 except ImportError:  # tests/ imported as a package
-    from tests.test_report import AF, NAMES, REAL_EXPERIMENTS, TS, build_run, campaign_only, exp_gap, real_run
+    from tests.test_report import AF, NAMES, REAL_EXPERIMENTS, TS, build_run, campaign_only, exp_gap
 
 # what each kind of view draws (the component that carries the data)
 VIEW_DATA = {
@@ -46,9 +46,9 @@ def read_chunks(rrd: Path) -> dict[str, list[dict]]:
 
 
 @pytest.fixture(scope="module")
-def real(tmp_path_factory, fmus) -> tuple[Path, dict]:
-    path = real_run(tmp_path_factory)
-    return path, json.loads(RunDir(path).diagnosis.read_text())
+def real(diagnosed_run) -> tuple[Path, dict]:
+    """The session's diagnosed run (read-only) and its diagnosis."""
+    return diagnosed_run, json.loads(RunDir(diagnosed_run).diagnosis.read_text())
 
 
 @pytest.fixture(scope="module")

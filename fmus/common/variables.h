@@ -10,6 +10,7 @@
 #define DECLARE_REAL(name, vr, start) double name;
 #define DECLARE_INTEGER(name, vr, start) int name;
 #define DECLARE_VARIABLE(name, vr) double name;
+#define DECLARE_ARRAY(name, vr, rows, cols) double name[(rows) * (cols)];
 
 /* enum ValueReference members vr_<name> */
 #define VALUE_REFERENCE(name, vr, start) vr_##name = vr,
@@ -29,6 +30,13 @@
     case vr_##name:           \
         *value = d->name;     \
         return fmi2OK;
+
+/* inside a lookup of an array parameter's element (ModelData *d, value reference vr): its address and name */
+#define ARRAY_CASE(name, vr0, rows, cols)                        \
+    if (vr >= (vr0) && vr < (vr0) + (rows) * (cols)) {           \
+        *pname = #name;                                          \
+        return &d->name[vr - (vr0)];                             \
+    }
 
 /* {"name", value} pairs of the Real parameters, for the finiteness check of validate() */
 #define NAME_VALUE(name, vr, start) {#name, d->name},

@@ -1,4 +1,4 @@
-/* controller: the lab's digital controller, state feedback or PID on the sampled angles (FMI 2.0 co-simulation). */
+/* controller: the lab's digital controller, state feedback, PID or LQG on the sampled angles (FMI 2.0 co-simulation). */
 #ifndef CONTROLLER_CONFIG_H
 #define CONTROLLER_CONFIG_H
 
@@ -10,6 +10,10 @@
 
 #define KIND_STATE_FEEDBACK 1
 #define KIND_PID 2
+#define KIND_LQG 3
+
+/* the LQG's largest number of estimator states; harness/rig/controller.py has the same number (NX_MAX) */
+#define NX_MAX 10
 
 /* The variables, one line each, in modelDescription.xml order: X(name, value reference, start value) for the
    parameters, X(name, value reference) for inputs and outputs.  These lists are the C side's only copy of the
@@ -34,7 +38,19 @@
     X(theta_dot_start, 16, 0.0)   \
     X(alpha_dot_start, 17, 0.0)
 #define INTEGER_PARAMETERS(X)     \
-    X(kind, 1, 1)
+    X(kind, 1, 1)                 \
+    X(lqg_n, 999, 0)
+/* the LQG's arrays, Real parameters with start 0: X(name, value reference of the first element, rows, columns); in
+   modelDescription.xml name[i,j] (a matrix) or name[i] (a vector), 1-based, value reference first + (i - 1) columns
+   + (j - 1): row-major, as the ModelData array holds them */
+#define ARRAY_PARAMETERS(X)           \
+    X(lqg_A, 1000, NX_MAX, NX_MAX)    \
+    X(lqg_B, 1200, NX_MAX, 1)         \
+    X(lqg_C, 1300, 2, NX_MAX)         \
+    X(lqg_L, 1400, NX_MAX, 2)         \
+    X(lqg_K, 1500, 1, NX_MAX)         \
+    X(lqg_N, 1600, NX_MAX, 1)         \
+    X(lqg_X0, 1700, NX_MAX, 2)
 #define INPUTS(X)                 \
     X(ref, 30)                    \
     X(theta_v, 31)                \
@@ -56,6 +72,7 @@ typedef enum {
 typedef struct {
     REAL_PARAMETERS(DECLARE_REAL)
     INTEGER_PARAMETERS(DECLARE_INTEGER)
+    ARRAY_PARAMETERS(DECLARE_ARRAY)
     INPUTS(DECLARE_VARIABLE)
     OUTPUTS(DECLARE_VARIABLE) /* held between samples */
     /* state, carried from sample to sample */
@@ -64,6 +81,8 @@ typedef struct {
     double last_theta, last_alpha; /* angles [rad] of the previous sample */
     double v_theta, v_alpha;       /* filtered velocities [rad/s] */
     double integral;               /* PID: integral of the error [rad s] */
+    double xhat[NX_MAX];           /* LQG: the estimate of the previous sample */
+    double u_prev;                 /* LQG: the previous sample's command [V] (clamped) */
 } ModelData;
 
 #endif

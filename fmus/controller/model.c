@@ -18,6 +18,12 @@
  *     u = k_theta (ref - theta) - k_alpha alpha - k_theta_dot theta_dot - k_alpha_dot alpha_dot
  * kind 2, PID on theta (derivative on the measurement: a step of ref gives no kick):
  *     u = kp e + ki I - kd theta_dot,  e = ref - theta,  I += Ts e after the sample unless u was limited
+ * kind 3, LQG: a steady-state Kalman filter in current form on y = (theta, alpha) and state feedback on its
+ * estimate, n = lqg_n states (A, B, C, L, K, N, X0 the lqg_ arrays):
+ *     x_bar_k = A x_hat_(k-1) + B u_(k-1)   (the first sample: x_bar_0 = X0 y_0)
+ *     x_hat_k = x_bar_k + L (y_k - C x_bar_k)
+ *     u_k = K (N ref_k - x_hat_k)
+ *   u_(k-1) the command the controller wrote (after its clamp)
  * then u = clamp(u, +-u_limit) (u_limit = 0: none).
  * harness.rig.controller.law is the same computation in numpy (the test oracle).
  */
@@ -46,8 +52,17 @@ bool validate(ModelInstance *comp, char *msg, size_t len) {
     for (i = 0; i < sizeof(reals) / sizeof(reals[0]); i++)
         CHECK(isfinite(reals[i].value), "invalid parameter %s = %g: must be finite", reals[i].name,
               reals[i].value);
-    CHECK(d->kind == KIND_STATE_FEEDBACK || d->kind == KIND_PID,
-          "invalid parameter kind = %d: must be 1 (state feedback) or 2 (PID)", d->kind);
+    CHECK(d->kind == KIND_STATE_FEEDBACK || d->kind == KIND_PID || d->kind == KIND_LQG,
+          "invalid parameter kind = %d: must be 1 (state feedback), 2 (PID) or 3 (LQG)", d->kind);
+    CHECK(d->lqg_n >= 0 && d->lqg_n <= NX_MAX, "invalid parameter lqg_n = %d: must be in 0..%d", d->lqg_n, NX_MAX);
+    CHECK(d->kind != KIND_LQG || d->lqg_n >= 1, "invalid parameter lqg_n = %d: an LQG (kind 3) needs >= 1 state",
+          d->lqg_n);
+#define ARRAY_FINITE(name, vr0, rows, cols)                                                                       \
+    for (i = 0; i < (size_t)((rows) * (cols)); i++)                                                              \
+        CHECK(isfinite(d->name[i]), "invalid parameter %s (element %u) = %g: must be finite", #name, (unsigned)i, \
+              d->name[i]);
+    ARRAY_PARAMETERS(ARRAY_FINITE)
+#undef ARRAY_FINITE
     CHECK(d->sample_rate > 0, "invalid parameter sample_rate = %g: must be > 0", d->sample_rate);
     CHECK(d->cutoff > 0, "invalid parameter cutoff = %g: must be > 0", d->cutoff);
     CHECK(d->u_limit >= 0, "invalid parameter u_limit = %g: must be >= 0 (0 = none)", d->u_limit);
@@ -56,6 +71,36 @@ bool validate(ModelInstance *comp, char *msg, size_t len) {
     CHECK(d->compute_time >= 0 && d->compute_time * d->sample_rate < 1,
           "invalid parameter compute_time = %g: must be in [0, 1/sample_rate)", d->compute_time);
     return true;
+}
+
+/* LQG: the estimate at the measured angles th, al [rad] into xhat (from the last sample's estimate and command, or
+   X0 y at the first sample), and the command K (N ref - xhat) before the clamp */
+static double lqgSample(const ModelData *d, double th, double al, double *xhat) {
+    const int n = d->lqg_n;
+    double xbar[NX_MAX], e[2];
+    double raw = 0.0;
+    int i, j;
+    for (i = 0; i < n; i++) {
+        double acc = 0.0;
+        if (d->have_last) {
+            for (j = 0; j < n; j++) acc += d->lqg_A[i * NX_MAX + j] * d->xhat[j];
+            acc += d->lqg_B[i] * d->u_prev;
+        } else {
+            acc = d->lqg_X0[i * 2] * th + d->lqg_X0[i * 2 + 1] * al;
+        }
+        xbar[i] = acc;
+    }
+    e[0] = th;
+    e[1] = al;
+    for (j = 0; j < n; j++) {
+        e[0] -= d->lqg_C[j] * xbar[j];
+        e[1] -= d->lqg_C[NX_MAX + j] * xbar[j];
+    }
+    for (i = 0; i < n; i++) {
+        xhat[i] = xbar[i] + d->lqg_L[i * 2] * e[0] + d->lqg_L[i * 2 + 1] * e[1];
+        raw += d->lqg_K[i] * (d->lqg_N[i] * d->ref - xhat[i]);
+    }
+    return raw;
 }
 
 /* the sample at the current inputs; commit = advance the controller's state to it */
@@ -70,10 +115,13 @@ static void takeSample(ModelData *d, int commit) {
     const double vth = a * d->v_theta + (1.0 - a) * dth;
     const double val = a * d->v_alpha + (1.0 - a) * dal;
     double raw, u;
+    double xhat[NX_MAX];
     if (d->kind == KIND_STATE_FEEDBACK)
         raw = d->k_theta * (d->ref - th) - d->k_alpha * al - d->k_theta_dot * vth - d->k_alpha_dot * val;
-    else
+    else if (d->kind == KIND_PID)
         raw = d->kp * (d->ref - th) + d->ki * d->integral - d->kd * vth;
+    else
+        raw = lqgSample(d, th, al, xhat);
     u = fmin(fmax(raw, -lim), lim);
     d->u = u;
     d->theta = th;
@@ -82,6 +130,10 @@ static void takeSample(ModelData *d, int commit) {
     d->alpha_dot = val;
     if (!commit) return;
     if (d->kind == KIND_PID && u == raw) d->integral += Ts * (d->ref - th); /* anti-windup: hold while limited */
+    if (d->kind == KIND_LQG) {
+        memcpy(d->xhat, xhat, sizeof(xhat));
+        d->u_prev = u;
+    }
     d->last_theta = th;
     d->last_alpha = al;
     d->v_theta = vth;
@@ -97,6 +149,8 @@ fmi2Status initialize(ModelInstance *comp) {
     d->v_theta = d->theta_dot_start; /* the velocity filter starts at the rates given (0: at rest) */
     d->v_alpha = d->alpha_dot_start;
     d->integral = 0.0;
+    memset(d->xhat, 0, sizeof(d->xhat));
+    d->u_prev = 0.0;
     d->next_sample = (int64_t)ceil(comp->startTime * d->sample_rate - 1e-6);
     takeSample(d, 0); /* preview of the first sample */
     return fmi2OK;
@@ -133,6 +187,11 @@ static double *realParameter(ModelData *d, fmi2ValueReference vr, const char **p
     }
 }
 
+static double *arrayParameter(ModelData *d, fmi2ValueReference vr, const char **pname) {
+    ARRAY_PARAMETERS(ARRAY_CASE)
+    return NULL;
+}
+
 static int *intParameter(ModelData *d, fmi2ValueReference vr, const char **pname) {
     switch (vr) {
         INTEGER_PARAMETERS(PARAMETER_CASE)
@@ -144,6 +203,7 @@ fmi2Status getFloat64(ModelInstance *comp, fmi2ValueReference vr, double *value)
     ModelData *d = &comp->data;
     const char *name;
     double *p = realParameter(d, vr, &name);
+    if (!p) p = arrayParameter(d, vr, &name);
     if (p) {
         *value = *p;
         return fmi2OK;
@@ -159,6 +219,7 @@ fmi2Status setFloat64(ModelInstance *comp, fmi2ValueReference vr, double value) 
     ModelData *d = &comp->data;
     const char *name;
     double *p = realParameter(d, vr, &name);
+    if (!p) p = arrayParameter(d, vr, &name);
     if (p) {
         if (!parametersSettable(comp)) return fixedAfterInit(comp, name);
         *p = value;

@@ -14,6 +14,9 @@ compact campaign) in one of three families:
   (``tests/indeprig.py`` of a source checkout: scipy ``solve_ivp``, Stribeck friction, backlash as a dead-band
   contact spring between motor and hub inertias, link modes from the beam's E I, its own pot, gauge and DAQ), with
   the same nuisance draws. Without a source checkout this family is skipped (said in the result);
+- ``design`` (only when named): wrong_sheet rigs, each logged under a controller designed on its sheet, diagnosed; a
+  controller designed to the same specs on the identified twin and the sheet's both run on the true rig
+  (:mod:`harness.diagnosis.blinddesign`: the specs met by each, the true metrics inside the predicted bands);
 - ``wrong_sheet`` (only when named: not in :data:`FAMILIES`): the closed family's loop on rigs whose sheet (the spec
   they are diagnosed against) is wrong by :data:`WRONG_SHEET`: drive gain and time constant x1/3..3
   (:func:`rigmodel.to_plant`), Ks x0.5..2, the DAQ's gauge gain x0.5..2, log-uniform; every other rig has one
@@ -48,12 +51,13 @@ and 25 % of the rig's on the nuisance, independent and closed families; out-of-l
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import math
 import shutil
 import tempfile
 import time
 from collections.abc import Callable
-from dataclasses import replace
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -62,31 +66,39 @@ import numpy as np
 
 from .. import clone
 from .. import spec as specmod
-from ..executor import Executor, FmuBytes, fmu_bytes, fmu_file
+from ..executor import Executor, FmuBytes, fmu_bytes, fmu_file, session
 from ..fmu.build import build_all
-from ..ident.calibration import Calibration
 from ..rig.campaign import run_campaign
-from ..rundir import Manifest, RunDir, record_inputs, write_json
+from ..rundir import write_json
+from . import blinddesign
+from .blindcase import (
+    BEQ_TOL,
+    BLIND_SPEC,
+    CLOSED_RATES,
+    KS_TOL,
+    LOOP_FAMILIES,
+    MAG_TOL,
+    SHEET_FAMILIES,
+    SHEET_ROWS,
+    campaign_spec,
+    case_sets,
+    hide_truth,
+    score_case,
+    sheet_plant,
+)
 from .diagnose import diagnose_run
 from .effects import EFFECTS
 from .reallike import NUISANCE, make_unit, offsets_ok, plan_units
-from .result import Diagnosis
 from .rigmodel import combos, to_plant
 from .simulation import fmu_value
 
 Progress = Callable[[str], None]
 
-BLIND_SPEC = specmod.SPEC_DIR / "blind.toml"
-CLOSED_SPEC = specmod.SPEC_DIR / "blind_closed.toml"
 FAMILIES = ("twin", "nuisance", "independent", "closed")  # the default set
-EXTRA_FAMILIES = ("wrong_sheet", "real_like")  # run when asked for by name
+EXTRA_FAMILIES = ("wrong_sheet", "real_like", "design")  # run when asked for by name
 KNOWN_FAMILIES = (*FAMILIES, *EXTRA_FAMILIES)
-LOOP_FAMILIES = ("closed", "wrong_sheet")  # run under state feedback on specs/blind_closed.toml
-CLOSED_RATES = (500.0, 1000.0)  # Hz: the closed-loop families' cases alternate between these sample rates
 
 OUT_OF_LIBRARY = ("gauge_drift", "pot_nonlinearity")
-MAG_TOL = 0.25  # fitted magnitude within 25 %
-KS_TOL, BEQ_TOL = 0.10, 0.25  # recalibrated Ks and Beq within 10 % and 25 % of the rig's
 
 # the wrong_sheet family: sheet quantity -> (low, high) factor of the rig's value over the sheet's, log-uniform
 WRONG_SHEET: dict[str, tuple[float, float]] = {
@@ -95,9 +107,6 @@ WRONG_SHEET: dict[str, tuple[float, float]] = {
     "plant.Ks": (0.5, 2.0),
     "daq.gauge_gain": (0.5, 2.0),  # the DAQ's gauge gain [deg/V]; the data converted with the sheet's
 }
-# what the diagnosis is scored on: its parameter row -> the truth's key in a case's ``sheet_truth``
-SHEET_ROWS = ("rig.drive_gain", "rig.drive_tau", "plant.Ks", "sensor.alpha_gauge_gain")
-SHEET_TOL = 0.10  # each within 10 % of the rig's
 
 
 def _textbook(param: str) -> float:
@@ -113,11 +122,6 @@ def _draw_nuisance(rng: np.random.Generator) -> dict[str, float]:
     return out
 
 
-def _sheet_plant() -> dict[str, Any]:
-    """The plant table of the wrong_sheet family's sheet (specs/blind_closed.toml; FMU defaults for the rest)."""
-    return dict(campaign_spec(family="wrong_sheet").plant)
-
-
 def _sheet_daq(name: str) -> float:
     """The sheet's DAQ parameter ``name`` (its spec's value, else the FMU's default)."""
     return fmu_value(campaign_spec(family="wrong_sheet").daq, "daq", name)
@@ -130,7 +134,7 @@ def draw_wrong_sheet(rng: np.random.Generator) -> tuple[dict[str, float], dict[s
     ``sensor.alpha_gauge_gain`` is the data's reading per true deflection, sheet gain / rig gain = 1 / factor
     (the DAQ reads volts = alpha / gauge_gain, the data convert them with the sheet's gauge_gain)."""
     f = {p: float(math.exp(rng.uniform(math.log(lo), math.log(hi)))) for p, (lo, hi) in WRONG_SHEET.items()}
-    sheet = _sheet_plant()
+    sheet = sheet_plant()
     c0 = combos(sheet)
     drive = to_plant({k: c0[k] * f[k] for k in ("rig.drive_gain", "rig.drive_tau")}, sheet)
     ks = _textbook("plant.Ks") if "Ks" not in sheet else float(sheet["Ks"])
@@ -142,11 +146,12 @@ def draw_wrong_sheet(rng: np.random.Generator) -> tuple[dict[str, float], dict[s
     return f, over, truth
 
 
-def _plan_wrong_sheet(n: int, seed: int) -> list[dict[str, Any]]:
-    """``n`` wrong_sheet rigs: every other one with one in-library effect (cycling through the library from a random
-    start, drawn as the other families draw them), the rest with none, shuffled; each off its sheet
-    (:func:`draw_wrong_sheet`)."""
-    rng = np.random.Generator(np.random.PCG64([seed, 1]))  # a stream of its own: the other families' draws unchanged
+def _plan_wrong_sheet(n: int, seed: int, family: str = "wrong_sheet") -> list[dict[str, Any]]:
+    """``n`` rigs of a family off its sheet (:data:`SHEET_FAMILIES`): every other one with one in-library effect
+    (cycling through the library from a random start, drawn as the other families draw them), the rest with none,
+    shuffled; each off its sheet (:func:`draw_wrong_sheet`)."""
+    stream = 1 + SHEET_FAMILIES.index(family)  # a stream of its own: the other families' draws unchanged
+    rng = np.random.Generator(np.random.PCG64([seed, stream]))
     lib = list(EFFECTS)
     first = int(rng.integers(len(lib)))
     kinds = [("single", lib[(first + i // 2) % len(lib)]) if i % 2 == 0 else ("none", None) for i in range(n)]
@@ -157,7 +162,7 @@ def _plan_wrong_sheet(n: int, seed: int) -> list[dict[str, Any]]:
         factors, over, sheet_truth = draw_wrong_sheet(rng)
         cases.append(
             {
-                "family": "wrong_sheet",
+                "family": family,
                 "kind": kind,
                 "truth_effects": [what] if what else [],
                 "truth_params": truth,
@@ -184,7 +189,8 @@ def plan(n: int, seed: int, families: tuple[str, ...] = ("twin",)) -> list[dict[
     if bad or not families:
         what = bad[0] if bad else "(none given)"
         raise ValueError(f"unknown family {what}: expected some of {', '.join(KNOWN_FAMILIES)}")
-    apart = {"wrong_sheet": _plan_wrong_sheet, "real_like": plan_units}  # families planned apart, each its own draws
+    apart: dict[str, Callable[[int, int], list[dict[str, Any]]]] = {"real_like": plan_units}
+    apart |= {f: functools.partial(_plan_wrong_sheet, family=f) for f in SHEET_FAMILIES}  # each its own draws
     if not any(f in apart for f in families):
         return _plan(n, seed, families)
     slots = [families[i % len(families)] for i in range(n)]
@@ -242,37 +248,6 @@ def _plan(n: int, seed: int, families: tuple[str, ...]) -> list[dict[str, Any]]:
     return cases
 
 
-def campaign_spec(quick: bool = False, overrides: list[str] | None = None, family: str = "twin") -> specmod.Spec:
-    """The blind campaign of a family (specs/blind.toml; the closed-loop families' specs/blind_closed.toml: for
-    wrong_sheet without its comb, the lab never recalibrating its gauge, and with the controller reading alpha through
-    the sheet's gauge gain) with ``--set``-style overrides; ``quick`` shortens every open-loop experiment to 12 s and
-    the multisine to 5 periods of 4 s, every closed-loop one to 4 s (same commands and levels: for tests)."""
-    path = CLOSED_SPEC if family in LOOP_FAMILIES else BLIND_SPEC
-    raw = specmod.load(path).raw
-    if family == "wrong_sheet":
-        raw = specmod.apply_overrides(raw, [])  # a deep copy
-        raw.pop("calibration", None)
-        raw["controller"]["alpha_gain"] = fmu_value(raw.get("daq", {}), "daq", "gauge_gain")
-    if quick:
-        raw = specmod.apply_overrides(raw, [])  # a deep copy
-        for e in raw["experiment"]:
-            if e.get("loop") == "closed":
-                e["duration"] = 4.0
-            elif e["signal"] == "multisine":
-                e.update(period=4.0, duration=20.0)
-            else:
-                e["duration"] = 12.0
-    return specmod.from_dict(specmod.apply_overrides(raw, overrides or []), str(path))
-
-
-def _case_sets(case: dict[str, Any]) -> list[str]:
-    """The overrides that make a case's campaign: its seed, and the closed family's sample rate."""
-    sets = [f"campaign.seed={case['campaign_seed']}"]
-    if case.get("family") in LOOP_FAMILIES:
-        sets.append(f"campaign.sample_rate={CLOSED_RATES[case['case'] % len(CLOSED_RATES)]}")
-    return sets
-
-
 def independent_simulator() -> ModuleType | None:
     """The independent rig simulator of a clone (``tests/indeprig.py``, or the file named by
     ``FLEXJOINT_INDEPENDENT_RIG``), imported as module ``indeprig``; None when there is none."""
@@ -316,7 +291,7 @@ def make_rig_run(case: dict[str, Any], dest: Path, fmus: dict[str, Path] | None 
     if family == "real_like":
         return make_unit(case, dest, independent_simulator(), fmus)
     base = campaign_spec(quick, family=family)
-    seed = _case_sets(case)
+    seed = case_sets(case)
     sensor = case.get("sensor", {})
     if family == "independent":
         ind = independent_simulator()
@@ -328,89 +303,7 @@ def make_rig_run(case: dict[str, Any], dest: Path, fmus: dict[str, Path] | None 
         sets = [f"{k}={v}" for k, v in {**case.get("nuisance", {}), **case["truth_params"]}.items()] + seed
         spec = _sensor_errors(campaign_spec(quick, sets, family), sensor)
         run_campaign(spec, dest, fmus=fmus, workers=1)
-    m = Manifest.load(dest)
-    replace(m, spec=specmod.apply_overrides(base.raw, seed), spec_sha256="hidden", generator=None).write(dest)
-    if family == "wrong_sheet":
-        sheet_calibration(base).to_json(RunDir(dest).calibration)
-        record_inputs(dest, "calibration.json")
-    return dest
-
-
-def sheet_calibration(sheet: specmod.Spec) -> Calibration:
-    """The calibration a lab that never recalibrated its sensors converts its data with: the sheet's DAQ gains and
-    offsets (Kp, Ke [deg/V], offsets [V])."""
-    v = {k: fmu_value(sheet.daq, "daq", k) for k in ("pot_gain", "pot_offset", "gauge_gain", "gauge_offset")}
-    why = "the sheet's (spec daq.{}), not measured on this rig"
-    return Calibration(
-        Kp=v["pot_gain"],
-        Ke=v["gauge_gain"],
-        gauge_offset_v=v["gauge_offset"],
-        pot_offset_v=v["pot_offset"],
-        source={"Kp": {"method": why.format("pot_gain")}, "Ke": {"method": why.format("gauge_gain")}},
-    )
-
-
-def _rel_err(true: float, fitted: float | None) -> float:
-    if fitted is None:
-        return math.inf
-    return abs(float(fitted) - float(true)) / abs(float(true))
-
-
-def score_case(case: dict[str, Any], diag: Diagnosis) -> dict[str, Any]:
-    """Score one diagnosis against the hidden truth."""
-    verdict = diag.verdict
-    found = diag.effect_names
-    fitted = diag.fitted_effect_params()
-    shrink = float(diag.gap.shrink_pct)
-    out: dict[str, Any] = {"verdict": verdict, "found": found, "fitted": fitted, "shrink_pct": shrink}
-    kind = case["kind"]
-    if kind == "single":
-        eff = case["truth_effects"][0]
-        param = EFFECTS[eff].param
-        err = _rel_err(case["truth_params"][param], fitted.get(param) if eff in found else None)
-        out.update(top1=verdict == eff, param_error=err, param_ok=bool(err <= MAG_TOL + 1e-12),
-                   param_ok_20=bool(err <= 0.20 + 1e-12))  # fmt: skip
-    elif kind == "none":
-        out.update(correct=verdict == "none", turned_into_effect=verdict in EFFECTS)
-    elif kind == "two":
-        effs = case["truth_effects"]
-        errs = {
-            EFFECTS[e].param: _rel_err(case["truth_params"][EFFECTS[e].param], fitted.get(EFFECTS[e].param))
-            if e in found else math.inf
-            for e in effs
-        }  # fmt: skip
-        out.update(both=all(e in found for e in effs), top1_in_truth=verdict in effs, param_errors=errs)
-    else:
-        out.update(correct=verdict == "unexplained")
-    params = diag.parameters
-    if case.get("sheet_truth"):
-        out.update(sheet_scores(case["sheet_truth"], diag))
-    elif case.get("nuisance") and "plant.Ks" in params:
-        ks = _rel_err(case["nuisance"]["plant.Ks"], params["plant.Ks"].fitted)
-        beq = _rel_err(case["nuisance"]["plant.Beq"], params["plant.Beq"].fitted)
-        out.update(ks_error=ks, beq_error=beq, recal_ok=bool(ks <= KS_TOL and beq <= BEQ_TOL))
-    return out
-
-
-def sheet_scores(truth: dict[str, float], diag: Diagnosis) -> dict[str, Any]:
-    """A wrong_sheet rig's sheet quantities (:data:`SHEET_ROWS`) against the diagnosis's parameter rows: each row's
-    ``sheet_status`` ("fitted", "kept" at the spec's value, or "not fitted": no such row), its relative error
-    ``sheet_errors`` (None when not fitted), ``sheet_ok`` within :data:`SHEET_TOL`, and ``sheet_all_ok``. Beside
-    them, not scored: the drive's gain and time constant the plant rows imply (``sheet_implied_errors``, from the
-    fitted kt, km, Beq, Jeq, Ks through :func:`rigmodel.combos`)."""
-    params = diag.parameters
-    status, errors, ok = {}, {}, {}
-    for row in SHEET_ROWS:
-        p = params.get(row)
-        status[row] = "not fitted" if p is None else "kept" if p.kept else "fitted"
-        err = None if p is None else _rel_err(truth[row], p.fitted)
-        errors[row] = err
-        ok[row] = bool(err is not None and err <= SHEET_TOL + 1e-12)
-    plant = {k.split(".", 1)[1]: p.fitted for k, p in params.items() if k.startswith("plant.")}
-    implied = combos({**_sheet_plant(), **plant})
-    implied_err = {k: _rel_err(truth[k], implied[k]) for k in ("rig.drive_gain", "rig.drive_tau")}
-    return {"sheet_status": status, "sheet_errors": errors, "sheet_ok": ok, "sheet_all_ok": all(ok.values()),
-            "sheet_implied_errors": implied_err}  # fmt: skip
+    return hide_truth(dest, base, seed, family in SHEET_FAMILIES)
 
 
 def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
@@ -490,6 +383,7 @@ def scores(cases: list[dict[str, Any]]) -> dict[str, Any]:
         },
         "wrong_sheet": _sheet_group(sheet),
         "offsets_within_tolerance": _share([c["score"]["offsets_ok"] for c in units]),
+        "design": blinddesign.design_group(cases, _share),
     }
 
 
@@ -531,6 +425,9 @@ SCORE_ROWS: dict[str, tuple[str, ...]] = {
     "wrong sheet: gauge gain +-10 %": ("wrong_sheet", "rows", "sensor.alpha_gauge_gain", "within_10pct"),
     "wrong sheet: all four +-10 %": ("wrong_sheet", "all_four_within_10pct"),
     "real like: offsets within 0.1 deg and 0.02 V": ("offsets_within_tolerance",),
+    "design: identified design meets its specs": ("design", "specs_met_identified"),
+    "design: sheet design meets its specs": ("design", "specs_met_sheet"),
+    "design: true metrics inside the bands": ("design", "band_coverage"),
 }
 
 
@@ -543,12 +440,10 @@ def score_share(scores: dict[str, Any], row: str) -> dict[str, Any]:
 
 
 def shown_rows(tot: dict[str, Any]) -> list[str]:
-    """The score rows a summary shows: every row, but the wrong_sheet ones only when a case scores them (a blind
-    test of blindtest.json files written before the family lack them)."""
-    ws = tot.get("wrong_sheet", {}).get("n", 0)
-    units = tot.get("offsets_within_tolerance", {}).get("n", 0)
-    return [r for r in SCORE_ROWS if (SCORE_ROWS[r][0] != "wrong_sheet" or ws)
-            and (SCORE_ROWS[r][0] != "offsets_within_tolerance" or units)]  # fmt: skip
+    """The score rows a summary shows: every row, but the wrong_sheet, real_like and design ones only when a case
+    scores them (a blind test of blindtest.json files written before the families lack them)."""
+    return [r for r in SCORE_ROWS if SCORE_ROWS[r][0] not in ("wrong_sheet", "design", "offsets_within_tolerance")
+            or tot.get(SCORE_ROWS[r][0], {}).get("n", 0)]  # fmt: skip
 
 
 def not_fitted_line(tot: dict[str, Any]) -> str | None:
@@ -568,6 +463,8 @@ TARGETS = {
     "out of library unexplained %": 75.0,
     "wrong sheet: all four within 10 % %": 80.0,
     "wrong sheet: top-1 %": 90.0,
+    "design: identified design meets its specs %": 90.0,
+    "design: band coverage %": 90.0,
 }
 
 
@@ -586,6 +483,8 @@ def totals(cases: list[dict[str, Any]]) -> dict[str, Any]:
         "out of library unexplained %": res["out_of_library"]["unexplained"],
         "wrong sheet: all four within 10 % %": res["wrong_sheet"]["all_four_within_10pct"],
         "wrong sheet: top-1 %": res["wrong_sheet"]["top1"],
+        "design: identified design meets its specs %": res["design"]["specs_met_identified"],
+        "design: band coverage %": res["design"]["band_coverage"],
     }
     got = {k: v["pct"] for k, v in shares.items()}
     res["targets"] = {
@@ -623,6 +522,8 @@ def run_case(
     """One blind case, a task: its hidden rig's campaign into ``root/case_NNN`` (a scratch directory of the
     worker when ``root`` is None), the diagnosis (serial, the FMUs from ``fmus`` bytes), the score."""
 
+    if case.get("family") == "design":
+        return blinddesign.run_design_case(case, root, quick, fmus or {})
     tc = time.perf_counter()
     files = {k: fmu_file(v) for k, v in fmus.items()} if fmus else None
     with tempfile.TemporaryDirectory(prefix="flexjoint-blind-") as tmp:
@@ -633,7 +534,7 @@ def run_case(
         if case.get("family") == "real_like":
             sim = specmod.load("cu_flexible_arm")
         else:
-            sim = campaign_spec(quick, _case_sets(case)[1:], case.get("family", "twin"))  # the case's rate, not seed
+            sim = campaign_spec(quick, case_sets(case)[1:], case.get("family", "twin"))  # the case's rate, not seed
         diag = diagnose_run(d, sim, d, workers=1, fmus=files)
         score = score_case(case, diag)
         if case.get("family") == "real_like" and diag.rig is not None:
@@ -668,6 +569,16 @@ def blindtest(
         say(f"skipped family {skipped[-1]}")
     cases = plan(n, seed, families)
     fmus = {k: fmu_bytes(v) for k, v in build_all().items()}
+    sheets: dict[tuple[str, ...], dict[str, Any]] = {}
+    designs = [c for c in cases if c.get("family") == "design"]
+    with session(workers, scheduler) if designs else contextlib.nullcontext():  # one cluster for the sheet designs
+        for c in designs:  # a design case is logged under its sheet's design: one per sample rate, designed here once
+            rate_sets = case_sets(c)[1:]
+            if tuple(rate_sets) not in sheets:
+                say(f"design on the sheet ({', '.join(rate_sets)})")
+                sheet = campaign_spec(quick, rate_sets, "design")
+                sheets[tuple(rate_sets)] = blinddesign.sheet_design(sheet, quick, fmus).to_dict()
+            c["sheet_controller"] = sheets[tuple(rate_sets)]
     out = Path(out)
     root = out.resolve() / "blind_cases" if keep else None
     todo = slowest_first(cases)

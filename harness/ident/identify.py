@@ -12,19 +12,29 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar, cast
 
 import numpy as np
 import pandas as pd
 
+from .. import spec as specmod
 from ..executor import Executor
-from ..rundir import atomic_write_text, record_inputs, write_json
+from ..rundir import (
+    DataError,
+    Manifest,
+    atomic_write_text,
+    load_run,
+    record_inputs,
+    recorded_spec,
+    stale_artefacts,
+    write_json,
+)
 from ..spec import IdentifySettings
 from . import armax
-from .calibration import Calibration, alpha_deg, theta_deg, tip_deg
+from .calibration import Calibration, alpha_deg, calibrate_run, load_calibration, theta_deg, tip_deg
 from .preprocess import preprocess
 
 
@@ -105,6 +115,7 @@ def _orders(spec_identify: IdentifySettings) -> list[tuple[int, int, int]]:
 
 
 Orders = list[tuple[int, int, int]]
+T = TypeVar("T")
 
 
 def _fit_dataset(p: PreparedExperiment, orders: Orders, nk: int, ic: str) -> list[dict[str, Any]]:
@@ -132,15 +143,23 @@ def deal(n: int, k: int) -> list[int]:
     return [i % k if (i // k) % 2 == 0 else k - 1 - i % k for i in range(n)]
 
 
-def _slices(orders: Orders, k: int) -> list[Orders]:
-    slot = deal(len(orders), k)
-    return [[o for o, s in zip(orders, slot, strict=True) if s == j] for j in range(k)]
+def _slices(items: list[T], k: int) -> list[list[T]]:
+    """``items`` dealt into ``k`` slices (:func:`deal`)."""
+    slot = deal(len(items), k)
+    return [[o for o, s in zip(items, slot, strict=True) if s == j] for j in range(k)]
 
 
-def _undeal(parts: list[list[dict[str, Any]]]) -> list[dict[str, Any]]:
-    """The rows of the slices of :func:`_slices` back in the grid's order."""
+def _undeal(parts: list[list[T]]) -> list[T]:
+    """What the slices of :func:`_slices` gave, item by item, back in the order of the items."""
     rows = [iter(p) for p in parts]
     return [next(rows[s]) for s in deal(sum(len(p) for p in parts), len(parts))]
+
+
+def _cross_validate(
+    models: list[armax.ArmaxModel], prepared: dict[str, PreparedExperiment], ic: str
+) -> list[list[float]]:
+    """One task of the cross-validation: each model's fit [%] on every dataset (MATLAB compare's)."""
+    return [[armax.compare(m, p.u_d, p.y_f, ic=ic) for p in prepared.values()] for m in models]
 
 
 def _fit_order(p: PreparedExperiment, na: int, nb: int, nc: int, nk: int, ic: str) -> dict[str, Any]:
@@ -213,32 +232,35 @@ def run_grid(
     nk, ic = int(spec_identify["nk"]), str(spec_identify["ic"])
     threshold, tol = float(spec_identify["fit_threshold"]), float(spec_identify["tolerance"])
     rows: list[dict[str, Any]] = []
+    names = list(prepared)
     # tasks of a dataset and a slice of the orders (:func:`deal`: slices of like cost) on the executor, as many per
-    # worker (BLAS at one thread per worker: the fits are N x <= 19 regressions)
+    # worker (BLAS at one thread per worker: the fits are N x <= 19 regressions); then the cross-validation of the
+    # survivors, a slice of them per worker
     with Executor(workers, scheduler, progress) as ex:
         k = slices_per_dataset(len(prepared), ex.n_workers, len(orders))
         tasks = [(p, part) for p in prepared.values() for part in _slices(orders, k)]
         labels = [f"{n} {j + 1}/{k}" if k > 1 else n for n in prepared for j in range(k)]
         res = ex.map(_fit_slice, tasks, nk, ic, labels=labels)
-    for i in range(len(prepared)):
-        rows.extend(_undeal(res[i * k : (i + 1) * k]))
-    models = {i: armax.ArmaxModel.from_dict(r.pop("model")) for i, r in enumerate(rows) if r["model"] is not None}
-    for r in rows:
-        r.pop("model", None)
-    grid = pd.DataFrame(rows)
-    grid["survivor"] = grid["causal"] & grid["stable"] & (grid["fit"] >= threshold)
-    names = list(prepared)
-    # a dataset with nothing above the threshold keeps its best stable causal fit (flagged by survivor=False)
-    fallback = {}
-    for n in names:
-        if not (grid["survivor"] & (grid["dataset"] == n)).any():
-            ok = grid.index[(grid["dataset"] == n) & grid["causal"] & grid["stable"]]
-            if len(ok) == 0:
-                raise ValueError(f"dataset {n}: no stable causal ARMAX model in the grid")
-            fallback[n] = int(grid.loc[ok, "fit"].idxmax())
+        for i in range(len(prepared)):
+            rows.extend(_undeal(res[i * k : (i + 1) * k]))
+        models = {i: armax.ArmaxModel.from_dict(r.pop("model")) for i, r in enumerate(rows) if r["model"] is not None}
+        for r in rows:
+            r.pop("model", None)
+        grid = pd.DataFrame(rows)
+        grid["survivor"] = grid["causal"] & grid["stable"] & (grid["fit"] >= threshold)
+        # a dataset with nothing above the threshold keeps its best stable causal fit (flagged by survivor=False)
+        fallback = {}
+        for n in names:
+            if not (grid["survivor"] & (grid["dataset"] == n)).any():
+                ok = grid.index[(grid["dataset"] == n) & grid["causal"] & grid["stable"]]
+                if len(ok) == 0:
+                    raise ValueError(f"dataset {n}: no stable causal ARMAX model in the grid")
+                fallback[n] = int(grid.loc[ok, "fit"].idxmax())
+        checked = sorted({*np.flatnonzero(grid["survivor"].to_numpy()).tolist(), *fallback.values()})
+        parts = _slices(checked, max(1, min(ex.n_workers, len(checked))))
+        fits = ex.map(_cross_validate, [[models[i] for i in part] for part in parts], prepared, ic, quiet=True)
     cv = np.full((len(grid), len(names)), np.nan)
-    for i in sorted({*np.flatnonzero(grid["survivor"].to_numpy()).tolist(), *fallback.values()}):
-        cv[i] = [armax.compare(models[i], prepared[n].u_d, prepared[n].y_f, ic=ic) for n in names]
+    cv[checked] = _undeal(fits)
     grid["cv_mean"] = cv.mean(axis=1)
     for j, n in enumerate(names):
         grid[f"cv_{n}"] = cv[:, j]
@@ -299,3 +321,43 @@ def load_model(path: Path) -> tuple[armax.ArmaxModel, dict[str, Any]]:
 
     rec = json.loads(Path(path).read_text())
     return armax.ArmaxModel.from_dict(rec), rec
+
+
+def identify_run(
+    run: Path, identify: Mapping[str, Any] | None = None, progress: Callable[[str], None] | None = None
+) -> tuple[GridResult, dict[str, PreparedExperiment], Calibration, IdentifySettings]:
+    """Grid, cross-validation and selection on a run's identification datasets; writes grid.csv and models/. A
+    calibration.json made from other data than the run holds is made again from its calibration experiments.
+
+    Parameters
+    ----------
+    run : Path
+        The run directory (a campaign or an import).
+    identify : mapping, optional
+        Overrides of the spec's ``[identify]`` table (``na``, ``nb``, ``nc`` ranges, ``af``, ...).
+    progress : callable, optional
+        Called with one line of text per finished grid task.
+
+    Returns
+    -------
+    grid : GridResult
+        The order grid, the best model per dataset, the selected one and the rule that chose it.
+    prepared : dict of str to PreparedExperiment
+        Each identification dataset detrended and filtered as identified.
+    calibration : Calibration
+        Kp, Ke and the dead zone the angles were read with.
+    identify : IdentifySettings
+        The ``[identify]`` settings used.
+    """
+
+    run = Path(run)
+    spec = recorded_spec(run)
+    ident = cast(IdentifySettings, {**(spec.identify if spec else specmod.IDENTIFY_DEFAULTS), **(identify or {})})
+    stale = stale_artefacts(run).get("calibration.json")
+    if stale and not Manifest.load(run).entries("calibration"):
+        raise DataError(stale.replace("re-run flexjoint identify", "import the records again"))
+    cal = calibrate_run(run) if stale else load_calibration(run)
+    prepared = prepare(load_run(run), cal, float(ident["af"]), str(ident["output"]))
+    res = run_grid(prepared, ident, progress=progress)
+    write_grid(res, run, ident, cal)
+    return res, prepared, cal, ident

@@ -78,6 +78,7 @@ def _markdown(doc: dict[str, Any], figure: str) -> str:
         *table(["case", "family", "kind", "hidden effects", "verdict", "fitted", "shrink [%]"], cases),
         "",
         *_sheet_section(doc),
+        *_design_section(doc),
     ]
     lines += [f"Skipped: {why}." for why in doc.get("skipped") or []]
     return "\n".join(lines).rstrip() + "\n"
@@ -123,6 +124,36 @@ def _sheet_section(doc: dict[str, Any]) -> list[str]:
         *table(["case", "hidden effect", "sheet off by", *SHEET_ROWS, "implied K / tau [%]", "verdict"], rows),
         "",
         *([line, ""] if line else []),
+    ]
+
+
+def _design_section(doc: dict[str, Any]) -> list[str]:
+    """The design family's rigs: the identified and the sheet design on the true rig (each spec met or not), and the
+    true rig's metrics under the identified design against its predicted band; nothing without such rigs."""
+    cases = [c for c in doc["cases"] if "design" in c["score"]]
+    if not cases:
+        return []
+    d0 = doc["totals"]["design"]
+    metrics = list(cases[0]["score"]["design"]["band_hits"])
+    rows = []
+    for c in cases:
+        ds = c["score"]["design"]
+        cells = []
+        for m in metrics:
+            lo, _, hi = ds["predicted"][m]
+            mark = "" if ds["band_hits"][m] else " **out**"
+            cells.append(f"{fmt(ds['true_identified'][m], 3)} [{fmt(lo, 3)}-{fmt(hi, 3)}]{mark}")
+        rows.append([str(c["case"]), ", ".join(c["truth_effects"]) or "none",
+                     "yes" if ds["identified_met"] else "no", "yes" if ds["sheet_met"] else "no", *cells])  # fmt: skip
+    return [
+        "## Design",
+        "",
+        f"Each rig logged under an {d0['method']} designed on its sheet to `{d0['specs']}`, diagnosed; an "
+        f"{d0['method']} designed to the same specs on the identified twin; both run on the true rig. Specs met on the "
+        "true rig by each; the true rig's metrics under the identified design with its predicted 95 % band.",
+        "",
+        *table(["case", "hidden effect", "identified meets", "sheet meets", *metrics], rows),
+        "",
     ]
 
 

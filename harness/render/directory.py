@@ -9,6 +9,7 @@ from ..rundir import DataError, RunDir
 from ..sweep import report_sweep
 from .blindtest import report_blindtest
 from .load import load_results
+from .prediction import report_prediction
 from .report import write_report
 from .viewer import log_run
 
@@ -19,6 +20,7 @@ KINDS = {
     "sweep": "sweep.json",
     "blindtest": "blindtest.json",
     "diagnosis": "diagnosis.json",  # diagnose --out elsewhere
+    "prediction": "prediction.json",  # predict, design
 }
 
 
@@ -33,7 +35,7 @@ def what_wrote(path: Path) -> str:
             return kind
     raise DataError(
         f"{path}: nothing to report: no manifest.json (run, campaign, import), diagnosis.json (diagnose --out), "
-        "sweep.json (sweep) or blindtest.json (blindtest)"
+        "sweep.json (sweep), blindtest.json (blindtest) or prediction.json (predict, design)"
     )
 
 
@@ -63,7 +65,10 @@ def report_directory(
         Its recording.
     """
     kind = what_wrote(path)
-    if kind in ("sweep", "blindtest"):
+    if kind == "prediction" and not (spawn or connect):
+        report = report_prediction(path, rrd or True)
+        return kind, report, Path(rrd) if rrd else path / "prediction.rrd"
+    if kind in ("sweep", "blindtest", "prediction"):
         if spawn or connect:
             raise ValueError(f"--spawn/--connect stream a run or a diagnosis; open the {kind}'s .rrd with `rerun FILE`")
         if kind == "sweep":

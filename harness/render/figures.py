@@ -30,8 +30,8 @@ __all__ = [
     "PZ_VIEW_MAX",
     "TimePanel",
     "bode",
-    "crossfit",
     "crossfit_figure",
+    "crossfit_png",
     "diagnosis_bars",
     "filter_responses",
     "fixed_layout",
@@ -322,9 +322,18 @@ def residual_correlations(rt: armax.ResidTest, title: str, path: Path) -> None:
     save_figure(fig, path)
 
 
-def crossfit(cf: pd.DataFrame, path: Path) -> None:
-    """The cross-fit heat map (:func:`crossfit_figure`) as ``path``."""
-    save_figure(crossfit_figure(cf), path)
+_CROSSFIT_PNG: dict[str, bytes] = {}  # the last heat map drawn, by its matrix (as CSV)
+
+
+def crossfit_png(cf: pd.DataFrame) -> bytes:
+    """The cross-fit heat map (:func:`crossfit_figure`) as PNG bytes, drawn once per matrix in a process: the report
+    and the recording show the same figure."""
+    key = cf.to_csv()
+    if key not in _CROSSFIT_PNG:
+        png = png_bytes(crossfit_figure(cf))
+        _CROSSFIT_PNG.clear()
+        _CROSSFIT_PNG[key] = png
+    return _CROSSFIT_PNG[key]
 
 
 def crossfit_figure(cf: pd.DataFrame) -> Figure:

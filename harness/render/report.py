@@ -12,13 +12,14 @@ import contextvars
 import math
 import re
 import threading
+import tomllib
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
-import tomllib
 
 from ..diagnosis.replays import STAGES
 from ..executor import Executor, in_session
@@ -44,7 +45,7 @@ from .gap_text import diagnosis_markdown, gap_rows
 from .load import RunResults, load_results
 from .tables import crossfit_table, fmt, fmt_any, orders, table, vec
 
-__all__ = ["figure_name", "holds", "spec_overrides", "title", "write_report"]
+__all__ = ["PendingReport", "begin_report", "figure_name", "holds", "spec_overrides", "title", "write_report"]
 
 FILTER_AFS = (0.6, 0.8, 0.9)
 SQUARE_HZ, SQUARE_V, SQUARE_PERIODS = 0.4, 1.0, 3  # square-wave test input of the selected model
@@ -58,6 +59,9 @@ DOUBLED_RATE_LABELS = {
     "gain_ratio_as_is": "static gain of the model as is / re-identified",
     "skipped": "skipped",
 }
+
+
+Drawings = list[tuple[figures.FigureJob, Path]]  # the report's figures to draw: (job, file), drawn by draw()
 
 
 def _same(a: float, b: float, tol: float = 0.005) -> bool:
@@ -158,14 +162,11 @@ def _section_header(res: RunResults) -> list[str]:
     return lines
 
 
-def _section_data(res: RunResults, figdir: Path, waits: list[Callable[[], None]]) -> list[str]:
-    """Every experiment's data as measured (command, shaft angle, deflection over time), one figure each (drawn by
-    :func:`draw`: its ``wait`` appended to ``waits``)."""
+def _section_data(res: RunResults, figdir: Path, drawings: Drawings) -> list[str]:
+    """Every experiment's data as measured (command, shaft angle, deflection over time), one figure each."""
     if not res.records:
         return []
     rows, links = [], []
-    jobs: list[figures.FigureJob] = []
-    paths: list[Path] = []
     for e in res.manifest.experiments:
         df = res.records.get(e.name)
         if df is None:
@@ -175,11 +176,10 @@ def _section_data(res: RunResults, figdir: Path, waits: list[Callable[[], None]]
         link = figure_name("data", e.name)
         ref = df["ref"].to_numpy(dtype=float) if "ref" in df.columns and unit == "deg" else None
         u = df["u"].to_numpy(dtype=float)
-        jobs.append((figures.experiment_data, (e.name, t - t[0], u, theta, alpha, unit), {"ref": ref}))
-        paths.append(figdir / Path(link).name)
+        job: figures.FigureJob = (figures.experiment_data, (e.name, t - t[0], u, theta, alpha, unit), {"ref": ref})
+        drawings.append((job, figdir / Path(link).name))
         rows.append([e.name, e.role, e.signal or "—", str(t.size), fmt(float(t[-1] - t[0]), 2)])
         links += [f"![data of {e.name}]({link})", ""]
-    waits.append(draw(jobs, paths))
     how = "through the run's calibration" if res.calibration is not None else "in volts (no calibration yet)"
     return [
         "## Data",
@@ -213,9 +213,10 @@ def _section_calibration(res: RunResults) -> list[str]:
     return [*lines, ""]
 
 
-def _section_filter(res: RunResults, figdir: Path) -> list[str]:
+def _section_filter(res: RunResults, figdir: Path, drawings: Drawings) -> list[str]:
     Ts = res.sample_time
-    figures.filter_responses(FILTER_AFS, res.af, bode_grid(Ts), Ts, figdir / "filter_response.png")
+    drawings.append(((figures.filter_responses, (FILTER_AFS, res.af, bode_grid(Ts), Ts), {}),
+                     figdir / "filter_response.png"))  # fmt: skip
     rows = []
     for af in FILTER_AFS:
         fc = -math.log(af) / (2 * math.pi * Ts)
@@ -354,7 +355,7 @@ def _section_crossfit(res: RunResults, figdir: Path) -> list[str]:
         ]
         if bad:
             lines += ["Averages in `crossfit.csv` that are not the mean of their row: " + "; ".join(bad) + ".", ""]
-    figures.crossfit(cf, figdir / "crossfit.png")
+    atomic_write_bytes(figdir / "crossfit.png", figures.crossfit_png(cf))  # drawn here: the recording shows it too
     return [*lines, "![cross-fit matrix](figures/crossfit.png)", ""]
 
 
@@ -362,7 +363,7 @@ def _roots_rows(xs: np.ndarray) -> list[list[str]]:
     return [[fmt(x.real, 4), fmt(x.imag, 4), fmt(abs(x), 4)] for x in xs]
 
 
-def _section_model(res: RunResults, figdir: Path) -> list[str]:
+def _section_model(res: RunResults, figdir: Path, drawings: Drawings) -> list[str]:
     if res.selected is None:
         return []
     m, rec = res.selected
@@ -370,11 +371,12 @@ def _section_model(res: RunResults, figdir: Path) -> list[str]:
     poles, zeros = lti.poles(g), lti.zeros(g)
     own = res.prepared.get(str(rec.get("dataset")))
     meas = measured_frf(own, res.af) if own is not None else None
-    figures.bode(bode_curves(res, bode_grid(res.sample_time)), orders(rec), meas, figdir / "bode_selected.png")
-    figures.pole_zero(poles, zeros, figdir / "pz_selected.png")
+    curves = bode_curves(res, bode_grid(res.sample_time))
+    drawings.append(((figures.bode, (curves, orders(rec), meas), {}), figdir / "bode_selected.png"))
+    drawings.append(((figures.pole_zero, (poles, zeros), {}), figdir / "pz_selected.png"))
     t, u, y = lti.square_response(g, SQUARE_HZ, SQUARE_V, SQUARE_PERIODS / SQUARE_HZ)
     title = f"square-wave response of G = B/A / H(z) ({SQUARE_V:g} V, {SQUARE_HZ:g} Hz)"
-    figures.square_response(t, u, y, title, figdir / "square_response.png")
+    drawings.append(((figures.square_response, (t, u, y, title), {}), figdir / "square_response.png"))
     ss = lti.companion_ss(g)
     nmp = int(np.sum(np.abs(zeros) > 1.0))
     measured = (
@@ -423,7 +425,7 @@ def _section_model(res: RunResults, figdir: Path) -> list[str]:
     ]
 
 
-def _section_time(res: RunResults, figdir: Path, waits: list[Callable[[], None]]) -> list[str]:
+def _section_time(res: RunResults, figdir: Path, drawings: Drawings) -> list[str]:
     if not res.prepared:
         return []
     panels = []
@@ -457,18 +459,14 @@ def _section_time(res: RunResults, figdir: Path, waits: list[Callable[[], None]]
             f"identification domain), the whole record and its first {ZOOM_S:g} s.",
             "",
         ]
-    jobs: list[figures.FigureJob] = []
-    paths: list[Path] = []
     for pnl in panels:
         link = figure_name("time", pnl.name)
-        jobs.append((figures.time_response, (pnl, ZOOM_S), {}))
-        paths.append(figdir / Path(link).name)
+        drawings.append(((figures.time_response, (pnl, ZOOM_S), {}), figdir / Path(link).name))
         lines += [f"![time response of {pnl.name}]({link})", ""]
-    waits.append(draw(jobs, paths))
     return lines
 
 
-def _section_resid(res: RunResults, figdir: Path) -> list[str]:
+def _section_resid(res: RunResults, figdir: Path, drawings: Drawings) -> list[str]:
     tests = residual_tests(res)
     if not tests:
         return []
@@ -484,7 +482,12 @@ def _section_resid(res: RunResults, figdir: Path) -> list[str]:
         ]
         for name, rt in tests.items()
     ]
-    figures.residual_correlations(tests[own], f"residuals of the selected model on {own}", figdir / "residuals.png")
+    job: figures.FigureJob = (
+        figures.residual_correlations,
+        (tests[own], f"residuals of the selected model on {own}"),
+        {},
+    )
+    drawings.append((job, figdir / "residuals.png"))
     coloured = sum(not rt.white for rt in tests.values())
     dependent = sum(not rt.independent for rt in tests.values())
     verdict = (
@@ -525,22 +528,23 @@ def _section_doubled(res: RunResults) -> list[str]:
     ]
 
 
-def _section_diagnosis(res: RunResults, figdir: Path, waits: list[Callable[[], None]]) -> list[str]:
+def _section_diagnosis(res: RunResults, figdir: Path, drawings: Drawings) -> list[str]:
     d = res.diagnosis
     if d is None:
         return []
-    figures.gap_waterfall(d.waterfall(), d.gap.decomposition.noise_floor, figdir / "gap_waterfall.png")
+    job: figures.FigureJob = (figures.gap_waterfall, (d.waterfall(), d.gap.decomposition.noise_floor), {})
+    drawings.append((job, figdir / "gap_waterfall.png"))
     lines = ["## Sim-to-real gap diagnosis", ""]
     lines += [f"The data of this run against the simulation `{d.sim_spec}`; every number is in `diagnosis.json`.", ""]
     lines += diagnosis_markdown(d, "figures/gap_waterfall.png")
     rows = gap_rows(d)
     if rows:
-        figures.diagnosis_bars(rows, figdir / "diagnosis.png")
+        drawings.append(((figures.diagnosis_bars, (rows,), {}), figdir / "diagnosis.png"))
         lines += ["![gap per experiment](figures/diagnosis.png)", ""]
-    return lines + _replay_lines(res, figdir, waits)
+    return lines + _replay_lines(res, figdir, drawings)
 
 
-def _replay_lines(res: RunResults, figdir: Path, waits: list[Callable[[], None]]) -> list[str]:
+def _replay_lines(res: RunResults, figdir: Path, drawings: Drawings) -> list[str]:
     """Each experiment's replays (as given, recalibrated, with the effects) against its record, per channel."""
     if not res.replays:
         return []
@@ -556,28 +560,28 @@ def _replay_lines(res: RunResults, figdir: Path, waits: list[Callable[[], None]]
         *table(["experiment", *(f"{label} [%]" for label in STAGES.values())], body),
         "",
     ]
-    jobs: list[figures.FigureJob] = []
-    paths: list[Path] = []
     for name, rp in res.replays.items():
         link = figure_name("replay", name)
         miss = np.nan_to_num(rp.record["theta"] - rp.sim["given"]["theta"])  # where the simulation as given misses
         zoom = zoom_window(rp.t, miss, ZOOM_S)
-        jobs.append((figures.replay, (name, rp.t, rp.record, rp.sim, dict(STAGES), fits[name], zoom), {}))
-        paths.append(figdir / Path(link).name)
+        job: figures.FigureJob = (figures.replay, (name, rp.t, rp.record, rp.sim, dict(STAGES), fits[name], zoom), {})
+        drawings.append((job, figdir / Path(link).name))
         lines += [f"![replays of {name}]({link})", ""]
-    waits.append(draw(jobs, paths))
     return lines
 
 
-def draw(jobs: list[figures.FigureJob], paths: list[Path]) -> Callable[[], None]:
-    """Draw the figures ``jobs`` (:func:`harness.render.figures.figure_png`) into ``paths``; returns ``wait()``, which
-    returns when they are written. Over the command's cluster where one runs (``flexjoint run``: a figure a task),
-    drawn while the caller goes on with its own figures; else here, at once (a report alone does not start a cluster
-    for its figures)."""
-    if not jobs or not in_session():
-        for (fn, args, kwargs), path in zip(jobs, paths, strict=True):
+def draw(drawings: Drawings) -> Callable[[], None]:
+    """Draw the figures ``drawings`` (jobs of :func:`harness.render.figures.figure_png`, each with its file); returns
+    ``wait()``, which returns when they are written. Over the command's cluster where one runs (``flexjoint run``: a
+    figure a task, the last drawings first: the replays, the largest, then down to the data, the smallest), drawn
+    while the caller goes on (the recording); else here, at once (a report alone does not start a cluster for its
+    figures)."""
+    if not drawings or not in_session():
+        for (fn, args, kwargs), path in drawings:
             fn(*args, path, **kwargs)
         return lambda: None
+    jobs = [job for job, _ in drawings[::-1]]
+    paths = [path for _, path in drawings[::-1]]
     drawn: dict[str, Any] = {}
 
     def remote() -> None:
@@ -600,6 +604,51 @@ def draw(jobs: list[figures.FigureJob], paths: list[Path]) -> Callable[[], None]
 
 
 # ----------------------------------------------------------------------------------------------- entry point
+@dataclass(frozen=True)
+class PendingReport:
+    """A report whose text is written and whose figures are being drawn (:func:`begin_report`): :meth:`write` waits
+    for them and writes report.md."""
+
+    path: Path  # report.md
+    figdir: Path
+    text: str
+    wait: Callable[[], None]
+
+    def write(self) -> Path:
+        """Wait for the figures, remove those of an earlier report that this one does not link, write report.md
+        (atomically); returns its path."""
+        self.wait()
+        linked = {Path(x).name for x in re.findall(r"!\[[^\]]*\]\(figures/([^)]+)\)", self.text)}
+        for old in self.figdir.glob("*.png"):
+            if old.name not in linked:
+                old.unlink()
+        atomic_write_bytes(self.path, self.text.encode())
+        return self.path
+
+
+def begin_report(run: Path, results: RunResults | None = None) -> PendingReport:
+    """The report of a run directory (:func:`write_report`) with its figures drawn over the command's cluster while
+    the caller goes on (``flexjoint run`` writes the recording meanwhile), or here, at once, outside a session;
+    :meth:`PendingReport.write` finishes it."""
+    res = results if results is not None else load_results(run)
+    figdir = res.paths.figures
+    figdir.mkdir(parents=True, exist_ok=True)
+    lines = _section_header(res)
+    drawings: Drawings = []
+    if res.manifest.kind != "diagnosis":
+        lines += _section_data(res, figdir, drawings)
+        lines += _section_calibration(res)
+        lines += _section_filter(res, figdir, drawings)
+        lines += _section_grid(res)
+        lines += _section_crossfit(res, figdir)
+        lines += _section_model(res, figdir, drawings)
+        lines += _section_time(res, figdir, drawings)
+        lines += _section_resid(res, figdir, drawings)
+        lines += _section_doubled(res)
+    lines += _section_diagnosis(res, figdir, drawings)
+    return PendingReport(res.paths.report, figdir, "\n".join(lines).rstrip() + "\n", draw(drawings))
+
+
 def write_report(run: Path, results: RunResults | None = None) -> Path:
     """Write ``report.md`` and its figures for a run directory, from the directory alone.
 
@@ -622,29 +671,4 @@ def write_report(run: Path, results: RunResults | None = None) -> Path:
     Path
         ``<run>/report.md``.
     """
-    res = results if results is not None else load_results(run)
-    figdir = res.paths.figures
-    figdir.mkdir(parents=True, exist_ok=True)
-    lines = _section_header(res)
-    waits: list[Callable[[], None]] = []  # figures drawn over a cluster while the rest is written (draw)
-    if res.manifest.kind != "diagnosis":
-        lines += _section_data(res, figdir, waits)
-        lines += _section_calibration(res)
-        lines += _section_filter(res, figdir)
-        lines += _section_grid(res)
-        lines += _section_crossfit(res, figdir)
-        lines += _section_model(res, figdir)
-        lines += _section_time(res, figdir, waits)
-        lines += _section_resid(res, figdir)
-        lines += _section_doubled(res)
-    lines += _section_diagnosis(res, figdir, waits)
-    for wait in waits:
-        wait()
-    text = "\n".join(lines).rstrip() + "\n"
-    linked = {Path(x).name for x in re.findall(r"!\[[^\]]*\]\(figures/([^)]+)\)", text)}
-    for old in figdir.glob("*.png"):
-        if old.name not in linked:
-            old.unlink()
-    out = res.paths.report
-    atomic_write_bytes(out, text.encode())
-    return out
+    return begin_report(run, results).write()

@@ -21,6 +21,7 @@ import re
 import struct
 from pathlib import Path
 
+import numpy as np
 import pyarrow as pa
 
 HEADER = 12
@@ -31,6 +32,8 @@ CHUNK_ID = b"rerun:id"
 _BLUEPRINT_ID = re.compile(rb"rec_[0-9a-f]{32}")
 
 Field = tuple[int, int, "int | bytes"]
+# a TUID in an Arrow column: its 16 bytes are the big-endian time, then the counter, so that they sort as they compare
+TUID = np.dtype([("time_ns", ">u8"), ("inc", ">u8")])
 
 
 def _varint(buf: bytes, i: int) -> tuple[int, int]:
@@ -87,11 +90,6 @@ def _encode(fields: list[Field]) -> bytes:
     return bytes(out)
 
 
-def _tuid(time_ns: int, inc: int) -> bytes:
-    """A TUID as its 16 bytes in an Arrow column (big-endian time, then counter: they sort as they compare)."""
-    return struct.pack(">QQ", time_ns, inc)
-
-
 def _tuid_message(time_ns: int, inc: int) -> bytes:
     """A TUID as a protobuf message (fixed64 time_ns = 1, fixed64 inc = 2)."""
     return _encode([(1, 1, struct.pack("<Q", time_ns)), (2, 1, struct.pack("<Q", inc))])
@@ -117,12 +115,15 @@ def _chunks(fields: list[Field]) -> list[pa.RecordBatch]:
     return list(pa.ipc.open_stream(pa.py_buffer(payload)))
 
 
-def _stable_batch(rb: pa.RecordBatch, row_rank: dict[bytes, int], chunk_rank: dict[bytes, int]) -> pa.RecordBatch:
-    """One chunk with its row ids and chunk id by rank and its log_time 0."""
+def _stable_batch(rb: pa.RecordBatch, ranks: np.ndarray, chunk_rank: dict[bytes, int]) -> pa.RecordBatch:
+    """One chunk with its row ids by their ``ranks`` (TUID time 1, counter the rank), its chunk id by rank and its
+    log_time 0."""
     columns = []
     for field, column in zip(rb.schema, rb.columns, strict=True):
         if field.name == ROW_ID:
-            column = pa.array([_tuid(1, row_rank[bytes(x)]) for x in column.to_pylist()], column.type)
+            tuids = np.empty(len(column), TUID)
+            tuids["time_ns"], tuids["inc"] = 1, ranks
+            column = pa.FixedSizeBinaryArray.from_buffers(column.type, len(column), [None, pa.py_buffer(tuids)])
         elif field.name == "log_time":
             column = pa.array([0] * len(column), column.type)
         columns.append(column)
@@ -140,11 +141,11 @@ def make_stable(path: Path) -> None:
         raise ValueError(f"{path}: not a Rerun recording (no RRF2 header)")
     messages = [(kind, _fields(body)) for kind, body in _messages(data) if kind != END]
     batches = {i: _chunks(f) for i, (kind, f) in enumerate(messages) if kind == ARROW}
-    rows = sorted({bytes(x) for bs in batches.values() for rb in bs for x in _row_ids(rb)})
-    row_rank = {x: k + 1 for k, x in enumerate(rows)}
+    keys = [(i, j) for i, bs in batches.items() for j in range(len(bs))]
+    ranks = dict(zip(keys, _ranks([_row_ids(batches[i][j]) for i, j in keys]), strict=True))
 
     def first_row(i: int) -> int:
-        return min((row_rank[bytes(x)] for rb in batches.get(i, []) for x in _row_ids(rb)), default=0)
+        return min((int(ranks[i, j].min()) for j in range(len(batches.get(i, []))) if ranks[i, j].size), default=0)
 
     # the stores one after the other (the SDK interleaves them as its threads flush), each store's info first, its
     # chunks in the order of their first rows, the blueprint's activation last
@@ -160,7 +161,7 @@ def make_stable(path: Path) -> None:
         if kind == STORE_INFO:
             fields = [(n, w, _tuid_message(3, 1) if n == 1 else v) for n, w, v in fields]
         elif kind == ARROW:
-            stable = [_stable_batch(rb, row_rank, chunk_rank) for rb in batches[i]]
+            stable = [_stable_batch(rb, ranks[i, j], chunk_rank) for j, rb in enumerate(batches[i])]
             sink = pa.BufferOutputStream()
             with pa.ipc.new_stream(sink, stable[0].schema) as writer:
                 for rb in stable:
@@ -191,9 +192,25 @@ def _place(kind: int, fields: list[Field]) -> tuple[int, int]:
     return store_kind, {STORE_INFO: 0, ARROW: 1}.get(kind, 2)
 
 
-def _row_ids(rb: pa.RecordBatch) -> list[bytes]:
+def _row_ids(rb: pa.RecordBatch) -> np.ndarray:
+    """A chunk's row ids as :data:`TUID` records (none when it has no row id column)."""
     i = rb.schema.get_field_index(ROW_ID)
-    return rb.column(i).to_pylist() if i >= 0 else []
+    if i < 0:
+        return np.empty(0, TUID)
+    column = rb.column(i)
+    return np.frombuffer(column.buffers()[1], TUID)[column.offset : column.offset + len(column)]
+
+
+def _ranks(ids: list[np.ndarray]) -> list[np.ndarray]:
+    """Each array of row ids by rank (1, 2, ...) among the distinct ids of them all, in byte order (a TUID's)."""
+    every = np.concatenate([np.empty(0, TUID), *ids])
+    order = np.lexsort((every["inc"], every["time_ns"]))
+    seen = every[order]
+    new = np.ones(seen.size, dtype=bool)
+    new[1:] = (seen["time_ns"][1:] != seen["time_ns"][:-1]) | (seen["inc"][1:] != seen["inc"][:-1])
+    rank = np.empty(seen.size, dtype=np.int64)
+    rank[order] = np.cumsum(new)
+    return np.split(rank, np.cumsum([x.size for x in ids])[:-1]) if ids else []
 
 
 def _blueprint_id(value: int | bytes) -> int | bytes:

@@ -175,7 +175,7 @@ def _log_crossfit(rec: rr.RecordingStream, res: RunResults) -> bool:
     hi = hi if hi > lo else lo + 1.0
     # colour map over the fits actually present (e.g. 86-98 %), not 0-max, or every cell looks the same
     rec.log("crossfit/matrix", rr.Tensor(values, dim_names=("model", "dataset"), value_range=(lo, hi)), static=True)
-    png = figures.png_bytes(figures.crossfit_figure(cf))
+    png = figures.crossfit_png(cf)
     rec.log("crossfit/heatmap", rr.EncodedImage(contents=png, media_type="image/png"), static=True)
     legend = ", ".join(f"{j + 1} = `{c}`" for j, c in enumerate(cf.columns))
     _markdown(

@@ -1,13 +1,17 @@
 """The closed loop's controller: its law, the controller FMU's parameters, and the law run on sampled data.
 
 Real rigs are run under feedback; the logged command is this law's output, computed every sample from the
-measured angles. Two kinds, as lab controllers are written:
+measured angles. Three kinds, as lab controllers are written:
 
 - ``state_feedback``: u = K (x_ref - x) on x = (theta, alpha, theta_dot, alpha_dot), x_ref = (ref, 0, 0, 0),
   K = (k_theta, k_alpha, k_theta_dot, k_alpha_dot) [V/rad, V/rad, V s/rad, V s/rad];
 - ``pid``: u = kp e + ki I - kd theta_dot on e = ref - theta (derivative on the measurement, so a square
   reference gives no kick), I the integral of e (forward Euler, held while the output is limited)
-  [V/rad, V/(rad s), V s/rad].
+  [V/rad, V/(rad s), V s/rad];
+- ``lqg``: a steady-state Kalman filter in current form on y = (theta, alpha) and state feedback on its estimate
+  (:class:`Estimator`): x_bar_k = A x_hat_(k-1) + B u_(k-1) (the first sample: X0 y_0), x_hat_k = x_bar_k +
+  L (y_k - C x_bar_k), u_k = K (N ref_k - x_hat_k), u_(k-1) the command written (after the clamp); at most
+  :data:`NX_MAX` states.
 
 Velocities are filtered differences, as lab controllers compute them: v_k = a v_{k-1} + (1 - a) (x_k - x_{k-1})
 / Ts with a = exp(-2 pi cutoff Ts) and v_0 = 0 (a first-order low-pass at ``cutoff`` [Hz] on the backward
@@ -31,7 +35,10 @@ import numpy as np
 
 __all__ = [
     "CUTOFFS",
+    "IDENTIFIABLE",
     "KINDS",
+    "NX_MAX",
+    "Estimator",
     "MAX_REF_DELAY_S",
     "R2_MIN",
     "Controller",
@@ -44,7 +51,59 @@ __all__ = [
     "parse_controller",
 ]
 
-KINDS = {"state_feedback": 1, "pid": 2}  # kind name -> the FMU's Integer parameter ``kind``
+KINDS = {"state_feedback": 1, "pid": 2, "lqg": 3}  # kind name -> the FMU's Integer parameter ``kind``
+IDENTIFIABLE = ("state_feedback", "pid")  # the kinds identify_controller fits to a record's command
+NX_MAX = 10  # the LQG's largest number of states: NX_MAX in fmus/controller/config.h
+ESTIMATOR_SHAPES = {"A": ("n", "n"), "B": ("n",), "C": (2, "n"), "L": ("n", 2), "K": ("n",), "N": ("n",),
+                    "X0": ("n", 2)}  # fmt: skip
+
+
+@dataclass(frozen=True)
+class Estimator:
+    """An LQG controller's arrays (see the module docstring), nested lists of floats: ``A`` (n x n), ``B`` (n),
+    ``C`` (2 x n, rows theta and alpha as read [rad]), ``L`` (n x 2, the Kalman gain in current form), ``K`` (n,
+    [V per unit of state]), ``N`` (n, the state per rad of reference), ``X0`` (n x 2, the first estimate per rad read).
+    """
+
+    A: list[list[float]]
+    B: list[float]
+    C: list[list[float]]
+    L: list[list[float]]
+    K: list[float]
+    N: list[float]
+    X0: list[list[float]]
+
+    def __post_init__(self) -> None:
+        n = len(self.B)
+        if not 1 <= n <= NX_MAX:
+            raise ValueError(f"controller estimator: {n} states; an LQG has 1 to {NX_MAX}")
+        for name, shape in ESTIMATOR_SHAPES.items():
+            a = np.asarray(getattr(self, name), dtype=float)
+            want = tuple(n if d == "n" else d for d in shape)
+            if a.shape != want:
+                raise ValueError(f"controller estimator {name}: shape {a.shape}, expected {want} (n = {n} states)")
+            if not np.all(np.isfinite(a)):
+                raise ValueError(f"controller estimator {name}: must be finite numbers")
+
+    @property
+    def n(self) -> int:
+        return len(self.B)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        return {k: np.asarray(getattr(self, k), dtype=float) for k in ESTIMATOR_SHAPES}
+
+    def fmu_parameters(self) -> dict[str, float | int]:
+        """The controller FMU's lqg_ parameters: lqg_n and each array's elements by name (``lqg_A[i,j]``, ``lqg_B[i]``,
+        1-based)."""
+        out: dict[str, float | int] = {"lqg_n": self.n}
+        for k, a in self.arrays().items():
+            if a.ndim == 1:
+                out |= {f"lqg_{k}[{i + 1}]": float(v) for i, v in enumerate(a)}
+            else:
+                out |= {
+                    f"lqg_{k}[{i + 1},{j + 1}]": float(a[i, j]) for i in range(a.shape[0]) for j in range(a.shape[1])
+                }
+        return out
 
 
 @dataclass(frozen=True)
@@ -69,10 +128,15 @@ class Controller:
     alpha_gain: float | None = None
     source: str = "spec"
     r2: float | None = None
+    estimator: Estimator | None = None
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
             raise ValueError(f"controller kind {self.kind!r} unknown; valid: {', '.join(KINDS)}")
+        if isinstance(self.estimator, dict):
+            object.__setattr__(self, "estimator", Estimator(**self.estimator))
+        if (self.kind == "lqg") != (self.estimator is not None):
+            raise ValueError("an lqg controller has an estimator (A, B, C, L, K, N, X0), and only an lqg one")
         if len(self.K) != 4:
             raise ValueError(f"controller K must have 4 gains (theta, alpha, theta_dot, alpha_dot), got {len(self.K)}")
         vals = [*self.K, self.kp, self.ki, self.kd, self.cutoff, self.u_limit, self.alpha_bias]
@@ -108,6 +172,7 @@ class Controller:
             "u_limit": float(self.u_limit),
             "alpha_bias": float(self.alpha_bias),
             **own,
+            **(self.estimator.fmu_parameters() if self.estimator is not None else {}),
         }
 
     def to_dict(self) -> dict[str, Any]:
@@ -145,6 +210,8 @@ def law(c: Controller, ref: np.ndarray, theta: np.ndarray, alpha: np.ndarray, Ts
     alpha = alpha + math.radians(c.alpha_bias)
     th_dot = filtered_rate(theta, Ts, c.cutoff)
     lim = c.u_limit if c.u_limit > 0 else math.inf
+    if c.estimator is not None:
+        return _lqg_law(c.estimator, ref, theta, alpha, lim)
     if c.kind == "state_feedback":
         k = c.K
         u = k[0] * (ref - theta) - k[1] * alpha - k[2] * th_dot - k[3] * filtered_rate(alpha, Ts, c.cutoff)
@@ -157,6 +224,19 @@ def law(c: Controller, ref: np.ndarray, theta: np.ndarray, alpha: np.ndarray, Ts
         u[i] = min(max(raw, -lim), lim)
         if u[i] == raw:  # integrate only while the output is not limited (anti-windup)
             integral += Ts * e[i]
+    return u
+
+
+def _lqg_law(e: Estimator, ref: np.ndarray, theta: np.ndarray, alpha: np.ndarray, lim: float) -> np.ndarray:
+    """An LQG's commands (the module docstring) on the samples [rad]: the FMU's recursion in numpy."""
+    a = e.arrays()
+    y = np.column_stack([theta, alpha])
+    u = np.empty(theta.size)
+    x_hat, u_prev = np.zeros(e.n), 0.0
+    for k in range(theta.size):
+        x_bar = a["X0"] @ y[k] if k == 0 else a["A"] @ x_hat + a["B"] * u_prev
+        x_hat = x_bar + a["L"] @ (y[k] - a["C"] @ x_bar)
+        u_prev = u[k] = min(max(float(a["K"] @ (a["N"] * ref[k] - x_hat)), -lim), lim)
     return u
 
 
@@ -187,12 +267,32 @@ def output_limit(u: np.ndarray) -> float:
 
 
 def parse_controller(text: str) -> Controller:
-    """A controller from its command-line form ``KIND:NAME=VALUE;...``: ``state_feedback:K=9.2,-18.8,1.2,0;cutoff=15;
-    u_limit=10`` or ``pid:kp=12;ki=40;kd=0.8;cutoff=30``; ``source="given"``."""
+    """A controller from its command-line form (``flexjoint predict --controller``).
+
+    Parameters
+    ----------
+    text : str
+        ``KIND:NAME=VALUE;...``: ``state_feedback:K=9.2,-18.8,1.2,0;cutoff=15;u_limit=10`` (gains on theta, alpha
+        [V/rad] and their rates [V s/rad]) or ``pid:kp=12;ki=40;kd=0.8;cutoff=30``. An lqg controller's arrays are
+        given as a ``[controller]`` table instead (a design's controller.toml).
+
+    Returns
+    -------
+    Controller
+        The controller, its ``source`` "given".
+
+    Raises
+    ------
+    ValueError
+        One line naming what is malformed.
+    """
     kind, sep, rest = str(text).partition(":")
     kind = kind.strip()
+    if kind == "lqg":
+        raise ValueError(f"--controller {text!r}: an lqg controller's arrays are given as a [controller] table: "
+                         "--controller-from FILE (a design's controller.toml)")  # fmt: skip
     if not sep or kind not in KINDS:
-        raise ValueError(f"--controller {text!r}: expected KIND:NAME=VALUE;... with KIND one of {', '.join(KINDS)}, "
+        raise ValueError(f"--controller {text!r}: expected KIND:NAME=VALUE;... with KIND one of state_feedback, pid, "
                          "e.g. state_feedback:K=9.2,-18.8,1.2,0;cutoff=15")  # fmt: skip
     common = ("cutoff", "u_limit", "ref_delay", "alpha_bias")
     names = {"state_feedback": ("K", *common), "pid": ("kp", "ki", "kd", *common)}[kind]
@@ -247,8 +347,10 @@ def identify_controller(
     ``u`` [V], ``Ts`` [s]; ``cutoff`` [Hz] and ``ref_delay`` [samples] given or chosen by R^2 as there.
     ``u_limit``: the exact clamp (:func:`output_limit`), else the median |u| where the fit's command passes the
     largest logged one (when at least 3 samples and 0.2 % of them do), else 0. ``r2`` over the samples fitted."""
-    if kind not in KINDS:
-        raise ValueError(f"controller kind {kind!r} unknown; valid: {', '.join(KINDS)}")
+    if kind not in IDENTIFIABLE:
+        raise ValueError(
+            f"controller kind {kind!r} cannot be identified from a record; valid: {', '.join(IDENTIFIABLE)}"
+        )
     ref, theta, alpha, u = (np.asarray(v, dtype=float) for v in (ref, theta, alpha, u))
     if not ref.size == theta.size == alpha.size == u.size:
         raise ValueError("ref, theta, alpha and u must have the same length")

@@ -84,7 +84,7 @@ from ..rundir import (
     validate,
     write_dataset,
 )
-from .controller import KINDS, R2_MIN, Controller, command_r2, identify_controller
+from .controller import IDENTIFIABLE, R2_MIN, Controller, command_r2, identify_controller
 
 __all__ = [
     "CHANNELS",
@@ -974,7 +974,7 @@ def _controller(
         return given
     al = np.radians(cols["alpha"] + zero)
     try:
-        found = [identify_controller(ref, th, al, cols["u"], Ts, kind) for kind in KINDS]
+        found = [identify_controller(ref, th, al, cols["u"], Ts, kind) for kind in IDENTIFIABLE]
     except ValueError as e:
         raise DataError(f"{file}: closed-loop record: {e}") from None
     best = replace(max(found, key=lambda c: c.r2 or -math.inf), alpha_bias=zero)

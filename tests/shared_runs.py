@@ -1,0 +1,40 @@
+"""The runs several test files read, as they are made: each is made once per session by a fixture of conftest.py
+(``lab_campaign``, ``diagnosed_run``) and shared, read-only, by every test process."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from harness import spec as specmod
+from harness.diagnosis.blindtest import campaign_spec
+from harness.diagnosis.diagnose import diagnose_run
+from harness.ident.calibration import calibrate_run
+from harness.ident.crossfit import crossfit_run
+from harness.ident.identify import prepare, run_grid, write_grid
+from harness.rig.campaign import run_campaign
+from harness.rundir import load_run
+
+REAL_EXPERIMENTS = ("prbs_small", "square_large", "chirp_slow")  # 10 s each: ~30 s to diagnose on 2 cores
+REAL_GRID = {"na": [2, 4], "nb": [1, 2], "nc": [1, 2]}
+
+
+def make_lab_campaign(path: Path, fmus: dict[str, Path]) -> None:
+    """The default spec's campaign (specs/lab.toml: its calibration experiments and 9 identification experiments),
+    simulated serially."""
+    run_campaign(specmod.load("lab"), path, fmus=fmus, workers=1)
+
+
+def make_diagnosed_run(path: Path) -> None:
+    """A run through every stage: the blind rig with Coulomb friction (0.05 N m) and a one-sample delay, the three
+    10 s experiments :data:`REAL_EXPERIMENTS`, calibrated, identified on the small grid :data:`REAL_GRID`,
+    cross-fitted through the exported FMUs and diagnosed (serially) against the blind campaign's linear rig."""
+    spec = campaign_spec(quick=True, overrides=["plant.coulomb_torque=0.05", "daq.delay_samples=1", "campaign.seed=11"])
+    raw = specmod.apply_overrides(spec.raw, [])
+    raw["experiment"] = [dict(e, duration=10.0) for e in raw["experiment"] if e["name"] in REAL_EXPERIMENTS]
+    run_campaign(specmod.from_dict(raw, spec.path), path, workers=1)
+    cal = calibrate_run(path)
+    ident = dict(specmod.IDENTIFY_DEFAULTS, **REAL_GRID)
+    prepared = prepare(load_run(path), cal, float(ident["af"]), str(ident["output"]))
+    write_grid(run_grid(prepared, ident, workers=1), path, ident, cal)
+    crossfit_run(path)
+    diagnose_run(path, campaign_spec(quick=True), workers=1)

@@ -1,0 +1,157 @@
+"""flexjoint predict: the ensemble's bands, the twin's spread, specs, references, and bad input."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from harness import spec as specmod
+from harness.behaviour import POOLED_BY
+from harness.fmu.build import build_all
+from harness.fmu.cosim import Rig
+from harness.prediction import (
+    LoopSpecs,
+    MetricBand,
+    judge_specs,
+    pooled,
+    predict,
+    reference_from,
+    simulate_loop,
+)
+from harness.rig.controller import Controller
+from harness.twin import Spread, draw, spread_of_diagnosis, twin_of_spec
+
+LQR = Controller(K=[9.231, -18.769, 1.203, -0.041], cutoff=15.0, sample_rate=500.0)  # specs/closed_loop.toml's
+
+
+@pytest.fixture(scope="module")
+def lab():
+    """The lab rig (friction, second mode, 12-bit ADC, noise, a command delay) as a spec twin."""
+    return twin_of_spec(specmod.load("closed_loop"))
+
+
+def test_without_spread_or_noise_every_member_is_the_one_loop(lab):
+    twin = dataclasses.replace(lab, spread=Spread(), noise_deg={"theta": 0.0, "alpha": 0.0})
+    ref = reference_from("square:f=0.5;amplitude=20;duration=4", 500.0)
+    pred = predict(twin, LQR, ref, n=6, seed=3, workers=1)
+    f = build_all()
+    with Rig(f["flexjoint"], f["daq"], f["controller"]) as rig:
+        one = simulate_loop(rig, twin.tables(noise=False), LQR, ref.ref_deg, ref.Ts, 0.0)
+    want = pooled(ref.t, ref.ref_deg, one["theta"], one["alpha"], one["u"], 5.0, 0.0)
+    for m, b in pred.metric_bands().items():
+        if math.isnan(want[m]):
+            assert math.isnan(b.median), m
+            continue
+        assert b.lo == b.median == b.hi == pytest.approx(want[m], rel=1e-12, abs=1e-12), m
+    np.testing.assert_array_equal(pred.bands["theta"][0], pred.bands["theta"][2])
+    np.testing.assert_allclose(pred.bands["theta"][1], one["theta"], atol=1e-12)
+    assert pred.values["stop_error_deg"][0] > 0.05  # the lab's Coulomb friction stops the hub short
+
+
+def test_the_band_holds_the_members_and_the_same_seed_gives_the_same_numbers(lab):
+    ref = reference_from("square:f=0.5;amplitude=20;duration=4", 500.0)
+    a = predict(lab, LQR, ref, n=40, seed=1, workers=1)
+    b = predict(lab, LQR, ref, n=40, seed=1, workers=2)
+    assert json.dumps(a.to_json(), sort_keys=True) == json.dumps(b.to_json(), sort_keys=True)
+    for m, band in a.metric_bands().items():
+        v = a.values[m]
+        if POOLED_BY.get(m) == "median" or np.isnan(v).all():
+            continue
+        inside = np.mean((v >= band.lo) & (v <= band.hi))
+        assert band.lo <= band.median <= band.hi and inside >= 0.95, m
+    s = a.metric_bands()["settling_s"]
+    assert s.hi > s.lo  # the sheet's uncertainty and the noise spread the loop
+
+
+def test_a_diagnosis_spread_is_its_intervals_plus_its_folds():
+    """A fitted row's draw: lognormal about its fit, sd of its 95 % interval (ln(hi/lo) / 3.92) and of its two folds'
+    fits added; implied physical rows and kept rows are not drawn; an Integer effect parameter is not drawn."""
+    doc = {
+        "parameters": {
+            "plant.Ks": {"fitted": 1.5, "ci95": [1.4, 1.6], "folds": [[1.45, 1.4, 1.5], [1.55, 1.5, 1.6]]},
+            "rig.drive_gain": {"fitted": 2.0, "ci95": [1.8, 2.2]},
+            "plant.Beq": {"fitted": 0.01, "ci95": [0.009, 0.011]},  # implied by the drive: not an override
+            "plant.zeta_link": {"fitted": 0.01, "ci95": [None, None]},  # kept at the spec's value
+            "daq.delay_samples": {"fitted": 2, "ci95": [1, 3]},
+        },
+        "effects": [{"params": {"daq.delay_samples": 2}}],
+    }
+    over, sp = spread_of_diagnosis(doc)
+    assert over == {"plant.Ks": 1.5, "rig.drive_gain": 2.0, "plant.zeta_link": 0.01, "daq.delay_samples": 2.0}
+    assert sp.names == ("plant.Ks", "rig.drive_gain")
+    sd = sp.sd()
+    ks = math.sqrt((math.log(1.6 / 1.4) / 3.92) ** 2 + np.var(np.log([1.45, 1.55])))
+    assert sd["plant.Ks"] == pytest.approx(ks) and sd["rig.drive_gain"] == pytest.approx(math.log(2.2 / 1.8) / 3.92)
+    twin = dataclasses.replace(twin_of_spec(specmod.load("nominal")), overrides=over, spread=sp)
+    draws = draw(twin, 4000, 5)
+    logks = np.log([d["plant.Ks"] for d in draws])
+    assert np.exp(np.median(logks)) == pytest.approx(1.5, rel=0.01) and np.std(logks) == pytest.approx(ks, rel=0.05)
+    assert {d["daq.delay_samples"] for d in draws} == {2.0}
+
+
+def test_a_rig_object_gives_its_overrides_and_covariance():
+    """diagnosis.json's ``rig`` (harness.diagnosis.result.RigFit): its overrides as they are, its covariance in the
+    fit's coordinates, a row's fold spread added to its variance."""
+    cov = [[0.01, 0.008], [0.008, 0.01]]
+    doc = {"rig": {"overrides": {"rig.drive_gain": 2.0, "rig.drive_tau": 0.05, "plant.Ks": 1.4},
+                   "names": ["rig.drive_gain", "rig.drive_tau"], "log": [True, True], "covariance": cov},
+           "parameters": {"rig.drive_tau": {"fitted": 0.05, "ci95": [0.04, 0.06],
+                                            "folds": [[0.045, 0.04, 0.05], [0.055, 0.05, 0.06]]}}}  # fmt: skip
+    over, sp = spread_of_diagnosis(doc)
+    assert over == {"rig.drive_gain": 2.0, "rig.drive_tau": 0.05, "plant.Ks": 1.4}
+    assert sp.names == ("rig.drive_gain", "rig.drive_tau") and sp.cov[0][1] == 0.008
+    assert sp.cov[1][1] == pytest.approx(0.01 + np.var(np.log([0.045, 0.055])))
+    twin = dataclasses.replace(twin_of_spec(specmod.load("nominal")), overrides=over, spread=sp)
+    z = np.log([[d["rig.drive_gain"], d["rig.drive_tau"]] for d in draw(twin, 3000, 0)])
+    want = 0.008 / math.sqrt(0.01 * sp.cov[1][1])
+    assert np.corrcoef(z.T)[0, 1] == pytest.approx(want, abs=0.05)
+
+
+def test_specs_and_their_judgement():
+    s = LoopSpecs.parse("settling=1.5,overshoot=5,alpha=15,voltage=5,stop=1,band=4")
+    assert s.band_pct == 4.0 and s.limits["peak_u_v"] == 5.0 and s.limits["stop_error_deg"] == 1.0
+    bands = {"settling_s": MetricBand(1.0, 0.8, 1.6), "overshoot_pct": MetricBand(1, 0, 2),
+             "peak_alpha_deg": MetricBand(9, 8, 10), "peak_u_v": MetricBand(4, 3, 4.9),
+             "stop_error_deg": MetricBand(0.2, -1.2, 0.5)}  # fmt: skip
+    j = judge_specs(bands, s)
+    assert {m for m, v in j.items() if not v["met"]} == {"settling_s", "stop_error_deg"}
+    assert j["stop_error_deg"]["predicted"] == 1.2  # a stopping error's magnitude
+    for bad, why in [("settling=-1", "must be a number > 0"), ("speed=3", "'speed' is not a spec"),
+                     ("settling=fast", "is not a number")]:  # fmt: skip
+        with pytest.raises(ValueError, match=why):
+            LoopSpecs.parse(bad)
+
+
+def test_references():
+    r = reference_from("square:f=0.25;amplitude=30;duration=8", 1000.0)
+    assert r.ref_deg.size == 8000 and set(np.unique(r.ref_deg)) == {-30.0, 30.0} and r.initial_deg == 0.0
+    for bad, why in [("square:f=0.25;amplitude=30", "give its duration"), ("sine:f=1;duration=2", "KIND one of"),
+                     ("square:f=x;duration=2", "is not a number")]:  # fmt: skip
+        with pytest.raises(ValueError, match=why):
+            reference_from(bad, 500.0)
+
+
+def flexjoint(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "harness.cli", *args], capture_output=True, text=True, timeout=300)
+
+
+def test_bad_input_is_one_line_and_writes_nothing(tmp_path):
+    out = tmp_path / "p"
+    cases = [
+        (["predict", "nominal", "--controller", "state_feedback:K=1,2", "--out", str(out)], "4 gains"),
+        (["predict", "nominal", "--controller", "lqr:K=1,2,3,4", "--out", str(out)], "KIND one of"),
+        (["predict", str(tmp_path), "--controller", "pid:kp=1", "--out", str(out)], "no closed-loop model"),
+        (["predict", "nominal", "--out", str(out)], "no controller"),
+        (["predict", "nominal", "--controller", "pid:kp=1", "--specs", "settling=0", "--out", str(out)], "> 0"),
+    ]
+    for args, why in cases:
+        r = flexjoint(*args)
+        assert r.returncode == 2 and r.stderr.startswith("error: ") and r.stderr.count("\n") == 1, (args, r.stderr)
+        assert why in r.stderr, (args, r.stderr)
+        assert not out.exists()

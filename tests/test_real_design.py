@@ -1,0 +1,98 @@
+"""The labs' Part II on the bundled real records (tests/fixtures/real/): the Quanser rig's twin as diagnosed, an LQR to
+the courseware's specs on it, predicted with bands; and each record's own controller predicted against what it did,
+the CU unit's from a diagnosis of its other record (held out)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from harness import spec as specmod
+from harness.design import design
+from harness.diagnosis.diagnose import diagnose_run
+from harness.diagnosis.rigmodel import combos
+from harness.prediction import LoopSpecs, predict, reference_from
+from harness.rig.records import ImportOptions, import_records
+from harness.twin import load_record, twin_of_diagnosis
+
+REAL = Path(__file__).parent / "fixtures" / "real"
+QUANSER = [REAL / "rfl_lqr_sqwave_pm30deg_500Hz.csv", REAL / "rfl_lqr_sqwave_pm30deg_500Hz_aux.csv"]
+QUANSER_IMPORT = ImportOptions(  # the fixture README's import command
+    columns={f"{QUANSER[0].stem}:t": "t", "u": "u", "theta_deg": "theta", "alpha_deg": "alpha", "theta_ref_deg": "ref"},
+    units={"theta": "deg", "alpha": "deg", "ref": "deg"},
+    theta_sensor="encoder",
+    counts_per_rev=4096,
+)
+CU_IMPORT = ImportOptions(
+    columns={"0": "t", "1": "theta", "2": "-alpha", "5": "ref", "6": "u"},
+    units={"t": "ms", "theta": "rad", "alpha": "m", "ref": "rad"},
+    link_length=0.45,
+    zero_alpha=True,
+)
+COURSEWARE = "settling=1.5,overshoot=5,band=4"  # Quanser's rotary flexible link courseware
+HELD = ("settling_s", "peak_alpha_deg", "ring_alpha_deg")  # inside the band or within 20 % of the median, both units
+
+
+def _held(pred, names):
+    bands = pred.metric_bands()
+    return {m: bands[m].holds(bands[m].measured, 0.20) for m in names}
+
+
+@pytest.fixture(scope="module")
+def quanser(tmp_path_factory):
+    run = tmp_path_factory.mktemp("quanser") / "run"
+    import_records([f"quanser={QUANSER[0]}+{QUANSER[1]}"], run, QUANSER_IMPORT)
+    diagnose_run(run, "nominal", run, workers=1)
+    return run
+
+
+@pytest.fixture(scope="module")
+def cu(tmp_path_factory):
+    """The CU unit's two records, apart: test_3 diagnosed against the lab sheet, test_4 held out."""
+    root = tmp_path_factory.mktemp("cu")
+    runs = []
+    for k in (3, 4):
+        import_records([REAL / f"flexibleArm_test_{k}.txt"], root / f"cu{k}", CU_IMPORT)
+        runs.append(root / f"cu{k}")
+    diagnose_run(runs[0], "cu_flexible_arm", runs[0], workers=1)
+    return runs
+
+
+def test_an_lqr_to_the_courseware_specs_on_the_quanser_twin(quanser):
+    twin = twin_of_diagnosis(quanser)
+    fitted = json.loads((quanser / "diagnosis.json").read_text())["parameters"]["rig.drive_gain"]["fitted"]
+    assert twin.overrides["rig.drive_gain"] == fitted != combos(twin.plant)["rig.drive_gain"]  # the rig, not its sheet
+    rec = load_record(quanser)
+    d = design(twin, "lqr", reference_from(None, twin.sample_rate, rec), LoopSpecs.parse(COURSEWARE), n=100, workers=1)
+    assert d.passed and d.margins["disk_margin"] > 0.5
+    bands = d.prediction.metric_bands()
+    assert bands["settling_s"].hi <= 1.5 and bands["overshoot_pct"].hi <= 5.0
+    assert bands["settling_s"].lo > 0.1  # a loop that moves the hub, not a band of nothing
+
+
+def test_the_quanser_records_own_controller_predicted_against_what_it_did(quanser):
+    """Its theta fit ~97 %, alpha ~92 %; its settling, peak deflection and ringing inside the bands or within 20 % of
+    the median. Not its overshoot (0.54 % against 2.3..2.9 %) and stopping error (+0.59 deg, short of the reference
+    both ways, against -0.2..-0.1: the diagnosis holds the hub with a command offset where the record shows friction),
+    nor its peak command (6.2 V against 4.3..4.6 V: the logged voltage exceeds the identified controller's own law on
+    the record by 0.7 V at the steps)."""
+    twin = twin_of_diagnosis(quanser)
+    rec = load_record(quanser)
+    pred = predict(twin, rec.controller, reference_from(None, twin.sample_rate, rec), n=100, record=rec, workers=1)
+    assert pred.fit_pct["theta"] > 90.0 and pred.fit_pct["alpha"] > 85.0
+    assert all(_held(pred, HELD).values()), pred.metric_bands()
+
+
+def test_the_cu_units_held_out_record_predicted_from_the_other(cu):
+    """Diagnosed from flexibleArm_test_3 alone, the twin predicts flexibleArm_test_4 under its controller: theta fit
+    ~97 %, alpha ~83 % (its gauge read at the record's own zero, -4.1 deg: the importer leaves alpha as read where the
+    link never rests; at the twin's zero alpha's fit was -93 %); settling, stopping error, peak deflection and ringing
+    inside the bands or within 20 % of the median. Not its peak command (5.3 V against 4.2..4.4 V: at each step the
+    logged voltage kicks 1 V beyond the identified controller's law)."""
+    twin = twin_of_diagnosis(cu[0], spec=specmod.load("cu_flexible_arm"))
+    rec = load_record(cu[1])
+    pred = predict(twin, rec.controller, reference_from(None, twin.sample_rate, rec), n=100, record=rec, workers=1)
+    assert pred.fit_pct["theta"] > 90.0 and pred.fit_pct["alpha"] > 70.0
+    assert all(_held(pred, (*HELD, "stop_error_deg")).values()), pred.metric_bands()
