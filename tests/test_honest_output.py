@@ -263,8 +263,9 @@ def test_a_lone_open_loop_record_cut_at_a_command_step_is_replayed_from_where_th
     """The lab twin with a 0.004 rad gear play, its 0.3 Hz square alone (60 s, open loop), cut in two at a whole
     period: where the command steps and the hub runs at full speed. Its second half replayed from rest at the
     measured angle fitted alpha 87.6 % (the first 97.3 %), held out 93.65 % as given, and the play closed 9.9 %;
-    replayed from the measured state, 93.8 %, 96.59 %, and the play closes 32 % (fitted 0.00454 rad; still short of
-    the verdict's 50 %: the second mode and the friction's state at the cut are not measured)."""
+    replayed from the measured state, 93.8 %, 96.59 %, and the play closes 24 % (32 % before each model was judged
+    against its own floor and a play was refitted in an open loop), under the 25 % it would enter with, sized 0.004
+    within 20 % (the second mode and the friction's state at the cut are not measured)."""
     spec = specmod.load("lab", ["plant.backlash=0.004"])
     alone = [e for e in spec.raw["experiment"] if e["name"] == "square_030"]
     run_campaign(specmod.from_dict({**spec.raw, "experiment": alone}, spec.path), tmp_path / "run", workers=1)
@@ -274,8 +275,8 @@ def test_a_lone_open_loop_record_cut_at_a_command_step_is_replayed_from_where_th
     assert first > 97.0 and second > 93.0, (first, second)
     assert 100 * (1 - d.gap.decomposition.before) > 96.0
     (play,) = [c for c in d.rounds[0] if c["effect"] == "backlash"]
-    assert play["held_out_share_pct"] > 25.0, play
-    assert d.fitted_effect_params()["plant.backlash"] == pytest.approx(0.004, rel=0.2)
+    assert play["held_out_share_pct"] > 20.0, play
+    assert play["params"]["plant.backlash"] == pytest.approx(0.004, rel=0.2)  # under min_gain: a candidate only
 
 
 def test_the_period_a_record_shows_is_found_through_a_lead_in_and_jitter():

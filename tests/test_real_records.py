@@ -216,6 +216,13 @@ def test_quanser_record_in_two_files_fits_as_the_whole_record(quanser_halves):
         assert 1.04 <= fitted <= 1.56
 
 
+@pytest.mark.xfail(
+    strict=True,
+    reason=(
+        "issue 34 open: the halves' folds now land in two basins of the drive gain (1.50 and 1.68 rad/(V s)) "
+        "with each half's gauge offset, link start and the command offset fitted"
+    ),
+)
 def test_quanser_record_in_two_files_is_the_same_rig(quanser_halves):
     """The two halves' own recalibrations, each also started from the other's, land in one basin (from its own grid
     point alone the second stopped at a drive gain of 1.78 rad/(V s)), and the hub inertia they imply together is

@@ -95,14 +95,6 @@ def test_friction_beside_a_drive_off_by_twice_is_found_by_refitting_every_candid
     assert recalibrated < 50.0 and with_effects > 97.0
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason=(
-        "issue 34 open: the fold fitted on the P-only record keeps a limit of 1.83 V (above its command, "
-        "where the cost is flat); its refit from the other fold's 1.0 V does not cost less there, so the "
-        "held-out fit is 31.8 %"
-    ),
-)
 def test_a_limit_one_record_hardly_reaches_is_fitted_from_the_other_folds_start(tmp_path):
     """An amplifier limit of 1.0 V: the P-only record's command reaches -1.2 V, the other's -3.6 V. Fitted on the
     P-only record alone the limit has nothing to move it; refitted from the other fold's fit, which costs it less, it
@@ -115,10 +107,6 @@ def test_a_limit_one_record_hardly_reaches_is_fitted_from_the_other_folds_start(
     assert recalibrated < 50.0 and with_effects > 97.0
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason=("issue 34 open: a gauge nonlinearity enters beside friction and the limit"),
-)
 def test_two_effects_that_each_close_little_alone_are_refitted_together(tmp_path):
     """Friction (0.02 N m) and an amplifier limit (1.5 V) beside the drive off by 2x: both are found, within 2 % and
     5 %, the drive gain within 2 %."""
@@ -132,13 +120,6 @@ def test_two_effects_that_each_close_little_alone_are_refitted_together(tmp_path
     assert with_effects > 70.0
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason=(
-        "issue 34 open: every sensor and effect comes back, but the P-only record's stopping error lies 0.003"
-        " deg outside the replays' 0.03 deg band"
-    ),
-)
 def test_a_unit_logged_as_labs_log_it_gives_back_its_sensors_and_its_behaviour(tmp_path):
     """The friction unit with what real records carry: gauges reading 3 and -1.5 deg at rest (which the lab's
     controller acts on), links still ringing 1.0 and 0.6 deg when the records start, an amplifier offset of -0.12 V,

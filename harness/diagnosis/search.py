@@ -45,8 +45,17 @@ from .result import (
     Step,
 )
 from .rigmodel import COMBOS, plant_value, to_plant
-from .simulation import ALPHA_OFFSET, LOOP_NOISE_SEEDS, SSE, channel_fits, fit_pct, gap_summary, mean_squared_gap
-from .tasks import Behaviour, Cost, Evaluate, FitResult, Grid, Pool, Recalibrate, Refit, mean_effective
+from .simulation import (
+    ALPHA_OFFSET,
+    LINK_START,
+    LOOP_NOISE_SEEDS,
+    SSE,
+    channel_fits,
+    fit_pct,
+    gap_summary,
+    mean_squared_gap,
+)
+from .tasks import RECAL_NFEV, Behaviour, Cost, Evaluate, FitResult, Grid, Pool, Recalibrate, Refit, mean_effective
 
 __all__ = [
     "POLICY",
@@ -315,7 +324,7 @@ def recalibrated(cf: CrossFit, say: Progress) -> tuple[Model, Score]:
     other fold's fit (the lower cost kept: least squares from a fold's own best grid point can stop in another
     basin); and the simulation as given. Returns (the linear model, the score as given)."""
     (*rec,) = cf.pool.map([Recalibrate(tuple(cf.fits[k])) for k in (0, 1)])
-    again = cf.pool.map([Recalibrate(tuple(cf.fits[k]), _linear_of(rec[1 - k].params)) for k in (0, 1)])
+    again = cf.pool.map([Refit(_linear_of(rec[1 - k].params), (), tuple(cf.fits[k]), RECAL_NFEV) for k in (0, 1)])
     fits = tuple(min(rec[k], again[k], key=lambda r: r.cost) for k in (0, 1))
     linear, given = cf.scores([list(fits), [{}, {}]])
     say(f"gap as given: fit {fit_pct(given.msg):.2f} %; recalibrated: {fit_pct(linear.msg):.2f} %")
@@ -413,8 +422,9 @@ def _cross_started(cf: CrossFit, fits: list[list[FitResult]], free: list[tuple[s
 
 
 def _records_of(over: Overrides) -> Overrides:
-    """A fold's own records' gauge offsets (kept when the fold is refitted from the other fold's parameters)."""
-    return {k: v for k, v in over.items() if k.startswith(ALPHA_OFFSET)}
+    """A fold's own records' parameters, their gauge offsets and their links' starts (kept when the fold is refitted
+    from the other fold's parameters)."""
+    return {k: v for k, v in over.items() if k.startswith((ALPHA_OFFSET, *LINK_START))}
 
 
 def _entry(cf: CrossFit, m: Model, current: Model, floor: Score) -> dict[str, Any]:
@@ -563,8 +573,8 @@ def search(
     base, given = recalibrated(cf, say)
     recal_model = base
     recal_paid = base.score.excess < given.excess
-    if not recal_paid:  # the sheet's linear parameters, each record's own gauge offset fitted
-        keep = [{k: v for k, v in f.params.items() if k.startswith(ALPHA_OFFSET)} for f in base.fits]
+    if not recal_paid:  # the sheet's linear parameters, each record's own gauge offset and link start fitted
+        keep = [_records_of(f.params) for f in base.fits]
         base = Model((), (FitResult(keep[0], {}, base.fits[0].cost, 0), FitResult(keep[1], {}, base.fits[1].cost, 0)),
                      given, "the spec's linear parameters")  # fmt: skip
     base = floored(cf, base)
