@@ -151,7 +151,7 @@ def test_a_unit_logged_as_labs_log_it_gives_back_its_sensors_and_its_behaviour(t
 
 
 @pytest.mark.xfail(
-    strict=True,
+    strict=False,  # stick-slip under noise: another CPU's rounding may pass it
     reason=("issue 34 open: the hunting loop's verdict is unexplained (friction does not pay against its own floor)"),
 )
 def test_a_loop_that_hunts_is_friction_not_a_play(tmp_path):
@@ -175,7 +175,7 @@ def test_a_loop_that_hunts_is_friction_not_a_play(tmp_path):
 
 
 @pytest.mark.xfail(
-    strict=True,
+    strict=False,  # stick-slip under noise: another CPU's rounding may pass it
     reason=("issue 34 open: friction and the limit are near equal in importance and the verdict flips between them"),
 )
 def test_the_same_records_perturbed_at_1e_12_give_the_same_verdict(tmp_path):
