@@ -220,7 +220,7 @@ def bench_commands(
         scratch = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="flexjoint-bench-")))
         inputs = {}
         for tree in trees:
-            say(f"preparing the {tree.label} tree ({tree.commit[:9]})")
+            say(f"preparing {tree.label!r}: {tree.commit[:9]}")
             inputs[tree.label] = prepare(tree, scratch / tree.label / "inputs")
         load = [os.getloadavg()[0]]
         rows: dict[str, dict[str, list[dict[str, Any]]]] = {c.name: {t.label: [] for t in trees} for c in cmds}
