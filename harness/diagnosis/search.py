@@ -506,9 +506,11 @@ def pays(cf: CrossFit, without: Model, with_: Model) -> bool:
 
 def _better_floored(cf: CrossFit, current: Model, models: list[Model]) -> list[Model]:
     """``models`` with the floors of those that score better than ``current`` (the others cannot enter)."""
-    better = [m for m in models if m.score.excess < current.score.excess]
-    done = dict(zip([id(m) for m in better], floored_all(cf, better), strict=True))
-    return [done.get(id(m), m) for m in models]
+    better = [i for i, m in enumerate(models) if m.score.excess < current.score.excess]
+    out = list(models)
+    for i, m in zip(better, floored_all(cf, [models[i] for i in better]), strict=True):
+        out[i] = m
+    return out
 
 
 def eliminate(cf: CrossFit, model: Model) -> tuple[Model, dict[str, Score]]:

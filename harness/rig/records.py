@@ -919,16 +919,15 @@ def _off_lattice(theta: np.ndarray, step: float) -> float:
 def _gauge_zero(cols: dict[str, np.ndarray], Ts: float) -> tuple[float, str]:
     """The deflection's zero [deg] and what it was read on: its median over the record's quietest stretch of
     ZERO_SECONDS where the shaft is at rest (it moves less than AT_REST_DEG) and the link too (its deflection's RMS
-    about its mean within REST_SIGMAS times its noise: the MAD of its third differences, at least its lattice's
-    step / sqrt 12, the step there where the lattice is not uniform: a length read as an angle); (NaN, why) where
-    the link never rests."""
+    about its mean within REST_SIGMAS times its noise: the MAD of its third differences, at least the step between
+    its values there / sqrt 12: a lattice's, uniform or not, as a length read as an angle); (NaN, why) where the
+    link never rests."""
     th, al = cols["theta"], cols["alpha"]
     n = max(4, int(round(ZERO_SECONDS / Ts)))
     if al.size < 2 * n:
         return math.nan, f"the record is shorter than two stretches of {ZERO_SECONDS:g} s"
     d3 = np.diff(al, 3)
-    sigma = max(1.4826 * float(np.median(np.abs(d3 - np.median(d3)))) / math.sqrt(20.0),
-                value_step(al) / math.sqrt(12.0))  # fmt: skip
+    sigma = 1.4826 * float(np.median(np.abs(d3 - np.median(d3)))) / math.sqrt(20.0)
     starts = np.arange(0, al.size - n + 1, max(1, n // 2))
     still = [a for a in starts if float(np.ptp(th[a : a + n])) < AT_REST_DEG]
     if not still:
