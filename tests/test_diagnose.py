@@ -68,6 +68,10 @@ def test_coulomb_friction_named_and_fitted(coulomb_diag):
     assert lo <= 0.05 <= hi and hi - lo < 0.01 * 0.05
     assert d.parameters["plant.Ks"].fitted == pytest.approx(1.3, rel=TWIN_REL)
     assert d.parameters["plant.Beq"].fitted == pytest.approx(0.004, rel=3 * TWIN_REL)
+    # the twin's gauge reads the link without an offset: each open-loop record's zero, as its least squares took it
+    # in the final replay, is the data's (a record that never rests reads a swing at its quietest: -0.86 deg)
+    for name, sensors in d.sensors.items():
+        assert sensors.gauge_offset_deg[0] == pytest.approx(0.0, abs=0.01), name
     # the gap shrinks on held-out experiments to near the noise floor
     assert d.gap.shrink_pct > 80.0
     assert d.gap.held_out.gap_after < 3.0 * d.noise_floor.gap

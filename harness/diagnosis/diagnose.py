@@ -64,7 +64,7 @@ def _rig_fit(found: SearchResult) -> RigFit:
 
 def _sensors(found: SearchResult, experiments: dict[str, RigExperiment]) -> dict[str, RecordSensors]:
     """Each record's gauge offset as fitted (a closed loop's, with its interval) or as an open loop's least squares
-    took it (its reading at rest), and where its (first) replay started the link (a closed loop's as fitted)."""
+    took it in the final rig's replay, and where its (first) replay started the link (a closed loop's as fitted)."""
     out: dict[str, RecordSensors] = {}
     for x in experiments.values():
         if x.record in out:
@@ -74,7 +74,7 @@ def _sensors(found: SearchResult, experiments: dict[str, RigExperiment]) -> dict
             lo, hi = found.final_fit.ci95.get(key, (math.nan, math.nan))
             offset = [float(found.final[key]), float(lo), float(hi)]
         else:
-            offset = [float(x.alpha_rest), math.nan, math.nan]
+            offset = [float(found.gauge_zeros.get(x.record, x.alpha_rest)), math.nan, math.nan]
         a, r = link_keys(x.name)
         out[x.record] = RecordSensors(
             gauge_offset_deg=offset,

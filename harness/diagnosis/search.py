@@ -241,7 +241,8 @@ class SearchResult:
     """What the search finds: verdict, effects, candidates, rounds, gap, parameter table, whether recalibration
     was applied, the final overrides (all experiments) and their covariance, the linear parameters recalibration
     alone fitted ({} when not applied), the floor's and the base model's scores, and each closed-loop record's
-    behaviour beside its replays' (the final rig, with draws of its parameters and of the noise)."""
+    behaviour beside its replays' (the final rig, with draws of its parameters and of the noise), and each record's
+    gauge zero [deg] in the final rig's replay (fitted, or an open loop's least squares)."""
 
     verdict: str
     effects: list[FoundEffect]
@@ -257,6 +258,7 @@ class SearchResult:
     base: Score
     models: dict[str, Model]
     behaviour: dict[str, RecordBehaviour]
+    gauge_zeros: dict[str, float]
 
 
 def floored(cf: CrossFit, model: Model) -> Model:
@@ -360,7 +362,8 @@ def fit_models(
                 continue
             by_score = (p.draws, p.resolution) if e in sized[i] else ()
             for k in (0, 1):
-                for j, rig in enumerate((starts[i][k][0], _sheet_linear(starts[i][k][0]))):
+                rigs = (starts[i][k][0], _sheet_linear(starts[i][k][0]))
+                for j, rig in enumerate(rigs[: 1 if rigs[1] == rigs[0] else 2]):  # the current rig may be the sheet's
                     grid_slots.append((i, k, e, j))
                     grid_tasks.append(Grid(table[e], rig, tuple(cf.fits[k]), *by_score))
     best: dict[tuple[int, int, str, int], tuple[float | int, float]] = {}
@@ -619,8 +622,11 @@ def search(
             table_rows[prm].folds = [_fit_row(f, prm) for f in recal_model.fits]
             if own:
                 table_rows[prm].records = {n: _fit_row(r, prm) for n, r in own.items()}
-    (sse_final,) = pool.map([Evaluate(final, tuple(names), (), policy.resolution)])
-    sse_final = {n: dict(e.sse) for n, e in sse_final.items()}
+    (ev_final,) = pool.map([Evaluate(final, tuple(names), (), policy.resolution)])
+    sse_final = {n: dict(e.sse) for n, e in ev_final.items()}
+    gauge_zeros: dict[str, float] = {}
+    for n, e in ev_final.items():
+        gauge_zeros.setdefault(experiments[n].record, e.offset)
     path = _path(fw, model) + ([final_model] if signature else [])
     steps = [Step("recalibration", math.sqrt(base.score.msg), 100.0 * cf.share(given, base.score, floor),
                   recal_paid)]  # fmt: skip
@@ -675,6 +681,7 @@ def search(
         base=base.score,
         models={"base": base, "final": final_model},
         behaviour=behaviour,
+        gauge_zeros=gauge_zeros,
     )
 
 

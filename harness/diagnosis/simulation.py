@@ -237,12 +237,14 @@ def simulate(
 @dataclass(frozen=True)
 class Replayed:
     """One experiment's replay: theta, alpha [deg] as its sensors read them, the samples where the simulated pot is
-    on its track, and the command [V] (a closed loop's controller's; the logged one otherwise)."""
+    on its track, the command [V] (a closed loop's controller's; the logged one otherwise) and the gauge's zero
+    [deg] it read the link with (an open loop's as its least squares took it)."""
 
     theta: np.ndarray
     alpha: np.ndarray
     on_track: np.ndarray
     u: np.ndarray
+    alpha_zero: float
 
 
 def replay(rig: Any, setup: Setup, exp: RigExperiment, over: Mapping[str, Any], n: int | None = None) -> Replayed:
@@ -297,10 +299,12 @@ def replay(rig: Any, setup: Setup, exp: RigExperiment, over: Mapping[str, Any], 
         th += float(np.mean(d[ok])) if ok.any() else float(np.mean(d))  # initial shaft angle: least squares
         ok_a = exp.valid["alpha"][: al.size]
         if ok_a.any():
-            al += float(np.mean((exp.alpha[: al.size] - al)[ok_a]))  # the gauge's zero: least squares
+            shift = float(np.mean((exp.alpha[: al.size] - al)[ok_a]))  # the gauge's zero: least squares
+            al += shift
+            delta += shift
     else:  # started at the measured angle: only whole turns of the pot's wrap to restore
         th += 360.0 * np.round((exp.theta[0] - th[0]) / 360.0)
-    return Replayed(th, al, on_track, np.asarray(res.get("u", exp.u[:n]), dtype=float))
+    return Replayed(th, al, on_track, np.asarray(res.get("u", exp.u[:n]), dtype=float), delta)
 
 
 def _shooting(
@@ -531,7 +535,8 @@ def evaluate(
     key = offset_key(exp.record)
     over.setdefault(key, exp.alpha_rest)
     closed = exp.replay == "closed" and bool(setup.loop_noise)
-    th0, al0, on0 = simulate(rig, setup, exp, over)
+    first = replay(rig, setup, exp, over)
+    th0, al0, on0 = first.theta, first.alpha, first.on_track
     m = th0.size
     sims = {"theta": th0, "alpha": al0}
     others = [simulate(rig, setup, exp, {**d, **own, "daq.seed": s})
@@ -567,4 +572,5 @@ def evaluate(
         out["spread"][c] = float(np.sum(count * spread))
         out["effective"][c] = effective_gap(off, n_off, spread, exp.sst[c] / max(exp.u.size, 1))
     own = {k: float(v) for k, v in over.items() if k in nuisance_keys(exp) or k == key}
+    own[key] = first.alpha_zero  # an open loop's as its least squares took it
     return Evaluation(out["sse"], out["effective"], out["spread"], own)
