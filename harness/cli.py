@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import atexit
 import contextlib
+import logging
 import math
 import os
 import signal
@@ -1083,6 +1084,9 @@ def _quiet_workers_on_interrupt() -> None:
             os.kill(os.getpid(), signal.SIGINT)
         if not (_raised or _ending):
             _raised = True
+            # the client's event loop may trip over the interrupt in its own callbacks (distributed's sync() cancels
+            # a future it had not assigned yet: a NameError logged by tornado): the command's one line stands alone
+            logging.getLogger("tornado.application").disabled = True
             raise KeyboardInterrupt
         try:
             if _status is not None and err.is_terminal:

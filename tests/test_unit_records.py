@@ -150,6 +150,7 @@ def test_a_unit_logged_as_labs_log_it_gives_back_its_sensors_and_its_behaviour(t
                 assert step.metrics[metric].inside, (name, step.start_s, metric, step.metrics[metric])
 
 
+@pytest.mark.open
 @pytest.mark.xfail(
     strict=False,  # stick-slip under noise: another CPU's rounding may pass it
     reason=("issue 34 open: the hunting loop's verdict is unexplained (friction does not pay against its own floor)"),
@@ -174,6 +175,7 @@ def test_a_loop_that_hunts_is_friction_not_a_play(tmp_path):
     assert dec.after_effects <= dec.noise_floor + 0.05  # within 5 points of what a right model leaves
 
 
+@pytest.mark.open
 @pytest.mark.xfail(
     strict=False,  # stick-slip under noise: another CPU's rounding may pass it
     reason=("issue 34 open: friction and the limit are near equal in importance and the verdict flips between them"),
