@@ -13,6 +13,7 @@ import pytest
 
 from harness import spec as specmod
 from harness.behaviour import POOLED_BY
+from harness.diagnosis.result import NoiseFloor
 from harness.fmu.build import build_all
 from harness.fmu.cosim import Rig
 from harness.prediction import (
@@ -25,7 +26,7 @@ from harness.prediction import (
     simulate_loop,
 )
 from harness.rig.controller import Controller
-from harness.twin import Spread, draw, spread_of_diagnosis, twin_of_spec
+from harness.twin import Spread, draw, measurement_noise, spread_of_diagnosis, twin_of_spec
 
 LQR = Controller(K=[9.231, -18.769, 1.203, -0.041], cutoff=15.0, sample_rate=500.0)  # specs/closed_loop.toml's
 
@@ -93,6 +94,26 @@ def test_a_diagnosis_spread_is_its_intervals_plus_its_folds():
     logks = np.log([d["plant.Ks"] for d in draws])
     assert np.exp(np.median(logks)) == pytest.approx(1.5, rel=0.01) and np.std(logks) == pytest.approx(ks, rel=0.05)
     assert {d["daq.delay_samples"] for d in draws} == {2.0}
+
+
+def test_an_adc_the_diagnosis_found_gets_the_noise_under_its_lattice():
+    """A rig with 0.002 V of noise read through an 8-bit ADC over +-10 V: the diagnosis's floor is the noise plus the
+    lattice's LSB^2 / 12. A twin whose sheet has no ADC but which simulates the ADC found takes the noise without the
+    lattice's share (its DAQ adds it): its DAQ's noise is the rig's 0.002 V again, not the lattice's share twice."""
+    sheet = twin_of_spec(specmod.load("blind_closed"))
+    gains = {"theta": specmod.fmu_value(sheet.daq, "daq", "pot_gain"),
+             "alpha": abs(specmod.fmu_value(sheet.daq, "daq", "gauge_gain"))}  # fmt: skip
+    lsb = 20.0 / 2**8
+    noise = {c: 0.002 * g for c, g in gains.items()}
+    total = {c: math.hypot(noise[c], g * lsb / math.sqrt(12.0)) for c, g in gains.items()}
+    floor = NoiseFloor(total["theta"], total["alpha"], "", [], 0.0, 100.0, 8, estimated_deg=noise)
+    assert measurement_noise(floor, sheet.daq, {}) == total  # no lattice simulated: the floor as it is
+    found = {"daq.adc_bits": 8.0}
+    twin = dataclasses.replace(sheet, overrides=found, noise_deg=measurement_noise(floor, sheet.daq, found))
+    daq = twin.tables().daq
+    assert daq["adc_bits"] == 8
+    assert daq["noise_theta"] == pytest.approx(0.002, rel=1e-12)
+    assert daq["noise_alpha"] == pytest.approx(0.002, rel=1e-12)
 
 
 def test_a_rig_object_gives_its_overrides_and_covariance():
