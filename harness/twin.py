@@ -3,8 +3,8 @@
 ``load_twin(RIG)`` reads RIG as a spec (a path or a bundled name: its rig as written, its ``[uncertainty]`` the spread
 of its sheet values) or as a diagnosis directory (``diagnosis.json``: the sim spec it judged against, with the
 diagnosis's fitted linear parameters and the effects it found applied on top, the data's noise floor (without an ADC
-or encoder lattice's share where the twin's own DAQ quantises), the spread of the fitted values). A :class:`Twin`
-holds the sheet's tables and the overrides on top of them, in the diagnosis's names:
+or encoder lattice's share where the twin's DAQ quantises: the sheet's, or an ADC the diagnosis found), the spread of
+the fitted values). A :class:`Twin` holds the sheet's tables and the overrides on top of them, in the diagnosis's names:
 
 - ``rig.drive_gain``, ``rig.drive_tau``, ``rig.inertia_ratio``: the drive, mapped onto the plant's kt, km, Beq and Jeq
   by :func:`harness.diagnosis.rigmodel.to_plant`;
@@ -42,7 +42,7 @@ import numpy as np
 from . import spec as specmod
 from .diagnosis.experiments import load_experiments
 from .diagnosis.recalibrate import IMPLIED, LINEAR
-from .diagnosis.result import Diagnosis
+from .diagnosis.result import Diagnosis, NoiseFloor
 from .diagnosis.rigmodel import COMBOS, SENSORS, combos, prior_sd, to_plant
 from .diagnosis.simulation import offset_key
 from .fmu.cosim import CALIBRATION
@@ -51,8 +51,8 @@ from .ident.calibration import alpha_deg, load_calibration, theta_deg
 from .rig.controller import Controller
 from .rundir import DataError, Manifest, RunDir, read_dataset, sample_time
 
-__all__ = ["Record", "RigTables", "Spread", "Twin", "draw", "load_record", "load_twin", "spread_of_diagnosis",
-           "with_record_offset"]  # fmt: skip
+__all__ = ["Record", "RigTables", "Spread", "Twin", "draw", "load_record", "load_twin", "measurement_noise",
+           "spread_of_diagnosis", "with_record_offset"]  # fmt: skip
 
 MODELS = {"plant": "flexjoint", "daq": "daq"}  # the FMU behind each table
 NOISE = {"theta": ("noise_theta", "pot_gain"), "alpha": ("noise_alpha", "gauge_gain")}  # channel -> DAQ noise, gain
@@ -255,10 +255,19 @@ def _sim_spec(diag: Diagnosis, where: Path) -> specmod.Spec:
 
 
 def _quantises(daq: dict[str, Any], channel: str) -> bool:
-    """Does the DAQ put ``channel`` on a lattice (its ADC, or theta's encoder)? Then the noise floor without the
-    lattice's LSB^2 / 12 is its noise (the DAQ adds that share), else the floor with it."""
+    """Does the DAQ ``daq`` put ``channel`` on a lattice (its ADC, or theta's encoder)?"""
     encoder = channel == "theta" and int(specmod.fmu_value(daq, "daq", "theta_sensor")) == 1
     return encoder or int(specmod.fmu_value(daq, "daq", "adc_bits")) > 0
+
+
+def measurement_noise(floor: NoiseFloor, daq: dict[str, Any], over: dict[str, float]) -> dict[str, float]:
+    """The twin's measurement noise RMS [deg as read] per channel from a diagnosis's noise ``floor``: without the
+    lattice's LSB^2 / 12 on a channel the twin's DAQ quantises (it adds that share itself), else the floor with it.
+    The DAQ as the twin simulates it: the sheet's table ``daq`` with the DAQ overrides among ``over`` (an ADC's bits
+    the diagnosis found), as the diagnosis's replays decide it."""
+    total = {"theta": floor.theta_deg, "alpha": floor.alpha_deg}
+    simulated = {**daq, **{k.split(".", 1)[1]: v for k, v in over.items() if k.split(".", 1)[0] == "daq"}}
+    return {c: (floor.estimated_deg or total)[c] if _quantises(simulated, c) else total[c] for c in total}
 
 
 def twin_of_diagnosis(where: Path, spec: specmod.Spec | None = None) -> Twin:
@@ -278,10 +287,8 @@ def twin_of_diagnosis(where: Path, spec: specmod.Spec | None = None) -> Twin:
         daq |= {"theta_sensor": 1, "encoder_counts": float(first.counts_per_rev or 4096)}
     if diag.calibration.gauge_delay_s:
         daq["gauge_delay"] = int(round(diag.calibration.gauge_delay_s * rate))
-    nf = diag.noise_floor
-    total = {"theta": nf.theta_deg, "alpha": nf.alpha_deg}
-    noise = {c: (nf.estimated_deg or total)[c] if _quantises(daq, c) else total[c] for c in total}
     over, spread = spread_of_diagnosis(doc)
+    noise = measurement_noise(diag.noise_floor, daq, over)
     name = f"diagnosis of {run.name}"
     return Twin(name, "diagnosis", spec, float(rate), plant, daq, over, noise, spread, run)
 

@@ -7,7 +7,7 @@ import subprocess
 import sys
 
 from harness.diagnosis import blindtest as bt
-from harness.diagnosis.blinddesign import BAND_METRICS, design_group
+from harness.diagnosis.blinddesign import BAND_METRICS, design_group, true_seed
 
 
 def test_design_rigs_are_wrong_sheet_rigs_of_their_own():
@@ -22,6 +22,16 @@ def test_design_rigs_are_wrong_sheet_rigs_of_their_own():
     mixed = bt.plan(5, 0, ("twin", "design"))
     assert [c["family"] for c in mixed] == ["twin", "design", "twin", "design", "twin"]
     assert bt.campaign_spec(True, [], "design").calibration == []  # the lab never recalibrated
+
+
+def test_each_true_rig_runs_with_noise_of_its_own():
+    """The true rigs of two blind-test seeds do not share their noise (case k of seed 0 and of seed 1 once ran the one
+    seed 4242 + k), nor take their campaign's."""
+    cases = bt.plan(5, 0, ("design",)) + bt.plan(5, 1, ("design",))
+    seeds = [true_seed(c) for c in cases]
+    assert len(set(seeds)) == len(cases) and all(0 <= s < 2**31 - 1 for s in seeds)
+    assert not set(seeds) & {c["campaign_seed"] for c in cases}
+    assert seeds == [true_seed(c) for c in bt.plan(5, 0, ("design",)) + bt.plan(5, 1, ("design",))]
 
 
 def _scored(identified: bool, sheet: bool, hits: int) -> dict:

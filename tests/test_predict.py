@@ -13,6 +13,7 @@ import pytest
 
 from harness import spec as specmod
 from harness.behaviour import POOLED_BY
+from harness.diagnosis.result import NoiseFloor
 from harness.fmu.build import build_all
 from harness.fmu.cosim import Rig
 from harness.prediction import (
@@ -25,7 +26,8 @@ from harness.prediction import (
     simulate_loop,
 )
 from harness.rig.controller import Controller
-from harness.twin import Spread, draw, spread_of_diagnosis, twin_of_spec
+from harness.spec import controller_table
+from harness.twin import Spread, draw, measurement_noise, spread_of_diagnosis, twin_of_spec
 
 LQR = Controller(K=[9.231, -18.769, 1.203, -0.041], cutoff=15.0, sample_rate=500.0)  # specs/closed_loop.toml's
 
@@ -93,6 +95,61 @@ def test_a_diagnosis_spread_is_its_intervals_plus_its_folds():
     logks = np.log([d["plant.Ks"] for d in draws])
     assert np.exp(np.median(logks)) == pytest.approx(1.5, rel=0.01) and np.std(logks) == pytest.approx(ks, rel=0.05)
     assert {d["daq.delay_samples"] for d in draws} == {2.0}
+
+
+def _under_a_lattice(daq: dict, bits: int) -> NoiseFloor:
+    """The noise floor a diagnosis finds where an ADC of ``bits`` over +-10 V reads a rig's 0.002 V of noise per
+    channel [deg as read through ``daq``'s gains]: the noise plus the lattice's LSB^2 / 12, the noise alone
+    estimated apart."""
+    gains = {
+        "theta": specmod.fmu_value(daq, "daq", "pot_gain"),
+        "alpha": abs(specmod.fmu_value(daq, "daq", "gauge_gain")),
+    }
+    lsb = 20.0 / 2**bits
+    noise = {c: 0.002 * g for c, g in gains.items()}
+    total = {c: math.hypot(noise[c], g * lsb / math.sqrt(12.0)) for c, g in gains.items()}
+    return NoiseFloor(total["theta"], total["alpha"], "", [], 0.0, 100.0, bits, estimated_deg=noise)
+
+
+def test_an_adc_the_diagnosis_found_gets_the_noise_under_its_lattice():
+    """A twin whose sheet has no ADC but which simulates the 8-bit ADC a diagnosis found takes the noise without the
+    lattice's share (its DAQ adds it): its DAQ's noise is the rig's 0.002 V again, not the lattice's share twice."""
+    sheet = twin_of_spec(specmod.load("blind_closed"))
+    floor = _under_a_lattice(sheet.daq, 8)
+    assert measurement_noise(floor, sheet.daq, {}) == {"theta": floor.theta_deg, "alpha": floor.alpha_deg}
+    found = {"daq.adc_bits": 8.0}
+    twin = dataclasses.replace(sheet, overrides=found, noise_deg=measurement_noise(floor, sheet.daq, found))
+    daq = twin.tables().daq
+    assert daq["adc_bits"] == 8
+    assert daq["noise_theta"] == pytest.approx(0.002, rel=1e-12)
+    assert daq["noise_alpha"] == pytest.approx(0.002, rel=1e-12)
+
+
+def test_the_bands_of_a_twin_with_the_adc_found_hold_the_rig_through_that_adc():
+    """The blind rig read through an 8-bit ADC, under its LQR (the loop hunts on the lattice): 20 runs of the rig,
+    each with noise of its own seed, against the bands of a twin with the ADC found and the noise under the lattice
+    (no parameter spread: the noise alone). Every run's overshoot and ringing lie inside; a twin that took the floor
+    with the lattice's share (and adds the lattice again) puts its ringing band above all 20 and its overshoot on
+    another point of the lattice."""
+    spec = specmod.load("blind_closed")
+    rig = twin_of_spec(specmod.load("blind_closed", ["daq.adc_bits=8"]))
+    sheet = dataclasses.replace(twin_of_spec(spec), spread=Spread(), overrides={"daq.adc_bits": 8.0})
+    ctl = controller_table(spec.raw["controller"])
+    ref = reference_from("square:f=0.25;amplitude=30;duration=4", spec.sample_rate)
+    f = build_all()
+    with Rig(f["flexjoint"], f["daq"], f["controller"]) as sim:
+        runs = [simulate_loop(sim, rig.tables(seed=1000 + k), ctl, ref.ref_deg, ref.Ts, 0.0) for k in range(20)]
+    true = [pooled(ref.t, ref.ref_deg, r["theta"], r["alpha"], r["u"], 5.0, 0.0) for r in runs]
+    floor = _under_a_lattice(spec.daq, 8)
+    twin = dataclasses.replace(sheet, noise_deg=measurement_noise(floor, sheet.daq, sheet.overrides))
+    assert twin.noise_deg == pytest.approx(rig.noise_deg, rel=1e-12)
+    bands = predict(twin, ctl, ref, n=60, seed=2, workers=1).metric_bands()
+    for m in ("overshoot_pct", "ring_alpha_deg", "peak_alpha_deg", "stop_error_deg"):
+        assert sum(bands[m].lo <= t[m] <= bands[m].hi for t in true) == 20, m
+    twice = dataclasses.replace(sheet, noise_deg={"theta": floor.theta_deg, "alpha": floor.alpha_deg})
+    wrong = predict(twice, ctl, ref, n=60, seed=2, workers=1).metric_bands()
+    assert wrong["ring_alpha_deg"].lo > max(t["ring_alpha_deg"] for t in true)
+    assert sum(wrong["overshoot_pct"].lo <= t["overshoot_pct"] <= wrong["overshoot_pct"].hi for t in true) == 0
 
 
 def test_a_rig_object_gives_its_overrides_and_covariance():

@@ -21,6 +21,8 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from .. import spec as specmod
 from ..design import Design, controller_toml, design
 from ..executor import FmuBytes, fmu_file, worker_rig
@@ -32,14 +34,22 @@ from .blindcase import campaign_spec, case_sets, hide_truth, score_case
 from .diagnose import diagnose_run
 
 __all__ = ["BAND_METRICS", "METHOD", "REFERENCE", "SPECS", "design_group", "design_scores", "run_design_case",
-           "sheet_design", "with_controller"]  # fmt: skip
+           "sheet_design", "true_seed", "with_controller"]  # fmt: skip
 
 METHOD = "lqr"  # the labs' Part II
 SPECS = "settling=1.5,overshoot=5,stop=3,alpha=15,voltage=10,band=5"  # s, %, deg, deg, V, % of the step
 REFERENCE = "square:f=0.25;amplitude=30;duration=8"  # the check's reference (quick: 4 s)
 N_CHECK = 100  # members of each design's prediction
 BAND_METRICS = ("overshoot_pct", "settling_s", "stop_error_deg", "peak_alpha_deg", "peak_u_v", "ring_alpha_deg")
-TRUE_SEED = 4242  # the true rig's noise seed, apart from the campaign's and the predictions'
+TRUE_SEED = 4242  # mixed with a case's campaign seed: its true rig's noise seed (:func:`true_seed`)
+
+
+def true_seed(case: dict[str, Any]) -> int:
+    """The noise seed of a case's true rig: its campaign seed and :data:`TRUE_SEED` mixed
+    (:class:`numpy.random.SeedSequence`), so that the true rig's noise is apart from its campaign's and its
+    predictions', and the cases of another blind-test seed run their true rigs with noise of their own."""
+    state = np.random.SeedSequence([int(case["campaign_seed"]), TRUE_SEED]).generate_state(1)[0]
+    return int(state) % (2**31 - 1)
 
 
 def _reference(rate: float, quick: bool) -> Reference:
@@ -124,7 +134,7 @@ def run_design_case(case: dict[str, Any], root: Path | None, quick: bool, fmus: 
         identified = design(twin, METHOD, ref, specs, n=N_CHECK, seed=int(case["campaign_seed"]) % 1000, strict=False,
                             workers=1, fmus=fmus)  # fmt: skip
     rig = worker_rig(fmus)
-    tables = _true_tables(true_spec, sheet, TRUE_SEED + int(case["case"]))
+    tables = _true_tables(true_spec, sheet, true_seed(case))
     true_id = _true_metrics(rig, tables, identified.controller, ref)
     true_sheet = _true_metrics(rig, tables, sheet_c, ref)
     score = {**score_case(case, diag), "design": design_scores(identified, true_id, true_sheet)}
