@@ -6,6 +6,7 @@ rules)."""
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +24,7 @@ from harness.diagnosis.rigmodel import combos
 from harness.diagnosis.search import POLICY, against_record
 from harness.ident.calibration import daq_calibration, gauge_volts
 from harness.rig.campaign import run_campaign
+from harness.rundir import DataError, Manifest, read_dataset, write_dataset
 
 # On a rig whose truth the twin contains (the blind campaign's twin with its parameters set), the diagnoser recovers
 # effects and Ks, Beq to about 0.05 % (the calibration's own error, Ke -0.016 %, is most of it): a rework that loses
@@ -404,3 +406,34 @@ def test_a_wrong_sheet_is_identified_not_walled(tmp_path, fmus):
     for k in ("rig.drive_gain", "rig.drive_tau", "plant.Ks"):
         assert not d.parameters[k].folds_disagree, k
     assert d.verdict == "none"
+
+
+def test_records_in_which_nothing_moves_are_set_aside(runs, tmp_path):
+    """A hub its friction holds under a weak drive: in five of the friction rig's six records the sensors read their
+    rest value and noise whatever the command does. Nothing in them moves beyond the noise, so they are set aside
+    (a fold of such records alone had nothing to fit: a crash in the least squares), the moving record is cut in
+    two, one half per fold, and the friction is found on it."""
+    run = tmp_path / "run"
+    shutil.copytree(runs["coulomb"], run)
+    rng = np.random.default_rng(3)
+    names = [e.name for e in Manifest.load(run).experiments if e.role != "calibration"]
+    names.insert(0, names.pop(names.index("prbs_large")))  # the one that moves
+    for name in names[1:]:
+        path = run / "data" / f"{name}.parquet"
+        cols = {c: v.to_numpy() for c, v in read_dataset(path).items()}
+        for c in ("theta_v", "alpha_v"):
+            cols[c] = cols[c][0] + 0.002 * rng.standard_normal(cols[c].size)  # the lab spec's noise [V rms]
+        write_dataset(path, cols)
+    d = dg.diagnose_run(run, campaign_spec(quick=True), tmp_path / "out", workers=1)
+    assert d.folds.scheme.endswith(f"set aside, nothing in them moves beyond the noise: {', '.join(names[1:])}")
+    assert {n.split(" (")[0] for n in (*d.folds.A, *d.folds.B)} == {names[0]}
+    assert d.verdict == "coulomb_friction"
+    assert d.fitted_effect_params()["plant.coulomb_torque"] == pytest.approx(0.05, rel=0.02)
+    path = run / "data" / f"{names[0]}.parquet"  # the last one held too: nothing to diagnose, one line
+    cols = {c: v.to_numpy() for c, v in read_dataset(path).items()}
+    for c in ("theta_v", "alpha_v"):
+        cols[c] = cols[c][0] + 0.002 * rng.standard_normal(cols[c].size)
+    write_dataset(path, cols)
+    with pytest.raises(DataError, match="^nothing moves beyond its noise in any record"):
+        dg.diagnose_run(run, campaign_spec(quick=True), tmp_path / "none", workers=1)
+    assert not (tmp_path / "none").exists()

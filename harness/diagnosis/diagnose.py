@@ -34,7 +34,16 @@ from ..ident.calibration import load_calibration
 from ..rundir import Manifest, RunDir, record_inputs, write_json
 from . import recalibrate as recal
 from .effects import CandidateContext, candidates
-from .experiments import REPLAYS, RigExperiment, fold_experiments, load_experiments, masked_share, one_rate
+from .experiments import (
+    REPLAYS,
+    RigExperiment,
+    fold_experiments,
+    load_experiments,
+    mark_quiet,
+    masked_share,
+    moving_records,
+    one_rate,
+)
 from .gauge import gauge_delay
 from .noise import noise_floor
 from .replays import write_replays
@@ -201,13 +210,16 @@ def diagnose_run(
     if timing.samples:
         for x in records.values():
             x.daq = {**x.daq, "gauge_delay": timing.samples}
-    experiments, folds = fold_experiments(records)
+    noise, _ = noise_floor(records, adc_range, cal)
+    sigma = {"theta": noise.theta_deg, "alpha": noise.alpha_deg}  # [deg], an ADC's quantisation included
+    moving, still = moving_records(records, sigma)
+    experiments, folds = fold_experiments(moving)
+    if still:
+        folds = replace(folds, scheme=f"{folds.scheme}; set aside, nothing in them moves beyond the noise: "
+                                     f"{', '.join(still)}")  # fmt: skip
+    mark_quiet(experiments, sigma)  # a lone record's blocks
     fmus = fmus or build_all()
     shipped: dict[str, FmuBytes] = {k: fmu_bytes(fmus[k]) for k in ("flexjoint", "daq", "controller") if k in fmus}
-    noise, _ = noise_floor(records, adc_range, cal, experiments)
-    sigma = {"theta": noise.theta_deg, "alpha": noise.alpha_deg}  # [deg], an ADC's quantisation included
-    for x in experiments.values():  # a channel within twice its noise's variance carries nothing a model can fit
-        x.quiet = frozenset(c for c in sigma if x.sst[c] <= 2.0 * x.u.size * sigma[c] ** 2)
     lattice = replay_noise(daq, noise.estimated_deg) if noise.adc_lattice_bits and noise.estimated_deg else {}
     prior, rel_se = priors(sim_spec, cal.gain_rel_se(), all(x.encoder for x in experiments.values()))
     setup = Setup(plant, daq, cal.comb_angles, experiments, shipped, replay_noise(daq, sigma), lattice, rel_se, prior,
@@ -217,7 +229,7 @@ def diagnose_run(
     pool = Pool(setup, workers, scheduler, progress)
     try:
         imported = Manifest.load(real).kind == "import"
-        unit = list(experiments) if imported and len(records) >= MIN_RECORDS else None
+        unit = list(experiments) if imported and len(moving) >= MIN_RECORDS else None
         found = search(pool, experiments, (folds.A, folds.B), cands, say, policy, unit)
         # after recalibration: what recalibration alone fitted (the waterfall's stage), not the final joint refit
         stages = {"given": {}, "recalibrated": found.recalibrated, "effects": found.final}

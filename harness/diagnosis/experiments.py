@@ -438,6 +438,27 @@ def masked_share(experiments: dict[str, RigExperiment]) -> dict[str, float]:
     return {c: float(sum(int(np.sum(~x.valid[c])) for x in experiments.values())) / n for c in CHANNELS}
 
 
+def mark_quiet(experiments: dict[str, RigExperiment], sigma: dict[str, float]) -> None:
+    """Each experiment's channels that do not move beyond their noise ``sigma`` [deg RMS per channel], in place
+    (:attr:`RigExperiment.quiet`): a channel whose variance is within twice its noise's carries nothing a model can
+    fit."""
+    for x in experiments.values():
+        x.quiet = frozenset(c for c in sigma if x.sst[c] <= 2.0 * x.u.size * sigma[c] ** 2)
+
+
+def moving_records(
+    records: dict[str, RigExperiment], sigma: dict[str, float]
+) -> tuple[dict[str, RigExperiment], list[str]]:
+    """The records in which something moves beyond the noise ``sigma`` (:func:`mark_quiet`), and the names of those
+    set aside, in which nothing does (a hub held by its friction under a weak drive: nothing for a model to fit, and
+    a fold of such records alone nothing to fit on). None moving: a one-line DataError."""
+    mark_quiet(records, sigma)
+    still = [n for n, x in records.items() if not any(x.moves(c) for c in CHANNELS)]
+    if len(still) == len(records):
+        raise DataError(f"nothing moves beyond its noise in any record ({', '.join(still)}): nothing to diagnose")
+    return {n: x for n, x in records.items() if n not in still}, still
+
+
 def split_folds(experiments: dict[str, RigExperiment]) -> tuple[list[str], list[str]]:
     """Two folds A, B of experiment names for 2-fold cross-fitting (fit on A, score on B, and back): within each
     signal kind (sorted by peak |u|, then name) the experiments alternate between the folds, the first of
