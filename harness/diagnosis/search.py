@@ -687,13 +687,14 @@ def search(
 
 def held_out_bands(cf: CrossFit, fits: Sequence[FitResult]) -> dict[tuple[str, int, str], Band]:
     """Each of the held-out closed-loop records' behaviour metrics (every reference step's) beside the band of
-    ``Policy.behaviour_draws`` replays with other draws of the fold's fitted parameters and of the noise, each fold's
-    model replaying the records it was not fitted on: {(experiment, step, metric): band}, where defined."""
+    ``Policy.behaviour_draws`` replays of the fold's fitted rig with other draws of the noise, each fold's model
+    replaying the records it was not fitted on: {(experiment, step, metric): band}, where defined. The bands compare
+    models (what each does, and how far the noise spreads it), not the precision of a fold's fit: a parameter that
+    half a record does not determine would spread its draws over its whole range."""
     n = cf.policy.behaviour_draws
     tasks, slots = [], []
     for k in (0, 1):
-        f = fits[k]
-        draws = tuple(parameter_draws(f.params, f.names, f.log, f.cov, n, 3, f.ranges))
+        draws = tuple(dict(fits[k].params) for _ in range(n))
         for name in closed_steps({x: cf.experiments[x] for x in cf.helds[k]}):
             slots.append((k, name))
             tasks.append(Behaviour(draws, (name,)))
