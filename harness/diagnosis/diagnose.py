@@ -105,14 +105,23 @@ def _own(p: FittedParameter, record: str) -> str:
 
 
 def _caveats(
-    parameters: dict[str, FittedParameter], verdict: str, folds: Folds | None = None, effects: list[str] | None = None
+    parameters: dict[str, FittedParameter],
+    verdict: str,
+    folds: Folds | None = None,
+    effects: list[str] | None = None,
+    still: list[str] | None = None,
 ) -> list[str] | None:
-    """What limits the verdict: which part of the spec does not describe the rig (:func:`recal.parts_at_bound`), each
-    recalibrated parameter that ended at its bound (an effect's share of the gap may be a wrong linear part's), each
-    one the data do not determine; the linear parameters whose fits on each record alone (with the ``effects`` found
-    held) exclude each other, or, without records fitted alone, where nothing explains the gap, those of the two
-    folds."""
-    out = recal.parts_at_bound({n: (p.nominal, p.fitted) for n, p in parameters.items() if n in recal.LINEAR})
+    """What limits the verdict: the records set aside (``still``: nothing in them moves beyond the noise), which part
+    of the spec does not describe the rig (:func:`recal.parts_at_bound`), each recalibrated parameter that ended at
+    its bound (an effect's share of the gap may be a wrong linear part's), each one the data do not determine; the
+    linear parameters whose fits on each record alone (with the ``effects`` found held) exclude each other, or,
+    without records fitted alone, where nothing explains the gap, those of the two folds."""
+    out = (
+        [f"set aside, nothing in them moves beyond the noise: {', '.join(still)}; diagnosed on the rest"]
+        if still
+        else []
+    )
+    out += recal.parts_at_bound({n: (p.nominal, p.fitted) for n, p in parameters.items() if n in recal.LINEAR})
     out += [f"verdict {verdict!r} reached with {p.finding}" for p in parameters.values() if p.at_bound]
     out += [f"{p.finding}" for p in parameters.values() if p.identifiable is False and p.finding and not p.at_bound]
     by_record = [
@@ -214,9 +223,6 @@ def diagnose_run(
     sigma = {"theta": noise.theta_deg, "alpha": noise.alpha_deg}  # [deg], an ADC's quantisation included
     moving, still = moving_records(records, sigma)
     experiments, folds = fold_experiments(moving)
-    if still:
-        folds = replace(folds, scheme=f"{folds.scheme}; set aside, nothing in them moves beyond the noise: "
-                                     f"{', '.join(still)}")  # fmt: skip
     mark_quiet(experiments, sigma)  # a lone record's blocks
     fmus = fmus or build_all()
     shipped: dict[str, FmuBytes] = {k: fmu_bytes(fmus[k]) for k in ("flexjoint", "daq", "controller") if k in fmus}
@@ -269,7 +275,7 @@ def diagnose_run(
         thresholds=thresholds(policy),
         where=where,
         replays=_replays(experiments),
-        caveats=_caveats(found.parameters, found.verdict, folds, [e.effect for e in found.effects]),
+        caveats=_caveats(found.parameters, found.verdict, folds, [e.effect for e in found.effects], still),
         rig=_rig_fit(found),
         sensors=_sensors(found, experiments),
         behaviour=found.behaviour or None,
