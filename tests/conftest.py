@@ -193,3 +193,12 @@ def fmu_runner(fmus):
     workdir = Path(tempfile.mkdtemp(prefix="fj-test-"))
     yield {name: FmuRun(path, workdir) for name, path in fmus.items()}
     shutil.rmtree(workdir, ignore_errors=True)
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """A case marked ``open`` (``@pytest.mark.open(reason=...)``: an open issue's case that a loop sticking where the
+    noise decides passes or fails by rounding) is an xfail, not strict, with its reason."""
+    for item in items:
+        mark = item.get_closest_marker("open")
+        if mark is not None:
+            item.add_marker(pytest.mark.xfail(strict=False, reason=mark.kwargs["reason"]))

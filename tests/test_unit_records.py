@@ -150,9 +150,7 @@ def test_a_unit_logged_as_labs_log_it_gives_back_its_sensors_and_its_behaviour(t
                 assert step.metrics[metric].inside, (name, step.start_s, metric, step.metrics[metric])
 
 
-@pytest.mark.open
-@pytest.mark.xfail(
-    strict=False,  # stick-slip under noise: another CPU's rounding may pass it
+@pytest.mark.open(
     reason=(
         "issue 34 open: friction is named and sized (0.0396 N m) but fits 89 % held out against a 98.6 % floor; on "
         "the same loop's records of seeds 23 and 24 its fit on one half replays the other worse: unexplained"
@@ -178,9 +176,7 @@ def test_a_loop_that_hunts_is_friction_not_a_play(tmp_path):
     assert dec.after_effects <= dec.noise_floor + 0.05  # within 5 points of what a right model leaves
 
 
-@pytest.mark.open
-@pytest.mark.xfail(
-    strict=False,  # stick-slip under noise: another CPU's rounding may pass it
+@pytest.mark.open(
     reason=("issue 34 open: friction and the limit are near equal in importance and the verdict flips between them"),
 )
 def test_the_same_records_perturbed_at_1e_12_give_the_same_verdict(tmp_path):
