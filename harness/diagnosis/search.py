@@ -346,8 +346,9 @@ def fit_models(
     fitted linear parameters may have bent to mimic it: a limit as a heavy, damped hub), or at its fit in ``hints``
     (its model alone); each fold is refitted from every start and again from the other fold's refit where that costs
     less; the lowest cost kept. An effect that a closed loop does not reproduce sample by sample (``Effect.spread``)
-    is sized instead by the score on the fitted fold (its values replayed beside their spread), held in the refit
-    of the linear parameters, sized again on each refitted rig, and the start whose rig then scores best kept."""
+    is sized instead by the score on the current fold's rig (its values replayed beside their spread), held in the
+    refit of the linear parameters and sized again on the refitted rig, from that start only: the derivative-free
+    refit from the sheet's linear parameters spends its budget far from them."""
     hints = hints or {}
     table, p = cf.effects, cf.policy
     sized = [{e for e in group if table[e].spread and cf.all_closed} for group in adds]
@@ -363,7 +364,8 @@ def fit_models(
             by_score = (p.draws, p.resolution) if e in sized[i] else ()
             for k in (0, 1):
                 rigs = (starts[i][k][0], _sheet_linear(starts[i][k][0]))
-                for j, rig in enumerate(rigs[: 1 if rigs[1] == rigs[0] else 2]):  # the current rig may be the sheet's
+                one = rigs[1] == rigs[0] or e in sized[i]  # the current rig may be the sheet's
+                for j, rig in enumerate(rigs[: 1 if one else 2]):
                     grid_slots.append((i, k, e, j))
                     grid_tasks.append(Grid(table[e], rig, tuple(cf.fits[k]), *by_score))
     best: dict[tuple[int, int, str, int], tuple[float | int, float]] = {}
