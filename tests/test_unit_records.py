@@ -176,12 +176,10 @@ def test_a_loop_that_hunts_is_friction_not_a_play(tmp_path):
     assert dec.after_effects <= dec.noise_floor + 0.05  # within 5 points of what a right model leaves
 
 
-@pytest.mark.open(
-    reason=("issue 34 open: friction and the limit are near equal in importance and the verdict flips between them"),
-)
 def test_the_same_records_perturbed_at_1e_12_give_the_same_verdict(tmp_path):
     """Rounding another CPU's BLAS does differently must not flip a verdict: the friction-and-limit unit's records
-    perturbed by a relative 1e-12 give the same verdict and effects, and every fitted parameter inside the first
+    perturbed by a relative 1e-12 give the same verdict and effects (the order they entered in may differ: the
+    search's path, a single and then another, or the two as a pair), and every fitted parameter inside the first
     diagnosis's 95 % interval."""
     plant = {**FRICTION, "coulomb_torque": 0.02, "amp_limit": 1.5}
     run = _import_unit(tmp_path, plant)
@@ -195,7 +193,8 @@ def test_the_same_records_perturbed_at_1e_12_give_the_same_verdict(tmp_path):
             cols[c] = cols[c] * (1.0 + 1e-12 * rng.standard_normal(cols[c].size))
         write_dataset(path, cols)
     again = diagnose_run(run, "cu_flexible_arm", tmp_path / "again", workers=2, force=True)
-    assert again.verdict == first.verdict and again.effect_names == first.effect_names
+    assert again.verdict == first.verdict and sorted(again.effect_names) == sorted(first.effect_names)
+    assert again.importance_pct() == pytest.approx(first.importance_pct(), abs=1.0)  # the rig's, not a basin of a fold
     for name, p in first.parameters.items():
         lo, hi = p.ci95
         if math.isfinite(lo) and math.isfinite(hi):

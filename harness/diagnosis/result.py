@@ -155,8 +155,8 @@ class FoundEffect:
     """An effect found, in the order it was added. ``params``: its fitted parameter on all experiments
     ({"plant.coulomb_torque": 0.044}); ``params_folds``: fitted on fold A, on fold B; ``gap_before`` /
     ``gap_after``: held-out gap before and after it was added (with ``shrink_pct``, ``fit_pct_*``);
-    ``importance_pct``: its share [%] of what removing each effect alone reopens (NaN for an effect found by its
-    signature); ``fitted_on`` / ``held_out``: the experiments of the two fits; ``selected_by``: how it entered;
+    ``importance_pct``: its share [%] of what removing each effect alone from the final rig reopens of its score
+    on every record; ``fitted_on`` / ``held_out``: the experiments of the two fits; ``selected_by``: how it entered;
     ``against_record``: its parameter beside the record's own range ("the logged command reaches 5.5 V")."""
 
     effect: str
@@ -488,8 +488,8 @@ class Diagnosis:
         return {k: v for e in self.effects for k, v in e.params.items()}
 
     def importance_pct(self) -> dict[str, float]:
-        """Drop-one importance of each effect found: its share [%] of what removing each effect alone reopens
-        (they add up to 100; NaN for an effect found by its signature)."""
+        """Drop-one importance of each effect found: its share [%] of what removing each effect alone from the final
+        rig reopens of its score on every record (they add up to 100)."""
         return {e.effect: e.importance_pct for e in self.effects}
 
     def waterfall(self) -> list[tuple[str, float, float]]:

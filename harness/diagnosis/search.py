@@ -123,8 +123,8 @@ class Policy:
             f"where no single one does) enters when it closes >= min_gain ({self.min_gain:g}) of the score left "
             "above the floor of the model with it (all of it when that model is within none_level of its own floor "
             "and scores better) and stays while it still does, and only where its replays' behaviour bands (their "
-            "interval scores) are no worse than without it; the verdict names the effect whose removal reopens most "
-            "when "
+            "interval scores) are no worse than without it; the verdict names the effect whose removal from the rig "
+            "fitted on every record reopens most of its score there when "
             "the effects close >= "
             f"explained ({self.explained:g}) of what the linear model left above the floor, else unexplained; no "
             "spread below "
@@ -538,10 +538,17 @@ def eliminate(cf: CrossFit, model: Model) -> tuple[Model, dict[str, Score]]:
     return model, {}
 
 
-def importance(model: Model, without: dict[str, Score]) -> dict[str, float]:
-    """Drop-one importance [0, 1]: what removing each effect alone from ``model`` reopens, as its share of what all
-    the removals reopen."""
-    reopen = {e: max(s.excess - model.score.excess, 0.0) for e, s in without.items()}
+def importance(cf: CrossFit, effects: Sequence[str], final: Overrides) -> dict[str, float]:
+    """Drop-one importance [0, 1] of ``effects`` on the rig fitted on every record (``final``): what removing each
+    alone (the others and the linear parameters kept) reopens of the rig's score on every record, as its share of
+    what all the removals reopen. Held-out scores chose the effects; which of them the records owe most to is read
+    on the rig all of them determine (a fold's fit, on half the records, can sit in another basin)."""
+    if len(effects) < 2:
+        return {e: 1.0 for e in effects}
+    overs = [final, *(_without(final, [e]) for e in effects)]
+    res = cf.pool.map([Evaluate(o, tuple(cf.names), cf.draws(o), cf.policy.resolution) for o in overs])
+    full, *less = (cf._merge([r]) for r in res)
+    reopen = {e: max(s.excess - full.excess, 0.0) for e, s in zip(effects, less, strict=True)}
     total = sum(reopen.values())
     return {e: r / total if total > 0 else 1.0 / len(reopen) for e, r in reopen.items()}
 
@@ -550,8 +557,8 @@ def verdict(cf: CrossFit, base: Model, final: Model, shares: dict[str, float], s
             ) -> tuple[str, float]:  # fmt: skip
     """The verdict and the share of what the linear model left above the final model's floor that the effects close
     (NaN with no gap): ``none`` (or the effect found by its signature in the data) when the linear model's score is
-    within ``none_level`` of its own floor; the effect whose removal reopens most when the effects close
-    ``explained`` of that; else ``unexplained``."""
+    within ``none_level`` of its own floor; the effect of largest importance (``shares``, :func:`importance`) when the
+    effects close ``explained`` of that; else ``unexplained``."""
     p = cf.policy
     assert base.floor is not None and final.floor is not None
     if base.score.excess <= p.none_level**2 * base.floor.excess:
@@ -593,7 +600,6 @@ def search(
     model, without = eliminate(cf, fw.path[-1])
     model, without = _behaviour_kept(cf, model, without, fw.path)
     model = floored(cf, model)
-    shares = importance(model, without) if without else {}
     final_model = model
     if signature:
         fits = tuple(FitResult(**{**model.fits[k].__dict__, "params": {**model.params(k), **{
@@ -601,14 +607,11 @@ def search(
         (sig_score,) = cf.scores([list(fits)])
         final_model = floored(cf, Model((*model.effects, *(c.name for c in signature)), (fits[0], fits[1]),
                                         sig_score, "adc lattice in the data"))  # fmt: skip
-        # what each removal reopens: a searched effect's on the model without the signature, the signature's on it
-        shift = final_model.score.excess - model.score.excess
-        shares = importance(final_model, {**{e: replace(s, excess=s.excess + shift) for e, s in without.items()},
-                                          **{c.name: model.score for c in signature}})  # fmt: skip
+    final, final_fit, table_rows = final_params(cf, final_model)
+    shares = importance(cf, final_model.effects, final)
     name, explained = verdict(cf, base, final_model, shares, signature)
     floor = final_model.floor
     assert floor is not None
-    final, final_fit, table_rows = final_params(cf, final_model)
     own = dict(zip(records or [], pool.map([Recalibrate((r,), final) for r in records or []]), strict=True))
     final_fit = between_folds(final_fit, final_model)
     draws = parameter_draws(final, final_fit.names, final_fit.log, final_fit.cov, policy.behaviour_draws, 1,

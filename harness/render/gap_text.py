@@ -65,8 +65,8 @@ def verdict_sentence(diag: Diagnosis) -> str:
     imp = diag.importance_pct()
     text = (
         f"{len(effects)} effects found. The verdict names the most important one: removing `{verdict}` alone from the "
-        f"final model reopens the most gap ({fmt(imp.get(verdict), 1)} % of what the drop-one removals reopen "
-        "together)."
+        f"final rig (fitted on every record) reopens the most of its gap ({fmt(imp.get(verdict), 1)} % of what the "
+        "drop-one removals reopen together)."
     )
     shrinks = [e.shrink_pct if math.isfinite(e.shrink_pct) else -math.inf for e in effects]
     k = max(range(len(effects)), key=shrinks.__getitem__)
@@ -119,9 +119,9 @@ def _effects_lines(diag: Diagnosis) -> list[str]:
     lines += [f"- `{e.effect}`: {e.against_record}." for e in diag.effects if e.against_record]
     lines += [""] if any(e.against_record for e in diag.effects) else []
     lines += [
-        "Importance: remove each effect alone from the final model and part of the gap reopens; an effect's "
-        "importance is its share of what the removals reopen. Shrink: how much the held-out gap fell when the "
-        "effect was added.",
+        "Importance: remove each effect alone from the final rig (fitted on every record) and part of its gap "
+        "reopens; an effect's importance is its share of what the removals reopen. Shrink: how much the held-out "
+        "gap fell when the effect was added.",
         "",
     ]
     if any(LATTICE in r[-1] for r in rows):
