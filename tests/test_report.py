@@ -316,7 +316,7 @@ def test_real_report_diagnosis(real_report):
     shrink = {e["effect"]: e["shrink_pct"] for e in d["effects"]}
     assert imp["coulomb_friction"] > imp["delay"] and shrink["delay"] > 90.0 > shrink["coulomb_friction"]
     assert (
-        f"removing `coulomb_friction` alone from the final model reopens the most gap "
+        f"removing `coulomb_friction` alone from the final rig (fitted on every record) reopens the most of its gap "
         f"({imp['coulomb_friction']:.1f} % of what the drop-one removals reopen together)" in sec
     )
     assert f"`delay`, added second, closed {shrink['delay']:.1f} % of the gap left at that point" in sec

@@ -183,7 +183,7 @@ def test_the_same_records_perturbed_at_1e_12_give_the_same_verdict(tmp_path):
     diagnosis's 95 % interval."""
     plant = {**FRICTION, "coulomb_torque": 0.02, "amp_limit": 1.5}
     run = _import_unit(tmp_path, plant)
-    first = diagnose_run(run, "cu_flexible_arm", tmp_path / "first", workers=2)
+    first = diagnose_run(run, "cu_flexible_arm", tmp_path / "first", workers=1)
     rng = np.random.default_rng(12)
     for e in Manifest.load(run).experiments:
         path = run / "data" / f"{e.name}.parquet"
@@ -192,7 +192,7 @@ def test_the_same_records_perturbed_at_1e_12_give_the_same_verdict(tmp_path):
         for c in ("theta_v", "alpha_v", "u"):
             cols[c] = cols[c] * (1.0 + 1e-12 * rng.standard_normal(cols[c].size))
         write_dataset(path, cols)
-    again = diagnose_run(run, "cu_flexible_arm", tmp_path / "again", workers=2, force=True)
+    again = diagnose_run(run, "cu_flexible_arm", tmp_path / "again", workers=1, force=True)
     assert again.verdict == first.verdict and sorted(again.effect_names) == sorted(first.effect_names)
     assert again.importance_pct() == pytest.approx(first.importance_pct(), abs=1.0)  # the rig's, not a basin of a fold
     for name, p in first.parameters.items():

@@ -164,7 +164,7 @@ def test_every_view_shows_data_for_a_real_run(real, tmp_path):
     chunks = read_chunks(rrd)
     d = real[1]
     summary = _column(chunks, "/diagnosis/summary", "TextDocument:text")[0][0]
-    assert "removing `coulomb_friction` alone from the final model reopens the most gap" in summary
+    assert "removing `coulomb_friction` alone from the final rig (fitted on every record) reopens the most" in summary
     stages = _column(chunks, f"/diagnosis/waterfall/{HELD_OUT}/values", "Points2D:labels")[0]
     dec = d["gap"]["decomposition"]
     assert stages == [f"{g:.3f}" for g in [dec["before"], *(s["gap_after"] for s in dec["steps"])]]
