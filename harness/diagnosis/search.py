@@ -224,6 +224,12 @@ class CrossFit:
         res = self.pool.map(tasks)
         return [self._merge(res[2 * i : 2 * i + 2]) for i in range(len(folds))]
 
+    def on_every_record(self, overs: Sequence[Overrides]) -> list[Score]:
+        """The score of each of ``overs`` on every record (not held out: a rig fitted on all of them), in one map."""
+        p = self.policy
+        res = self.pool.map([Evaluate(o, tuple(self.names), self.draws(o), p.resolution) for o in overs])
+        return [self._merge([r]) for r in res]
+
     def share(self, before: Score, after: Score, floor: Score) -> float:
         """Share of ``before``'s excess above ``floor`` (the floor of the model scored ``after``: what it leaves if
         it is right) that ``after`` closes (may be negative). Where ``before`` is already within that floor (a
@@ -545,9 +551,7 @@ def importance(cf: CrossFit, effects: Sequence[str], final: Overrides) -> dict[s
     on the rig all of them determine (a fold's fit, on half the records, can sit in another basin)."""
     if len(effects) < 2:
         return {e: 1.0 for e in effects}
-    overs = [final, *(_without(final, [e]) for e in effects)]
-    res = cf.pool.map([Evaluate(o, tuple(cf.names), cf.draws(o), cf.policy.resolution) for o in overs])
-    full, *less = (cf._merge([r]) for r in res)
+    full, *less = cf.on_every_record([final, *(_without(final, [e]) for e in effects)])
     reopen = {e: max(s.excess - full.excess, 0.0) for e, s in zip(effects, less, strict=True)}
     total = sum(reopen.values())
     return {e: r / total if total > 0 else 1.0 / len(reopen) for e, r in reopen.items()}
