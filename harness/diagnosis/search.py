@@ -370,7 +370,7 @@ def fit_models(
             by_score = (p.draws, p.resolution) if e in sized[i] else ()
             for k in (0, 1):
                 rigs = (starts[i][k][0], _sheet_linear(starts[i][k][0]))
-                one = rigs[1] == rigs[0] or e in sized[i]  # the current rig may be the sheet's
+                one = rigs[1] == rigs[0] or e in sized[i]  # the current rig is the sheet's, or a spread effect
                 for j, rig in enumerate(rigs[: 1 if one else 2]):
                     grid_slots.append((i, k, e, j))
                     grid_tasks.append(Grid(table[e], rig, tuple(cf.fits[k]), *by_score))
@@ -602,7 +602,7 @@ def search(
     searched = [c.name for c in cands if not c.signature]
     fw = forward_selection(cf, base, searched, say)
     model, without = eliminate(cf, fw.path[-1])
-    model, without = _behaviour_kept(cf, model, without, fw.path)
+    model = _behaviour_kept(cf, model, without, fw.path)
     model = floored(cf, model)
     final_model = model
     if signature:
@@ -726,14 +726,13 @@ def bands_worse(with_it: dict[tuple[str, int, str], Band], without: dict[tuple[s
     return worse - better > 1.96 * math.sqrt(worse + better)
 
 
-def _behaviour_kept(cf: CrossFit, model: Model, without: dict[str, Score], path: list[Model]
-                    ) -> tuple[Model, dict[str, Score]]:  # fmt: skip
+def _behaviour_kept(cf: CrossFit, model: Model, without: dict[str, Score], path: list[Model]) -> Model:
     """An effect is kept only where the behaviour bands of its replays describe the held-out records' behaviour as
     well as those of the model without it (:func:`held_out_bands`, :func:`bands_worse`; the model the forward
     selection had without it, ``path``, else the model with it removed): removed, the least important first, while
-    its model's bands are worse."""
+    its model's bands are worse (``without``: each effect's score without it, :func:`eliminate`'s)."""
     if not model.effects or not closed_steps(cf.experiments):
-        return model, without
+        return model
     for e in sorted(model.effects, key=lambda e: (without[e].excess, e)):
         if e not in model.effects:
             continue
@@ -745,7 +744,7 @@ def _behaviour_kept(cf: CrossFit, model: Model, without: dict[str, Score], path:
             continue
         model = prev if prev is not None else Model(rest, (less[0], less[1]), without[e], model.how)
         model, without = eliminate(cf, model) if model.effects else (model, {})
-    return model, without
+    return model
 
 
 def _path(fw: Forward, kept: Model) -> list[Model]:
