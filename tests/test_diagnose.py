@@ -107,7 +107,7 @@ def test_diagnosis_json_round_trips_through_its_dataclasses(coulomb_diag, tmp_pa
 
 
 def test_none_rig_gives_none(runs, tmp_path):
-    d = dg.diagnose_run(runs["none"], campaign_spec(quick=True), tmp_path, workers=2)
+    d = dg.diagnose_run(runs["none"], campaign_spec(quick=True), tmp_path, workers=1)
     assert d.verdict == "none"
     assert d.effects == []
     # the gap is the noise: within the replays' own spread, and within 1.5x the gap a right model leaves
@@ -397,7 +397,7 @@ def test_a_wrong_sheet_is_identified_not_walled(tmp_path, fmus):
     sets = ["plant.kt=0.0192", "plant.Jeq=0.00416", "plant.Ks=0.78", "plant.Beq=0.008", "campaign.seed=21"]
     truth = campaign_spec(quick=True, overrides=sets)
     run = _run(tmp_path, "wrong_sheet", sets)
-    d = dg.diagnose_run(run, campaign_spec(quick=True), tmp_path / "out", workers=2)
+    d = dg.diagnose_run(run, campaign_spec(quick=True), tmp_path / "out", workers=1)
     want = {**combos(truth.plant), "plant.Ks": 0.78, "plant.Beq": 0.008, "plant.Jeq": 0.00416, "plant.kt": 0.0192}
     for k, v in want.items():
         p = d.parameters[k]

@@ -247,7 +247,7 @@ def test_a_units_records_each_fitted_alone_beside_the_joint_fit(tmp_path):
     files[0].write_text("".join(lines[:half]))
     files[1].write_text("".join(lines[:1] + lines[half:]))
     import_records(files, tmp_path / "run", CU_IMPORT)
-    d = diagnose_run(tmp_path / "run", "cu_flexible_arm", workers=2)
+    d = diagnose_run(tmp_path / "run", "cu_flexible_arm", workers=1)
     names = ["test_3a", "test_3b", "flexibleArm_test_4"]
     assert list(d.gap.records) == names
     for r in d.gap.records.values():

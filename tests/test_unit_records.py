@@ -6,6 +6,7 @@ when a record starts, a command offset, a lightly damped link, and a loop that h
 from __future__ import annotations
 
 import math
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -72,7 +73,16 @@ def _import_unit(tmp: Path, plant: dict[str, float], zero: bool = False, **kw: A
 
 
 def _diagnose_unit(tmp: Path, plant: dict[str, float]) -> Diagnosis:
-    return diagnose_run(_import_unit(tmp, plant), "cu_flexible_arm", tmp / "diag", workers=2)
+    return diagnose_run(_import_unit(tmp, plant), "cu_flexible_arm", tmp / "diag", workers=1)
+
+
+@pytest.fixture(scope="module")
+def friction_and_limit(tmp_path_factory) -> tuple[Path, Diagnosis]:
+    """The unit with friction (0.02 N m) and an amplifier limit (1.5 V) beside the drive off by 2x: its imported
+    run (copy it to write into it) and its diagnosis, made once for the tests that read them."""
+    tmp = tmp_path_factory.mktemp("friction_and_limit")
+    run = _import_unit(tmp, {**FRICTION, "coulomb_torque": 0.02, "amp_limit": 1.5})
+    return run, diagnose_run(run, "cu_flexible_arm", tmp / "diag", workers=1)
 
 
 def _held_out_fits(d: Diagnosis) -> tuple[float, float]:
@@ -107,10 +117,10 @@ def test_a_limit_one_record_hardly_reaches_is_fitted_from_the_other_folds_start(
     assert recalibrated < 50.0 and with_effects > 97.0
 
 
-def test_two_effects_that_each_close_little_alone_are_refitted_together(tmp_path):
+def test_two_effects_that_each_close_little_alone_are_refitted_together(friction_and_limit):
     """Friction (0.02 N m) and an amplifier limit (1.5 V) beside the drive off by 2x: both are found, within 2 % and
     5 %, the drive gain within 2 %."""
-    d = _diagnose_unit(tmp_path, {**FRICTION, "coulomb_torque": 0.02, "amp_limit": 1.5})
+    _, d = friction_and_limit
     assert {e.effect for e in d.effects} == {"coulomb_friction", "saturation"}
     fitted = d.fitted_effect_params()
     assert fitted["plant.amp_limit"] == pytest.approx(1.5, rel=0.02)
@@ -131,7 +141,7 @@ def test_a_unit_logged_as_labs_log_it_gives_back_its_sensors_and_its_behaviour(t
     gauges, rings = (3.0, -1.5), (1.0, 0.6)
     plant = {**FRICTION, "zeta_link": 0.004, "u_offset": -0.12}
     run = _import_unit(tmp_path, plant, zero=True, gauge_deg=gauges, ring_deg=rings)
-    d = diagnose_run(run, "cu_flexible_arm", tmp_path / "diag", workers=2)
+    d = diagnose_run(run, "cu_flexible_arm", tmp_path / "diag", workers=1)
     assert d.verdict == "coulomb_friction" and [e.effect for e in d.effects] == ["coulomb_friction"]
     assert d.fitted_effect_params()["plant.coulomb_torque"] == pytest.approx(0.03, rel=0.05)
     over = d.rig.overrides
@@ -169,21 +179,21 @@ def test_a_loop_that_hunts_is_friction_not_a_play(tmp_path):
     moving = (np.abs(np.diff(th)) / 1e-3 > 0.5).astype(int)
     assert np.count_nonzero(np.diff(moving) == 1) >= 3  # it hunts: several bursts of motion after the step
     import_records([f], tmp_path / "unit", ImportOptions(units={"theta": "V", "alpha": "V", "ref": "deg"}))
-    d = diagnose_run(tmp_path / "unit", "cu_flexible_arm", tmp_path / "diag", workers=2)
+    d = diagnose_run(tmp_path / "unit", "cu_flexible_arm", tmp_path / "diag", workers=1)
     assert d.verdict == "coulomb_friction" and "backlash" not in d.effect_names, (d.verdict, d.effect_names)
     assert d.fitted_effect_params()["plant.coulomb_torque"] == pytest.approx(0.04, rel=0.1)
     dec = d.gap.decomposition
     assert dec.after_effects <= dec.noise_floor + 0.05  # within 5 points of what a right model leaves
 
 
-def test_the_same_records_perturbed_at_1e_12_give_the_same_verdict(tmp_path):
+def test_the_same_records_perturbed_at_1e_12_give_the_same_verdict(friction_and_limit, tmp_path):
     """Rounding another CPU's BLAS does differently must not flip a verdict: the friction-and-limit unit's records
     perturbed by a relative 1e-12 give the same verdict and effects (the order they entered in may differ: the
     search's path, a single and then another, or the two as a pair), and every fitted parameter inside the first
     diagnosis's 95 % interval."""
-    plant = {**FRICTION, "coulomb_torque": 0.02, "amp_limit": 1.5}
-    run = _import_unit(tmp_path, plant)
-    first = diagnose_run(run, "cu_flexible_arm", tmp_path / "first", workers=1)
+    shared, first = friction_and_limit
+    run = tmp_path / "unit"
+    shutil.copytree(shared, run)
     rng = np.random.default_rng(12)
     for e in Manifest.load(run).experiments:
         path = run / "data" / f"{e.name}.parquet"

@@ -19,7 +19,8 @@ A closed loop through an ADC lattice, or with a play, is fitted without derivati
 search on the same sum of squares, steps down to :data:`POWELL_XTOL`). The controller acts on the quantised angles,
 so the whole trajectory is a staircase in the parameters: flat to a 0.1 % step, jumping at the next; a play's
 contacts jump likewise; least squares stops at its start. The intervals then come from a Jacobian taken with steps
-of :data:`STAIRCASE_STEP`.
+of :data:`STAIRCASE_STEP`. Such a search makes one pass, its prior weighed by the start's variance: it ends on its
+budget, not at a minimum where the variance could be taken again, so another pass would only search on.
 
 Without priors, a parameter the data do not determine (its 95 % interval wider than a factor
 :data:`UNIDENTIFIABLE`) drifts along a flat valley of the cost; such a parameter (of those the caller names
@@ -88,7 +89,7 @@ PRIOR_HELD = 0.8  # an interval at least 0.8x its prior's wide: the data did not
 HOLD_TOLERANCE = 0.02  # an undetermined parameter keeps the spec's value when that costs < 2 % more squared error
 SE_CAP = 50.0  # standard error [log of the factor] of a parameter the residuals do not determine: no interval
 STAIRCASE_STEP = 0.05  # a Jacobian column that a 0.1 % step left at zero is taken again with a 5 % step (log)
-# a prior's weight settles: the fit is made again from its solution, the prior weighed by that solution's residual
+# a prior's weight settles: a least-squares fit is made again from its solution, the prior weighed by its residual
 # variance, while the variance is under PRIOR_SETTLED x the one that weighed it, PRIOR_PASSES fits at most
 PRIOR_PASSES = 8
 PRIOR_SETTLED = 0.8
@@ -252,9 +253,9 @@ def _fit(
         nfev += int(res.nfev)
         cost = float(np.sum(data(res.x) ** 2))
         if before is not None and cost > before[1]:  # a lighter prior cannot cost the data more: the search failed
-            res = before[0]  # there (Powell's on a staircase), and the pass before stands
+            res = before[0]  # there, and the pass before stands
             break
-        if not sel.any() or (v := variance(res.x)) > PRIOR_SETTLED * w2:
+        if derivative_free or not sel.any() or (v := variance(res.x)) > PRIOR_SETTLED * w2:
             break
         before, x0, w2 = (res, cost), res.x, v
     r = data(res.x)
