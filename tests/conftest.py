@@ -4,46 +4,18 @@ the test processes of ``-n N``."""
 
 from __future__ import annotations
 
-import os
 import shutil
 import tempfile
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 import pytest
-from shared_runs import make_diagnosed_run, make_lab_campaign
+from shared_runs import make_diagnosed_run, make_lab_campaign, shared_dir
 
 from harness.fmu import modeldesc
 from harness.fmu.build import build_all
-
-try:
-    import fcntl
-except ImportError:  # Windows: each test process makes its own
-    fcntl = None  # type: ignore[assignment]
-
-
-def shared_dir(tmp_path_factory: pytest.TempPathFactory, name: str, make: Callable[[Path], None]) -> Path:
-    """The directory ``name`` that ``make(path)`` fills (``path`` does not exist yet), made once for the whole
-    session: by the first test process that asks for it while the others (xdist's workers) wait for it on a lock
-    file, in the directory their temporary directories share. Read-only for the tests: one that writes into it
-    copies it first."""
-    base = tmp_path_factory.getbasetemp()
-    if fcntl is not None and os.environ.get("PYTEST_XDIST_WORKER"):
-        base = base.parent
-    path = base / name
-    with open(base / f"{name}.lock", "w") as lock:
-        if fcntl is not None:
-            fcntl.flock(lock, fcntl.LOCK_EX)
-        if not path.is_dir():
-            work = Path(tempfile.mkdtemp(prefix=f".{name}-", dir=base))
-            try:
-                make(work / name)
-                (work / name).rename(path)
-            finally:
-                shutil.rmtree(work, ignore_errors=True)
-    return path
 
 
 @pytest.fixture

@@ -1,9 +1,16 @@
 """The runs several test files read, as they are made: each is made once per session by a fixture of conftest.py
-(``lab_campaign``, ``diagnosed_run``) and shared, read-only, by every test process."""
+(``lab_campaign``, ``diagnosed_run``) and shared, read-only, by every test process (:func:`shared_dir`, which a test
+file's own shared run uses too)."""
 
 from __future__ import annotations
 
+import os
+import shutil
+import tempfile
+from collections.abc import Callable
 from pathlib import Path
+
+import pytest
 
 from harness import spec as specmod
 from harness.diagnosis.blindtest import campaign_spec
@@ -13,6 +20,11 @@ from harness.ident.crossfit import crossfit_run
 from harness.ident.identify import prepare, run_grid, write_grid
 from harness.rig.campaign import run_campaign
 from harness.rundir import load_run
+
+try:
+    import fcntl
+except ImportError:  # Windows: each test process makes its own
+    fcntl = None  # type: ignore[assignment]
 
 REAL_EXPERIMENTS = ("prbs_small", "square_large", "chirp_slow")  # 10 s each: ~30 s to diagnose on 2 cores
 REAL_GRID = {"na": [2, 4], "nb": [1, 2], "nc": [1, 2]}
@@ -38,3 +50,25 @@ def make_diagnosed_run(path: Path) -> None:
     write_grid(run_grid(prepared, ident, workers=1), path, ident, cal)
     crossfit_run(path)
     diagnose_run(path, campaign_spec(quick=True), workers=1)
+
+
+def shared_dir(tmp_path_factory: pytest.TempPathFactory, name: str, make: Callable[[Path], None]) -> Path:
+    """The directory ``name`` that ``make(path)`` fills (``path`` does not exist yet), made once for the whole
+    session: by the first test process that asks for it while the others (xdist's workers) wait for it on a lock
+    file, in the directory their temporary directories share. Read-only for the tests: one that writes into it
+    copies it first."""
+    base = tmp_path_factory.getbasetemp()
+    if fcntl is not None and os.environ.get("PYTEST_XDIST_WORKER"):
+        base = base.parent
+    path = base / name
+    with open(base / f"{name}.lock", "w") as lock:
+        if fcntl is not None:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+        if not path.is_dir():
+            work = Path(tempfile.mkdtemp(prefix=f".{name}-", dir=base))
+            try:
+                make(work / name)
+                (work / name).rename(path)
+            finally:
+                shutil.rmtree(work, ignore_errors=True)
+    return path

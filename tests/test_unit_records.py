@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 import pytest
+from shared_runs import shared_dir
 
 from harness import spec as specmod
 from harness.diagnosis.diagnose import diagnose_run
@@ -76,13 +77,18 @@ def _diagnose_unit(tmp: Path, plant: dict[str, float]) -> Diagnosis:
     return diagnose_run(_import_unit(tmp, plant), "cu_flexible_arm", tmp / "diag", workers=1)
 
 
-@pytest.fixture(scope="module")
+def _diagnose_friction_and_limit(path: Path) -> None:
+    path.mkdir()
+    diagnose_run(_import_unit(path, {**FRICTION, "coulomb_torque": 0.02, "amp_limit": 1.5}), "cu_flexible_arm",
+                 path / "diag", workers=1)  # fmt: skip
+
+
+@pytest.fixture(scope="session")
 def friction_and_limit(tmp_path_factory) -> tuple[Path, Diagnosis]:
     """The unit with friction (0.02 N m) and an amplifier limit (1.5 V) beside the drive off by 2x: its imported
-    run (copy it to write into it) and its diagnosis, made once for the tests that read them."""
-    tmp = tmp_path_factory.mktemp("friction_and_limit")
-    run = _import_unit(tmp, {**FRICTION, "coulomb_torque": 0.02, "amp_limit": 1.5})
-    return run, diagnose_run(run, "cu_flexible_arm", tmp / "diag", workers=1)
+    run (copy it to write into it) and its diagnosis, made once for the test processes that read them."""
+    path = shared_dir(tmp_path_factory, "friction_and_limit", _diagnose_friction_and_limit)
+    return path / "unit", Diagnosis.load(path / "diag")
 
 
 def _held_out_fits(d: Diagnosis) -> tuple[float, float]:
@@ -117,6 +123,7 @@ def test_a_limit_one_record_hardly_reaches_is_fitted_from_the_other_folds_start(
     assert recalibrated < 50.0 and with_effects > 97.0
 
 
+@pytest.mark.xdist_group("friction_and_limit")  # one test process makes the shared diagnosis
 def test_two_effects_that_each_close_little_alone_are_refitted_together(friction_and_limit):
     """Friction (0.02 N m) and an amplifier limit (1.5 V) beside the drive off by 2x: both are found, within 2 % and
     5 %, the drive gain within 2 %."""
@@ -186,6 +193,7 @@ def test_a_loop_that_hunts_is_friction_not_a_play(tmp_path):
     assert dec.after_effects <= dec.noise_floor + 0.05  # within 5 points of what a right model leaves
 
 
+@pytest.mark.xdist_group("friction_and_limit")  # one test process makes the shared diagnosis
 def test_the_same_records_perturbed_at_1e_12_give_the_same_verdict(friction_and_limit, tmp_path):
     """Rounding another CPU's BLAS does differently must not flip a verdict: the friction-and-limit unit's records
     perturbed by a relative 1e-12 give the same verdict and effects (the order they entered in may differ: the
