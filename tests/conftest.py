@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from shared_runs import make_diagnosed_run, make_lab_campaign, shared_dir
+from shared_runs import make_diagnosed_run, make_lab_campaign, make_quanser_run, shared_dir
 
 from harness.fmu import modeldesc
 from harness.fmu.build import build_all
@@ -53,6 +53,13 @@ def diagnosed_run(tmp_path_factory, fmus) -> Path:
     """A run directory through every stage, diagnosed (:func:`shared_runs.make_diagnosed_run`: the blind rig with
     Coulomb friction and a one-sample delay, three 10 s experiments), once per session: copy it to write into it."""
     return shared_dir(tmp_path_factory, "diagnosed_run", make_diagnosed_run)
+
+
+@pytest.fixture(scope="session")
+def quanser_run(tmp_path_factory) -> Path:
+    """The Quanser record imported and diagnosed (:func:`shared_runs.make_quanser_run`), once per session: copy it to
+    write into it."""
+    return shared_dir(tmp_path_factory, "quanser_run", make_quanser_run)
 
 
 class FmuRun:

@@ -19,6 +19,7 @@ from harness.ident.calibration import calibrate_run
 from harness.ident.crossfit import crossfit_run
 from harness.ident.identify import prepare, run_grid, write_grid
 from harness.rig.campaign import run_campaign
+from harness.rig.records import ImportOptions, import_records
 from harness.rundir import load_run
 
 try:
@@ -26,6 +27,15 @@ try:
 except ImportError:  # Windows: each test process makes its own
     fcntl = None  # type: ignore[assignment]
 
+REAL = Path(__file__).parent / "fixtures" / "real"
+QUANSER = [REAL / "rfl_lqr_sqwave_pm30deg_500Hz.csv", REAL / "rfl_lqr_sqwave_pm30deg_500Hz_aux.csv"]
+QUANSER_COLUMNS = {"u": "u", "theta_deg": "theta", "alpha_deg": "alpha", "theta_ref_deg": "ref"}
+QUANSER_IMPORT = ImportOptions(  # the fixture README's import command: t is in both files, named by its file's
+    columns={f"{QUANSER[0].stem}:t": "t", **QUANSER_COLUMNS},
+    units={"theta": "deg", "alpha": "deg", "ref": "deg"},
+    theta_sensor="encoder",
+    counts_per_rev=4096,
+)
 REAL_EXPERIMENTS = ("prbs_small", "square_large", "chirp_slow")  # 10 s each: ~30 s to diagnose on 2 cores
 REAL_GRID = {"na": [2, 4], "nb": [1, 2], "nc": [1, 2]}
 
@@ -34,6 +44,13 @@ def make_lab_campaign(path: Path, fmus: dict[str, Path]) -> None:
     """The default spec's campaign (specs/lab.toml: its calibration experiments and 9 identification experiments),
     simulated serially."""
     run_campaign(specmod.load("lab"), path, fmus=fmus, workers=1)
+
+
+def make_quanser_run(path: Path) -> None:
+    """The Quanser record (:data:`QUANSER`, its two files joined on t) imported as the fixture README says and
+    diagnosed against the nominal spec (serially), its diagnosis.json in the run directory."""
+    import_records([f"quanser={QUANSER[0]}+{QUANSER[1]}"], path, QUANSER_IMPORT)
+    diagnose_run(path, "nominal", path, workers=1)
 
 
 def make_diagnosed_run(path: Path) -> None:

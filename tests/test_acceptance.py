@@ -19,6 +19,8 @@ from harness.ident.accept import accept
 from harness.ident.crossfit import crossfit_run
 from harness.ident.identify import identify_run
 
+pytestmark = pytest.mark.xdist_group("lab_accept")  # one process identifies the module's run
+
 
 @pytest.fixture(scope="module")
 def identified(tmp_path_factory, lab_campaign):

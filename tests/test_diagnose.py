@@ -59,6 +59,7 @@ def coulomb_diag(runs, tmp_path_factory):
     return dg.diagnose_run(runs["coulomb"], campaign_spec(quick=True), out, workers=2), out
 
 
+@pytest.mark.xdist_group("coulomb_diag")  # one process diagnoses the module's friction rig
 def test_coulomb_friction_named_and_fitted(coulomb_diag):
     d, out = coulomb_diag
     assert d.verdict == "coulomb_friction"
@@ -87,12 +88,14 @@ def test_coulomb_friction_named_and_fitted(coulomb_diag):
     assert (out / "diagnosis.json").exists()
 
 
+@pytest.mark.xdist_group("coulomb_diag")  # one process diagnoses the module's friction rig
 def test_diagnosis_json_is_byte_stable(coulomb_diag, runs, tmp_path):
     _, out = coulomb_diag
     dg.diagnose_run(runs["coulomb"], campaign_spec(quick=True), tmp_path, workers=1)
     assert (tmp_path / "diagnosis.json").read_bytes() == (out / "diagnosis.json").read_bytes()
 
 
+@pytest.mark.xdist_group("coulomb_diag")  # one process diagnoses the module's friction rig
 def test_diagnosis_json_round_trips_through_its_dataclasses(coulomb_diag, tmp_path):
     d, out = coulomb_diag
     diag = Diagnosis.load(out)

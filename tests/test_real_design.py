@@ -18,13 +18,6 @@ from harness.rig.records import ImportOptions, import_records
 from harness.twin import load_record, twin_of_diagnosis
 
 REAL = Path(__file__).parent / "fixtures" / "real"
-QUANSER = [REAL / "rfl_lqr_sqwave_pm30deg_500Hz.csv", REAL / "rfl_lqr_sqwave_pm30deg_500Hz_aux.csv"]
-QUANSER_IMPORT = ImportOptions(  # the fixture README's import command
-    columns={f"{QUANSER[0].stem}:t": "t", "u": "u", "theta_deg": "theta", "alpha_deg": "alpha", "theta_ref_deg": "ref"},
-    units={"theta": "deg", "alpha": "deg", "ref": "deg"},
-    theta_sensor="encoder",
-    counts_per_rev=4096,
-)
 CU_IMPORT = ImportOptions(
     columns={"0": "t", "1": "theta", "2": "-alpha", "5": "ref", "6": "u"},
     units={"t": "ms", "theta": "rad", "alpha": "m", "ref": "rad"},
@@ -41,14 +34,6 @@ def _held(pred, names):
 
 
 @pytest.fixture(scope="module")
-def quanser(tmp_path_factory):
-    run = tmp_path_factory.mktemp("quanser") / "run"
-    import_records([f"quanser={QUANSER[0]}+{QUANSER[1]}"], run, QUANSER_IMPORT)
-    diagnose_run(run, "nominal", run, workers=1)
-    return run
-
-
-@pytest.fixture(scope="module")
 def cu(tmp_path_factory):
     """The CU unit's two records, apart: test_3 diagnosed against the lab sheet, test_4 held out."""
     root = tmp_path_factory.mktemp("cu")
@@ -60,11 +45,11 @@ def cu(tmp_path_factory):
     return runs
 
 
-def test_an_lqr_to_the_courseware_specs_on_the_quanser_twin(quanser):
-    twin = twin_of_diagnosis(quanser)
-    fitted = json.loads((quanser / "diagnosis.json").read_text())["parameters"]["rig.drive_gain"]["fitted"]
+def test_an_lqr_to_the_courseware_specs_on_the_quanser_twin(quanser_run):
+    twin = twin_of_diagnosis(quanser_run)
+    fitted = json.loads((quanser_run / "diagnosis.json").read_text())["parameters"]["rig.drive_gain"]["fitted"]
     assert twin.overrides["rig.drive_gain"] == fitted != combos(twin.plant)["rig.drive_gain"]  # the rig, not its sheet
-    rec = load_record(quanser)
+    rec = load_record(quanser_run)
     d = design(twin, "lqr", reference_from(None, twin.sample_rate, rec), LoopSpecs.parse(COURSEWARE), n=100, workers=1)
     assert d.passed and d.margins["disk_margin"] > 0.5
     bands = d.prediction.metric_bands()
@@ -72,14 +57,14 @@ def test_an_lqr_to_the_courseware_specs_on_the_quanser_twin(quanser):
     assert bands["settling_s"].lo > 0.1  # a loop that moves the hub, not a band of nothing
 
 
-def test_the_quanser_records_own_controller_predicted_against_what_it_did(quanser):
+def test_the_quanser_records_own_controller_predicted_against_what_it_did(quanser_run):
     """Its theta fit ~97 %, alpha ~92 %; its settling, peak deflection and ringing inside the bands or within 20 % of
     the median. Not its overshoot (0.54 % against 2.3..2.9 %) and stopping error (+0.59 deg, short of the reference
     both ways, against -0.2..-0.1: the diagnosis holds the hub with a command offset where the record shows friction),
     nor its peak command (6.2 V against 4.3..4.6 V: the logged voltage exceeds the identified controller's own law on
     the record by 0.7 V at the steps)."""
-    twin = twin_of_diagnosis(quanser)
-    rec = load_record(quanser)
+    twin = twin_of_diagnosis(quanser_run)
+    rec = load_record(quanser_run)
     pred = predict(twin, rec.controller, reference_from(None, twin.sample_rate, rec), n=100, record=rec, workers=1)
     assert pred.fit_pct["theta"] > 90.0 and pred.fit_pct["alpha"] > 85.0
     assert all(_held(pred, HELD).values()), pred.metric_bands()
