@@ -1,6 +1,6 @@
 """Shared fixtures: the built rig-twin FMUs, a minimal fmpy stepping loop for tests, and the runs several test files
-read (the lab campaign, a diagnosed run: tests/shared_runs.py), each made once for the whole session and shared by
-the test processes of ``-n N``."""
+read (the lab campaign, a diagnosed run, the Quanser record diagnosed: tests/shared_runs.py), each made once for the
+whole session and shared by the test processes of ``-n N``."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """The runs several test files read, as they are made: each is made once per session by a fixture of conftest.py
-(``lab_campaign``, ``diagnosed_run``) and shared, read-only, by every test process (:func:`shared_dir`, which a test
-file's own shared run uses too)."""
+(``lab_campaign``, ``diagnosed_run``, ``quanser_run``) and shared, read-only, by every test process
+(:func:`shared_dir`, which a test file's own shared run uses too)."""
 
 from __future__ import annotations
 
