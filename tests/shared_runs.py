@@ -28,6 +28,13 @@ except ImportError:  # Windows: each test process makes its own
     fcntl = None  # type: ignore[assignment]
 
 REAL = Path(__file__).parent / "fixtures" / "real"
+CU = [REAL / "flexibleArm_test_3.txt", REAL / "flexibleArm_test_4.txt"]
+CU_IMPORT = ImportOptions(  # the fixture README's import command
+    columns={"0": "t", "1": "theta", "2": "-alpha", "5": "ref", "6": "u"},
+    units={"t": "ms", "theta": "rad", "alpha": "m", "ref": "rad"},
+    link_length=0.45,
+    zero_alpha=True,
+)
 QUANSER = [REAL / "rfl_lqr_sqwave_pm30deg_500Hz.csv", REAL / "rfl_lqr_sqwave_pm30deg_500Hz_aux.csv"]
 QUANSER_COLUMNS = {"u": "u", "theta_deg": "theta", "alpha_deg": "alpha", "theta_ref_deg": "ref"}
 QUANSER_IMPORT = ImportOptions(  # the fixture README's import command: t is in both files, named by its file's

@@ -5,25 +5,18 @@ the CU unit's from a diagnosis of its other record (held out)."""
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import pytest
+from shared_runs import CU, CU_IMPORT
 
 from harness import spec as specmod
 from harness.design import design
 from harness.diagnosis.diagnose import diagnose_run
 from harness.diagnosis.rigmodel import combos
 from harness.prediction import LoopSpecs, predict, reference_from
-from harness.rig.records import ImportOptions, import_records
+from harness.rig.records import import_records
 from harness.twin import load_record, twin_of_diagnosis
 
-REAL = Path(__file__).parent / "fixtures" / "real"
-CU_IMPORT = ImportOptions(
-    columns={"0": "t", "1": "theta", "2": "-alpha", "5": "ref", "6": "u"},
-    units={"t": "ms", "theta": "rad", "alpha": "m", "ref": "rad"},
-    link_length=0.45,
-    zero_alpha=True,
-)
 COURSEWARE = "settling=1.5,overshoot=5,band=4"  # Quanser's rotary flexible link courseware
 HELD = ("settling_s", "peak_alpha_deg", "ring_alpha_deg")  # inside the band or within 20 % of the median, both units
 
@@ -38,8 +31,8 @@ def cu(tmp_path_factory):
     """The CU unit's two records, apart: test_3 diagnosed against the lab sheet, test_4 held out."""
     root = tmp_path_factory.mktemp("cu")
     runs = []
-    for k in (3, 4):
-        import_records([REAL / f"flexibleArm_test_{k}.txt"], root / f"cu{k}", CU_IMPORT)
+    for k, record in zip((3, 4), CU, strict=True):
+        import_records([record], root / f"cu{k}", CU_IMPORT)
         runs.append(root / f"cu{k}")
     diagnose_run(runs[0], "cu_flexible_arm", runs[0], workers=1)
     return runs

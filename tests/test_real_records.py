@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from shared_runs import QUANSER, QUANSER_COLUMNS, QUANSER_IMPORT
+from shared_runs import CU, CU_IMPORT, QUANSER, QUANSER_COLUMNS, QUANSER_IMPORT
 
 from harness import spec as specmod
 from harness.diagnosis.diagnose import diagnose_run
@@ -19,17 +19,8 @@ from harness.diagnosis.result import Diagnosis
 from harness.diagnosis.simulation import fmu_value
 from harness.ident.calibration import load_calibration
 from harness.rig.controller import command_r2
-from harness.rig.records import ImportOptions, import_records
+from harness.rig.records import import_records
 from harness.rundir import Manifest
-
-REAL = Path(__file__).parent / "fixtures" / "real"
-CU = [REAL / "flexibleArm_test_3.txt", REAL / "flexibleArm_test_4.txt"]
-CU_IMPORT = ImportOptions(  # the fixture README's import command
-    columns={"0": "t", "1": "theta", "2": "-alpha", "5": "ref", "6": "u"},
-    units={"t": "ms", "theta": "rad", "alpha": "m", "ref": "rad"},
-    link_length=0.45,
-    zero_alpha=True,
-)
 
 
 @pytest.fixture(scope="module")

@@ -79,8 +79,7 @@ def _diagnose_unit(tmp: Path, plant: dict[str, float]) -> Diagnosis:
 
 def _diagnose_friction_and_limit(path: Path) -> None:
     path.mkdir()
-    diagnose_run(_import_unit(path, {**FRICTION, "coulomb_torque": 0.02, "amp_limit": 1.5}), "cu_flexible_arm",
-                 path / "diag", workers=1)  # fmt: skip
+    _diagnose_unit(path, {**FRICTION, "coulomb_torque": 0.02, "amp_limit": 1.5})
 
 
 @pytest.fixture(scope="session")
