@@ -12,8 +12,8 @@ from dataclasses import replace
 import numpy as np
 import pandas as pd
 import pytest
+from shared_runs import REAL
 from test_diagnosis_result import minimal_doc
-from test_real_records import REAL
 
 from harness import spec as specmod
 from harness.diagnosis import blindtest as bt
@@ -467,7 +467,7 @@ def test_a_lone_real_record_is_diagnosed_on_its_halves(tmp_path):
     on one half and scored on the other, the record's step in the floor, no parameter held by a wall (the rig
     identified in its combos under the lab sheet's priors), and what recalibration alone fitted beside the joint
     fit."""
-    from test_real_records import CU, CU_IMPORT
+    from shared_runs import CU, CU_IMPORT
 
     run = tmp_path / "run"
     import_records([CU[0]], run, CU_IMPORT)
