@@ -192,8 +192,16 @@ def test_a_loop_that_hunts_is_friction_not_a_play(tmp_path):
     assert dec.after_effects <= dec.noise_floor + 0.05  # within 5 points of what a right model leaves
 
 
+PERTURBATION_OPEN = (
+    "issue 34 open: with this draw of the 1e-12 perturbation the unit's diagnosis keeps the limit alone (saturation "
+    "100 %): the p_only half's refits land in other basins at costs within 0.3 %, and the friction's first refit "
+    "there costs 0.043 where another rounding of the same records gives 0.002"
+)
+
+
 @pytest.mark.xdist_group("friction_and_limit")  # one test process makes the shared diagnosis
-def test_the_same_records_perturbed_at_1e_12_give_the_same_verdict(friction_and_limit, tmp_path):
+@pytest.mark.parametrize("draw", [12, pytest.param(1, marks=pytest.mark.open(reason=PERTURBATION_OPEN))])
+def test_the_same_records_perturbed_at_1e_12_give_the_same_verdict(friction_and_limit, tmp_path, draw):
     """Rounding another CPU's BLAS does differently must not flip a verdict: the friction-and-limit unit's records
     perturbed by a relative 1e-12 give the same verdict and effects (the order they entered in may differ: the
     search's path, a single and then another, or the two as a pair), and every fitted parameter inside the first
@@ -201,7 +209,7 @@ def test_the_same_records_perturbed_at_1e_12_give_the_same_verdict(friction_and_
     shared, first = friction_and_limit
     run = tmp_path / "unit"
     shutil.copytree(shared, run)
-    rng = np.random.default_rng(12)
+    rng = np.random.default_rng(draw)
     for e in Manifest.load(run).experiments:
         path = run / "data" / f"{e.name}.parquet"
         d = read_dataset(path)

@@ -74,20 +74,25 @@ class Instance:
         self.check(self.dll.fmi2Reset(self.component), "reset")
 
     def set_parameters(self, values: dict[str, Any]) -> None:
-        """Set parameters by name (Real, Integer or Boolean as their declared type)."""
+        """Set parameters by name (Real, Integer or Boolean as their declared type), one call per type."""
+        typed: dict[str, tuple[list[int], list[Any]]] = {"Real": ([], []), "Integer": ([], []), "Boolean": ([], [])}
+        cast = {"Real": float, "Integer": int, "Boolean": bool}
         for name, value in values.items():
             if name not in self.variables:
                 valid = sorted(self.description.parameters())
                 raise FMUError(f"{self.path.stem}: unknown parameter {name!r}; valid: {', '.join(valid)}")
             v = self.variables[name]
-            if v.type == "Real":
-                self.slave.setReal([v.value_reference], [float(value)])
-            elif v.type == "Integer":
-                self.slave.setInteger([v.value_reference], [int(value)])
-            elif v.type == "Boolean":
-                self.slave.setBoolean([v.value_reference], [bool(value)])
-            else:
+            if v.type not in typed:
                 raise FMUError(f"{self.path.stem}: parameter {name!r} has unsupported type {v.type}")
+            typed[v.type][0].append(v.value_reference)
+            typed[v.type][1].append(cast[v.type](value))
+        for kind, setter in (
+            ("Real", self.slave.setReal),
+            ("Integer", self.slave.setInteger),
+            ("Boolean", self.slave.setBoolean),
+        ):
+            if typed[kind][0]:
+                setter(*typed[kind])
 
     def get(self, names: list[str]) -> dict[str, float | int]:
         """Current values by name (Real as float, Integer as int)."""
