@@ -74,25 +74,22 @@ class Instance:
         self.check(self.dll.fmi2Reset(self.component), "reset")
 
     def set_parameters(self, values: dict[str, Any]) -> None:
-        """Set parameters by name (Real, Integer or Boolean as their declared type), one call per type."""
-        typed: dict[str, tuple[list[int], list[Any]]] = {"Real": ([], []), "Integer": ([], []), "Boolean": ([], [])}
-        cast = {"Real": float, "Integer": int, "Boolean": bool}
+        """Set parameters by name (Real, Integer or Boolean as their declared type), one FMI call per type."""
+        setters = {"Real": (float, self.slave.setReal), "Integer": (int, self.slave.setInteger),
+                   "Boolean": (bool, self.slave.setBoolean)}  # fmt: skip
+        batch: dict[str, tuple[list[int], list[Any]]] = {kind: ([], []) for kind in setters}
         for name, value in values.items():
             if name not in self.variables:
                 valid = sorted(self.description.parameters())
                 raise FMUError(f"{self.path.stem}: unknown parameter {name!r}; valid: {', '.join(valid)}")
             v = self.variables[name]
-            if v.type not in typed:
+            if v.type not in setters:
                 raise FMUError(f"{self.path.stem}: parameter {name!r} has unsupported type {v.type}")
-            typed[v.type][0].append(v.value_reference)
-            typed[v.type][1].append(cast[v.type](value))
-        for kind, setter in (
-            ("Real", self.slave.setReal),
-            ("Integer", self.slave.setInteger),
-            ("Boolean", self.slave.setBoolean),
-        ):
-            if typed[kind][0]:
-                setter(*typed[kind])
+            batch[v.type][0].append(v.value_reference)
+            batch[v.type][1].append(setters[v.type][0](value))
+        for kind, (refs, vals) in batch.items():
+            if refs:
+                setters[kind][1](refs, vals)
 
     def get(self, names: list[str]) -> dict[str, float | int]:
         """Current values by name (Real as float, Integer as int)."""
