@@ -194,8 +194,8 @@ def test_a_loop_that_hunts_is_friction_not_a_play(tmp_path):
 
 PERTURBATION_OPEN = (
     "issue 34 open: with this draw of the 1e-12 perturbation the unit's diagnosis keeps the limit alone (saturation "
-    "100 %): the p_only half's refits land in other basins at costs within 0.3 %, and the friction's first refit "
-    "there costs 0.043 where another rounding of the same records gives 0.002"
+    "100 %): the p_only record never reaches the limit, its fits put it anywhere above its peak command at costs "
+    "within 0.3 %, and friction's share of what that model leaves falls below min_gain"
 )
 
 
