@@ -257,6 +257,26 @@ def test_stribeck_drop_slows_the_steady_speed_and_keeps_exact_stops(fmu_runner):
     assert res["theta"][-1] > 0.5  # it did slide
 
 
+@pytest.mark.parametrize("effects", [{}, {"stribeck_speed": 0.005, "stiction_ratio": 1.3}])
+def test_a_hub_sliding_one_way_is_the_linear_rig_with_friction_as_a_command_offset(fmu_runner, effects):
+    """A hub that slides one way throughout feels Coulomb friction as a constant torque Fc: the linear rig driven
+    with the command less Fc / G (G the motor torque per volt), which the linear fast path integrates. The friction
+    rig's stepper (its modes checked every step, a Stribeck term evaluated at each stage) and the linear path take
+    the same RK4 steps by other routes: they agree to rounding while the hub is past the Stribeck speeds."""
+    fc, n, dt = 0.044, 400, 0.01
+    G = 0.9 * 70 * 0.69 * 7.68e-3 / 2.6
+    t = np.arange(n) * dt
+    u = 2.0 + 0.8 * np.sin(2 * np.pi * 1.3 * t)  # always forward: the hub never slows to the Stribeck speeds
+    outs = ["theta", "alpha", "theta_dot"]
+    start = {"n_modes": 2, "theta_dot_start": 1.0}
+    run = fmu_runner["flexjoint"].run
+    fric = run({**start, "coulomb_torque": fc, **effects}, {"u": u}, outs, dt, n)
+    lin = run(start, {"u": u - fc / G}, outs, dt, n)
+    assert fric["theta_dot"].min() > 0.5  # rad/s: it slid forward throughout
+    for k in outs:
+        np.testing.assert_allclose(fric[k], lin[k], rtol=0, atol=1e-9 * np.abs(lin[k]).max())
+
+
 def test_stribeck_speed_zero_is_the_karnopp_law_bit_for_bit(fmu_runner):
     t = np.arange(500) * 0.01
     u = 1.5 * np.sin(2 * np.pi * 0.5 * t)
