@@ -3,11 +3,17 @@ while the command line itself is still loading answered like one during a comman
 
 from __future__ import annotations
 
+import atexit
+import gc
 import sys
 
 
 def main() -> None:
-    """Load the command line and run it; an interrupt while loading it is one line on stderr and exit code 130."""
+    """Load the command line and run it; an interrupt while loading it is one line on stderr and exit code 130.
+    At exit, once every other exit handler has run (this one, registered first, runs last), what is still alive is
+    frozen (:func:`gc.freeze`): the interpreter's final collections skip it instead of traversing every module's
+    objects."""
+    atexit.register(gc.freeze)
     try:
         from .cli import main as cli_main
     except KeyboardInterrupt:
