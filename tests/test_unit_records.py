@@ -134,6 +134,13 @@ def test_two_effects_that_each_close_little_alone_are_refitted_together(friction
     assert d.parameters["rig.drive_gain"].fitted == pytest.approx(DRIVE_GAIN, rel=0.02)
     _, with_effects = _held_out_fits(d)
     assert with_effects > 70.0
+    for e in d.effects:  # each record's held-out fit before and after: the same gaps, record by record
+        fits = e.held_out_fit_pct or {}
+        assert sorted(fits) == ["p_only", "p_tip"]
+        for k, gap in ((0, e.gap_before), (1, e.gap_after)):
+            assert math.sqrt(np.mean([(1.0 - f[k] / 100.0) ** 2 for f in fits.values()])) == pytest.approx(gap)
+    friction = next(e for e in d.effects if e.effect == "coulomb_friction").held_out_fit_pct or {}
+    assert all(after > before for before, after in friction.values())  # the hub sticks in both records
 
 
 def test_a_unit_logged_as_labs_log_it_gives_back_its_sensors_and_its_behaviour(tmp_path):

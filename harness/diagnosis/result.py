@@ -157,7 +157,9 @@ class FoundEffect:
     ``gap_after``: held-out gap before and after it was added (with ``shrink_pct``, ``fit_pct_*``);
     ``importance_pct``: its share [%] of what removing each effect alone from the final rig reopens of its score
     on every record; ``fitted_on`` / ``held_out``: the experiments of the two fits; ``selected_by``: how it entered;
-    ``against_record``: its parameter beside the record's own range ("the logged command reaches 5.5 V")."""
+    ``against_record``: its parameter beside the record's own range ("the logged command reaches 5.5 V");
+    ``held_out_fit_pct``: each experiment's held-out fit [%] before and after it entered (where the evidence for it
+    lies: an effect one record does not exercise leaves that record's fit where it was)."""
 
     effect: str
     params: dict[str, float]
@@ -172,6 +174,7 @@ class FoundEffect:
     held_out: list[list[str]]
     selected_by: str
     against_record: str | None = None
+    held_out_fit_pct: dict[str, list[float]] | None = None
 
 
 @dataclass

@@ -888,7 +888,8 @@ def against_record(param: str, value: float, experiments: dict[str, RigExperimen
 
 def _found_effects(cf: CrossFit, base: Model, path: list[Model], final: Overrides, shares: dict[str, float]
                    ) -> list[FoundEffect]:  # fmt: skip
-    """The effects found, in the order they entered, each with the held-out gap before and after it entered."""
+    """The effects found, in the order they entered, each with the held-out gap before and after it entered (and
+    each experiment's)."""
     out = []
     prev = base
     for m in path:
@@ -913,6 +914,10 @@ def _found_effects(cf: CrossFit, base: Model, path: list[Model], final: Override
                     against_record=against_record(
                         p, float(final[p] if p in final else m.fits[0].params[p]), cf.experiments
                     ),
+                    held_out_fit_pct={
+                        n: [fit_pct(mean_squared_gap(s.sse, cf.experiments, [n])) for s in (prev.score, m.score)]
+                        for n in cf.names
+                    },
                 )
             )
         prev = m

@@ -118,6 +118,10 @@ def _effects_lines(diag: Diagnosis) -> list[str]:
     lines = ["Effects, in the order they were added (gaps on held-out experiments):", "", *table(header, rows), ""]
     lines += [f"- `{e.effect}`: {e.against_record}." for e in diag.effects if e.against_record]
     lines += [""] if any(e.against_record for e in diag.effects) else []
+    lines += [f"- `{e.effect}`, each held-out experiment's fit [%] before -> after: " + ", ".join(
+        f"`{n}` {fmt(a, 1)} -> {fmt(b, 1)}" for n, (a, b) in e.held_out_fit_pct.items()) + "."
+        for e in diag.effects if e.held_out_fit_pct]  # fmt: skip
+    lines += [""] if any(e.held_out_fit_pct for e in diag.effects) else []
     lines += [
         "Importance: remove each effect alone from the final rig (fitted on every record) and part of its gap "
         "reopens; an effect's importance is its share of what the removals reopen. Shrink: how much the held-out "
