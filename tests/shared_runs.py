@@ -10,6 +10,7 @@ import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from harness import spec as specmod
@@ -20,7 +21,7 @@ from harness.ident.crossfit import crossfit_run
 from harness.ident.identify import prepare, run_grid, write_grid
 from harness.rig.campaign import run_campaign
 from harness.rig.records import ImportOptions, import_records
-from harness.rundir import load_run
+from harness.rundir import Manifest, load_run, read_dataset, write_dataset
 
 try:
     import fcntl
@@ -74,6 +75,21 @@ def make_diagnosed_run(path: Path) -> None:
     write_grid(run_grid(prepared, ident, workers=1), path, ident, cal)
     crossfit_run(path)
     diagnose_run(path, campaign_spec(quick=True), workers=1)
+
+
+def perturbed_copy(src: Path, dst: Path, draw: int) -> Path:
+    """A copy of run directory ``src`` at ``dst`` whose records' logged volts and command are multiplied by
+    1 + 1e-12 x a standard normal draw (numpy's generator seeded ``draw``): what another CPU's rounding does."""
+    shutil.copytree(src, dst)
+    rng = np.random.default_rng(draw)
+    for e in Manifest.load(dst).experiments:
+        path = dst / "data" / f"{e.name}.parquet"
+        d = read_dataset(path)
+        cols = {c: d[c].to_numpy() for c in d.columns}
+        for c in ("theta_v", "alpha_v", "u"):
+            cols[c] = cols[c] * (1.0 + 1e-12 * rng.standard_normal(cols[c].size))
+        write_dataset(path, cols)
+    return dst
 
 
 def shared_dir(tmp_path_factory: pytest.TempPathFactory, name: str, make: Callable[[Path], None]) -> Path:

@@ -6,14 +6,13 @@ when a record starts, a command offset, a lightly damped link, and a loop that h
 from __future__ import annotations
 
 import math
-import shutil
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
 import pytest
-from shared_runs import shared_dir
+from shared_runs import perturbed_copy, shared_dir
 
 from harness import spec as specmod
 from harness.diagnosis.diagnose import diagnose_run
@@ -21,7 +20,7 @@ from harness.diagnosis.result import Diagnosis
 from harness.diagnosis.simulation import link_keys, offset_key
 from harness.rig.campaign import run_campaign
 from harness.rig.records import ImportOptions, import_records
-from harness.rundir import Manifest, read_dataset, write_dataset
+from harness.rundir import Manifest, read_dataset
 
 WRONG_DRIVE = {"kt": 0.0214, "Jeq": 0.003, "Ks": 1.79584}  # kt x2, Jeq x1.5, Ks x0.8 of cu_flexible_arm
 DRIVE_GAIN = 1.8847  # rad/(V s): the truth's, against the sheet's 1.841 (the drive's time constant 0.103 s: 0.54x)
@@ -214,16 +213,7 @@ def test_the_same_records_perturbed_at_1e_12_give_the_same_verdict(friction_and_
     search's path, a single and then another, or the two as a pair), and every fitted parameter inside the first
     diagnosis's 95 % interval."""
     shared, first = friction_and_limit
-    run = tmp_path / "unit"
-    shutil.copytree(shared, run)
-    rng = np.random.default_rng(draw)
-    for e in Manifest.load(run).experiments:
-        path = run / "data" / f"{e.name}.parquet"
-        d = read_dataset(path)
-        cols = {c: d[c].to_numpy() for c in d.columns}
-        for c in ("theta_v", "alpha_v", "u"):
-            cols[c] = cols[c] * (1.0 + 1e-12 * rng.standard_normal(cols[c].size))
-        write_dataset(path, cols)
+    run = perturbed_copy(shared, tmp_path / "unit", draw)
     again = diagnose_run(run, "cu_flexible_arm", tmp_path / "again", workers=1, force=True)
     assert again.verdict == first.verdict and sorted(again.effect_names) == sorted(first.effect_names)
     assert again.importance_pct() == pytest.approx(first.importance_pct(), abs=1.0)  # the rig's, not a basin of a fold
