@@ -50,8 +50,8 @@ from .replays import write_replays
 from .result import Diagnosis, FittedParameter, Folds, RecordSensors, RigFit, SensorCalibration, Thresholds
 from .rigmodel import prior_sd
 from .search import POLICY, Policy, SearchResult, search
-from .simulation import Setup, fit_pct, fmu_value, lattice_in_loop, link_keys, offset_key, replay_noise, sim_rig
-from .tasks import SENSOR_CHANNELS, Pool, Replay, Where
+from .simulation import Setup, fit_pct, fmu_value, link_keys, offset_key, replay_noise, sim_rig
+from .tasks import SENSOR_CHANNELS, Pool, Replay, Where, rough
 
 __all__ = ["diagnose_run", "priors", "thresholds"]
 
@@ -247,8 +247,12 @@ def diagnose_run(
     noise = replace(noise, gap=math.sqrt(found.floor.msg), fit_pct=fit_pct(found.floor.msg))
     if any(x.replay == "closed" for x in experiments.values()):
         less = " (less the lattice's LSB^2 / 12 where the replay's ADC quantises: it adds that)" if lattice else ""
-        adc_in_loop = lattice_in_loop(setup, found.final, list(experiments))
-        powell = "; a replay through an ADC fitted without derivatives" if adc_in_loop else ""
+        powell = (
+            "; fitted without derivatives where the replay is rough in the parameters (a controller acting on an ADC's "
+            "or an encoder's steps, a play)"
+            if rough(setup, found.final, list(experiments))
+            else ""
+        )
         loop = (f"closed-loop replays: each simulated with the data's noise{less} fed back through its controller, "
                 f"its spread the replays with {policy.draws} other noise draws{powell}")  # fmt: skip
         noise = replace(noise, method=f"{noise.method}; {loop}")

@@ -165,12 +165,12 @@ def gain_columns(setup: Setup, names: list[str], fitted: Collection[str] = ()) -
 
 def rough(setup: Setup, over: Overrides, names: list[str]) -> bool:
     """Is the replay of one of the experiments ``names`` with ``over`` rough in the parameters, so that least squares'
-    differences tell nothing: a closed loop through an ADC lattice (a staircase), or one with an effect switched on
-    that no replay follows sample by sample (``Effect.spread``: a play, each replay one realisation of where the
-    noise lets it sit)?"""
-    closed = any(setup.experiments[n].replay == "closed" for n in names)
+    differences tell nothing: a closed loop through a quantising sensor (an ADC lattice, an encoder's counts: its
+    controller acts on a staircase), or one with an effect switched on that no replay follows sample by sample
+    (``Effect.spread``: a play, each replay one realisation of where the noise lets it sit)?"""
+    loops = [setup.experiments[n] for n in names if setup.experiments[n].replay == "closed"]
     spread = any(BY_PARAM[p].spread and float(v) > 0 for p, v in over.items() if p in BY_PARAM)
-    return lattice_in_loop(setup, over, names) or (closed and spread)
+    return lattice_in_loop(setup, over, names) or any(x.encoder for x in loops) or (bool(loops) and spread)
 
 
 def least_squares_refit(
