@@ -47,6 +47,7 @@ __all__ = [
 
 INTEGRATOR_POLE = 0.999  # a real pole of A at or beyond this: the data integrate (estimate warns)
 _C_RADIUS_MAX = 0.999  # roots of C reflected/clipped to this radius (predictor filter 1/C stays stable)
+_SCHUR_MARGIN = 1e-8  # a reflection coefficient this close to 1: C's roots are taken by np.roots to tell
 
 
 # ----------------------------------------------------------------------------------------------- model
@@ -260,10 +261,24 @@ def _pred_error(A: np.ndarray, B: np.ndarray, C: np.ndarray, y: np.ndarray, u: n
     return lfilter([1.0], C, v)
 
 
+def _inside(C: np.ndarray, radius: float) -> bool:
+    """Whether every root of the monic ``C`` lies within ``radius``, clear of it: the Schur-Cohn step-down of C with
+    its roots scaled by 1 / radius keeps every reflection coefficient below 1 - _SCHUR_MARGIN. False also where a
+    root may sit on the circle; the caller then takes the roots themselves."""
+    a = [float(c) / radius**i for i, c in enumerate(C)]
+    for m in range(len(a) - 1, 0, -1):
+        k = a[m]
+        if abs(k) >= 1.0 - _SCHUR_MARGIN:
+            return False
+        d = 1.0 - k * k
+        a = [(a[i] - k * a[m - i]) / d for i in range(m)]
+    return True
+
+
 def _stabilize(C: np.ndarray) -> np.ndarray:
     """Reflect roots of the monic C outside the unit circle to 1/conj(r) (as MATLAB does), then clip radii
     above _C_RADIUS_MAX to it so that 1/C stays a stable, not nearly marginal, filter."""
-    if C.size <= 1:
+    if C.size <= 1 or _inside(C, _C_RADIUS_MAX):
         return C
     r = np.roots(C)
     mag = np.abs(r)
