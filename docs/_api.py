@@ -22,6 +22,7 @@ STAGES = {  # the package's stages in data-flow order: the first module part of 
     "pipeline": "Pipelines",
     "sweep": "Pipelines",
     "executor": "Parallel work",
+    "numerics": "Parallel work",
 }
 
 

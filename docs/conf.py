@@ -20,6 +20,10 @@ os.environ["PYTHONPATH"] = os.pathsep.join([str(ROOT), *filter(None, [os.environ
 os.environ.setdefault("FLEXJOINT_WORKERS", "2")  # the local cluster's size, whatever the machine
 os.environ.setdefault("COLUMNS", "110")  # the commands' tables as wide as a page
 
+from harness.numerics import pin_numerics  # noqa: E402
+
+pin_numerics()  # before anything loads numpy: the kernels and the commands they start compute as the CLI does
+
 from _api import write_api_page  # noqa: E402
 from _cli import write_cli_page  # noqa: E402
 

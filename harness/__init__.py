@@ -74,6 +74,7 @@ _API: dict[str, tuple[str, str]] = {
     "run_pipeline": ("pipeline", "run_pipeline"),
     "run_sweep": ("sweep", "run_sweep"),
     "Executor": ("executor", "Executor"),
+    "pin_numerics": ("numerics", "pin_numerics"),  # standard library only: callable before numpy loads
 }
 
 __all__ = ["__version__", *_API]
