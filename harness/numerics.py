@@ -29,7 +29,7 @@ from collections.abc import MutableMapping
 from importlib import metadata
 from pathlib import Path
 
-__all__ = ["OPENBLAS_CORE", "avx512_features", "pin_numerics", "pytest_load_initial_conftests"]
+__all__ = ["OPENBLAS_CORE", "avx512_features", "pin_numerics", "pinnable", "pytest_load_initial_conftests"]
 
 OPENBLAS_CORE = "Haswell"  # OpenBLAS's kernels for AVX2 and FMA
 NEEDED_FLAGS = frozenset({"avx2", "fma"})  # /proc/cpuinfo's names of what numpy's X86_V3 and Haswell's kernels use
@@ -56,6 +56,11 @@ def _cpu_flags() -> frozenset[str]:
     return frozenset()
 
 
+def pinnable() -> bool:
+    """Is this an x86-64 CPU with AVX2 and FMA, as Linux lists its flags (the CPUs :func:`pin_numerics` pins)?"""
+    return platform.machine().lower() in ("x86_64", "amd64") and NEEDED_FLAGS <= _cpu_flags()
+
+
 def pin_numerics(environ: MutableMapping[str, str] | None = None) -> bool:
     """Pin numpy's SIMD loops and OpenBLAS's kernels to those of x86-64 with AVX2 and FMA, where this is such a CPU
     (Linux); a variable already set is kept.
@@ -69,12 +74,12 @@ def pin_numerics(environ: MutableMapping[str, str] | None = None) -> bool:
     Returns
     -------
     bool
-        True when this process computes pinned: the variables are set and numpy was not loaded before them. False
-        on another CPU or system, or when numpy was already loaded (then only the processes started from now on
-        are pinned).
+        True when this process computes pinned: the variables are in its own environment and numpy was not loaded
+        before them. False on another CPU or system, for another ``environ``, or when numpy was already loaded (then
+        only the processes started from now on are pinned).
     """
     env = os.environ if environ is None else environ
-    if platform.machine().lower() not in ("x86_64", "amd64") or not NEEDED_FLAGS <= _cpu_flags():
+    if not pinnable():
         return False
     try:
         version = metadata.version("numpy")
@@ -82,7 +87,7 @@ def pin_numerics(environ: MutableMapping[str, str] | None = None) -> bool:
         return False
     env.setdefault("OPENBLAS_CORETYPE", OPENBLAS_CORE)
     env.setdefault("NPY_DISABLE_CPU_FEATURES", avx512_features(version))
-    return "numpy" not in sys.modules
+    return env is os.environ and "numpy" not in sys.modules
 
 
 def pytest_load_initial_conftests(early_config: object, parser: object, args: list[str]) -> None:

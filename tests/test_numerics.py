@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import os
-import platform
 import subprocess
 import sys
 
@@ -14,8 +13,7 @@ import pytest
 
 from harness import numerics
 
-PINNABLE = platform.machine().lower() in ("x86_64", "amd64") and numerics.NEEDED_FLAGS <= numerics._cpu_flags()
-needs_avx2 = pytest.mark.skipif(not PINNABLE, reason="pinned only on Linux x86-64 with AVX2 and FMA")
+needs_avx2 = pytest.mark.skipif(not numerics.pinnable(), reason="pinned only on Linux x86-64 with AVX2 and FMA")
 PROBE = (  # what a process computes with: OpenBLAS's kernels, numpy's loop of exp
     "import json, threadpoolctl, numpy as np; "
     "print(json.dumps([threadpoolctl.threadpool_info()[0]['architecture'], "
@@ -36,8 +34,8 @@ def test_numpys_names_of_its_avx512_targets_follow_its_version():
 def test_a_users_own_choice_is_kept_and_a_loaded_numpy_is_said():
     env = {"OPENBLAS_CORETYPE": "Zen"}
     took = numerics.pin_numerics(env)
-    assert took is False  # numpy is loaded in this process: only the processes it starts would be pinned
-    if PINNABLE:
+    assert took is False  # not this process's environment (and numpy is loaded here): nothing it computes is pinned
+    if numerics.pinnable():
         assert env["OPENBLAS_CORETYPE"] == "Zen"
         assert env["NPY_DISABLE_CPU_FEATURES"] == numerics.avx512_features(np.__version__)
 
