@@ -202,6 +202,31 @@ def _square_loop(seconds: float, f_ref: float, rate: float = 1000.0) -> RigExper
                          replay="closed", replay_reason="a closed-loop record with its controller (spec)")  # fmt: skip
 
 
+def test_records_that_repeat_their_reference_are_split_between_the_folds():
+    """A unit of two closed-loop records that each hold two periods of their reference or more (8 s at 0.25 Hz, 6 s
+    at 0.5 Hz) and one that does not (6 s at 0.1 Hz, one step): each of the first two cut at a quiet point into
+    blocks that alternate between the folds, their first blocks in different folds, so that both folds hold both
+    controllers' conditions; the third goes whole to one fold, and every sample is in one fold only."""
+    a, b, one = (replace(_square_loop(s, f), name=n, record=n)
+                 for s, f, n in ((8.0, 0.25, "p_only"), (6.0, 0.5, "p_tip"), (6.0, 0.1, "slow")))  # fmt: skip
+    assert ex.repeats(a) and ex.repeats(b) and not ex.repeats(one)
+    experiments, folds = ex.fold_experiments({"p_only": a, "p_tip": b, "slow": one})
+    names = list(experiments)
+    assert names[-1] == "slow" and experiments["slow"] is one
+    by_record = {r: [n for n in names if experiments[n].record == r] for r in ("p_only", "p_tip")}
+    assert [len(v) for v in by_record.values()] == [2, 2]
+    (a0, a1), (b0, b1) = by_record.values()
+    assert set(folds.A) | set(folds.B) == set(names) and not set(folds.A) & set(folds.B)
+    assert {a0, b1} <= set(folds.A) and {a1, b0} <= set(folds.B)  # each record in both folds, starts apart
+    for r, x in (("p_only", a), ("p_tip", b)):
+        parts = [experiments[n] for n in by_record[r]]
+        np.testing.assert_array_equal(np.concatenate([p.theta for p in parts]), x.theta)
+        cut = parts[0].u.size
+        assert abs(x.theta[cut] - x.ref[cut]) < 0.1 and abs(x.alpha[cut]) < 0.1  # still there
+        assert min(p.u.size for p in parts) >= ex.SPLIT_ZONE[0] * x.u.size  # near its middle
+    assert "('p_only', 'p_tip') each cut in time" in folds.scheme
+
+
 def test_a_lone_closed_loop_record_is_cut_into_blocks_that_alternate_between_the_folds():
     """12 s of a 1 Hz square reference: 6 blocks (the most, MAX_BLOCKS) of at least one reference period, cut
     where the shaft is still, 1st, 3rd, ... in fold A, 2nd, 4th, ... in fold B; each block a closed-loop replay that

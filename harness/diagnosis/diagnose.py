@@ -186,8 +186,9 @@ def diagnose_run(
     loaded Spec); the candidates are fitted as tasks of a :class:`harness.executor.Executor` (``workers`` processes of
     the default local cluster, 1 = serial, or the Dask cluster at ``scheduler``); ``fmus``: the built plant, DAQ and
     controller FMUs (default: built or taken from the cache); ``replay``: how each experiment is re-simulated
-    (:func:`harness.diagnosis.experiments.load_experiments`); a lone record is cut in time into blocks or two halves,
-    alternating between the folds (:func:`harness.diagnosis.experiments.fold_experiments`; too short for that, or
+    (:func:`harness.diagnosis.experiments.load_experiments`); a lone record, and a closed-loop record that repeats
+    its reference, is cut in time into blocks or two halves, alternating between the folds
+    (:func:`harness.diagnosis.experiments.fold_experiments`; a lone record too short for that, or
     records at different sample rates: a one-line DataError, nothing written). Writes ``out/diagnosis.json`` (default
     out = real; another run directory only with ``force``: its report would read the diagnosis as one of its own data)
     and its replays beside the record, per stage (as given, recalibrated, with the effects:
@@ -235,7 +236,8 @@ def diagnose_run(
     pool = Pool(setup, workers, scheduler, progress)
     try:
         imported = Manifest.load(real).kind == "import"
-        unit = list(experiments) if imported and len(moving) >= MIN_RECORDS else None
+        unit = {r: tuple(n for n, x in experiments.items() if x.record == r) for r in moving} if (
+            imported and len(moving) >= MIN_RECORDS) else None  # fmt: skip
         found = search(pool, experiments, (folds.A, folds.B), cands, say, policy, unit)
         # after recalibration: what recalibration alone fitted (the waterfall's stage), not the final joint refit
         stages = {"given": {}, "recalibrated": found.recalibrated, "effects": found.final}

@@ -634,6 +634,12 @@ def block_length(x: RigExperiment) -> int:
     return max(_min_fold(x), shown_period(x))
 
 
+def repeats(x: RigExperiment) -> bool:
+    """Does a closed-loop record repeat what it does: its reference shows a period (:func:`shown_period`) and the
+    record is two blocks long or more (:func:`block_length`: a period of its reference or more each)?"""
+    return x.replay == "closed" and shown_period(x) > 0 and x.u.size >= 2 * block_length(x)
+
+
 def block_count(x: RigExperiment) -> int:
     """How many blocks a lone record is cut into for its folds: the most, an even number up to MAX_BLOCKS, that
     each hold :func:`block_length` samples (whole periods of a periodic command), where the record shows a period
@@ -714,11 +720,35 @@ def blocks(x: RigExperiment) -> tuple[dict[str, RigExperiment], list[int]]:
 
 
 def fold_experiments(experiments: dict[str, RigExperiment]) -> tuple[dict[str, RigExperiment], Folds]:
-    """The experiments the diagnosis scores and its 2-fold cross-fit (:func:`split_folds`); a lone record is
-    cut in time into blocks (:func:`blocks`) that alternate between the folds (A the 1st, 3rd, ...; B the 2nd,
-    4th, ...), so that its held-out figures are held out and do not hinge on one cut; where it shows no period, is
-    replayed open loop or is too short for four blocks, into two halves, one per fold."""
+    """The experiments the diagnosis scores and its 2-fold cross-fit (:func:`split_folds`).
+
+    A record that holds what it does twice over, a closed loop repeating its reference (:func:`repeats`), is cut in
+    time at quiet points into blocks of about a period or more (:func:`blocks`) that alternate between the folds,
+    each such record's first block going to the other fold than the previous one's: both folds then hold every
+    record's conditions (its controller, its reference), and an effect that only one record exercises is fitted and
+    held out on that record. The other experiments alternate whole (:func:`split_folds`). A lone record is cut in
+    time into blocks alternating between the folds (A the 1st, 3rd, ...; B the 2nd, 4th, ...), so that its held-out
+    figures are held out and do not hinge on one cut; where it shows no period, is replayed open loop or is too
+    short for four blocks, into two halves, one per fold."""
     scheme = "2-fold cross-fit: fit on A score on B, and back"
+    cut = [n for n, x in experiments.items() if repeats(x)]
+    if len(experiments) != 1 and cut:
+        whole = {n: x for n, x in experiments.items() if n not in cut}
+        a, b = split_folds(whole) if len(whole) > 1 else (list(whole), [])
+        out: dict[str, RigExperiment] = {}
+        for n, x in experiments.items():
+            if n not in cut:
+                out[n] = x
+                continue
+            parts, _ = blocks(x)
+            first, second = (a, b) if cut.index(n) % 2 == 0 else (b, a)
+            first += list(parts)[0::2]
+            second += list(parts)[1::2]
+            out.update(parts)
+        order = {n: i for i, n in enumerate(out)}
+        scheme += (f"; the closed-loop records that repeat their reference ({', '.join(map(repr, cut))}) each cut in "
+                   "time into blocks of a period or more, alternating between the folds")  # fmt: skip
+        return out, Folds(A=sorted(a, key=order.__getitem__), B=sorted(b, key=order.__getitem__), scheme=scheme)
     if len(experiments) != 1:
         a, b = split_folds(experiments)
         return experiments, Folds(A=a, B=b, scheme=scheme)

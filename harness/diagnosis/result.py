@@ -158,7 +158,7 @@ class FoundEffect:
     ``importance_pct``: its share [%] of what removing each effect alone from the final rig reopens of its score
     on every record; ``fitted_on`` / ``held_out``: the experiments of the two fits; ``selected_by``: how it entered;
     ``against_record``: its parameter beside the record's own range ("the logged command reaches 5.5 V");
-    ``held_out_fit_pct``: each experiment's held-out fit [%] before and after it entered (where the evidence for it
+    ``held_out_fit_pct``: each record's held-out fit [%] before and after it entered (where the evidence for it
     lies: an effect one record does not exercise leaves that record's fit where it was)."""
 
     effect: str

@@ -580,11 +580,12 @@ def search(
     cands: list[Effect],
     say: Progress,
     policy: Policy = POLICY,
-    records: list[str] | None = None,
+    records: dict[str, tuple[str, ...]] | None = None,
 ) -> SearchResult:
     """The linear model, forward selection of the candidate effects ``cands`` on top of it, backward elimination and
-    the verdict, every score on held-out data (see the module); ``records``: a unit's records, each also fitted alone
-    with the effects found held (the table's per-record column)."""
+    the verdict, every score on held-out data (see the module); ``records``: a unit's records, each with its
+    experiments (its blocks in time), each record also fitted alone with the effects found held (the table's
+    per-record column)."""
     names = list(experiments)
     table = {c.name: c for c in cands}
     cf = CrossFit(pool, experiments, names, [folds[0], folds[1]], [folds[1], folds[0]], policy, table)
@@ -616,7 +617,8 @@ def search(
     name, explained = verdict(cf, base, final_model, shares, signature)
     floor = final_model.floor
     assert floor is not None
-    own = dict(zip(records or [], pool.map([Recalibrate((r,), final) for r in records or []]), strict=True))
+    units = records or {}
+    own = dict(zip(units, pool.map([Recalibrate(parts, final) for parts in units.values()]), strict=True))
     final_fit = between_folds(final_fit, final_model)
     draws = parameter_draws(final, final_fit.names, final_fit.log, final_fit.cov, policy.behaviour_draws, 1,
                             final_fit.ranges)  # fmt: skip
@@ -670,7 +672,7 @@ def search(
         ),
         definition=GAP_DEFINITION,
         records={
-            n: {"own": fit_pct(r.cost), "joint": fit_pct(mean_squared_gap(sse_final, experiments, [n]))}
+            n: {"own": fit_pct(r.cost), "joint": fit_pct(mean_squared_gap(sse_final, experiments, list(units[n])))}
             for n, r in own.items()
         }
         or None,  # fmt: skip
@@ -889,7 +891,7 @@ def against_record(param: str, value: float, experiments: dict[str, RigExperimen
 def _found_effects(cf: CrossFit, base: Model, path: list[Model], final: Overrides, shares: dict[str, float]
                    ) -> list[FoundEffect]:  # fmt: skip
     """The effects found, in the order they entered, each with the held-out gap before and after it entered (and
-    each experiment's)."""
+    each record's)."""
     out = []
     prev = base
     for m in path:
@@ -915,12 +917,20 @@ def _found_effects(cf: CrossFit, base: Model, path: list[Model], final: Override
                         p, float(final[p] if p in final else m.fits[0].params[p]), cf.experiments
                     ),
                     held_out_fit_pct={
-                        n: [fit_pct(mean_squared_gap(s.sse, cf.experiments, [n])) for s in (prev.score, m.score)]
-                        for n in cf.names
+                        r: [fit_pct(mean_squared_gap(s.sse, cf.experiments, parts)) for s in (prev.score, m.score)]
+                        for r, parts in _by_record(cf).items()
                     },
                 )
             )
         prev = m
+    return out
+
+
+def _by_record(cf: CrossFit) -> dict[str, list[str]]:
+    """Each record's experiments (a record cut in time: its blocks), in order."""
+    out: dict[str, list[str]] = {}
+    for n in cf.names:
+        out.setdefault(cf.experiments[n].record, []).append(n)
     return out
 
 
