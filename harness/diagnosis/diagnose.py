@@ -236,8 +236,7 @@ def diagnose_run(
     pool = Pool(setup, workers, scheduler, progress)
     try:
         imported = Manifest.load(real).kind == "import"
-        unit = {r: tuple(n for n, x in experiments.items() if x.record == r) for r in moving} if (
-            imported and len(moving) >= MIN_RECORDS) else None  # fmt: skip
+        unit = list(moving) if imported and len(moving) >= MIN_RECORDS else None
         found = search(pool, experiments, (folds.A, folds.B), cands, say, policy, unit)
         # after recalibration: what recalibration alone fitted (the waterfall's stage), not the final joint refit
         stages = {"given": {}, "recalibrated": found.recalibrated, "effects": found.final}

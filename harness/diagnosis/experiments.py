@@ -741,9 +741,10 @@ def fold_experiments(experiments: dict[str, RigExperiment]) -> tuple[dict[str, R
                 out[n] = x
                 continue
             parts, _ = blocks(x)
+            names = list(parts)
             first, second = (a, b) if cut.index(n) % 2 == 0 else (b, a)
-            first += list(parts)[0::2]
-            second += list(parts)[1::2]
+            first += names[0::2]
+            second += names[1::2]
             out.update(parts)
         order = {n: i for i, n in enumerate(out)}
         scheme += (f"; the closed-loop records that repeat their reference ({', '.join(map(repr, cut))}) each cut in "

@@ -580,12 +580,12 @@ def search(
     cands: list[Effect],
     say: Progress,
     policy: Policy = POLICY,
-    records: dict[str, tuple[str, ...]] | None = None,
+    records: list[str] | None = None,
 ) -> SearchResult:
     """The linear model, forward selection of the candidate effects ``cands`` on top of it, backward elimination and
-    the verdict, every score on held-out data (see the module); ``records``: a unit's records, each with its
-    experiments (its blocks in time), each record also fitted alone with the effects found held (the table's
-    per-record column)."""
+    the verdict, every score on held-out data (see the module); ``records``: a unit's records, each also fitted alone
+    on its experiments (its blocks, where it was cut in time) with the effects found held (the table's per-record
+    column)."""
     names = list(experiments)
     table = {c.name: c for c in cands}
     cf = CrossFit(pool, experiments, names, [folds[0], folds[1]], [folds[1], folds[0]], policy, table)
@@ -617,7 +617,7 @@ def search(
     name, explained = verdict(cf, base, final_model, shares, signature)
     floor = final_model.floor
     assert floor is not None
-    units = records or {}
+    units = {r: tuple(parts) for r, parts in _by_record(cf).items() if r in (records or [])}
     own = dict(zip(units, pool.map([Recalibrate(parts, final) for parts in units.values()]), strict=True))
     final_fit = between_folds(final_fit, final_model)
     draws = parameter_draws(final, final_fit.names, final_fit.log, final_fit.cov, policy.behaviour_draws, 1,
