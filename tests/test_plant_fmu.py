@@ -261,8 +261,9 @@ def test_stribeck_drop_slows_the_steady_speed_and_keeps_exact_stops(fmu_runner):
 def test_a_hub_sliding_one_way_is_the_linear_rig_with_friction_as_a_command_offset(fmu_runner, effects):
     """A hub that slides one way throughout feels Coulomb friction as a constant torque Fc: the linear rig driven
     with the command less Fc / G (G the motor torque per volt), which the linear fast path integrates. The friction
-    rig's stepper (its modes checked every step, a Stribeck term evaluated at each stage) and the linear path take
-    the same RK4 steps by other routes: they agree to rounding while the hub is past the Stribeck speeds."""
+    rig's stepper (its modes checked every step, a step past the Stribeck speeds as its configuration's RK4
+    polynomial with friction in its forcing) and the linear path take the same RK4 steps by other routes: they agree
+    to rounding while the hub is past the Stribeck speeds."""
     fc, n, dt = 0.044, 400, 0.01
     G = 0.9 * 70 * 0.69 * 7.68e-3 / 2.6
     t = np.arange(n) * dt

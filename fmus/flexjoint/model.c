@@ -25,6 +25,10 @@
  * With every non-smooth effect off (coulomb_torque = 0, backlash = 0, hub free) the dynamics are linear,
  * X' = A X + f, and the same RK4 step is applied as its polynomial X <- Phi(hA) X + h P3(hA) f (matrices
  * computed once per internal step size): identical to the stage-by-stage RK4 up to rounding, ~10x faster.
+ * With friction or a play the dynamics are affine over every step in which the configuration (gear in contact or
+ * in the play, hub sliding or stuck) and the friction torque are fixed: such a step is the polynomial of its
+ * configuration's A (affineStepN); a step in the Stribeck drop, where friction varies with speed, or after an
+ * event is taken stage by stage.
  *
  * Non-smooth effects are handled as a hybrid system: the mode (stuck/sliding, in contact/in the play)
  * is fixed during an RK4 step; an event found at the end of a step (velocity reversal, gap closure)
@@ -284,7 +288,7 @@ fmi2Status initialize(ModelInstance *comp) {
     d->side = 0;
     d->slip = (d->coulomb_torque > 0 && d->theta_dot_start != 0.0) ? (d->theta_dot_start > 0 ? 1 : -1) : 0;
     d->linear = d->coulomb_torque == 0.0 && d->backlash == 0.0 && !d->hub_locked;
-    d->lin_h = 0.0;
+    for (i = 0; i < CONFIGS; i++) d->maps[i].h = 0.0;
     return fmi2OK;
 }
 
@@ -504,6 +508,8 @@ static double locateEvent(const ModelData *d, const double *X0, double h, int ev
     return f;
 }
 
+FOR_EACH_N int affineStepN(ModelData *d, const double *X0, double *X1, double h, const int N);
+
 FOR_EACH_N void substepN(ModelData *d, double h, const int N) {
     const double half = 0.5 * d->backlash;
     double X0[MAX_X], X1[MAX_X];
@@ -514,7 +520,7 @@ FOR_EACH_N void substepN(ModelData *d, double h, const int N) {
         int ev = 0;
         updateModesN(d, N);
         memcpy(X0, d->X, sizeof(X0));
-        rk4N(d, X0, X1, rem, N);
+        if (rem != h || !affineStepN(d, X0, X1, rem, N)) rk4N(d, X0, X1, rem, N);
         if (events < MAX_EVENTS_PER_STEP && !d->hub_locked) {
             if (d->backlash > 0 && d->side == 0 && fabs(X1[2 * N] - X1[0]) > half) {
                 ev = (X1[2 * N] - X1[0]) > 0 ? 1 : -1; /* the play closes on side ev */
@@ -546,25 +552,17 @@ FOR_EACH_N void substepN(ModelData *d, double h, const int N) {
     }
 }
 
-/* Phi = I + B + B^2/2 + B^3/6 + B^4/24 and P3h = h (I + B/2 + B^2/6 + B^3/24), B = h A (rigid gear) */
-static void linearMaps(ModelData *d, double h) {
-    const int N = d->N, n = 2 * N;
-    double Bm[2 * MAX_DOF][2 * MAX_DOF], Pw[2 * MAX_DOF][2 * MAX_DOF], T[2 * MAX_DOF][2 * MAX_DOF];
+/* Phi = I + B + B^2/2 + B^3/6 + B^4/24 and P3h = h (I + B/2 + B^2/6 + B^3/24) of B = h A, A of size n: one RK4
+   step of X' = A X + f is X <- Phi X + P3h f */
+static void rk4Maps(int n, double Bm[MAX_X][MAX_X], double h, double Phi[MAX_X][MAX_X], double P3h[MAX_X][MAX_X]) {
+    double Pw[MAX_X][MAX_X], T[MAX_X][MAX_X];
     double fact = 1.0;
     int i, j, l, p;
-    memset(Bm, 0, sizeof(Bm));
-    for (i = 0; i < N; i++) {
-        Bm[i][N + i] = h;
-        for (j = 0; j < N; j++) {
-            Bm[N + i][j] = -h * d->Minv_r[i][j] * (j == 0 ? 0.0 : d->k[j]);
-            Bm[N + i][N + j] = -h * d->Minv_r[i][j] * (j == 0 ? d->Beq + d->Bemf : d->c[j]);
-        }
-    }
     for (i = 0; i < n; i++)
         for (j = 0; j < n; j++) {
             Pw[i][j] = (i == j) ? 1.0 : 0.0; /* B^0 */
-            d->Phi[i][j] = Pw[i][j];
-            d->P3h[i][j] = h * Pw[i][j];
+            Phi[i][j] = Pw[i][j];
+            P3h[i][j] = h * Pw[i][j];
         }
     for (p = 1; p <= 4; p++) { /* Pw = B^p */
         for (i = 0; i < n; i++)
@@ -577,11 +575,87 @@ static void linearMaps(ModelData *d, double h) {
         fact *= p;
         for (i = 0; i < n; i++)
             for (j = 0; j < n; j++) {
-                d->Phi[i][j] += Pw[i][j] / fact;
-                if (p < 4) d->P3h[i][j] += h * Pw[i][j] / (fact * (p + 1));
+                Phi[i][j] += Pw[i][j] / fact;
+                if (p < 4) P3h[i][j] += h * Pw[i][j] / (fact * (p + 1));
             }
     }
-    d->lin_h = h;
+}
+
+/* the configuration the rig's dynamics are affine in over a step: gear in contact (or no play) or in the play, hub
+   sliding (or free) or stuck */
+static int configuration(const ModelData *d) { return (isCoupled(d) ? RIGID : PLAY) + (d->stuck ? STUCK : 0); }
+
+/* states a configuration's maps act on: the rigid drive's hub and modes (the motor side follows the hub), else all */
+static int mapSize(const ModelData *d, int cfg) { return cfg == RIGID ? 2 * d->N : 2 * d->N + 2; }
+
+/* the maps of configuration cfg for steps of h: B = h A of the derivatives derivN takes in it, friction aside */
+static void affineMaps(ModelData *d, int cfg, double h) {
+    const int N = d->N, n = 2 * N, stuck = cfg & STUCK;
+    const double(*Minv)[MAX_DOF] = (cfg & ~STUCK) == RIGID ? d->Minv_r : d->Minv_f;
+    const double Bhub = (cfg & ~STUCK) == RIGID ? d->Beq + d->Bemf : d->Bh;
+    double Bm[MAX_X][MAX_X];
+    int i, j;
+    memset(Bm, 0, sizeof(Bm));
+    for (i = stuck ? 1 : 0; i < N; i++) {
+        Bm[i][N + i] = h;
+        for (j = stuck ? 1 : 0; j < N; j++) {
+            /* a stuck hub clamps the link: its modes move with the clamped modal masses */
+            const double m = !stuck ? Minv[i][j] : d->m_tip == 0.0 ? (i == j ? 1.0 / d->Jmode : 0.0) : d->Mc_inv[i][j];
+            Bm[N + i][j] = -h * m * (j == 0 ? 0.0 : d->k[j]);
+            Bm[N + i][N + j] = -h * m * (j == 0 ? Bhub : d->c[j]);
+        }
+    }
+    if ((cfg & ~STUCK) == PLAY) { /* the motor side on its own */
+        Bm[n][n + 1] = h;
+        Bm[n + 1][n + 1] = -h * (d->Bemf + d->Bm) / d->Jm;
+    }
+    rk4Maps(mapSize(d, cfg), Bm, h, d->maps[cfg].Phi, d->maps[cfg].P3h);
+    d->maps[cfg].h = h;
+}
+
+/* One RK4 step from X0 to X1 as its polynomial (X1 = Phi X0 + P3h f) where the dynamics are affine over the step,
+   the friction torque fixed: the hub stuck, or sliding with Coulomb's level at both ends (stribeck_speed = 0, or a
+   speed where the Stribeck term is below rounding), in the configuration's maps. Returns 0 where it does not apply
+   (the hub locked, the Stribeck drop): the caller takes RK4 stage by stage. */
+FOR_EACH_N int affineStepN(ModelData *d, const double *X0, double *X1, double h, const int N) {
+    const int n = 2 * N, cfg = configuration(d), m = mapSize(d, cfg);
+    const int stribeck = !d->stuck && d->stribeck_speed > 0 && d->coulomb_torque > 0;
+    const double(*Minv)[MAX_DOF] = (cfg & ~STUCK) == RIGID ? d->Minv_r : d->Minv_f;
+    double Q[MAX_DOF], f[MAX_X];
+    int i, j;
+    if (d->hub_locked) return 0;
+    if (stribeck) {
+        const double r = X0[N] / d->stribeck_speed;
+        if (!(r * r > d->r2_flat)) return 0;
+    }
+    if (d->maps[cfg].h != h) affineMaps(d, cfg, h);
+    Q[0] = ((cfg & ~STUCK) == RIGID ? d->G * d->v_amp : 0.0) + d->tau_tip -
+           (d->coulomb_torque > 0 ? d->coulomb_torque * d->slip : 0.0);
+    for (i = 1; i < N; i++) Q[i] = d->tau_tip;
+    for (i = 0; i < N; i++) {
+        double s = 0.0;
+        for (j = d->stuck ? 1 : 0; j < N; j++)
+            s += (!d->stuck ? Minv[i][j] : d->m_tip == 0.0 ? (i == j ? 1.0 / d->Jmode : 0.0) : d->Mc_inv[i][j]) * Q[j];
+        f[i] = 0.0;
+        f[N + i] = d->stuck && i == 0 ? 0.0 : s;
+    }
+    f[n] = 0.0;
+    f[n + 1] = (cfg & ~STUCK) == PLAY ? d->G * d->v_amp / d->Jm : 0.0;
+    for (i = 0; i < m; i++) {
+        double s = 0.0;
+        for (j = 0; j < m; j++) s += d->maps[cfg].Phi[i][j] * X0[j];
+        for (j = N; j < m; j++) s += d->maps[cfg].P3h[i][j] * f[j]; /* f is 0 on the positions */
+        X1[i] = s;
+    }
+    if (stribeck) {
+        const double r = X1[N] / d->stribeck_speed;
+        if (!(r * r > d->r2_flat) || X1[N] * d->slip <= 0.0) return 0; /* it left the flat level: RK4 by stages */
+    }
+    if (cfg == RIGID) { /* the motor side moves with the hub */
+        X1[n] = X0[n] + (X1[0] - X0[0]);
+        X1[n + 1] = X1[N];
+    }
+    return 1;
 }
 
 /* nsub RK4 steps of size hs of the linear rig with constant inputs */
@@ -590,7 +664,7 @@ FOR_EACH_N void linearStepsN(ModelData *d, double hs, long nsub, const int N) {
     double Q[MAX_DOF], f[2 * MAX_DOF], g[2 * MAX_DOF], Y[2 * MAX_DOF];
     long k;
     int i, j;
-    if (d->lin_h != hs) linearMaps(d, hs);
+    if (d->maps[RIGID].h != hs) affineMaps(d, RIGID, hs);
     Q[0] = d->G * d->v_amp + d->tau_tip;
     for (i = 1; i < N; i++) Q[i] = d->tau_tip;
     for (i = 0; i < N; i++) {
@@ -601,13 +675,13 @@ FOR_EACH_N void linearStepsN(ModelData *d, double hs, long nsub, const int N) {
     }
     for (i = 0; i < n; i++) {
         double s = 0.0;
-        for (j = 0; j < n; j++) s += d->P3h[i][j] * f[j];
+        for (j = 0; j < n; j++) s += d->maps[RIGID].P3h[i][j] * f[j];
         g[i] = s;
     }
     for (k = 0; k < nsub; k++) {
         for (i = 0; i < n; i++) {
             double s = g[i];
-            for (j = 0; j < n; j++) s += d->Phi[i][j] * d->X[j];
+            for (j = 0; j < n; j++) s += d->maps[RIGID].Phi[i][j] * d->X[j];
             Y[i] = s;
         }
         memcpy(d->X, Y, (size_t)n * sizeof(double));

@@ -32,6 +32,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass, field, replace
+from functools import partial
 
 import numpy as np
 from scipy.optimize import OptimizeResult, least_squares, minimize
@@ -243,7 +244,7 @@ def _fit(
                 x0,
                 bounds=([b[0] for b in lo_hi], [b[1] for b in lo_hi]),
                 method="trf",
-                jac=broyden,
+                jac=partial(broyden, weight=w2),
                 diff_step=1e-3,
                 x_scale=1.0,
                 max_nfev=max_nfev,
@@ -262,7 +263,7 @@ def _fit(
     n_eff = int(np.count_nonzero(r))
     dof = max(n_eff - len(names), 1)
     s2 = float(np.sum(r**2)) / dof * n_eff / max(effective_samples(r, max_rho), 1.0)  # smooth residuals: fewer samples
-    exact = grouped_jacobian(full, res.x, lo_hi, masks, sel) if not derivative_free else np.array(res.jac, dtype=float)
+    exact = broyden.exact(res.x, w2) if not derivative_free else np.array(res.jac, dtype=float)
     jac = _felt(data, res.x, r, exact[: r.size], lo_hi)
     info = jac.T @ jac / max(s2, 1e-300) + np.diag(np.where(sel, 1.0 / sd**2, 0.0))
     cov = np.linalg.pinv(info)
@@ -299,11 +300,20 @@ class Broyden:
         self.fun, self.lo_hi, self.masks, self.prior_rows = fun, lo_hi, masks, prior_rows
         self.last: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self.since = 0
+        self.by_differences: tuple[bytes, np.ndarray] | None = None  # the last Jacobian by differences, at x
 
-    def __call__(self, x: np.ndarray) -> np.ndarray:
+    def exact(self, x: np.ndarray, weight: float) -> np.ndarray:
+        """The Jacobian by differences at ``x`` (:func:`grouped_jacobian`), the one taken there already when the prior
+        rows' ``weight`` is the same."""
+        key = x.tobytes() + np.float64(weight).tobytes()
+        if self.by_differences is None or self.by_differences[0] != key:
+            self.by_differences = (key, grouped_jacobian(self.fun, x, self.lo_hi, self.masks, self.prior_rows))
+        return self.by_differences[1]
+
+    def __call__(self, x: np.ndarray, weight: float = 0.0) -> np.ndarray:
         f = self.fun(x)
         if self.last is None or self.since + 1 >= BROYDEN_EVERY or f.size != self.last[1].size:
-            jac = grouped_jacobian(self.fun, x, self.lo_hi, self.masks, self.prior_rows)
+            jac = self.exact(x, weight)
             self.since = 0
         else:
             x0, f0, jac = self.last
