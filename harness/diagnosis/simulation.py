@@ -291,7 +291,7 @@ def replay(rig: Any, setup: Setup, exp: RigExperiment, over: Mapping[str, Any], 
     else:
         edge = 180.0 - 0.5 * fmu_value(daq, "daq", "pot_deadband") - DEADBAND_GUARD
         on_track = np.abs(reading) < edge
-    th = np.unwrap(reading, period=360.0)
+    th = unwrapped(reading)
     al = alpha_deg(res["alpha_v"], cal) - zero
     if exp.replay == "open":
         ok = on_track & exp.valid["theta"][: th.size]
@@ -305,6 +305,16 @@ def replay(rig: Any, setup: Setup, exp: RigExperiment, over: Mapping[str, Any], 
     else:  # started at the measured angle: only whole turns of the pot's wrap to restore
         th += 360.0 * np.round((exp.theta[0] - th[0]) / 360.0)
     return Replayed(th, al, on_track, np.asarray(res.get("u", exp.u[:n]), dtype=float), delta)
+
+
+def unwrapped(deg: np.ndarray) -> np.ndarray:
+    """``np.unwrap(deg, period=360.0)`` [deg]: where no sample jumps by half a turn or more (the pot did not wrap), the
+    same numbers without its corrections' arithmetic."""
+    if deg.size > 1 and bool(np.all(np.abs(np.diff(deg)) < 180.0)):
+        out = deg.copy()
+        out[1:] += 0.0  # as np.unwrap adds its (zero) corrections: -0.0 becomes 0.0 after the first sample
+        return out
+    return np.unwrap(deg, period=360.0)
 
 
 def _shooting(

@@ -12,6 +12,7 @@ import ctypes
 import shutil
 import tempfile
 from dataclasses import dataclass, field
+from functools import cached_property
 from multiprocessing.util import Finalize
 from pathlib import Path
 from typing import Any
@@ -23,10 +24,18 @@ from fmpy.fmi2 import (
     fmi2Boolean,
     fmi2CallbackFunctions,
     fmi2CallbackLoggerTYPE,
+    fmi2Integer,
     fmi2Real,
+    fmi2ValueReference,
 )
 
 from .modeldesc import ModelDescription, Variable, read
+
+SETTERS = {  # a parameter type: its Python type, the FMI function that sets it and the C type it takes
+    "Real": (float, "fmi2SetReal", fmi2Real),
+    "Integer": (int, "fmi2SetInteger", fmi2Integer),
+    "Boolean": (bool, "fmi2SetBoolean", fmi2Boolean),
+}
 
 
 class FMUError(RuntimeError):
@@ -75,21 +84,29 @@ class Instance:
 
     def set_parameters(self, values: dict[str, Any]) -> None:
         """Set parameters by name (Real, Integer or Boolean as their declared type), one FMI call per type."""
-        setters = {"Real": (float, self.slave.setReal), "Integer": (int, self.slave.setInteger),
-                   "Boolean": (bool, self.slave.setBoolean)}  # fmt: skip
-        batch: dict[str, tuple[list[int], list[Any]]] = {kind: ([], []) for kind in setters}
+        settable = self._settable
+        batch: dict[str, tuple[list[int], list[Any]]] = {kind: ([], []) for kind in SETTERS}
         for name, value in values.items():
-            if name not in self.variables:
-                valid = sorted(self.description.parameters())
-                raise FMUError(f"{self.path.stem}: unknown parameter {name!r}; valid: {', '.join(valid)}")
-            v = self.variables[name]
-            if v.type not in setters:
-                raise FMUError(f"{self.path.stem}: parameter {name!r} has unsupported type {v.type}")
-            batch[v.type][0].append(v.value_reference)
-            batch[v.type][1].append(setters[v.type][0](value))
+            found = settable.get(name)
+            if found is None:
+                if name not in self.variables:
+                    valid = sorted(self.description.parameters())
+                    raise FMUError(f"{self.path.stem}: unknown parameter {name!r}; valid: {', '.join(valid)}")
+                raise FMUError(f"{self.path.stem}: parameter {name!r} has unsupported type {self.variables[name].type}")
+            kind, vr = found
+            batch[kind][0].append(vr)
+            batch[kind][1].append(SETTERS[kind][0](value))
         for kind, (refs, vals) in batch.items():
             if refs:
-                setters[kind][1](refs, vals)
+                n = len(refs)
+                setter = getattr(self.dll, SETTERS[kind][1])
+                self.check(setter(self.component, (fmi2ValueReference * n)(*refs), n, (SETTERS[kind][2] * n)(*vals)),
+                           f"set {kind} parameters")  # fmt: skip
+
+    @cached_property
+    def _settable(self) -> dict[str, tuple[str, int]]:
+        """Each variable of a type :meth:`set_parameters` sets: its type and value reference, by name."""
+        return {n: (v.type, v.value_reference) for n, v in self.variables.items() if v.type in SETTERS}
 
     def get(self, names: list[str]) -> dict[str, float | int]:
         """Current values by name (Real as float, Integer as int)."""
