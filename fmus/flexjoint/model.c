@@ -588,24 +588,29 @@ static int configuration(const ModelData *d) { return (isCoupled(d) ? RIGID : PL
 /* states a configuration's maps act on: the rigid drive's hub and modes (the motor side follows the hub), else all */
 static int mapSize(const ModelData *d, int cfg) { return cfg == RIGID ? 2 * d->N : 2 * d->N + 2; }
 
+/* entry (i, j) of configuration cfg's inverse mass matrix: the rigid drive's or the hub side's (Minv_r, Minv_f) with
+   the hub free; with the hub stuck, the clamped link's modal one (i, j >= 1) */
+static double inverseMass(const ModelData *d, int cfg, int i, int j) {
+    if (!(cfg & STUCK)) return ((cfg & ~STUCK) == RIGID ? d->Minv_r : d->Minv_f)[i][j];
+    return d->m_tip == 0.0 ? (i == j ? 1.0 / d->Jmode : 0.0) : d->Mc_inv[i][j];
+}
+
 /* the maps of configuration cfg for steps of h: B = h A of the derivatives derivN takes in it, friction aside */
 static void affineMaps(ModelData *d, int cfg, double h) {
-    const int N = d->N, n = 2 * N, stuck = cfg & STUCK;
-    const double(*Minv)[MAX_DOF] = (cfg & ~STUCK) == RIGID ? d->Minv_r : d->Minv_f;
-    const double Bhub = (cfg & ~STUCK) == RIGID ? d->Beq + d->Bemf : d->Bh;
+    const int N = d->N, n = 2 * N, first = cfg & STUCK ? 1 : 0, drive = cfg & ~STUCK;
+    const double Bhub = drive == RIGID ? d->Beq + d->Bemf : d->Bh;
     double Bm[MAX_X][MAX_X];
     int i, j;
     memset(Bm, 0, sizeof(Bm));
-    for (i = stuck ? 1 : 0; i < N; i++) {
+    for (i = first; i < N; i++) { /* a stuck hub (row 0) stays where it is */
         Bm[i][N + i] = h;
-        for (j = stuck ? 1 : 0; j < N; j++) {
-            /* a stuck hub clamps the link: its modes move with the clamped modal masses */
-            const double m = !stuck ? Minv[i][j] : d->m_tip == 0.0 ? (i == j ? 1.0 / d->Jmode : 0.0) : d->Mc_inv[i][j];
+        for (j = first; j < N; j++) {
+            const double m = inverseMass(d, cfg, i, j);
             Bm[N + i][j] = -h * m * (j == 0 ? 0.0 : d->k[j]);
             Bm[N + i][N + j] = -h * m * (j == 0 ? Bhub : d->c[j]);
         }
     }
-    if ((cfg & ~STUCK) == PLAY) { /* the motor side on its own */
+    if (drive == PLAY) { /* the motor side on its own */
         Bm[n][n + 1] = h;
         Bm[n + 1][n + 1] = -h * (d->Bemf + d->Bm) / d->Jm;
     }
@@ -618,9 +623,8 @@ static void affineMaps(ModelData *d, int cfg, double h) {
    speed where the Stribeck term is below rounding), in the configuration's maps. Returns 0 where it does not apply
    (the hub locked, the Stribeck drop): the caller takes RK4 stage by stage. */
 FOR_EACH_N int affineStepN(ModelData *d, const double *X0, double *X1, double h, const int N) {
-    const int n = 2 * N, cfg = configuration(d), m = mapSize(d, cfg);
+    const int n = 2 * N, cfg = configuration(d), m = mapSize(d, cfg), first = d->stuck ? 1 : 0, drive = cfg & ~STUCK;
     const int stribeck = !d->stuck && d->stribeck_speed > 0 && d->coulomb_torque > 0;
-    const double(*Minv)[MAX_DOF] = (cfg & ~STUCK) == RIGID ? d->Minv_r : d->Minv_f;
     double Q[MAX_DOF], f[MAX_X];
     int i, j;
     if (d->hub_locked) return 0;
@@ -629,18 +633,17 @@ FOR_EACH_N int affineStepN(ModelData *d, const double *X0, double *X1, double h,
         if (!(r * r > d->r2_flat)) return 0;
     }
     if (d->maps[cfg].h != h) affineMaps(d, cfg, h);
-    Q[0] = ((cfg & ~STUCK) == RIGID ? d->G * d->v_amp : 0.0) + d->tau_tip -
+    Q[0] = (drive == RIGID ? d->G * d->v_amp : 0.0) + d->tau_tip -
            (d->coulomb_torque > 0 ? d->coulomb_torque * d->slip : 0.0);
     for (i = 1; i < N; i++) Q[i] = d->tau_tip;
     for (i = 0; i < N; i++) {
         double s = 0.0;
-        for (j = d->stuck ? 1 : 0; j < N; j++)
-            s += (!d->stuck ? Minv[i][j] : d->m_tip == 0.0 ? (i == j ? 1.0 / d->Jmode : 0.0) : d->Mc_inv[i][j]) * Q[j];
+        for (j = first; j < N; j++) s += inverseMass(d, cfg, i, j) * Q[j];
         f[i] = 0.0;
-        f[N + i] = d->stuck && i == 0 ? 0.0 : s;
+        f[N + i] = i < first ? 0.0 : s;
     }
     f[n] = 0.0;
-    f[n + 1] = (cfg & ~STUCK) == PLAY ? d->G * d->v_amp / d->Jm : 0.0;
+    f[n + 1] = drive == PLAY ? d->G * d->v_amp / d->Jm : 0.0;
     for (i = 0; i < m; i++) {
         double s = 0.0;
         for (j = 0; j < m; j++) s += d->maps[cfg].Phi[i][j] * X0[j];
