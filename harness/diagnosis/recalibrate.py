@@ -288,7 +288,8 @@ class Broyden:
     """The Jacobian least squares asks for at each point it accepts: by forward differences
     (:func:`grouped_jacobian`) every BROYDEN_EVERY points, and between them by Broyden's rank-one update from the
     last two points' residuals (J += (df - J dx) dx^T / dx^T dx), which costs no simulation. The intervals are taken
-    from a Jacobian by differences at the solution."""
+    from a Jacobian by differences at the solution (:meth:`exact`: the one least squares took there, if it did).
+    ``weight``: the prior rows' weight of the residuals ``fun`` gives now."""
 
     def __init__(
         self,
@@ -310,7 +311,7 @@ class Broyden:
             self.by_differences = (key, grouped_jacobian(self.fun, x, self.lo_hi, self.masks, self.prior_rows))
         return self.by_differences[1]
 
-    def __call__(self, x: np.ndarray, weight: float = 0.0) -> np.ndarray:
+    def __call__(self, x: np.ndarray, weight: float) -> np.ndarray:
         f = self.fun(x)
         if self.last is None or self.since + 1 >= BROYDEN_EVERY or f.size != self.last[1].size:
             jac = self.exact(x, weight)
