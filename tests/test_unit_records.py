@@ -229,13 +229,14 @@ def test_a_loop_that_hunts_is_friction_not_a_play(tmp_path):
 
 
 @pytest.mark.xdist_group("friction_and_limit")  # one test process makes the shared diagnosis
-def test_the_same_records_perturbed_at_1e_12_give_the_same_verdict(friction_and_limit, tmp_path):
+@pytest.mark.parametrize("draw", [1, 12])
+def test_the_same_records_perturbed_at_1e_12_give_the_same_verdict(friction_and_limit, tmp_path, draw):
     """Rounding another CPU's BLAS does differently must not flip a verdict: the friction-and-limit unit's records
     perturbed by a relative 1e-12 give the same verdict and effects (the order they entered in may differ: the
     search's path, a single and then another, or the two as a pair), and every fitted parameter inside the first
     diagnosis's 95 % interval."""
     shared, first = friction_and_limit
-    run = perturbed_copy(shared, tmp_path / "unit", 12)
+    run = perturbed_copy(shared, tmp_path / "unit", draw)
     again = diagnose_run(run, "cu_flexible_arm", tmp_path / "again", workers=1, force=True)
     assert again.verdict == first.verdict and sorted(again.effect_names) == sorted(first.effect_names)
     assert again.importance_pct() == pytest.approx(first.importance_pct(), abs=1.0)  # the rig's, not a basin of a fold
