@@ -108,7 +108,7 @@ typedef struct {
         double h;
         double Phi[MAX_X][MAX_X]; /* I + hA + (hA)^2/2 + (hA)^3/6 + (hA)^4/24 */
         double P3h[MAX_X][MAX_X]; /* h (I + hA/2 + (hA)^2/6 + (hA)^3/24) */
-    } maps[4];
+    } maps[CONFIGS];
 } ModelData;
 
 #endif

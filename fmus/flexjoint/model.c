@@ -618,21 +618,13 @@ static void affineMaps(ModelData *d, int cfg, double h) {
     d->maps[cfg].h = h;
 }
 
-/* One RK4 step from X0 to X1 as its polynomial (X1 = Phi X0 + P3h f) where the dynamics are affine over the step,
-   the friction torque fixed: the hub stuck, or sliding with Coulomb's level at both ends (stribeck_speed = 0, or a
-   speed where the Stribeck term is below rounding), in the configuration's maps. Returns 0 where it does not apply
-   (the hub locked, the Stribeck drop): the caller takes RK4 stage by stage. */
-FOR_EACH_N int affineStepN(ModelData *d, const double *X0, double *X1, double h, const int N) {
-    const int n = 2 * N, cfg = configuration(d), m = mapSize(d, cfg), first = d->stuck ? 1 : 0, drive = cfg & ~STUCK;
-    const int stribeck = !d->stuck && d->stribeck_speed > 0 && d->coulomb_torque > 0;
-    double Q[MAX_DOF], f[MAX_X];
+/* The forcing f of configuration cfg's affine dynamics X' = A X + f [rad/s^2] over a step: the drive's and the tip's
+   torques, less Coulomb's level where the hub slides (coulomb_torque slip), through the configuration's inverse mass;
+   in the play, the motor side's drive of its own. Zero on the positions and on a stuck hub's rate. */
+FOR_EACH_N void affineForcingN(const ModelData *d, int cfg, double *f, const int N) {
+    const int n = 2 * N, first = cfg & STUCK ? 1 : 0, drive = cfg & ~STUCK;
+    double Q[MAX_DOF];
     int i, j;
-    if (d->hub_locked) return 0;
-    if (stribeck) {
-        const double r = X0[N] / d->stribeck_speed;
-        if (!(r * r > d->r2_flat)) return 0;
-    }
-    if (d->maps[cfg].h != h) affineMaps(d, cfg, h);
     Q[0] = (drive == RIGID ? d->G * d->v_amp : 0.0) + d->tau_tip -
            (d->coulomb_torque > 0 ? d->coulomb_torque * d->slip : 0.0);
     for (i = 1; i < N; i++) Q[i] = d->tau_tip;
@@ -644,6 +636,24 @@ FOR_EACH_N int affineStepN(ModelData *d, const double *X0, double *X1, double h,
     }
     f[n] = 0.0;
     f[n + 1] = drive == PLAY ? d->G * d->v_amp / d->Jm : 0.0;
+}
+
+/* One RK4 step from X0 to X1 as its polynomial (X1 = Phi X0 + P3h f) where the dynamics are affine over the step,
+   the friction torque fixed: the hub stuck, or sliding with Coulomb's level at both ends (stribeck_speed = 0, or a
+   speed where the Stribeck term is below rounding), in the configuration's maps. Returns 0 where it does not apply
+   (the hub locked, the Stribeck drop): the caller takes RK4 stage by stage. */
+FOR_EACH_N int affineStepN(ModelData *d, const double *X0, double *X1, double h, const int N) {
+    const int n = 2 * N, cfg = configuration(d), m = mapSize(d, cfg);
+    const int stribeck = !d->stuck && d->stribeck_speed > 0 && d->coulomb_torque > 0;
+    double f[MAX_X];
+    int i, j;
+    if (d->hub_locked) return 0;
+    if (stribeck) {
+        const double r = X0[N] / d->stribeck_speed;
+        if (!(r * r > d->r2_flat)) return 0;
+    }
+    if (d->maps[cfg].h != h) affineMaps(d, cfg, h);
+    affineForcingN(d, cfg, f, N);
     for (i = 0; i < m; i++) {
         double s = 0.0;
         for (j = 0; j < m; j++) s += d->maps[cfg].Phi[i][j] * X0[j];
@@ -664,18 +674,11 @@ FOR_EACH_N int affineStepN(ModelData *d, const double *X0, double *X1, double h,
 /* nsub RK4 steps of size hs of the linear rig with constant inputs */
 FOR_EACH_N void linearStepsN(ModelData *d, double hs, long nsub, const int N) {
     const int n = 2 * N;
-    double Q[MAX_DOF], f[2 * MAX_DOF], g[2 * MAX_DOF], Y[2 * MAX_DOF];
+    double f[MAX_X], g[2 * MAX_DOF], Y[2 * MAX_DOF];
     long k;
     int i, j;
     if (d->maps[RIGID].h != hs) affineMaps(d, RIGID, hs);
-    Q[0] = d->G * d->v_amp + d->tau_tip;
-    for (i = 1; i < N; i++) Q[i] = d->tau_tip;
-    for (i = 0; i < N; i++) {
-        double s = 0.0;
-        for (j = 0; j < N; j++) s += d->Minv_r[i][j] * Q[j];
-        f[i] = 0.0;
-        f[N + i] = s;
-    }
+    affineForcingN(d, RIGID, f, N); /* no friction on the linear rig */
     for (i = 0; i < n; i++) {
         double s = 0.0;
         for (j = 0; j < n; j++) s += d->maps[RIGID].P3h[i][j] * f[j];
