@@ -156,6 +156,33 @@ def test_a_staircase_is_fitted_without_derivatives():
     assert f.values["k"] == pytest.approx(2.0, rel=0.005) and lo < 2.0 < hi and hi / lo < 1.05, (f.values, lo, hi)
 
 
+def test_a_jittering_replay_is_fitted_with_differences_across_its_jitter():
+    """A simulation that jitters about its trend in the parameters (a closed loop's play: where its contacts fall moves
+    at a 0.01 % step, a jitter of 1 % of the step's height) refitted from a rig 15-33 % off, five noise draws: least
+    squares' 0.1 % differences read the jitter and stop at least 19 % off; Powell's search (61 simulations) at least
+    25 % off. Least squares with differences of 5 % (STAIRCASE_STEP: across the jitter) finds the gain and the
+    frequency within 0.5 % and the damping within 2 % (measured: 0.05, 0.23 and 1.2 %) in at most 40 simulations."""
+    t = np.linspace(0, 4, 800)
+    bounds = {n: recal.Bound(0.05, 20.0, "1", n) for n in TRUTH}
+    start = {"k": 1.7, "wn": 5.1, "zeta": 0.2}
+    prior = dict.fromkeys(TRUTH, np.log(3.0) / 1.96)
+
+    def sim(p):
+        phase = 1e4 * (p["k"] + 0.7 * p["wn"] + 3.1 * p["zeta"])
+        return _second_order(p["k"], p["wn"], p["zeta"], t) + 0.02 * np.sin(phase + 7.0 * t) * np.exp(-0.3 * t)
+
+    for seed in range(5):
+        y = _second_order(**TRUTH, t=t) + 0.01 * np.random.default_rng(seed).standard_normal(t.size)
+
+        fits = [recal.fit(lambda p, y=y: y - sim(p), bounds, start, prior=prior, max_nfev=15, **kw)
+                for kw in ({}, {"derivative_free": True}, {"jitter": True})]  # fmt: skip
+        for f in fits[:2]:
+            assert max(abs(f.values[n] / v - 1.0) for n, v in TRUTH.items()) > 0.15, seed
+        f = fits[2]
+        off = {n: abs(f.values[n] / v - 1.0) for n, v in TRUTH.items()}
+        assert off["k"] < 0.005 and off["wn"] < 0.005 and off["zeta"] < 0.02 and f.nfev <= 40, (seed, off, f.nfev)
+
+
 def test_a_lab_sheets_prior_does_not_hold_back_what_the_data_determine():
     """A lab sheet (each value within a factor 3: a prior of sd ln 3 / 1.96 about it) 40 % below the truth in gain,
     25 % in frequency and 2x in damping, noise 0.01 on a step of 2: the data determine all three, and the fit must

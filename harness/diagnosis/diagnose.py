@@ -248,14 +248,13 @@ def diagnose_run(
     noise = replace(noise, gap=math.sqrt(found.floor.msg), fit_pct=fit_pct(found.floor.msg))
     if any(x.replay == "closed" for x in experiments.values()):
         less = " (less the lattice's LSB^2 / 12 where the replay's ADC quantises: it adds that)" if lattice else ""
-        powell = (
-            "; fitted without derivatives where the replay is rough in the parameters (a controller acting on an ADC's "
-            "or an encoder's steps, a play)"
-            if rough(setup, found.final, list(experiments))
-            else ""
-        )
+        how = {
+            "staircase": "; fitted without derivatives where its controller acts on an ADC's or an encoder's steps",
+            "jitter": f"; fitted with differences across a play's jitter (steps of {100 * recal.STAIRCASE_STEP:g} %)",
+            None: "",
+        }[rough(setup, found.final, list(experiments))]
         loop = (f"closed-loop replays: each simulated with the data's noise{less} fed back through its controller, "
-                f"its spread the replays with {policy.draws} other noise draws{powell}")  # fmt: skip
+                f"its spread the replays with {policy.draws} other noise draws{how}")  # fmt: skip
         noise = replace(noise, method=f"{noise.method}; {loop}")
     diagnosis = Diagnosis(
         real=os.path.relpath(real, dest),  # relative to diagnosis.json, so a moved run dir stays the same bytes

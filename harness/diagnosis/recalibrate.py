@@ -15,12 +15,13 @@ white), P the priors' precisions: a parameter the data do not determine keeps it
 converted to angles with calibrated sensor gains whose own errors move the fit too: given how the residuals move
 with each gain (``calibration``: columns G and standard errors s_g), the intervals hold A diag(s_g^2) A^T, A = J^+ G.
 
-A closed loop through an ADC lattice, or with a play, is fitted without derivatives (``derivative_free``: Powell's
-search on the same sum of squares, steps down to :data:`POWELL_XTOL`). The controller acts on the quantised angles,
-so the whole trajectory is a staircase in the parameters: flat to a 0.1 % step, jumping at the next; a play's
-contacts jump likewise; least squares stops at its start. The intervals then come from a Jacobian taken with steps
-of :data:`STAIRCASE_STEP`. Such a search makes one pass, its prior weighed by the start's variance: it ends on its
-budget, not at a minimum where the variance could be taken again, so another pass would only search on.
+A replay rough in the parameters takes another search. Through an ADC lattice or an encoder's counts in a closed loop
+(``derivative_free``) the controller acts on quantised angles, so the whole trajectory is a staircase in the
+parameters: flat to a 0.1 % step, jumping at the next; least squares stops at its start. It is fitted by Powell's
+search on the same sum of squares, steps down to :data:`POWELL_XTOL`, its intervals from a Jacobian taken with steps
+of :data:`STAIRCASE_STEP`. A play in a closed loop (``jitter``) makes its contacts jitter the replay about a trend:
+least squares then takes its differences across the jitter, with steps of STAIRCASE_STEP. Either search makes one
+pass, its prior weighed by the start's variance.
 
 Without priors, a parameter the data do not determine (its 95 % interval wider than a factor
 :data:`UNIDENTIFIABLE`) drifts along a flat valley of the cost; such a parameter (of those the caller names
@@ -140,11 +141,13 @@ def fit(
     prior: Mapping[str, float] | None = None,
     max_rho: float = 0.999,
     local: Mapping[str, np.ndarray] | None = None,
+    jitter: bool = False,
 ) -> Fit:
     """Fit the parameters of ``bounds`` (FMU names, "plant.Ks") by bounded least squares on ``residuals``
     (parameter dict -> residual vector; ``fixed`` overrides are added to every call), from ``start`` (default
     ``nominal``), bounds relative to ``nominal``; ``derivative_free``: by Powell's search (a closed loop through a
-    lattice, see the module; up to (parameters + 1) ``max_nfev`` evaluations); ``calibration``: how the residuals
+    lattice, see the module; up to (parameters + 1) ``max_nfev`` evaluations); ``jitter``: least squares with
+    differences of STAIRCASE_STEP (a closed loop with a play, see the module); ``calibration``: how the residuals
     move with the log of each sensor gain (residuals x gains) and the gains' standard errors, which the intervals
     hold; ``prior``: a parameter's prior standard deviation [log] about ``nominal``, weighed against the residuals'
     variance per independent sample (:func:`effective_samples` up to ``max_rho``; see the module); ``local``: a
@@ -152,7 +155,9 @@ def fit(
     parameters with disjoint masks share one simulation of the Jacobian (:func:`grouped_jacobian`). Returns the fit
     with 95 % intervals from the Jacobian (and the priors); those of ``hold`` that the data do not determine are
     kept at ``nominal`` (see the module)."""
-    f = _fit(residuals, bounds, nominal, start, fixed, max_nfev, derivative_free, calibration, prior, max_rho, local)
+    f = _fit(
+        residuals, bounds, nominal, start, fixed, max_nfev, derivative_free, calibration, prior, max_rho, local, jitter
+    )
     loose = [n for n in bounds if n in hold and not identifiable(f.ci95[n])]
     if not loose:
         return f
@@ -172,6 +177,7 @@ def fit(
             prior,
             max_rho,
             local,
+            jitter,
         )
     else:  # nothing left to fit: the cost at the spec's values
         r = residuals({**(fixed or {}), **at_spec})
@@ -195,6 +201,7 @@ def _fit(
     prior: Mapping[str, float] | None = None,
     max_rho: float = 0.999,
     local: Mapping[str, np.ndarray] | None = None,
+    jitter: bool = False,
 ) -> Fit:
     """:func:`fit`'s one bounded least squares (or Powell search)."""
     names = list(bounds)
@@ -232,7 +239,7 @@ def _fit(
         return np.concatenate([data(x), math.sqrt(w2) * x[sel] / sd[sel]]) if sel.any() else data(x)
 
     masks = [None if local is None else local.get(n) for n in names]
-    broyden = Broyden(full, lo_hi, masks, sel)
+    broyden = Broyden(full, lo_hi, masks, sel, STAIRCASE_STEP if jitter else None)
 
     nfev, before = 0, None
     for _ in range(PRIOR_PASSES):  # the start's variance overweights the prior: again with the solution's
@@ -289,7 +296,8 @@ class Broyden:
     (:func:`grouped_jacobian`) every BROYDEN_EVERY points, and between them by Broyden's rank-one update from the
     last two points' residuals (J += (df - J dx) dx^T / dx^T dx), which costs no simulation. The intervals are taken
     from a Jacobian by differences at the solution (:meth:`exact`: the one least squares took there, if it did).
-    ``weight``: the prior rows' weight of the residuals ``fun`` gives now."""
+    ``weight``: the prior rows' weight of the residuals ``fun`` gives now; ``step``: the differences' step in the fit's
+    coordinates (None: least squares' own, 0.1 % of each value)."""
 
     def __init__(
         self,
@@ -297,8 +305,9 @@ class Broyden:
         lo_hi: list[tuple[float, float]],
         masks: list[np.ndarray | None],
         prior_rows: np.ndarray,
+        step: float | None = None,
     ) -> None:
-        self.fun, self.lo_hi, self.masks, self.prior_rows = fun, lo_hi, masks, prior_rows
+        self.fun, self.lo_hi, self.masks, self.prior_rows, self.step = fun, lo_hi, masks, prior_rows, step
         self.last: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self.since = 0
         self.by_differences: tuple[bytes, np.ndarray] | None = None  # the last Jacobian by differences, at x
@@ -308,7 +317,8 @@ class Broyden:
         rows' ``weight`` is the same."""
         key = x.tobytes() + np.float64(weight).tobytes()
         if self.by_differences is None or self.by_differences[0] != key:
-            self.by_differences = (key, grouped_jacobian(self.fun, x, self.lo_hi, self.masks, self.prior_rows))
+            jac = grouped_jacobian(self.fun, x, self.lo_hi, self.masks, self.prior_rows, self.step)
+            self.by_differences = (key, jac)
         return self.by_differences[1]
 
     def __call__(self, x: np.ndarray, weight: float) -> np.ndarray:
@@ -332,12 +342,12 @@ def grouped_jacobian(
     lo_hi: list[tuple[float, float]],
     masks: list[np.ndarray | None],
     prior_rows: np.ndarray,
-    step: float = 1e-3,
+    step: float | None = None,
 ) -> np.ndarray:
-    """The forward-difference Jacobian of ``fun`` at ``x`` (steps of ``step`` x |x|, sqrt(eps) x max(1, |x|) where
-    that is no step, backward at an upper bound: least squares' own rule) where a column with a mask (``masks[j]``:
-    the data rows it moves; None: every row) moves only those rows: columns whose masks are disjoint are stepped
-    together, one evaluation for the group.
+    """The forward-difference Jacobian of ``fun`` at ``x`` (steps of 0.001 x |x|, sqrt(eps) x max(1, |x|) where
+    that is no step, backward at an upper bound: least squares' own rule; steps of ``step`` when given) where a column
+    with a mask (``masks[j]``: the data rows it moves; None: every row) moves only those rows: columns whose masks are
+    disjoint are stepped together, one evaluation for the group.
     ``prior_rows``: which parameters have a prior row after the data rows (in order), each moved by its own column
     only."""
     f0 = fun(x)
@@ -361,7 +371,7 @@ def grouped_jacobian(
         h = np.zeros(x.size)
         for j in cols:
             sign = 1.0 if x[j] >= 0 else -1.0
-            h[j] = step * sign * abs(float(x[j]))
+            h[j] = sign * (1e-3 * abs(float(x[j])) if step is None else step)
             if (x[j] + h[j]) - x[j] == 0.0:  # at 0: the smallest step that tells (least squares' own rule)
                 h[j] = math.sqrt(np.finfo(float).eps) * sign * max(1.0, abs(float(x[j])))
             if not lo_hi[j][0] <= x[j] + h[j] <= lo_hi[j][1]:

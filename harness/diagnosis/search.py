@@ -101,6 +101,8 @@ class Policy:
       tell: no window's spread is taken below it.
 
     Settings, not thresholds: ``draws``, the noise draws beside a closed-loop replay's own that make its spread;
+    ``sizing_draws``, those beside each value of an effect sized by that score (a play in a closed loop: with fewer,
+    the score's minimum lies at a smaller play);
     ``behaviour_draws``, the replays whose behaviour makes its band."""
 
     none_level: float = 1.25
@@ -108,6 +110,7 @@ class Policy:
     explained: float = 0.5
     resolution: float = 1e-3
     draws: int = 2
+    sizing_draws: int = 4
     behaviour_draws: int = 39
 
     def meaning(self) -> str:
@@ -206,8 +209,8 @@ class CrossFit:
     @property
     def seeds(self) -> tuple[int, ...]:
         """The noise draws a closed loop's replay is averaged over where it plays or sticks where the noise decides
-        (``Effect.spread``): as many as the score's replays have (``Policy.draws``)."""
-        return LOOP_NOISE_SEEDS[: self.policy.draws]
+        (``Effect.spread``): as many as beside each of its values where it is sized (``Policy.sizing_draws``)."""
+        return LOOP_NOISE_SEEDS[: self.policy.sizing_draws]
 
     def draws(self, fit: FitResult | Overrides) -> tuple[Overrides, ...]:
         """``Policy.draws`` draws of a fold's fit from its covariance (its overrides each time where it has none)."""
@@ -367,7 +370,7 @@ def fit_models(
                     hint = hints[e].params(k)
                     starts[i][k][0].update({q: hint[q] for q in table[e].params if q in hint})
                 continue
-            by_score = (p.draws, p.resolution) if e in sized[i] else ()
+            by_score = (p.sizing_draws, p.resolution) if e in sized[i] else ()
             for k in (0, 1):
                 rigs = (starts[i][k][0], _sheet_linear(starts[i][k][0]))
                 one = rigs[1] == rigs[0] or e in sized[i]  # the current rig is the sheet's, or a spread effect
@@ -389,7 +392,7 @@ def fit_models(
     fits: list[list[FitResult]] = [[None, None] for _ in adds]  # type: ignore[list-item]
     resize = [(i, k, e, r) for (i, k, _), r in zip(slots, first, strict=True) for e in sized[i]]
     if resize:  # a spread effect sized again on each refitted rig, the start that then scores best kept
-        grids = cf.pool.map([Grid(table[e], r.params, tuple(cf.fits[k]), p.draws, p.resolution)
+        grids = cf.pool.map([Grid(table[e], r.params, tuple(cf.fits[k]), p.sizing_draws, p.resolution)
                              for i, k, e, r in resize])  # fmt: skip
         chosen: dict[tuple[int, int], tuple[float, FitResult]] = {}
         for (i, k, e, r), costs in zip(resize, grids, strict=True):

@@ -20,7 +20,7 @@ import itertools
 import math
 from collections.abc import Callable, Collection
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from scipy.optimize import minimize_scalar
@@ -35,6 +35,7 @@ from .simulation import Evaluation, Setup, evaluate, lattice_in_loop, nuisance_k
 from .where import where_gap
 
 SENSOR_CHANNELS = {"theta": "sensor.theta_gain", "alpha": "sensor.alpha_gauge_gain"}
+Rough = Literal["staircase", "jitter"]  # how a replay is rough in the parameters (:func:`rough`)
 Overrides = dict[str, Any]  # {"plant.Ks": 1.5, "daq.delay_samples": 1, "sensor.alpha_offset@rec": 0.3, ...}
 
 __all__ = [
@@ -163,14 +164,17 @@ def gain_columns(setup: Setup, names: list[str], fitted: Collection[str] = ()) -
     return np.concatenate(blocks), se
 
 
-def rough(setup: Setup, over: Overrides, names: list[str]) -> bool:
-    """Is the replay of one of the experiments ``names`` with ``over`` rough in the parameters, so that least squares'
-    differences tell nothing: a closed loop through a quantising sensor (an ADC lattice, an encoder's counts: its
-    controller acts on a staircase), or one with an effect switched on that no replay follows sample by sample
-    (``Effect.spread``: a play, each replay one realisation of where the noise lets it sit)?"""
+def rough(setup: Setup, over: Overrides, names: list[str]) -> Rough | None:
+    """How the replay of the experiments ``names`` with ``over`` is rough in the parameters, so that least squares'
+    0.1 % differences tell nothing: ``"staircase"``, a closed loop through a quantising sensor (an ADC lattice, an
+    encoder's counts: its controller acts on a staircase, flat between its steps); ``"jitter"``, a closed loop with an
+    effect switched on that no replay follows sample by sample (``Effect.spread``: a play, whose contacts jitter the
+    replay about a trend that steps of a few per cent follow); None: smooth."""
     loops = [setup.experiments[n] for n in names if setup.experiments[n].replay == "closed"]
+    if lattice_in_loop(setup, over, names) or any(x.encoder for x in loops):
+        return "staircase"
     spread = any(BY_PARAM[p].spread and float(v) > 0 for p, v in over.items() if p in BY_PARAM)
-    return lattice_in_loop(setup, over, names) or any(x.encoder for x in loops) or (bool(loops) and spread)
+    return "jitter" if loops and spread else None
 
 
 def least_squares_refit(
@@ -187,8 +191,9 @@ def least_squares_refit(
     (:data:`harness.diagnosis.recalibrate.LINEAR`; ``linear`` False: they keep their values in ``base``), the
     continuous effect parameters ``free`` (with their secondary parameters) and each closed-loop replay's own
     parameters (:func:`own_rows`: its record's gauge offset, its link at its start), from their
-    values in ``base`` (linear ones default to the sim's); a closed loop through an ADC lattice is fitted without
-    derivatives (:func:`harness.diagnosis.recalibrate.fit`). An integer effect parameter in ``base`` (a delay, chosen
+    values in ``base`` (linear ones default to the sim's); a replay rough in the parameters (:func:`rough`) is fitted
+    without derivatives on a staircase, and with differences across the jitter on a play
+    (:func:`harness.diagnosis.recalibrate.fit`). An integer effect parameter in ``base`` (a delay, chosen
     on a rig whose linear parameters had compensated it) has its neighbours tried on the refitted rig, and is moved
     where a refit there is better."""
     bounds: dict[str, recal.Bound] = {}
@@ -212,6 +217,7 @@ def least_squares_refit(
         if not bounds:  # nothing to fit: the cost as given
             r = resid(fixed)
             return recal.Fit({}, {}, float(np.sum(r**2)), 1, int(np.count_nonzero(r)))
+        kind = rough(setup, fixed, names)
         return recal.fit(
             resid,
             bounds,
@@ -220,7 +226,8 @@ def least_squares_refit(
             fixed=fixed,
             max_nfev=max_nfev,
             hold=() if prior else recal.LINEAR,
-            derivative_free=rough(setup, fixed, names),
+            derivative_free=kind == "staircase",
+            jitter=kind == "jitter",
             calibration=gains,
             prior=prior,
             max_rho=math.exp(-min(setup.experiments[n].Ts for n in names) / CORRELATION_SECONDS),
