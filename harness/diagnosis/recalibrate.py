@@ -20,8 +20,9 @@ A replay rough in the parameters takes another search. Through an ADC lattice or
 parameters: flat to a 0.1 % step, jumping at the next; least squares stops at its start. It is fitted by Powell's
 search on the same sum of squares, steps down to :data:`POWELL_XTOL`, its intervals from a Jacobian taken with steps
 of :data:`STAIRCASE_STEP`. A play in a closed loop (``jitter``) makes its contacts jitter the replay about a trend:
-least squares then takes its differences across the jitter, with steps of STAIRCASE_STEP. Either search makes one
-pass, its prior weighed by the start's variance.
+least squares then takes its differences across the jitter, with steps of STAIRCASE_STEP, and weighs its prior as
+any least squares does. Powell's search makes one pass, its prior weighed by the start's variance: it ends on its
+budget, not at a minimum where the variance could be taken again, so another pass would only search on.
 
 Without priors, a parameter the data do not determine (its 95 % interval wider than a factor
 :data:`UNIDENTIFIABLE`) drifts along a flat valley of the cost; such a parameter (of those the caller names
