@@ -151,7 +151,7 @@ def test_a_staircase_is_fitted_without_derivatives():
     bounds = {"k": recal.Bound(0.5, 2.0, "1", "gain")}
     stuck = recal.fit(resid, bounds, {"k": 1.6})
     assert stuck.values["k"] == 1.6 and stuck.nfev == 1
-    f = recal.fit(resid, bounds, {"k": 1.6}, derivative_free=True)
+    f = recal.fit(resid, bounds, {"k": 1.6}, rough="staircase")
     lo, hi = f.ci95["k"]
     assert f.values["k"] == pytest.approx(2.0, rel=0.005) and lo < 2.0 < hi and hi / lo < 1.05, (f.values, lo, hi)
 
@@ -175,7 +175,7 @@ def test_a_jittering_replay_is_fitted_with_differences_across_its_jitter():
         y = _second_order(**TRUTH, t=t) + 0.01 * np.random.default_rng(seed).standard_normal(t.size)
 
         fits = [recal.fit(lambda p, y=y: y - sim(p), bounds, start, prior=prior, max_nfev=15, **kw)
-                for kw in ({}, {"derivative_free": True}, {"jitter": True})]  # fmt: skip
+                for kw in ({}, {"rough": "staircase"}, {"rough": "jitter"})]  # fmt: skip
         for f in fits[:2]:
             assert max(abs(f.values[n] / v - 1.0) for n, v in TRUTH.items()) > 0.15, seed
         f = fits[2]

@@ -16,13 +16,13 @@ converted to angles with calibrated sensor gains whose own errors move the fit t
 with each gain (``calibration``: columns G and standard errors s_g), the intervals hold A diag(s_g^2) A^T, A = J^+ G.
 
 A replay rough in the parameters takes another search. Through an ADC lattice or an encoder's counts in a closed loop
-(``derivative_free``) the controller acts on quantised angles, so the whole trajectory is a staircase in the
+(``rough`` "staircase") the controller acts on quantised angles, so the whole trajectory is a staircase in the
 parameters: flat to a 0.1 % step, jumping at the next; least squares stops at its start. It is fitted by Powell's
 search on the same sum of squares, steps down to :data:`POWELL_XTOL`, its intervals from a Jacobian taken with steps
-of :data:`STAIRCASE_STEP`. A play in a closed loop (``jitter``) makes its contacts jitter the replay about a trend:
-least squares then takes its differences across the jitter, with steps of STAIRCASE_STEP, and weighs its prior as
-any least squares does. Powell's search makes one pass, its prior weighed by the start's variance: it ends on its
-budget, not at a minimum where the variance could be taken again, so another pass would only search on.
+of :data:`STAIRCASE_STEP`. A play in a closed loop (``rough`` "jitter") makes its contacts jitter the replay about a
+trend: least squares then takes its differences across the jitter, with steps of STAIRCASE_STEP, and weighs its
+prior as any least squares does. Powell's search makes one pass, its prior weighed by the start's variance: it ends
+on its budget, not at a minimum where the variance could be taken again, so another pass would only search on.
 
 Without priors, a parameter the data do not determine (its 95 % interval wider than a factor
 :data:`UNIDENTIFIABLE`) drifts along a flat valley of the cost; such a parameter (of those the caller names
@@ -35,6 +35,7 @@ import math
 from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass, field, replace
 from functools import partial
+from typing import Literal
 
 import numpy as np
 from scipy.optimize import OptimizeResult, least_squares, minimize
@@ -86,6 +87,7 @@ IMPLIED: dict[str, tuple[str, str]] = {
 }
 
 Residuals = Callable[[dict[str, float]], np.ndarray]
+Rough = Literal["staircase", "jitter"]  # how residuals are rough in the parameters (see the module)
 AT_BOUND = 0.02  # a fitted factor within 2 % (in log) of a bound sits at it
 UNIDENTIFIABLE = 100.0  # a 95 % interval wider than this factor (hi / lo) says the data do not determine it
 PRIOR_HELD = 0.8  # an interval at least 0.8x its prior's wide: the data did not determine the parameter
@@ -137,28 +139,25 @@ def fit(
     fixed: Mapping[str, float] | None = None,
     max_nfev: int = 30,
     hold: Collection[str] = (),
-    derivative_free: bool = False,
+    rough: Rough | None = None,
     calibration: tuple[np.ndarray, np.ndarray] | None = None,
     prior: Mapping[str, float] | None = None,
     max_rho: float = 0.999,
     local: Mapping[str, np.ndarray] | None = None,
-    jitter: bool = False,
 ) -> Fit:
     """Fit the parameters of ``bounds`` (FMU names, "plant.Ks") by bounded least squares on ``residuals``
     (parameter dict -> residual vector; ``fixed`` overrides are added to every call), from ``start`` (default
-    ``nominal``), bounds relative to ``nominal``; ``derivative_free``: by Powell's search (a closed loop through a
-    lattice, see the module; up to (parameters + 1) ``max_nfev`` evaluations); ``jitter``: least squares with
-    differences of STAIRCASE_STEP (a closed loop with a play, see the module); ``calibration``: how the residuals
-    move with the log of each sensor gain (residuals x gains) and the gains' standard errors, which the intervals
-    hold; ``prior``: a parameter's prior standard deviation [log] about ``nominal``, weighed against the residuals'
-    variance per independent sample (:func:`effective_samples` up to ``max_rho``; see the module); ``local``: a
-    parameter that moves only some residuals (a record's own gauge offset), with the mask of those residuals: such
-    parameters with disjoint masks share one simulation of the Jacobian (:func:`grouped_jacobian`). Returns the fit
-    with 95 % intervals from the Jacobian (and the priors); those of ``hold`` that the data do not determine are
-    kept at ``nominal`` (see the module)."""
-    f = _fit(
-        residuals, bounds, nominal, start, fixed, max_nfev, derivative_free, calibration, prior, max_rho, local, jitter
-    )
+    ``nominal``), bounds relative to ``nominal``; ``rough``: how the residuals are rough in the parameters (see the
+    module): ``"staircase"``, by Powell's search (a closed loop through a lattice; up to (parameters + 1) ``max_nfev``
+    evaluations); ``"jitter"``, least squares with differences of STAIRCASE_STEP (a closed loop with a play);
+    ``calibration``: how the residuals move with the log of each sensor gain (residuals x gains) and the gains'
+    standard errors, which the intervals hold; ``prior``: a parameter's prior standard deviation [log] about
+    ``nominal``, weighed against the residuals' variance per independent sample (:func:`effective_samples` up to
+    ``max_rho``; see the module); ``local``: a parameter that moves only some residuals (a record's own gauge
+    offset), with the mask of those residuals: such parameters with disjoint masks share one simulation of the
+    Jacobian (:func:`grouped_jacobian`). Returns the fit with 95 % intervals from the Jacobian (and the priors);
+    those of ``hold`` that the data do not determine are kept at ``nominal`` (see the module)."""
+    f = _fit(residuals, bounds, nominal, start, fixed, max_nfev, rough, calibration, prior, max_rho, local)
     loose = [n for n in bounds if n in hold and not identifiable(f.ci95[n])]
     if not loose:
         return f
@@ -173,12 +172,11 @@ def fit(
             start_rest,
             {**(fixed or {}), **at_spec},
             max_nfev,
-            derivative_free,
+            rough,
             calibration,
             prior,
             max_rho,
             local,
-            jitter,
         )
     else:  # nothing left to fit: the cost at the spec's values
         r = residuals({**(fixed or {}), **at_spec})
@@ -197,15 +195,15 @@ def _fit(
     start: Mapping[str, float] | None,
     fixed: Mapping[str, float] | None,
     max_nfev: int,
-    derivative_free: bool = False,
+    rough: Rough | None = None,
     calibration: tuple[np.ndarray, np.ndarray] | None = None,
     prior: Mapping[str, float] | None = None,
     max_rho: float = 0.999,
     local: Mapping[str, np.ndarray] | None = None,
-    jitter: bool = False,
 ) -> Fit:
     """:func:`fit`'s one bounded least squares (or Powell search)."""
     names = list(bounds)
+    derivative_free = rough == "staircase"
     fixed = dict(fixed or {})
     start = {**nominal, **(start or {})}
     lo_hi = [_x_bounds(bounds[n]) for n in names]
@@ -240,7 +238,7 @@ def _fit(
         return np.concatenate([data(x), math.sqrt(w2) * x[sel] / sd[sel]]) if sel.any() else data(x)
 
     masks = [None if local is None else local.get(n) for n in names]
-    broyden = Broyden(full, lo_hi, masks, sel, STAIRCASE_STEP if jitter else None)
+    broyden = Broyden(full, lo_hi, masks, sel, STAIRCASE_STEP if rough == "jitter" else None)
 
     nfev, before = 0, None
     for _ in range(PRIOR_PASSES):  # the start's variance overweights the prior: again with the solution's

@@ -20,7 +20,7 @@ import itertools
 import math
 from collections.abc import Callable, Collection
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 from scipy.optimize import minimize_scalar
@@ -35,7 +35,6 @@ from .simulation import Evaluation, Setup, evaluate, lattice_in_loop, nuisance_k
 from .where import where_gap
 
 SENSOR_CHANNELS = {"theta": "sensor.theta_gain", "alpha": "sensor.alpha_gauge_gain"}
-Rough = Literal["staircase", "jitter"]  # how a replay is rough in the parameters (:func:`rough`)
 Overrides = dict[str, Any]  # {"plant.Ks": 1.5, "daq.delay_samples": 1, "sensor.alpha_offset@rec": 0.3, ...}
 
 __all__ = [
@@ -164,7 +163,7 @@ def gain_columns(setup: Setup, names: list[str], fitted: Collection[str] = ()) -
     return np.concatenate(blocks), se
 
 
-def rough(setup: Setup, over: Overrides, names: list[str]) -> Rough | None:
+def rough(setup: Setup, over: Overrides, names: list[str]) -> recal.Rough | None:
     """How the replay of the experiments ``names`` with ``over`` is rough in the parameters, so that least squares'
     0.1 % differences tell nothing: ``"staircase"``, a closed loop through a quantising sensor (an ADC lattice, an
     encoder's counts: its controller acts on a staircase, flat between its steps); ``"jitter"``, a closed loop with an
@@ -217,7 +216,6 @@ def least_squares_refit(
         if not bounds:  # nothing to fit: the cost as given
             r = resid(fixed)
             return recal.Fit({}, {}, float(np.sum(r**2)), 1, int(np.count_nonzero(r)))
-        kind = rough(setup, fixed, names)
         return recal.fit(
             resid,
             bounds,
@@ -226,8 +224,7 @@ def least_squares_refit(
             fixed=fixed,
             max_nfev=max_nfev,
             hold=() if prior else recal.LINEAR,
-            derivative_free=kind == "staircase",
-            jitter=kind == "jitter",
+            rough=rough(setup, fixed, names),
             calibration=gains,
             prior=prior,
             max_rho=math.exp(-min(setup.experiments[n].Ts for n in names) / CORRELATION_SECONDS),
