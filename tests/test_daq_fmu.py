@@ -216,6 +216,36 @@ def test_seeded_noise(fmu_runner):
     np.testing.assert_array_equal(q["theta_v"][::4], a["theta_v"][:100])
 
 
+def test_an_instance_draws_each_seed_s_noise_as_a_fresh_one_whatever_it_ran_before(fmus):
+    """The DAQ keeps each stream's deviates across fmi2Reset (a fit replays the same draws): one instance that has
+    run more seeds than it keeps, and a seed's record longer than it kept before, reads the bytes fresh
+    instances read."""
+    from harness.fmu.cosim import Rig
+
+    u = 0.3 * np.sin(np.arange(9000) * 0.01)
+    noise = {"noise_theta": 0.01, "noise_alpha": 0.02}
+
+    def fresh(seed: int, n: int) -> np.ndarray:
+        with Rig(fmus["flexjoint"], fmus["daq"]) as rig:
+            r = rig.run(u[:n], 0.001, daq={**noise, "seed": seed})
+        return np.stack([r["theta_v"], r["alpha_v"]])
+
+    expected = {(s, n): fresh(s, n) for s, n in ((0, 3000), (0, 9000), (7, 9000))}
+    with Rig(fmus["flexjoint"], fmus["daq"]) as rig:
+
+        def reused(seed: int, n: int) -> np.ndarray:
+            r = rig.run(u[:n], 0.001, daq={**noise, "seed": seed})
+            return np.stack([r["theta_v"], r["alpha_v"]])
+
+        assert reused(0, 3000).tobytes() == expected[(0, 3000)].tobytes()
+        assert reused(0, 9000).tobytes() == expected[(0, 9000)].tobytes()  # longer than it kept
+        for seed in range(1, 20):  # more streams than it keeps: seed 0's tables are taken by others
+            reused(seed, 2000)
+        assert reused(0, 9000).tobytes() == expected[(0, 9000)].tobytes()
+        assert reused(7, 9000).tobytes() == expected[(7, 9000)].tobytes()
+    assert expected[(0, 9000)][:, :3000].tobytes() == expected[(0, 3000)].tobytes()
+
+
 @pytest.mark.parametrize(
     "params, name",
     [

@@ -225,6 +225,9 @@ void fmi2FreeInstance(fmi2Component c) {
     ModelInstance *comp = (ModelInstance *)c;
     if (!comp) return;
     releaseModel(comp);
+#ifdef MODEL_KEEPS_MEMORY
+    releaseKept(comp);
+#endif
     freeModelMemory(comp, comp->resourcePath);
     freeModelMemory(comp, comp->instanceName);
     freeModelMemory(comp, comp);

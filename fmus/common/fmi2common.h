@@ -71,6 +71,11 @@ MODEL_API fmi2Status initialize(ModelInstance *comp);
 /* Release what initialize() allocated (safe to call twice). */
 MODEL_API void releaseModel(ModelInstance *comp);
 
+#ifdef MODEL_KEEPS_MEMORY
+/* Release what the model keeps across fmi2Reset (a cache), with the instance. */
+MODEL_API void releaseKept(ModelInstance *comp);
+#endif
+
 /* Recompute outputs from the current state and inputs. */
 MODEL_API void calculateValues(ModelInstance *comp);
 

@@ -83,6 +83,7 @@ typedef struct {
     double integral;               /* PID: integral of the error [rad s] */
     double xhat[NX_MAX];           /* LQG: the estimate of the previous sample */
     double u_prev;                 /* LQG: the previous sample's command [V] (clamped) */
+    double filter_a;               /* the velocity filter's a = exp(-2 pi cutoff Ts), set at initialisation */
 } ModelData;
 
 #endif

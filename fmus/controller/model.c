@@ -106,7 +106,7 @@ static double lqgSample(const ModelData *d, double th, double al, double *xhat) 
 /* the sample at the current inputs; commit = advance the controller's state to it */
 static void takeSample(ModelData *d, int commit) {
     const double Ts = 1.0 / d->sample_rate;
-    const double a = exp(-TWO_PI * d->cutoff * Ts);
+    const double a = d->filter_a;
     const double lim = d->u_limit > 0 ? d->u_limit : INFINITY;
     const double th = d->theta_gain * (d->theta_v - d->theta_offset) * DEG2RAD;
     const double al = d->alpha_gain * (d->alpha_v - d->alpha_offset) * DEG2RAD;
@@ -151,6 +151,7 @@ fmi2Status initialize(ModelInstance *comp) {
     d->integral = 0.0;
     memset(d->xhat, 0, sizeof(d->xhat));
     d->u_prev = 0.0;
+    d->filter_a = exp(-TWO_PI * d->cutoff * (1.0 / d->sample_rate)); /* as takeSample had it, to the bit */
     d->next_sample = (int64_t)ceil(comp->startTime * d->sample_rate - 1e-6);
     takeSample(d, 0); /* preview of the first sample */
     return fmi2OK;
@@ -202,40 +203,41 @@ static int *intParameter(ModelData *d, fmi2ValueReference vr, const char **pname
 fmi2Status getFloat64(ModelInstance *comp, fmi2ValueReference vr, double *value) {
     ModelData *d = &comp->data;
     const char *name;
-    double *p = realParameter(d, vr, &name);
-    if (!p) p = arrayParameter(d, vr, &name);
-    if (p) {
-        *value = *p;
-        return fmi2OK;
-    }
-    switch (vr) {
+    double *p;
+    switch (vr) { /* the inputs and outputs first: the master reads them every sample */
         INPUTS(GET_CASE)
         OUTPUTS(GET_CASE)
-    default: return unknownReference(comp, "Real", vr);
+    default: break;
     }
+    p = realParameter(d, vr, &name);
+    if (!p) p = arrayParameter(d, vr, &name);
+    if (!p) return unknownReference(comp, "Real", vr);
+    *value = *p;
+    return fmi2OK;
 }
 
 fmi2Status setFloat64(ModelInstance *comp, fmi2ValueReference vr, double value) {
     ModelData *d = &comp->data;
     const char *name;
-    double *p = realParameter(d, vr, &name);
+    double *p;
+    switch (vr) { /* the inputs first: the master sets them every sample */
+    case vr_ref: d->ref = value; return fmi2OK;
+    case vr_theta_v: d->theta_v = value; return fmi2OK;
+    case vr_alpha_v: d->alpha_v = value; return fmi2OK;
+    default: break;
+    }
+    p = realParameter(d, vr, &name);
     if (!p) p = arrayParameter(d, vr, &name);
     if (p) {
         if (!parametersSettable(comp)) return fixedAfterInit(comp, name);
         *p = value;
         return fmi2OK;
     }
-    switch (vr) {
-    case vr_ref: d->ref = value; return fmi2OK;
-    case vr_theta_v: d->theta_v = value; return fmi2OK;
-    case vr_alpha_v: d->alpha_v = value; return fmi2OK;
-    default:
-        if (vr >= vr_u && vr <= vr_alpha_dot) {
-            logError(comp, "output value reference %u cannot be set", (unsigned)vr);
-            return fmi2Error;
-        }
-        return unknownReference(comp, "Real", vr);
+    if (vr >= vr_u && vr <= vr_alpha_dot) {
+        logError(comp, "output value reference %u cannot be set", (unsigned)vr);
+        return fmi2Error;
     }
+    return unknownReference(comp, "Real", vr);
 }
 
 fmi2Status getInt32(ModelInstance *comp, fmi2ValueReference vr, int *value) {

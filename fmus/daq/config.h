@@ -10,6 +10,19 @@
 
 #define MAX_DELAY_SAMPLES 1000000
 
+enum { NOISE_THETA = 0, NOISE_ALPHA = 1 }; /* the noise streams */
+#define NOISE_TABLES 16        /* streams whose deviates an instance keeps across fmi2Reset */
+#define NOISE_TABLE_MAX 262144 /* deviates kept per stream at most (later ones are drawn each time) */
+#define MODEL_KEEPS_MEMORY     /* releaseKept() frees the tables with the instance */
+
+/* the deviates 0..n-1 of the noise stream key, drawn once and kept: a fit replays the same draws many times */
+typedef struct {
+    uint64_t key;
+    int used;
+    int64_t n, cap;
+    double *v;
+} NoiseTable;
+
 /* The variables, one line each, in modelDescription.xml order: X(name, value reference, start value) for the
    parameters, X(name, value reference) for inputs and outputs.  These lists are the C side's only copy of the
    variable table: they declare the ModelData fields and the value references, and drive the start values, the
@@ -64,12 +77,18 @@ typedef struct {
     int delay_head;
     int64_t next_sample; /* index k of the next sample instant k / sample_rate not yet taken */
     uint64_t key_theta, key_alpha; /* PRNG stream keys derived from seed */
+    NoiseTable noise[NOISE_TABLES]; /* kept across fmi2Reset, freed with the instance */
+    int noise_next;                 /* the table a stream not kept takes next (in turn) */
+    int noise_slot[2];              /* the table of each stream (NOISE_THETA, NOISE_ALPHA) */
     double gauge_c;    /* the gauge low-pass's gain per sample, 1 - exp(-1 / (sample_rate gauge_tau)) */
     double gauge_lp;   /* its output at the last sample taken for real [V] */
     int gauge_lp_set;  /* a sample has been taken for real: gauge_lp and gauge_line hold */
     double *gauge_line; /* the gauge's last gauge_delay readings [V], oldest at gauge_head */
     int gauge_head;
     int inputs_changed; /* inputs set since the last sample: reading theta_v or alpha_v previews the next one */
+    int previewed;      /* the readings are a preview of sample preview_k from the inputs as they are */
+    int64_t preview_k;
+    double preview_va;  /* that preview's gauge voltage before the gauge's filters [V] */
 } ModelData;
 
 #endif

@@ -38,7 +38,9 @@
  * Then white Gaussian noise (noise_theta, noise_alpha V rms), then ADC quantisation (round to
  * LSB = 2 adc_range / 2^adc_bits and clamp to +-adc_range; 0 bits = ideal, no clamp).
  * Noise: counter-based generator, splitmix64 of (seed, stream, sample index) + Box-Muller, so the noise
- * of sample k depends only on seed and k (same seed -> identical bytes, independent of step sizes).
+ * of sample k depends only on seed and k (same seed -> identical bytes, independent of step sizes).  The
+ * deviates of the last NOISE_TABLES streams are kept across fmi2Reset (a fit replays the same seeds many times)
+ * and freed with the instance.
  */
 #include <math.h>
 #include <stdio.h>
@@ -53,9 +55,14 @@
 void setStartValues(ModelInstance *comp) {
     ModelData *d = &comp->data;
     double *line = d->delay_line, *gline = d->gauge_line; /* keep the pointers: releaseModel frees them */
+    NoiseTable noise[NOISE_TABLES];                        /* and the noise tables, kept across fmi2Reset */
+    const int next = d->noise_next;
+    memcpy(noise, d->noise, sizeof(noise));
     memset(d, 0, sizeof(*d));
     d->delay_line = line;
     d->gauge_line = gline;
+    memcpy(d->noise, noise, sizeof(noise));
+    d->noise_next = next;
     REAL_PARAMETERS(SET_START)
     INTEGER_PARAMETERS(SET_START)
 }
@@ -113,6 +120,37 @@ static inline double uniform(uint64_t key, uint64_t counter) {
 static double gauss(uint64_t key, int64_t k) {
     const double u1 = uniform(key, 2 * (uint64_t)k), u2 = uniform(key, 2 * (uint64_t)k + 1);
     return sqrt(-2.0 * log(u1)) * cos(TWO_PI * u2);
+}
+
+/* the table kept for stream key: the one that holds it, else the next in turn, emptied for it */
+static int noiseTable(ModelData *d, uint64_t key) {
+    int i;
+    for (i = 0; i < NOISE_TABLES; i++)
+        if (d->noise[i].used && d->noise[i].key == key) return i;
+    i = d->noise_next;
+    d->noise_next = (i + 1) % NOISE_TABLES;
+    d->noise[i].key = key;
+    d->noise[i].used = 1;
+    d->noise[i].n = 0;
+    return i;
+}
+
+/* gauss(key, k) of stream s (NOISE_THETA, NOISE_ALPHA) from its table, which takes the deviates in order */
+static double streamGauss(ModelInstance *comp, int s, uint64_t key, int64_t k) {
+    NoiseTable *t = &comp->data.noise[comp->data.noise_slot[s]];
+    if (k < t->n) return t->v[k];
+    if (k != t->n || k >= NOISE_TABLE_MAX) return gauss(key, k); /* not the next in order: drawn alone */
+    if (t->n == t->cap) {
+        const int64_t cap = t->cap ? (2 * t->cap < NOISE_TABLE_MAX ? 2 * t->cap : NOISE_TABLE_MAX) : 4096;
+        double *v = (double *)allocateModelMemory(comp, (size_t)cap, sizeof(double));
+        if (!v) return gauss(key, k);
+        if (t->n) memcpy(v, t->v, (size_t)t->n * sizeof(double));
+        freeModelMemory(comp, t->v);
+        t->v = v;
+        t->cap = cap;
+    }
+    t->v[t->n++] = gauss(key, k);
+    return t->v[k];
 }
 
 /* ------------------------------------------------------------ converters */
@@ -182,18 +220,28 @@ static double gaugeDelay(ModelData *d, double v, int commit, int first) {
     return y;
 }
 
-/* the readings theta_v, alpha_v of sample number k of the inputs (commit 0: a preview, nothing kept) */
-static void sampleSensors(ModelData *d, int64_t k, int commit) {
+/* the readings theta_v, alpha_v of sample number k of the inputs (commit 0: a preview, nothing kept but itself; a
+   commit of the sample just previewed from the same inputs keeps its readings and commits the gauge's filters) */
+static void sampleSensors(ModelInstance *comp, int64_t k, int commit) {
+    ModelData *d = &comp->data;
     const int first = !d->gauge_lp_set; /* no sample taken for real yet */
-    double va = gaugeVoltage(d, d->alpha_gauge, (double)k / d->sample_rate);
+    double va;
+    if (commit && d->previewed && d->preview_k == k) {
+        gaugeDelay(d, gaugeLowPass(d, d->preview_va, 1), 1, first);
+        d->previewed = 0;
+        d->inputs_changed = 0;
+        return;
+    }
+    va = gaugeVoltage(d, d->alpha_gauge, (double)k / d->sample_rate);
+    d->previewed = !commit, d->preview_k = k, d->preview_va = va;
     va = gaugeDelay(d, gaugeLowPass(d, va, commit), commit, first);
-    if (d->noise_alpha > 0) va += d->noise_alpha * gauss(d->key_alpha, k);
+    if (d->noise_alpha > 0) va += d->noise_alpha * streamGauss(comp, NOISE_ALPHA, d->key_alpha, k);
     d->alpha_v = quantize(va, d->adc_bits, d->adc_range);
     if (d->theta_sensor == 1) {
         d->theta_v = encoderVoltage(d, d->theta);
     } else {
         double vt = potVoltage(d, d->theta);
-        if (d->noise_theta > 0) vt += d->noise_theta * gauss(d->key_theta, k);
+        if (d->noise_theta > 0) vt += d->noise_theta * streamGauss(comp, NOISE_THETA, d->key_theta, k);
         d->theta_v = quantize(vt, d->adc_bits, d->adc_range);
     }
     d->inputs_changed = 0;
@@ -237,11 +285,13 @@ fmi2Status initialize(ModelInstance *comp) {
     d->gauge_head = 0;
     d->key_theta = mix64(s ^ 0x7468657461ULL); /* "theta" */
     d->key_alpha = mix64(s ^ 0x616c706861ULL); /* "alpha" */
+    if (d->noise_theta > 0) d->noise_slot[NOISE_THETA] = noiseTable(d, d->key_theta);
+    if (d->noise_alpha > 0) d->noise_slot[NOISE_ALPHA] = noiseTable(d, d->key_alpha);
     d->next_sample = (int64_t)ceil(comp->startTime * d->sample_rate - 1e-6);
     holdCommand(d);
     d->gauge_c = d->gauge_tau > 0 ? 1.0 - exp(-1.0 / (d->sample_rate * d->gauge_tau)) : 1.0;
     d->gauge_lp_set = 0;
-    sampleSensors(d, d->next_sample, 0); /* preview of the first sample */
+    sampleSensors(comp, d->next_sample, 0); /* preview of the first sample */
     return fmi2OK;
 }
 
@@ -257,6 +307,14 @@ void releaseModel(ModelInstance *comp) {
     }
 }
 
+void releaseKept(ModelInstance *comp) {
+    int i;
+    for (i = 0; i < NOISE_TABLES; i++) {
+        freeModelMemory(comp, comp->data.noise[i].v);
+        comp->data.noise[i] = (NoiseTable){0};
+    }
+}
+
 fmi2Status doStep(ModelInstance *comp, double t, double h) {
     ModelData *d = &comp->data;
     const double fs = d->sample_rate;
@@ -269,7 +327,7 @@ fmi2Status doStep(ModelInstance *comp, double t, double h) {
     }
     k = (int64_t)ceil(t * fs - 1e-6);
     if (k < d->next_sample) k = d->next_sample;
-    for (; (double)k < kEnd; k++) sampleSensors(d, k, 1);
+    for (; (double)k < kEnd; k++) sampleSensors(comp, k, 1);
     if (k > d->next_sample) d->next_sample = k;
     /* the samples that end within (t, t + h]: their command is the u set now */
     kNext = (int64_t)floor((t + h) * fs + 1e-6);
@@ -300,42 +358,42 @@ static int *intParameter(ModelData *d, fmi2ValueReference vr, const char **pname
 fmi2Status getFloat64(ModelInstance *comp, fmi2ValueReference vr, double *value) {
     ModelData *d = &comp->data;
     const char *name;
-    double *p = realParameter(d, vr, &name);
-    if (p) {
-        *value = *p;
-        return fmi2OK;
-    }
+    const double *p;
     if ((vr == vr_theta_v || vr == vr_alpha_v) && d->inputs_changed && comp->state == StateStepComplete &&
         fabs(comp->time * d->sample_rate - (double)d->next_sample) < 1e-6)
-        sampleSensors(d, d->next_sample, 0); /* at its instant: preview of the next sample's readings */
-    switch (vr) {
+        sampleSensors(comp, d->next_sample, 0); /* at its instant: preview of the next sample's readings */
+    switch (vr) { /* the inputs and outputs first: the master reads them every sample */
         INPUTS(GET_CASE)
         OUTPUTS(GET_CASE)
-    default: return unknownReference(comp, "Real", vr);
+    default: break;
     }
+    p = realParameter(d, vr, &name);
+    if (!p) return unknownReference(comp, "Real", vr);
+    *value = *p;
+    return fmi2OK;
 }
 
 fmi2Status setFloat64(ModelInstance *comp, fmi2ValueReference vr, double value) {
     ModelData *d = &comp->data;
     const char *name;
-    double *p = realParameter(d, vr, &name);
-    if (p) {
-        if (!parametersSettable(comp)) return fixedAfterInit(comp, name);
-        *p = value;
-        return fmi2OK;
-    }
-    switch (vr) {
+    double *p;
+    switch (vr) { /* the inputs first: the master sets them every sample */
     case vr_u:
         d->u = value;
         if (d->delay_samples == 0 && comp->state == StateStepComplete) d->u_plant = command(d, value);
         return fmi2OK;
-    case vr_theta: d->theta = value; d->inputs_changed = 1; return fmi2OK;
-    case vr_alpha_gauge: d->alpha_gauge = value; d->inputs_changed = 1; return fmi2OK;
+    case vr_theta: d->theta = value; d->inputs_changed = 1; d->previewed = 0; return fmi2OK;
+    case vr_alpha_gauge: d->alpha_gauge = value; d->inputs_changed = 1; d->previewed = 0; return fmi2OK;
     case vr_u_plant:
     case vr_theta_v:
     case vr_alpha_v: logError(comp, "output value reference %u cannot be set", (unsigned)vr); return fmi2Error;
-    default: return unknownReference(comp, "Real", vr);
+    default: break;
     }
+    p = realParameter(d, vr, &name);
+    if (!p) return unknownReference(comp, "Real", vr);
+    if (!parametersSettable(comp)) return fixedAfterInit(comp, name);
+    *p = value;
+    return fmi2OK;
 }
 
 fmi2Status getInt32(ModelInstance *comp, fmi2ValueReference vr, int *value) {

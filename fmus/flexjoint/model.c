@@ -813,37 +813,38 @@ static int *intParameter(ModelData *d, fmi2ValueReference vr, const char **pname
 fmi2Status getFloat64(ModelInstance *comp, fmi2ValueReference vr, double *value) {
     ModelData *d = &comp->data;
     const char *name;
-    const double *p = realParameter(d, vr, &name);
-    if (p) {
-        *value = *p;
-        return fmi2OK;
-    }
-    switch (vr) {
+    const double *p;
+    switch (vr) { /* the inputs and outputs first: the master reads them every sample */
         INPUTS(GET_CASE)
         OUTPUTS(GET_CASE)
-    default: return unknownReference(comp, "Real", vr);
+    default: break;
     }
+    p = realParameter(d, vr, &name);
+    if (!p) return unknownReference(comp, "Real", vr);
+    *value = *p;
+    return fmi2OK;
 }
 
 fmi2Status setFloat64(ModelInstance *comp, fmi2ValueReference vr, double value) {
     ModelData *d = &comp->data;
     const char *name;
-    double *p = realParameter(d, vr, &name);
+    double *p;
+    switch (vr) { /* the inputs first: the master sets them every sample */
+    case vr_u: d->u = value; return fmi2OK;
+    case vr_tau_tip: d->tau_tip = value; return fmi2OK;
+    default: break;
+    }
+    p = realParameter(d, vr, &name);
     if (p) {
         if (!parametersSettable(comp)) return fixedAfterInit(comp, name);
         *p = value;
         return fmi2OK;
     }
-    switch (vr) {
-    case vr_u: d->u = value; return fmi2OK;
-    case vr_tau_tip: d->tau_tip = value; return fmi2OK;
-    default:
-        if (vr >= vr_theta && vr <= vr_theta_motor) {
-            logError(comp, "output value reference %u cannot be set", (unsigned)vr);
-            return fmi2Error;
-        }
-        return unknownReference(comp, "Real", vr);
+    if (vr >= vr_theta && vr <= vr_theta_motor) {
+        logError(comp, "output value reference %u cannot be set", (unsigned)vr);
+        return fmi2Error;
     }
+    return unknownReference(comp, "Real", vr);
 }
 
 fmi2Status getInt32(ModelInstance *comp, fmi2ValueReference vr, int *value) {
