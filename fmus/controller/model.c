@@ -151,7 +151,7 @@ fmi2Status initialize(ModelInstance *comp) {
     d->integral = 0.0;
     memset(d->xhat, 0, sizeof(d->xhat));
     d->u_prev = 0.0;
-    d->filter_a = exp(-TWO_PI * d->cutoff * (1.0 / d->sample_rate)); /* as takeSample had it, to the bit */
+    d->filter_a = exp(-TWO_PI * d->cutoff * (1.0 / d->sample_rate)); /* with Ts as takeSample computes it */
     d->next_sample = (int64_t)ceil(comp->startTime * d->sample_rate - 1e-6);
     takeSample(d, 0); /* preview of the first sample */
     return fmi2OK;
