@@ -225,16 +225,12 @@ static double gaugeDelay(ModelData *d, double v, int commit, int first) {
 static void sampleSensors(ModelInstance *comp, int64_t k, int commit) {
     ModelData *d = &comp->data;
     const int first = !d->gauge_lp_set; /* no sample taken for real yet */
-    double va;
-    if (commit && d->previewed && d->preview_k == k) {
-        gaugeDelay(d, gaugeLowPass(d, d->preview_va, 1), 1, first);
-        d->previewed = 0;
-        d->inputs_changed = 0;
-        return;
-    }
-    va = gaugeVoltage(d, d->alpha_gauge, (double)k / d->sample_rate);
+    const int previewed = commit && d->previewed && d->preview_k == k;
+    double va = previewed ? d->preview_va : gaugeVoltage(d, d->alpha_gauge, (double)k / d->sample_rate);
     d->previewed = !commit, d->preview_k = k, d->preview_va = va;
     va = gaugeDelay(d, gaugeLowPass(d, va, commit), commit, first);
+    d->inputs_changed = 0;
+    if (previewed) return; /* its readings stand */
     if (d->noise_alpha > 0) va += d->noise_alpha * streamGauss(comp, NOISE_ALPHA, d->key_alpha, k);
     d->alpha_v = quantize(va, d->adc_bits, d->adc_range);
     if (d->theta_sensor == 1) {
@@ -244,7 +240,6 @@ static void sampleSensors(ModelInstance *comp, int64_t k, int commit) {
         if (d->noise_theta > 0) vt += d->noise_theta * streamGauss(comp, NOISE_THETA, d->key_theta, k);
         d->theta_v = quantize(vt, d->adc_bits, d->adc_range);
     }
-    d->inputs_changed = 0;
 }
 
 /* the end of sample k-1: its command (the last u set) enters the delay line */

@@ -93,7 +93,7 @@ UNIDENTIFIABLE = 100.0  # a 95 % interval wider than this factor (hi / lo) says 
 PRIOR_HELD = 0.8  # an interval at least 0.8x its prior's wide: the data did not determine the parameter
 HOLD_TOLERANCE = 0.02  # an undetermined parameter keeps the spec's value when that costs < 2 % more squared error
 SE_CAP = 50.0  # standard error [log of the factor] of a parameter the residuals do not determine: no interval
-STAIRCASE_STEP = 0.05  # a Jacobian column that a 0.1 % step left at zero is taken again with a 5 % step (log)
+STAIRCASE_STEP = 0.05  # differences' step (log) where 0.1 % tells nothing: a lattice's column, a play's jitter
 # a prior's weight settles: a least-squares fit is made again from its solution, the prior weighed by its residual
 # variance, while the variance is under PRIOR_SETTLED x the one that weighed it, PRIOR_PASSES fits at most
 PRIOR_PASSES = 8
