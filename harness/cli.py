@@ -347,14 +347,14 @@ def campaign(
     force: ForceOpt = False,
 ) -> None:
     """Run a spec's experiments on the rig twin: writes manifest.json and data/<experiment>.parquet."""
+    from . import spec as specmod
     from .clusterprocess import prestart
 
+    s = specmod.load(spec, set_ or [])
     prestart(workers, scheduler, ["harness.rig.campaign"])  # the workers start while the campaign loads
-    from . import spec as specmod
     from .rundir import check_new_run
 
     check_new_run(out_dir, force)
-    s = specmod.load(spec, set_ or [])
     from .rig.campaign import run_campaign
 
     t0 = time.perf_counter()
@@ -477,15 +477,17 @@ def identify(
     workers: WorkersOpt = None,
 ) -> None:
     """Calibrate, then the ARMAX grid per dataset, cross-validation and selection: grid.csv, models/."""
+    from . import spec as specmod
     from .clusterprocess import prestart
 
+    over = specmod.apply_overrides({}, set_ or []).get("identify", {})
     prestart(workers, scheduler, ["harness.ident.identify"])  # the workers start while the identification loads
-    from . import spec as specmod
+    from .rundir import Manifest
+
+    Manifest.load(run_dir)  # not a run directory: one line before the identification loads
     from .executor import session
     from .ident.doubled_rate import doubled_rate_check
     from .ident.identify import identify_run
-
-    over = specmod.apply_overrides({}, set_ or []).get("identify", {})
 
     with session(workers, scheduler):  # the grid's tasks run on this session's cluster
         res, _, cal, ident = identify_run(run_dir, over, progress=_progress("grid"))
@@ -639,11 +641,11 @@ def predict(
     from .render.prediction import write_prediction
     from .twin import load_record, load_twin
 
-    twin = load_twin(rig)
+    judged = LoopSpecs.parse(specs) if specs else None
     rec = load_record(record) if record is not None else None
     ctrl = pick_controller(controller, str(controller_from) if controller_from else None, rec)
+    twin = load_twin(rig)
     ref = reference_from(reference, loop_rate(ctrl, twin), rec)
-    judged = LoopSpecs.parse(specs) if specs else None
     pred = run_predict(
         twin, ctrl, ref, n=n, seed=seed, record=rec, specs=judged, progress=_progress("predict"),
         **_parallel(workers, scheduler),
@@ -707,9 +709,9 @@ def design(
 
     if method not in METHODS:
         raise ValueError(f"--method {method!r} unknown; valid: {', '.join(METHODS)}")
-    twin = load_twin(rig)
     wt = parse_weights(weights, method) if weights is not None else None
     judged = LoopSpecs.parse(specs) if specs is not None else None
+    twin = load_twin(rig)
     hz = float(rate or twin.sample_rate)
     rec = None
     if reference is None and twin.run is not None:
@@ -758,11 +760,16 @@ def diagnose(
     force: Annotated[bool, typer.Option("--force", help="write into --out even when it is another run")] = False,
 ) -> None:
     """Where the sim-to-real gap lies, which unmodelled effect causes it, how far it shrinks: diagnosis.json."""
+    from . import spec as specmod
     from .clusterprocess import prestart
 
     if out_dir is not None:
         _out_dir(out_dir)
+    specmod.load(sim)  # a bad --sim: one line before anything starts
     prestart(workers, scheduler, ["harness.diagnosis.tasks"])  # the workers start while the diagnosis loads
+    from .rundir import Manifest
+
+    Manifest.load(real)  # not a run directory: one line before the diagnosis loads
     from .diagnosis.diagnose import diagnose_run
 
     d = diagnose_run(
@@ -990,17 +997,17 @@ def run(
     force: ForceOpt = False,
 ) -> None:
     """The whole pipeline: build, campaign, calibrate, identify, export, cross-fit, diagnose, report, Rerun."""
+    from . import spec as specmod
     from .clusterprocess import prestart
 
+    specmod.load(spec, set_ or [])  # a bad spec, or one too large for this machine, fails before any work
     prestart(workers, scheduler, PIPELINE_TASKS)  # the workers start (and import every stage's tasks) while it loads
-    from . import spec as specmod
     from .executor import session
     from .rundir import check_new_run
 
     if out_dir is None:
         out_dir = Path("runs") / time.strftime("%Y%m%d-%H%M%S")
     check_new_run(out_dir, force)
-    specmod.load(spec, set_ or [])  # a bad spec, or one too large for this machine, fails before any work
     from .pipeline import run_pipeline
 
     with session(workers, scheduler):  # one cluster for every parallel step of the pipeline

@@ -82,6 +82,23 @@ def test_the_command_line_loads_without_the_numerical_stack():
     assert r.returncode == 0 and r.stdout.startswith("flexjoint-harness "), r.stderr
 
 
+@pytest.mark.parametrize(
+    "args, loaded",
+    [
+        (["campaign", "no_such_spec", "--out", "r"], {"numpy"}),  # the spec read: numpy for its signals' tables
+        (["campaign", "lab", "--set", "plant.backlsh=0.004", "--out", "r"], {"numpy"}),
+        (["run", "--spec", "no_such_spec", "--out", "r"], {"numpy"}),
+        (["diagnose", "--real", "r", "--sim", "no_such_spec"], {"numpy"}),
+        (["identify", "no_such_run"], {"numpy", "pandas", "pyarrow"}),  # the manifest read
+        (["diagnose", "--real", "no_such_run"], {"numpy", "pandas", "pyarrow"}),
+    ],
+)
+def test_a_mistake_in_what_a_command_is_given_is_told_before_it_loads_its_work(args, loaded):
+    """A bad spec, --set or run directory is one line before the command loads what it runs (scipy, fmpy, Dask,
+    matplotlib) or starts its cluster: a mistake is told in a fraction of a second."""
+    assert set(_loaded(args)) - {"rich"} == loaded, args
+
+
 def test_the_modules_run_preloads_into_its_workers_exist():
     """flexjoint run's workers import every stage's task modules as they start (harness.cli.PIPELINE_TASKS): a module
     renamed away would stop the workers from starting (spawned workers import them one by one)."""
@@ -102,12 +119,14 @@ def test_the_modules_run_preloads_into_its_workers_exist():
         ("harness.rig.campaign", "raise", ["campaign", "lab", "--out", "r"]),  # a command loading what it runs
         ("harness.rig.campaign", "signal", ["campaign", "lab", "--out", "r"]),
         ("pyarrow", "signal", ["campaign", "lab", "--out", "r"]),  # ... deeper, inside the library's imports
-        ("harness.diagnosis.diagnose", "raise", ["diagnose", "--real", "r"]),
+        ("harness.diagnosis.diagnose", "raise", ["diagnose", "--real", "real", "--out", "r"]),  # past its checks
         ("harness.rig.campaign", "twice", ["campaign", "lab", "--out", "r"]),  # twice: the second ends it at once
         ("", "exit", ["specs"]),  # while the process ends, the command done
     ],
 )
 def test_ctrl_c_at_any_moment_is_one_line_and_exit_130(tmp_path, module, how, args):
+    (tmp_path / "real").mkdir()  # a run directory (its manifest only), for a command that checks its input first
+    (tmp_path / "real" / "manifest.json").write_text('{"kind": "import", "experiments": [], "sample_rate": null}')
     r = _ctrl_c_at(module, how, *args, tmp_path=tmp_path)
     assert r.returncode == 130, r.stderr
     assert r.stderr == "error: interrupted\n", r.stderr

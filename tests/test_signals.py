@@ -66,6 +66,23 @@ def test_step_ramp_constant_and_chirp():
         signals.chirp(100, 0.02, 1.0, 30.0, 1.0)
 
 
+def test_chirp_is_scipy_signal_chirp_to_the_bit():
+    """The swept sine's phase is written out (scipy.signal is not imported by a spec's reader): the same numbers as
+    scipy.signal.chirp, starting at the offset (phi = -90 deg), for log and linear sweeps, up, down and flat."""
+    from scipy.signal import chirp as scipy_chirp
+
+    rng = np.random.default_rng(5)
+    for _ in range(60):
+        n, Ts = int(rng.integers(2, 20_000)), float(rng.choice([0.001, 0.002, 0.01, 0.02]))
+        f0, f1 = (float(np.exp(rng.uniform(math.log(0.01), math.log(0.45 / Ts)))) for _ in range(2))
+        amp, off = float(rng.uniform(0.1, 5.0)), float(rng.uniform(-1.0, 1.0))
+        for ours, theirs in (("log", "logarithmic"), ("linear", "linear")):
+            for g1 in (f1, f0):
+                t = np.arange(n) * Ts
+                expected = off + amp * scipy_chirp(t, f0, t[-1], g1, method=theirs, phi=-90.0)
+                assert signals.chirp(n, Ts, f0, g1, amp, method=ours, offset=off).tobytes() == expected.tobytes()
+
+
 def test_multisine_power_only_on_designed_odd_lines():
     N, P, Ts = 1000, 4, 0.01  # df = 0.1 Hz per period, 4 periods
     x, bins = signals.multisine(N * P, Ts, 0.25, 20.0, 0.8, period_samples=N, seed=3)
