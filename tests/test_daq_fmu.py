@@ -246,6 +246,25 @@ def test_an_instance_draws_each_seed_s_noise_as_a_fresh_one_whatever_it_ran_befo
     assert expected[(0, 9000)][:, :3000].tobytes() == expected[(0, 3000)].tobytes()
 
 
+def test_parameters_set_again_by_the_same_names_take_the_new_values(fmus):
+    """An instance keeps how it sets a tuple of parameter names (their types and value references) for the next call
+    with the same names: each call sets its own values, in any order of the names, Integer and Real alike, and a
+    name the FMU does not have is one line listing those it has."""
+    from harness.fmu.binding import FMUError, load
+
+    daq = load(fmus["daq"])
+    try:
+        for values in ({"adc_bits": 12, "noise_theta": 0.1}, {"adc_bits": 10, "noise_theta": 0.2},
+                       {"noise_theta": 0.3, "adc_bits": 8}, {"adc_bits": 10, "noise_theta": 0.2}):  # fmt: skip
+            daq.reset()
+            daq.set_parameters(values)
+            assert daq.get(list(values)) == values
+        with pytest.raises(FMUError, match="unknown parameter 'adc_bit'; valid: adc_bits, adc_range, dac_bits"):
+            daq.set_parameters({"adc_bits": 12, "adc_bit": 1})
+    finally:
+        daq.free()
+
+
 @pytest.mark.parametrize(
     "params, name",
     [

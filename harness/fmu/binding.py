@@ -38,6 +38,9 @@ SETTERS = {  # a parameter type: its Python type, the FMI function that sets it 
 }
 
 
+PLANS_KEPT = 64  # parameter-name tuples whose setting plan an instance keeps (Instance.set_parameters)
+
+
 class FMUError(RuntimeError):
     """An FMU refused a call; the message carries the FMU's last log line."""
 
@@ -53,6 +56,7 @@ class Instance:
     log: list[str] = field(default_factory=list)
     callbacks: Any = None
     cleanup: Any = None
+    _plans: dict[tuple[str, ...], list[tuple[str, Any, Any, list[int]]]] = field(default_factory=dict, repr=False)
 
     @property
     def variables(self) -> dict[str, Variable]:
@@ -84,24 +88,38 @@ class Instance:
 
     def set_parameters(self, values: dict[str, Any]) -> None:
         """Set parameters by name (Real, Integer or Boolean as their declared type), one FMI call per type."""
+        names = tuple(values)
+        plan = self._plans.get(names)
+        if plan is None:
+            plan = self._plan(names)
+        given = list(values.values())
+        for kind, setter, refs, at in plan:
+            cast, _, ctype = SETTERS[kind]
+            n = len(at)
+            self.check(setter(self.component, refs, n, (ctype * n)(*[cast(given[i]) for i in at])),
+                       f"set {kind} parameters")  # fmt: skip
+
+    def _plan(self, names: tuple[str, ...]) -> list[tuple[str, Any, Any, list[int]]]:
+        """How :meth:`set_parameters` sets parameters ``names`` (in that order): per type, its FMI setter, the value
+        references and which of the names they are; kept per instance for the next call with the same names (a fit
+        sets the same ones thousands of times)."""
         settable = self._settable
-        batch: dict[str, tuple[list[int], list[Any]]] = {kind: ([], []) for kind in SETTERS}
-        for name, value in values.items():
+        by_kind: dict[str, list[int]] = {kind: [] for kind in SETTERS}
+        for i, name in enumerate(names):
             found = settable.get(name)
             if found is None:
                 if name not in self.variables:
                     valid = sorted(self.description.parameters())
                     raise FMUError(f"{self.path.stem}: unknown parameter {name!r}; valid: {', '.join(valid)}")
                 raise FMUError(f"{self.path.stem}: parameter {name!r} has unsupported type {self.variables[name].type}")
-            kind, vr = found
-            batch[kind][0].append(vr)
-            batch[kind][1].append(SETTERS[kind][0](value))
-        for kind, (refs, vals) in batch.items():
-            if refs:
-                n = len(refs)
-                setter = getattr(self.dll, SETTERS[kind][1])
-                self.check(setter(self.component, (fmi2ValueReference * n)(*refs), n, (SETTERS[kind][2] * n)(*vals)),
-                           f"set {kind} parameters")  # fmt: skip
+            by_kind[found[0]].append(i)
+        plan = [(kind, getattr(self.dll, SETTERS[kind][1]),
+                 (fmi2ValueReference * len(at))(*[settable[names[i]][1] for i in at]), at)
+                for kind, at in by_kind.items() if at]  # fmt: skip
+        if len(self._plans) >= PLANS_KEPT:
+            self._plans.clear()
+        self._plans[names] = plan
+        return plan
 
     @cached_property
     def _settable(self) -> dict[str, tuple[str, int]]:

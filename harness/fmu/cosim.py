@@ -113,6 +113,13 @@ class Rig:
         self._d_out = (fmi2ValueReference * 3)(d.vr("u_plant"), d.vr("theta_v"), d.vr("alpha_v"))
         self._master = _master()
         self._units = [_unit(x) for x in (p, d, self.controller) if x is not None]
+        if self.controller is not None:  # a closed loop's value references: DAQ in, samples, command; controller
+            c = self.controller
+            self._d_meas = (fmi2ValueReference * 2)(d.vr("theta"), d.vr("alpha_gauge"))
+            self._d_samp = (fmi2ValueReference * 2)(d.vr("theta_v"), d.vr("alpha_v"))
+            self._d_u = (fmi2ValueReference * 1)(d.vr("u"))
+            self._c_in = (fmi2ValueReference * 3)(c.vr("ref"), c.vr("theta_v"), c.vr("alpha_v"))
+            self._c_out = (fmi2ValueReference * 1)(c.vr("u"))
 
     def _check_master(self, code: int, k: int, status: int, Ts: float) -> None:
         """Raise the FMU's own error when the master's step loop stopped at sample ``k`` on a refused doStep."""
@@ -229,11 +236,7 @@ class Rig:
 
         fp, fd, fc = pl.dll, dq.dll, ct.dll
         cp, cd, cc = pl.component, dq.component, ct.component
-        d_meas = (fmi2ValueReference * 2)(dq.vr("theta"), dq.vr("alpha_gauge"))
-        d_samp = (fmi2ValueReference * 2)(dq.vr("theta_v"), dq.vr("alpha_v"))
-        d_u = (fmi2ValueReference * 1)(dq.vr("u"))
-        c_in = (fmi2ValueReference * 3)(ct.vr("ref"), ct.vr("theta_v"), ct.vr("alpha_v"))
-        c_out = (fmi2ValueReference * 1)(ct.vr("u"))
+        d_samp, c_in = self._d_samp, self._c_in
         pout, samp = (fmi2Real * 4)(), (fmi2Real * 2)()
 
         # initialisation: the plant's initial outputs -> the DAQ's first samples -> the controller's first command
@@ -253,8 +256,9 @@ class Rig:
         at, status, div = ctypes.c_long(0), ctypes.c_int(0), (ctypes.c_double * 3)()
         units = [ctypes.byref(x) for x in self._units]
         code = self._master.run_closed(
-            *units, self._p_in, self._p_out, d_meas, d_samp, d_u, self._d_out, c_in, c_out, _doubles(ref), n, Ts,
-            DIVERGED_ALPHA_DEG / DEG, np.pi, _doubles(out), ctypes.byref(at), ctypes.byref(status), div,
+            *units, self._p_in, self._p_out, self._d_meas, d_samp, self._d_u, self._d_out, c_in, self._c_out,
+            _doubles(ref), n, Ts, DIVERGED_ALPHA_DEG / DEG, np.pi, _doubles(out), ctypes.byref(at),
+            ctypes.byref(status), div,
         )  # fmt: skip
         stopped = -1
         if code == DIVERGED:
