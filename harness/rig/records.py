@@ -144,7 +144,8 @@ class ImportOptions:
     theta_v, alpha_v or with a unit suffix, theta_deg); ``units`` channel or column -> unit; ``link_length``
     [m] for tip deflections; ``counts_per_rev`` of an encoder; ``calibration`` to carry (None: assume lab 1's);
     ``controller`` of a closed-loop record (None: identified from it); ``theta_sensor`` "pot" or "encoder" (None:
-    an encoder when theta is in counts, else a pot); ``zero_alpha``: zero the deflection on the record's start."""
+    an encoder when theta is in counts, else a pot); ``zero_alpha``: zero the deflection on the record's quietest
+    ``ZERO_SECONDS`` at rest (a record whose link never rests is left as read, with a warning)."""
 
     columns: dict[str, str] = field(default_factory=dict)
     units: dict[str, str] = field(default_factory=dict)
