@@ -39,6 +39,7 @@ SETTERS = {  # a parameter type: its Python type, the FMI function that sets it 
 
 
 PLANS_KEPT = 64  # parameter-name tuples whose setting plan an instance keeps (Instance.set_parameters)
+Plan = list[tuple[str, Any, Any, list[int]]]  # per type: its name, FMI setter, value references, the names' positions
 
 
 class FMUError(RuntimeError):
@@ -56,7 +57,7 @@ class Instance:
     log: list[str] = field(default_factory=list)
     callbacks: Any = None
     cleanup: Any = None
-    _plans: dict[tuple[str, ...], list[tuple[str, Any, Any, list[int]]]] = field(default_factory=dict, repr=False)
+    _plans: dict[tuple[str, ...], Plan] = field(default_factory=dict, repr=False)
 
     @property
     def variables(self) -> dict[str, Variable]:
@@ -99,7 +100,7 @@ class Instance:
             self.check(setter(self.component, refs, n, (ctype * n)(*[cast(given[i]) for i in at])),
                        f"set {kind} parameters")  # fmt: skip
 
-    def _plan(self, names: tuple[str, ...]) -> list[tuple[str, Any, Any, list[int]]]:
+    def _plan(self, names: tuple[str, ...]) -> Plan:
         """How :meth:`set_parameters` sets parameters ``names`` (in that order): per type, its FMI setter, the value
         references and which of the names they are; kept per instance for the next call with the same names (a fit
         sets the same ones thousands of times)."""
