@@ -16,6 +16,7 @@ STAGES = {  # the package's stages in data-flow order: the first module part of 
     "ident": "Identification",
     "diagnosis": "Diagnosis",
     "twin": "Design and prediction",
+    "loopspecs": "Design and prediction",
     "prediction": "Design and prediction",
     "design": "Design and prediction",
     "render": "Reports and recordings",

@@ -58,7 +58,7 @@ _API: dict[str, tuple[str, str]] = {
     "blindtest": ("diagnosis.blindtest", "blindtest"),
     "Twin": ("twin", "Twin"),
     "load_twin": ("twin", "load_twin"),
-    "LoopSpecs": ("prediction", "LoopSpecs"),
+    "LoopSpecs": ("loopspecs", "LoopSpecs"),
     "reference_from": ("prediction", "reference_from"),
     "Prediction": ("prediction", "Prediction"),
     "predict_loop": ("prediction", "predict"),  # harness.predict is ARMAX's k-step predictor (MATLAB's predict)

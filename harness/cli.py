@@ -631,17 +631,21 @@ def predict(
     each behaviour metric's median and 95 % band, with a record the measured ones beside them: prediction.json."""
     import json
 
-    from .executor import prestart
+    from .clusterprocess import prestart
+    from .loopspecs import LoopSpecs
+    from .rig.controller import parse_controller
 
     _out_dir(out_dir)
+    judged = LoopSpecs.parse(specs) if specs else None
+    if controller is not None:
+        parse_controller(controller)  # a mistake in it is told before the twin loads
     prestart(workers, scheduler, ["harness.prediction"])  # the workers start while the twin loads
-    from .prediction import LoopSpecs, loop_rate, reference_from
     from .prediction import controller_from as pick_controller
+    from .prediction import loop_rate, reference_from
     from .prediction import predict as run_predict
     from .render.prediction import write_prediction
     from .twin import load_record, load_twin
 
-    judged = LoopSpecs.parse(specs) if specs else None
     rec = load_record(record) if record is not None else None
     ctrl = pick_controller(controller, str(controller_from) if controller_from else None, rec)
     twin = load_twin(rig)
@@ -696,21 +700,22 @@ def design(
 ) -> None:
     """Design a controller on the rig (its identified twin or a spec) to a lab's specs, checked by predicting its loop
     with the rig's effects, intervals and noise: design.json, controller.toml, loop.ssp and the prediction."""
-    from .executor import prestart, session
+    from .clusterprocess import prestart
+    from .loopspecs import METHODS, LoopSpecs, parse_weights
 
     _out_dir(out_dir)
-    prestart(workers, scheduler, ["harness.prediction"])  # the workers start while the search runs
-    from .design import METHODS, parse_weights
-    from .design import design as run_design
-    from .prediction import LoopSpecs, reference_from
-    from .render.prediction import write_design
-    from .rundir import DataError
-    from .twin import load_record, load_twin
-
     if method not in METHODS:
         raise ValueError(f"--method {method!r} unknown; valid: {', '.join(METHODS)}")
     wt = parse_weights(weights, method) if weights is not None else None
     judged = LoopSpecs.parse(specs) if specs is not None else None
+    prestart(workers, scheduler, ["harness.prediction"])  # the workers start while the search runs
+    from .design import design as run_design
+    from .executor import session
+    from .prediction import reference_from
+    from .render.prediction import write_design
+    from .rundir import DataError
+    from .twin import load_record, load_twin
+
     twin = load_twin(rig)
     hz = float(rate or twin.sample_rate)
     rec = None

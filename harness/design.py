@@ -52,25 +52,23 @@ from .linloop import (
     spectral_radius,
     step_response,
 )
-from .prediction import LoopSpecs, Prediction, Reference, predict
+from .loopspecs import METHODS, LoopSpecs, Weights
+from .prediction import Prediction, Reference, predict
 from .rig.controller import NX_MAX, Controller, Estimator
 from .spec import fmu_value
 from .twin import Twin
 
 __all__ = [
     "DEFAULT_SPECS",
-    "METHODS",
     "ROUNDS",
     "Candidate",
     "Design",
     "DesignError",
-    "Weights",
     "controller_toml",
     "design",
     "linear_metrics",
     "lqg_controller",
     "lqr_controller",
-    "parse_weights",
     "pd_controller",
     "slack",
     "stick_band_deg",
@@ -79,7 +77,6 @@ __all__ = [
 ]
 
 Progress = Callable[[str], None]
-METHODS = ("lqr", "lqg", "pd")
 DEFAULT_SPECS = "settling=1.5,overshoot=5,band=4"  # Quanser's rotary flexible link courseware: 1.5 s in 4 %, 5 %
 ROUNDS = 4  # predictions checked at most, each with its targets tightened where the one before missed
 RANK_POINTS = 500  # frequencies of the disk margins that rank the candidates (the chosen one's: 2000)
@@ -98,49 +95,6 @@ PD_TIP_RATE = (-1.0, -0.5, 0.0, 0.5)
 
 class DesignError(ValueError):
     """No design meets the specs: the message names which and by how much."""
-
-
-@dataclass(frozen=True)
-class Weights:
-    """LQR/LQG weights: ``q`` on (theta, alpha, theta_dot, alpha_dot) as read [1/rad^2, 1/(rad/s)^2], ``r`` on u
-    [1/V^2], ``w`` the LQG's process noise at the plant's input [V rms] (None: searched)."""
-
-    q: tuple[float, float, float, float]
-    r: float = 1.0
-    w: float | None = None
-
-    def params(self) -> dict[str, float]:
-        """The weights as the search names them: q_theta, q_alpha, q_theta_dot, q_alpha_dot, r (and w)."""
-        q = dict(zip(("q_theta", "q_alpha", "q_theta_dot", "q_alpha_dot"), self.q, strict=True))
-        return {**q, "r": self.r, **({"w": self.w} if self.w is not None else {})}
-
-
-def parse_weights(text: str, method: str) -> Weights:
-    """``q=160,60,0.25,1;r=1[;w=1]`` (the LQG's w: process noise [V rms]); one line naming what is wrong."""
-    if method == "pd":
-        raise ValueError("--weights: the pd method has no weights (its gains are searched; give them to predict as "
-                         "--controller state_feedback:K=...)")  # fmt: skip
-    args: dict[str, Any] = {}
-    for item in [s for s in str(text).split(";") if s.strip()]:
-        key, eq, value = (p.strip() for p in item.partition("="))
-        if not eq or key not in ("q", "r", "w"):
-            raise ValueError(f"--weights {text!r}: {key!r} is not a weight; give q=Q1,Q2,Q3,Q4;r=R[;w=W]")
-        try:
-            nums = [float(v) for v in value.split(",")]
-        except ValueError:
-            raise ValueError(f"--weights {text!r}: {key}={value!r} is not a number") from None
-        if not all(math.isfinite(v) and v >= 0 for v in nums) or (key != "q" and (len(nums) != 1 or nums[0] <= 0)):
-            raise ValueError(
-                f"--weights {text!r}: {key} must be {'4 numbers >= 0' if key == 'q' else 'one number > 0'}"
-            )
-        if key == "q" and len(nums) != 4:
-            raise ValueError(f"--weights {text!r}: q takes 4 numbers (theta, alpha, theta_dot, alpha_dot)")
-        args[key] = tuple(nums) if key == "q" else nums[0]
-    if "q" not in args:
-        raise ValueError(f"--weights {text!r}: give q=Q1,Q2,Q3,Q4")
-    if "w" in args and method != "lqg":
-        raise ValueError(f"--weights {text!r}: w (process noise) is the lqg's")
-    return Weights(**args)
 
 
 # ----------------------------------------------------------------------------------------------- the gains

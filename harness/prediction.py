@@ -34,6 +34,7 @@ from .behaviour import METRICS, POOLED_BY, step_metrics, summarize
 from .executor import Executor, FmuBytes, fmu_bytes, worker_rig
 from .fmu.build import build_all
 from .ident.armax import fit_percent
+from .loopspecs import LoopSpecs
 from .rig.controller import Controller, delayed, parse_controller
 from .rig.signals import SIGNAL_KINDS, generate
 from .rundir import DataError
@@ -43,8 +44,6 @@ from .twin import Record, RigTables, Twin, draw, load_record, with_record_offset
 __all__ = [
     "BAND",
     "DEFAULT_REFERENCE",
-    "SPEC_KEYS",
-    "LoopSpecs",
     "MetricBand",
     "Prediction",
     "Reference",
@@ -59,58 +58,9 @@ Progress = Callable[[str], None]
 BAND = (0.025, 0.975)  # the band's quantiles: 95 %
 DEFAULT_REFERENCE = "square:f=0.25;amplitude=30;duration=8"  # a lab's square reference when neither a record nor one
 BATCH = 10  # members per task
-# a spec's key on the command line -> (the metric it bounds, its unit, what it says)
-SPEC_KEYS: dict[str, tuple[str, str, str]] = {
-    "settling": ("settling_s", "s", "settling time"),
-    "overshoot": ("overshoot_pct", "%", "overshoot"),
-    "alpha": ("peak_alpha_deg", "deg", "peak link deflection"),
-    "voltage": ("peak_u_v", "V", "peak command"),
-    "stop": ("stop_error_deg", "deg", "stopping error"),
-    "ring": ("ring_alpha_deg", "deg", "link ringing (RMS)"),
-}
 
 
-# ----------------------------------------------------------------------------------------------- specs
-@dataclass(frozen=True)
-class LoopSpecs:
-    """The specs a lab states for its loop: an upper limit per metric (``limits``, metric name -> limit in its unit;
-    the stopping error's on its magnitude) and the settling band ``band_pct`` [% of the step]."""
-
-    limits: dict[str, float] = field(default_factory=dict)
-    band_pct: float = 5.0
-
-    @classmethod
-    def parse(cls, text: str) -> LoopSpecs:
-        """``settling=1.5,overshoot=5,alpha=15,voltage=5[,stop=1][,ring=0.5][,band=4]`` (s, %, deg, V, deg, deg,
-        % of the step); one line naming what is wrong."""
-        limits: dict[str, float] = {}
-        band = 5.0
-        for item in [s for s in str(text).replace(";", ",").split(",") if s.strip()]:
-            key, eq, value = (p.strip() for p in item.partition("="))
-            if not eq or key not in (*SPEC_KEYS, "band"):
-                raise ValueError(f"--specs {text!r}: {key!r} is not a spec; valid: {', '.join([*SPEC_KEYS, 'band'])}")
-            try:
-                v = float(value)
-            except ValueError:
-                raise ValueError(f"--specs {text!r}: {key}={value!r} is not a number") from None
-            if not (math.isfinite(v) and v > 0):
-                raise ValueError(f"--specs {text!r}: {key} must be a number > 0, got {value}")
-            if key == "band":
-                band = v
-            else:
-                limits[SPEC_KEYS[key][0]] = v
-        if not limits:
-            raise ValueError(f"--specs {text!r}: no spec given (band sets the settling spec's band)")
-        return cls(limits, band)
-
-    def describe(self, metric: str) -> str:
-        """ "settling time <= 1.5 s"."""
-        key = next(k for k, v in SPEC_KEYS.items() if v[0] == metric)
-        _, unit, what = SPEC_KEYS[key]
-        mag = "|stopping error|" if metric == "stop_error_deg" else what
-        return f"{mag} <= {self.limits[metric]:g} {unit}"
-
-
+# ----------------------------------------------------------------------------------------------- bands
 @dataclass(frozen=True)
 class MetricBand:
     """One metric over the ensemble: ``median`` and the 95 % band ``lo``..``hi``; ``measured`` on the record (None

@@ -91,11 +91,17 @@ def test_the_command_line_loads_without_the_numerical_stack():
         (["diagnose", "--real", "r", "--sim", "no_such_spec"], {"numpy"}),
         (["identify", "no_such_run"], {"numpy", "pandas", "pyarrow"}),  # the manifest read
         (["diagnose", "--real", "no_such_run"], {"numpy", "pandas", "pyarrow"}),
+        (["design", "closed_loop", "--method", "h2", "--out", "r"], set()),
+        (["design", "closed_loop", "--method", "lqr", "--weights", "q=1,1", "--out", "r"], set()),
+        (["design", "closed_loop", "--method", "pd", "--specs", "settle=1", "--out", "r"], set()),
+        (["predict", "nominal", "--controller", "lqr:K=1,2,3,4", "--out", "r"], {"numpy"}),  # the controller's arrays
+        (["predict", "nominal", "--controller", "pid:kp=1", "--specs", "settling=0", "--out", "r"], {"numpy"}),
     ],
 )
 def test_a_mistake_in_what_a_command_is_given_is_told_before_it_loads_its_work(args, loaded):
-    """A bad spec, --set or run directory is one line before the command loads what it runs (scipy, fmpy, Dask,
-    matplotlib) or starts its cluster: a mistake is told in a fraction of a second."""
+    """A bad spec, --set, run directory, design method, weights, loop specs or controller is one line before the
+    command loads what it runs (scipy, fmpy, Dask, matplotlib) or starts its cluster: a mistake is told in a fraction
+    of a second."""
     assert set(_loaded(args)) - {"rich"} == loaded, args
 
 

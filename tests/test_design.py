@@ -16,7 +16,8 @@ import pytest
 from harness import spec as specmod
 from harness.design import DesignError, controller_toml, design, pd_controller
 from harness.linloop import closed_loop, design_model, spectral_radius
-from harness.prediction import LoopSpecs, reference_from
+from harness.loopspecs import LoopSpecs
+from harness.prediction import reference_from
 from harness.render.prediction import write_design
 from harness.spec import controller_table
 from harness.twin import twin_of_spec
@@ -108,7 +109,7 @@ def test_the_files_a_design_writes(lab, tmp_path):
 def test_given_weights_are_designed_as_they_are(lab):
     """--weights skip the search: the closed_loop spec's own Q on its own rig, judged, not refused."""
     ref = reference_from("square:f=0.4;amplitude=25;duration=5", 500.0)
-    from harness.design import Weights
+    from harness.loopspecs import Weights
 
     d = design(lab, "lqr", ref, LoopSpecs.parse("settling=0.05"), weights=Weights((100, 500, 1, 1)), n=10, workers=1)
     assert d.searched == 0 and not d.passed

@@ -11,7 +11,7 @@ import pytest
 from scipy.linalg import solve_discrete_are
 
 from harness import spec as specmod
-from harness.design import Weights, lqg_controller, lqr_controller
+from harness.design import lqg_controller, lqr_controller
 from harness.fmu.build import build_all
 from harness.fmu.cosim import Rig
 from harness.linloop import (
@@ -24,6 +24,7 @@ from harness.linloop import (
     lqr_gain,
     step_response,
 )
+from harness.loopspecs import Weights
 from harness.prediction import simulate_loop
 from harness.rig.controller import Controller
 from harness.twin import twin_of_spec

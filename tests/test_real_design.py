@@ -13,7 +13,8 @@ from harness import spec as specmod
 from harness.design import design
 from harness.diagnosis.diagnose import diagnose_run
 from harness.diagnosis.rigmodel import combos
-from harness.prediction import LoopSpecs, predict, reference_from
+from harness.loopspecs import LoopSpecs
+from harness.prediction import predict, reference_from
 from harness.rig.records import import_records
 from harness.twin import load_record, twin_of_diagnosis
 

@@ -288,8 +288,9 @@ def test_libcosim_runs_an_lqg_loop_to_the_campaigns_theta(tmp_path):
     it to the campaign's theta, to the bit."""
     import tomllib
 
-    from harness.design import Weights, controller_toml, lqg_controller
+    from harness.design import controller_toml, lqg_controller
     from harness.linloop import design_model
+    from harness.loopspecs import Weights
     from harness.twin import twin_of_spec
 
     s = specmod.load("closed_loop", [])

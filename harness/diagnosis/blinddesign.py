@@ -26,7 +26,8 @@ import numpy as np
 from .. import spec as specmod
 from ..design import Design, controller_toml, design
 from ..executor import FmuBytes, fmu_file, worker_rig
-from ..prediction import SPEC_KEYS, LoopSpecs, MetricBand, Reference, judge_specs, pooled, reference_from, simulate_loop
+from ..loopspecs import SPEC_KEYS, LoopSpecs
+from ..prediction import MetricBand, Reference, judge_specs, pooled, reference_from, simulate_loop
 from ..rig.campaign import run_campaign
 from ..rig.controller import Controller
 from ..twin import RigTables, twin_of_diagnosis, twin_of_spec
