@@ -632,13 +632,14 @@ def predict(
     import json
 
     from .clusterprocess import prestart
-    from .loopspecs import LoopSpecs
+    from .loopspecs import LoopSpecs, controller_source
     from .rig.controller import parse_controller
 
     _out_dir(out_dir)
     judged = LoopSpecs.parse(specs) if specs else None
+    controller_source(controller, str(controller_from) if controller_from else None, record is not None)
     if controller is not None:
-        parse_controller(controller)  # a mistake in it is told before the twin loads
+        parse_controller(controller)  # a mistake in which controller, or in it, is told before the twin loads
     prestart(workers, scheduler, ["harness.prediction"])  # the workers start while the twin loads
     from .prediction import controller_from as pick_controller
     from .prediction import loop_rate, reference_from

@@ -12,7 +12,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-__all__ = ["METHODS", "SPEC_KEYS", "LoopSpecs", "Weights", "parse_weights"]
+__all__ = ["METHODS", "SPEC_KEYS", "LoopSpecs", "Weights", "controller_source", "parse_weights"]
 
 METHODS = ("lqr", "lqg", "pd")  # flexjoint design --method
 # a spec's key on the command line -> (the metric it bounds, its unit, what it says)
@@ -107,3 +107,18 @@ def parse_weights(text: str, method: str) -> Weights:
     if "w" in args and method != "lqg":
         raise ValueError(f"--weights {text!r}: w (process noise) is the lqg's")
     return Weights(**args)
+
+
+def controller_source(text: str | None, source: str | None, record_given: bool) -> str:
+    """Which option gives the controller a prediction runs: ``"controller"`` (``--controller`` KIND:...),
+    ``"controller_from"`` (``--controller-from``) or ``"record"`` (``--record``'s own); one line when the first two
+    are both given, or none of the three."""
+    if text is not None and source is not None:
+        raise ValueError("give --controller or --controller-from, not both")
+    if text is not None:
+        return "controller"
+    if source is not None:
+        return "controller_from"
+    if record_given:
+        return "record"
+    raise ValueError("no controller: give --controller KIND:..., --controller-from DIR, or --record RUN (its own)")

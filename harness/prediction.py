@@ -34,7 +34,7 @@ from .behaviour import METRICS, POOLED_BY, step_metrics, summarize
 from .executor import Executor, FmuBytes, fmu_bytes, worker_rig
 from .fmu.build import build_all
 from .ident.armax import fit_percent
-from .loopspecs import LoopSpecs
+from .loopspecs import LoopSpecs, controller_source
 from .rig.controller import Controller, delayed, parse_controller
 from .rig.signals import SIGNAL_KINDS, generate
 from .rundir import DataError
@@ -167,16 +167,16 @@ def reference_from(text: str | None, rate: float, record: Record | None = None) 
 def controller_from(text: str | None, source: str | None, record: Record | None) -> Controller:
     """The controller to predict: ``--controller KIND:...``, else ``--controller-from`` (a design's or any directory's
     controller.toml, a TOML file with a ``[controller]`` table, or a run's first closed-loop record's controller), else
-    the record's; one line when none is given."""
-    if text is not None and source is not None:
-        raise ValueError("give --controller or --controller-from, not both")
-    if text is not None:
+    the record's (:func:`harness.loopspecs.controller_source`); one line when none is given."""
+    which = controller_source(text, source, record is not None)
+    if which == "controller" and text is not None:
         return parse_controller(text)
-    if source is not None:
+    if which == "controller_from" and source is not None:
         return _controller_file(Path(source))
     if record is not None and record.controller is not None:
         return record.controller
-    raise ValueError("no controller: give --controller KIND:..., --controller-from DIR, or --record RUN (its own)")
+    name = record.name if record is not None else ""
+    raise DataError(f"--record: its record {name!r} has no controller; give --controller KIND:... or --controller-from")
 
 
 def _controller_file(p: Path) -> Controller:

@@ -96,6 +96,7 @@ def test_the_command_line_loads_without_the_numerical_stack():
         (["design", "closed_loop", "--method", "pd", "--specs", "settle=1", "--out", "r"], set()),
         (["predict", "nominal", "--controller", "lqr:K=1,2,3,4", "--out", "r"], {"numpy"}),  # the controller's arrays
         (["predict", "nominal", "--controller", "pid:kp=1", "--specs", "settling=0", "--out", "r"], {"numpy"}),
+        (["predict", "nominal", "--out", "r"], {"numpy"}),  # no controller given, nor a record to take it from
     ],
 )
 def test_a_mistake_in_what_a_command_is_given_is_told_before_it_loads_its_work(args, loaded):

@@ -212,3 +212,17 @@ def test_bad_input_is_one_line_and_writes_nothing(tmp_path):
         assert r.returncode == 2 and r.stderr.startswith("error: ") and r.stderr.count("\n") == 1, (args, r.stderr)
         assert why in r.stderr, (args, r.stderr)
         assert not out.exists()
+
+
+def test_which_option_gives_the_controller():
+    """--controller first, then --controller-from, then the record's own; both of the first two, or none of the
+    three, is one line."""
+    from harness.loopspecs import controller_source
+
+    assert controller_source("pid:kp=1", None, True) == "controller"
+    assert controller_source(None, "design", True) == "controller_from"
+    assert controller_source(None, None, True) == "record"
+    with pytest.raises(ValueError, match="not both"):
+        controller_source("pid:kp=1", "design", False)
+    with pytest.raises(ValueError, match="no controller: give --controller"):
+        controller_source(None, None, False)
