@@ -1,7 +1,8 @@
 """What a user asks of a loop and of its design, read from the command line's text.
 
-The specs a lab states for its loop (:class:`LoopSpecs`, ``--specs``), the design methods (:data:`METHODS`) and an
-LQR's or LQG's weights (:class:`Weights`, ``--weights``), each parsed with one line naming what is wrong. Plain data
+The specs a lab states for its loop (:class:`LoopSpecs`, ``--specs``), the design methods (:data:`METHODS`), an
+LQR's or LQG's weights (:class:`Weights`, ``--weights``) and which option gives a prediction's controller
+(:func:`controller_source`), each read with one line naming what is wrong. Plain data
 with no numerics, so that the command line checks what it is given before it loads the prediction
 (:mod:`harness.prediction`) or the design (:mod:`harness.design`), which take them.
 """
