@@ -202,6 +202,20 @@ def _square_loop(seconds: float, f_ref: float, rate: float = 1000.0) -> RigExper
                          replay="closed", replay_reason="a closed-loop record with its controller (spec)")  # fmt: skip
 
 
+def test_a_fold_without_a_step_of_the_reference_is_a_caveat():
+    """A lone 10 s record of a 0.1 Hz square that starts at its reference holds one step, down at 5 s; the cut
+    before it leaves fold A none, and a caveat says that fold A's fit is scored on a step response it never saw. At
+    0.2 Hz both folds hold steps (1 and 2): no caveat."""
+    one, two = _square_loop(10.0, 0.1), _square_loop(10.0, 0.2)
+    experiments, folds = ex.fold_experiments({"loop": one})
+    assert ex.fold_steps(experiments, folds) == (0, 1)
+    (caveat,) = dg._caveats({}, "unexplained", folds, steps=ex.fold_steps(experiments, folds)) or []
+    assert caveat.startswith(f"fold A ({folds.A[0]}) holds no step of its reference, fold B 1: the fit on fold A")
+    experiments, folds = ex.fold_experiments({"loop": two})
+    assert ex.fold_steps(experiments, folds) == (1, 2)
+    assert dg._caveats({}, "unexplained", folds, steps=ex.fold_steps(experiments, folds)) is None
+
+
 def test_records_that_repeat_their_reference_are_split_between_the_folds():
     """A unit of two closed-loop records that each hold two periods of their reference or more (8 s at 0.25 Hz, 6 s
     at 0.5 Hz) and one that does not (6 s at 0.1 Hz, one step): each of the first two cut at a quiet point into

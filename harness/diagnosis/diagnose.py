@@ -38,6 +38,7 @@ from .experiments import (
     REPLAYS,
     RigExperiment,
     fold_experiments,
+    fold_steps,
     load_experiments,
     mark_quiet,
     masked_share,
@@ -110,17 +111,28 @@ def _caveats(
     folds: Folds | None = None,
     effects: list[str] | None = None,
     still: list[str] | None = None,
+    steps: tuple[int, int] = (0, 0),
 ) -> list[str] | None:
-    """What limits the verdict: the records set aside (``still``: nothing in them moves beyond the noise), which part
-    of the spec does not describe the rig (:func:`recal.parts_at_bound`), each recalibrated parameter that ended at
-    its bound (an effect's share of the gap may be a wrong linear part's), each one the data do not determine; the
-    linear parameters whose fits on each record alone (with the ``effects`` found held) exclude each other, or,
-    without records fitted alone, where nothing explains the gap, those of the two folds."""
+    """What limits the verdict: the records set aside (``still``: nothing in them moves beyond the noise), a fold
+    whose closed-loop records hold no step of their reference where the other's do (``steps``: how many each holds,
+    :func:`harness.diagnosis.experiments.fold_steps`), which part of the spec does not describe the rig
+    (:func:`recal.parts_at_bound`), each recalibrated parameter that ended at its bound (an effect's share of the gap
+    may be a wrong linear part's), each one the data do not determine; the linear parameters whose fits on each
+    record alone (with the ``effects`` found held) exclude each other, or, without records fitted alone, where nothing
+    explains the gap, those of the two folds."""
     out = (
         [f"set aside, nothing in them moves beyond the noise: {', '.join(still)}; diagnosed on the rest"]
         if still
         else []
     )
+    if folds is not None and min(steps) == 0 < max(steps):
+        empty, full = ("A", "B") if steps[0] == 0 else ("B", "A")
+        names = {"A": folds.A, "B": folds.B}
+        out.append(
+            f"fold {empty} ({', '.join(names[empty])}) holds no step of its reference, fold {full} "
+            f"{max(steps)}: the fit on fold {empty} is scored on step responses it never saw; log each record over a "
+            "period of its reference (a step each way) so that both folds hold steps"
+        )
     out += recal.parts_at_bound({n: (p.nominal, p.fitted) for n, p in parameters.items() if n in recal.LINEAR})
     out += [f"verdict {verdict!r} reached with {p.finding}" for p in parameters.values() if p.at_bound]
     out += [f"{p.finding}" for p in parameters.values() if p.identifiable is False and p.finding and not p.at_bound]
@@ -279,7 +291,14 @@ def diagnose_run(
         thresholds=thresholds(policy),
         where=where,
         replays=_replays(experiments),
-        caveats=_caveats(found.parameters, found.verdict, folds, [e.effect for e in found.effects], still),
+        caveats=_caveats(
+            found.parameters,
+            found.verdict,
+            folds,
+            [e.effect for e in found.effects],
+            still,
+            fold_steps(experiments, folds),
+        ),
         rig=_rig_fit(found),
         sensors=_sensors(found, experiments),
         behaviour=found.behaviour or None,

@@ -20,6 +20,7 @@ from scipy.optimize import least_squares
 from scipy.signal import savgol_filter
 
 from .. import spec as specmod
+from ..behaviour import reference_steps
 from ..ident.calibration import Calibration, alpha_deg, theta_deg
 from ..rig.controller import R2_MIN
 from ..rig.signals import MultisineLines, multisine_lines
@@ -43,6 +44,7 @@ __all__ = [
     "blocks",
     "command_period",
     "fold_experiments",
+    "fold_steps",
     "halves",
     "load_experiments",
     "masked_share",
@@ -767,3 +769,15 @@ def fold_experiments(experiments: dict[str, RigExperiment]) -> tuple[dict[str, R
         "2nd, 4th, ...)"
     )
     return parts, Folds(A=names[0::2], B=names[1::2], scheme=scheme)
+
+
+def fold_steps(experiments: dict[str, RigExperiment], folds: Folds) -> tuple[int, int]:
+    """How many steps of their references the closed-loop experiments of folds A and B hold
+    (:func:`harness.behaviour.reference_steps`: a change of the reference within a part, not the level it starts at).
+    A fold without one and the other with some: a fit on either is scored on a response the other never saw."""
+
+    def count(names: list[str]) -> int:
+        parts = [experiments[n] for n in names if n in experiments]
+        return sum(len(reference_steps(x.t, x.ref)) for x in parts if x.replay == "closed" and x.ref is not None)
+
+    return count(folds.A), count(folds.B)
