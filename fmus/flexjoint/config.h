@@ -108,6 +108,11 @@ typedef struct {
         double h;
         double Phi[MAX_X][MAX_X]; /* I + hA + (hA)^2/2 + (hA)^3/6 + (hA)^4/24 */
         double P3h[MAX_X][MAX_X]; /* h (I + hA/2 + (hA)^2/6 + (hA)^3/24) */
+        double Minv[MAX_DOF][MAX_DOF]; /* the configuration's inverse mass matrix (set with the maps) */
+        /* its forcing f [rad/s^2] for the amplifier output f_v [V], tip torque f_tau [N.m] and sliding direction
+           f_slip it was taken with (f_set 0: none yet) */
+        double f[MAX_X], f_v, f_tau;
+        int f_slip, f_set;
     } maps[CONFIGS];
 } ModelData;
 

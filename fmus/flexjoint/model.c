@@ -288,7 +288,7 @@ fmi2Status initialize(ModelInstance *comp) {
     d->side = 0;
     d->slip = (d->coulomb_torque > 0 && d->theta_dot_start != 0.0) ? (d->theta_dot_start > 0 ? 1 : -1) : 0;
     d->linear = d->coulomb_torque == 0.0 && d->backlash == 0.0 && !d->hub_locked;
-    for (i = 0; i < CONFIGS; i++) d->maps[i].h = 0.0;
+    for (i = 0; i < CONFIGS; i++) d->maps[i].h = 0.0, d->maps[i].f_set = 0;
     return fmi2OK;
 }
 
@@ -595,17 +595,20 @@ static double inverseMass(const ModelData *d, int cfg, int i, int j) {
     return d->m_tip == 0.0 ? (i == j ? 1.0 / d->Jmode : 0.0) : d->Mc_inv[i][j];
 }
 
-/* the maps of configuration cfg for steps of h: B = h A of the derivatives derivN takes in it, friction aside */
+/* the maps of configuration cfg for steps of h: B = h A of the derivatives derivN takes in it, friction aside; and
+   the configuration's inverse mass matrix beside them */
 static void affineMaps(ModelData *d, int cfg, double h) {
     const int N = d->N, n = 2 * N, first = cfg & STUCK ? 1 : 0, drive = cfg & ~STUCK;
     const double Bhub = drive == RIGID ? d->Beq + d->Bemf : d->Bh;
     double Bm[MAX_X][MAX_X];
     int i, j;
+    for (i = 0; i < N; i++)
+        for (j = 0; j < N; j++) d->maps[cfg].Minv[i][j] = inverseMass(d, cfg, i, j);
     memset(Bm, 0, sizeof(Bm));
     for (i = first; i < N; i++) { /* a stuck hub (row 0) stays where it is */
         Bm[i][N + i] = h;
         for (j = first; j < N; j++) {
-            const double m = inverseMass(d, cfg, i, j);
+            const double m = d->maps[cfg].Minv[i][j];
             Bm[N + i][j] = -h * m * (j == 0 ? 0.0 : d->k[j]);
             Bm[N + i][N + j] = -h * m * (j == 0 ? Bhub : d->c[j]);
         }
@@ -619,8 +622,9 @@ static void affineMaps(ModelData *d, int cfg, double h) {
 }
 
 /* The forcing f of configuration cfg's affine dynamics X' = A X + f [rad/s^2] over a step: the drive's and the tip's
-   torques, less Coulomb's level where the hub slides (coulomb_torque slip), through the configuration's inverse mass;
-   in the play, the motor side's drive of its own. Zero on the positions and on a stuck hub's rate. */
+   torques, less Coulomb's level where the hub slides (coulomb_torque slip), through the configuration's inverse mass
+   (its maps made first: affineMaps); in the play, the motor side's drive of its own. Zero on the positions and on a
+   stuck hub's rate. */
 FOR_EACH_N void affineForcingN(const ModelData *d, int cfg, double *f, const int N) {
     const int n = 2 * N, first = cfg & STUCK ? 1 : 0, drive = cfg & ~STUCK;
     double Q[MAX_DOF];
@@ -630,12 +634,24 @@ FOR_EACH_N void affineForcingN(const ModelData *d, int cfg, double *f, const int
     for (i = 1; i < N; i++) Q[i] = d->tau_tip;
     for (i = 0; i < N; i++) {
         double s = 0.0;
-        for (j = first; j < N; j++) s += inverseMass(d, cfg, i, j) * Q[j];
+        for (j = first; j < N; j++) s += d->maps[cfg].Minv[i][j] * Q[j];
         f[i] = 0.0;
         f[N + i] = i < first ? 0.0 : s;
     }
     f[n] = 0.0;
     f[n + 1] = drive == PLAY ? d->G * d->v_amp / d->Jm : 0.0;
+}
+
+/* configuration cfg's forcing (affineForcingN) for the current v_amp, tau_tip and slip: the one kept in its maps,
+   taken again when one of them changed */
+FOR_EACH_N const double *keptForcingN(ModelData *d, int cfg, const int N) {
+    if (!d->maps[cfg].f_set || d->maps[cfg].f_v != d->v_amp || d->maps[cfg].f_tau != d->tau_tip ||
+        d->maps[cfg].f_slip != d->slip) {
+        affineForcingN(d, cfg, d->maps[cfg].f, N);
+        d->maps[cfg].f_v = d->v_amp, d->maps[cfg].f_tau = d->tau_tip, d->maps[cfg].f_slip = d->slip;
+        d->maps[cfg].f_set = 1;
+    }
+    return d->maps[cfg].f;
 }
 
 /* One RK4 step from X0 to X1 as its polynomial (X1 = Phi X0 + P3h f) where the dynamics are affine over the step,
@@ -645,7 +661,7 @@ FOR_EACH_N void affineForcingN(const ModelData *d, int cfg, double *f, const int
 FOR_EACH_N int affineStepN(ModelData *d, const double *X0, double *X1, double h, const int N) {
     const int n = 2 * N, cfg = configuration(d), m = mapSize(d, cfg);
     const int stribeck = !d->stuck && d->stribeck_speed > 0 && d->coulomb_torque > 0;
-    double f[MAX_X];
+    const double *f;
     int i, j;
     if (d->hub_locked) return 0;
     if (stribeck) {
@@ -653,7 +669,7 @@ FOR_EACH_N int affineStepN(ModelData *d, const double *X0, double *X1, double h,
         if (!(r * r > d->r2_flat)) return 0;
     }
     if (d->maps[cfg].h != h) affineMaps(d, cfg, h);
-    affineForcingN(d, cfg, f, N);
+    f = keptForcingN(d, cfg, N);
     for (i = 0; i < m; i++) {
         double s = 0.0;
         for (j = 0; j < m; j++) s += d->maps[cfg].Phi[i][j] * X0[j];
