@@ -377,14 +377,13 @@ def grouped_jacobian(
                 h[j] = -h[j]
         df = fun(x + h) - f0
         for j in cols:
-            rows = np.zeros(f0.size, dtype=bool)
-            if masks[j] is None:
-                rows[:] = True
-            else:
-                rows[:n_data] = masks[j]
+            m = masks[j]
+            if m is None:  # every row
+                jac[:, j] = df / h[j]
+                continue
+            jac[:n_data, j][m] = df[:n_data][m] / h[j]
             if prior_rows[j]:
-                rows[prior_row[j]] = True
-            jac[rows, j] = df[rows] / h[j]
+                jac[prior_row[j], j] = df[prior_row[j]] / h[j]
     return jac
 
 
