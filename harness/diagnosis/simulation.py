@@ -309,8 +309,9 @@ def replay(rig: Any, setup: Setup, exp: RigExperiment, over: Mapping[str, Any], 
 
 def unwrapped(deg: np.ndarray) -> np.ndarray:
     """``np.unwrap(deg, period=360.0)`` [deg]: where no sample jumps by half a turn or more (the pot did not wrap), the
-    same numbers without its corrections' arithmetic."""
-    if deg.size > 1 and bool(np.all(np.abs(np.diff(deg)) < 180.0)):
+    same numbers without its corrections' arithmetic. Samples within less than half a turn of each other (their range)
+    cannot jump so; a wider range is checked sample by sample."""
+    if deg.size > 1 and (float(deg.max() - deg.min()) < 180.0 or bool(np.all(np.abs(np.diff(deg)) < 180.0))):
         out = deg.copy()
         out[1:] += 0.0  # as np.unwrap adds its (zero) corrections: -0.0 becomes 0.0 after the first sample
         return out
