@@ -73,7 +73,7 @@ def _master() -> ctypes.CDLL:
 def _doubles(a: np.ndarray) -> int:
     """The address of a C-contiguous float64 array's data (the loops read and write it in place)."""
     assert a.dtype == np.float64 and a.flags.c_contiguous
-    return a.ctypes.data
+    return int(a.__array_interface__["data"][0])
 
 
 def controller_parameters(
