@@ -774,7 +774,7 @@ def fold_experiments(experiments: dict[str, RigExperiment]) -> tuple[dict[str, R
 def fold_steps(experiments: dict[str, RigExperiment], folds: Folds) -> tuple[int, int]:
     """How many steps of their references the closed-loop experiments of folds A and B hold
     (:func:`harness.behaviour.reference_steps`: a change of the reference within a part, not the level it starts at).
-    A fold without one and the other with some: a fit on either is scored on a response the other never saw."""
+    A fold without one beside a fold with some: the fit on the first is scored on step responses it never saw."""
 
     def count(names: list[str]) -> int:
         parts = [experiments[n] for n in names if n in experiments]
