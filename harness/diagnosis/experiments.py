@@ -777,7 +777,7 @@ def fold_steps(experiments: dict[str, RigExperiment], folds: Folds) -> tuple[int
     A fold without one beside a fold with some: the fit on the first is scored on step responses it never saw."""
 
     def count(names: list[str]) -> int:
-        parts = [experiments[n] for n in names if n in experiments]
+        parts = [experiments[n] for n in names]
         return sum(len(reference_steps(x.t, x.ref)) for x in parts if x.replay == "closed" and x.ref is not None)
 
     return count(folds.A), count(folds.B)
