@@ -481,7 +481,7 @@ def identify(
     from .clusterprocess import prestart
 
     over = specmod.apply_overrides({}, set_ or []).get("identify", {})
-    prestart(workers, scheduler, ["harness.ident.identify"])  # the workers start while the identification loads
+    prestart(workers, scheduler, ["harness.ident.gridfit"])  # the workers start while the identification loads
     from .rundir import Manifest
 
     Manifest.load(run_dir)  # not a run directory: one line before the identification loads
@@ -986,7 +986,7 @@ def blindtest_table(tot: dict[str, Any]) -> Table:
 
 
 # the modules of flexjoint run's tasks: campaign, ARMAX grid, diagnosis, report figures
-PIPELINE_TASKS = ("harness.rig.campaign", "harness.ident.identify", "harness.diagnosis.tasks", "harness.render.figures")
+PIPELINE_TASKS = ("harness.rig.campaign", "harness.ident.gridfit", "harness.diagnosis.tasks", "harness.render.figures")
 
 
 @app.command()

@@ -115,7 +115,7 @@ def test_the_modules_run_preloads_into_its_workers_exist():
 
     for name in PIPELINE_TASKS:
         assert importlib.util.find_spec(name) is not None, name
-    assert set(PIPELINE_TASKS) >= {"harness.rig.campaign", "harness.ident.identify", "harness.render.figures"}
+    assert set(PIPELINE_TASKS) >= {"harness.rig.campaign", "harness.ident.gridfit", "harness.render.figures"}
 
 
 @pytest.mark.parametrize(

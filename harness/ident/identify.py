@@ -35,21 +35,8 @@ from ..rundir import (
 from ..spec import IdentifySettings
 from . import armax
 from .calibration import Calibration, alpha_deg, calibrate_run, load_calibration, theta_deg, tip_deg
+from .gridfit import PreparedExperiment, cross_validate, fit_slice
 from .preprocess import preprocess
-
-
-@dataclass
-class PreparedExperiment:
-    """One experiment's dataset ready for identification: detrended command u_d [V], filtered difference y_f
-    [deg/sample]."""
-
-    name: str
-    u_d: np.ndarray
-    y_f: np.ndarray
-    y: np.ndarray  # the angle itself [deg]
-    u: np.ndarray  # the raw command [V]
-    Ts: float
-    y_f_offset: float = 0.0  # mean removed from y_f [deg/sample]: the operating point's mean rate
 
 
 def output_angle(df: pd.DataFrame, cal: Calibration, output: str = "y") -> np.ndarray:
@@ -98,11 +85,6 @@ def prepare(
     return out
 
 
-def causal(na: int, nb: int, nk: int) -> bool:
-    """Lab 1's causality rule in the forward-shift operator: deg B(z) + nk <= deg A(z), i.e. nb + nk <= na."""
-    return nb + nk <= na
-
-
 def _orders(spec_identify: IdentifySettings) -> list[tuple[int, int, int]]:
     def rng(key: str, v: int | list[int]) -> range:
         lo, hi = (v, v) if isinstance(v, int) else (int(v[0]), int(v[1]))
@@ -114,18 +96,7 @@ def _orders(spec_identify: IdentifySettings) -> list[tuple[int, int, int]]:
     return [(na, nb, nc) for na in rng("na", s["na"]) for nb in rng("nb", s["nb"]) for nc in rng("nc", s["nc"])]
 
 
-Orders = list[tuple[int, int, int]]
 T = TypeVar("T")
-
-
-def _fit_dataset(p: PreparedExperiment, orders: Orders, nk: int, ic: str) -> list[dict[str, Any]]:
-    """The given orders of the grid on one dataset: a row per order, the model as a dict (causal ones)."""
-    return [_fit_order(p, na, nb, nc, nk, ic) for na, nb, nc in orders]
-
-
-def _fit_slice(task: tuple[PreparedExperiment, Orders], nk: int, ic: str) -> list[dict[str, Any]]:
-    """One task of the grid: a dataset and a slice of the orders (:func:`_fit_dataset`)."""
-    return _fit_dataset(*task, nk, ic)
 
 
 def slices_per_dataset(n_datasets: int, n_workers: int, n_orders: int) -> int:
@@ -153,22 +124,6 @@ def _undeal(parts: list[list[T]]) -> list[T]:
     """What the slices of :func:`_slices` gave, item by item, back in the order of the items."""
     rows = [iter(p) for p in parts]
     return [next(rows[s]) for s in deal(sum(len(p) for p in parts), len(parts))]
-
-
-def _cross_validate(
-    models: list[armax.ArmaxModel], prepared: dict[str, PreparedExperiment], ic: str
-) -> list[list[float]]:
-    """One task of the cross-validation: each model's fit [%] on every dataset (MATLAB compare's)."""
-    return [[armax.compare(m, p.u_d, p.y_f, ic=ic) for p in prepared.values()] for m in models]
-
-
-def _fit_order(p: PreparedExperiment, na: int, nb: int, nc: int, nk: int, ic: str) -> dict[str, Any]:
-    row: dict[str, Any] = {"dataset": p.name, "na": na, "nb": nb, "nc": nc, "nk": nk, "n_params": na + nb + nc}
-    row["causal"] = causal(na, nb, nk)
-    if not row["causal"]:
-        return {**row, "stable": False, "fit": math.nan, "model": None}
-    m = armax.estimate(p.u_d, p.y_f, na, nb, nc, nk, Ts=p.Ts)
-    return {**row, "stable": m.stable, "fit": armax.compare(m, p.u_d, p.y_f, ic=ic), "model": m.to_dict()}
 
 
 @dataclass
@@ -240,7 +195,7 @@ def run_grid(
         k = slices_per_dataset(len(prepared), ex.n_workers, len(orders))
         tasks = [(p, part) for p in prepared.values() for part in _slices(orders, k)]
         labels = [f"{n} {j + 1}/{k}" if k > 1 else n for n in prepared for j in range(k)]
-        res = ex.map(_fit_slice, tasks, nk, ic, labels=labels)
+        res = ex.map(fit_slice, tasks, nk, ic, labels=labels)
         for i in range(len(prepared)):
             rows.extend(_undeal(res[i * k : (i + 1) * k]))
         models = {i: armax.ArmaxModel.from_dict(r.pop("model")) for i, r in enumerate(rows) if r["model"] is not None}
@@ -258,7 +213,7 @@ def run_grid(
                 fallback[n] = int(grid.loc[ok, "fit"].idxmax())
         checked = sorted({*np.flatnonzero(grid["survivor"].to_numpy()).tolist(), *fallback.values()})
         parts = _slices(checked, max(1, min(ex.n_workers, len(checked))))
-        fits = ex.map(_cross_validate, [[models[i] for i in part] for part in parts], prepared, ic, quiet=True)
+        fits = ex.map(cross_validate, [[models[i] for i in part] for part in parts], prepared, ic, quiet=True)
     cv = np.full((len(grid), len(names)), np.nan)
     cv[checked] = _undeal(fits)
     grid["cv_mean"] = cv.mean(axis=1)
