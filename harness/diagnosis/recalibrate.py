@@ -54,6 +54,18 @@ class Bound:
     log: bool = True
     part: str = ""
 
+    def to_x(self, value: float, nominal: float) -> float:
+        """The search coordinate of ``value``: the log of its ratio to ``nominal``, or the value itself."""
+        return math.log(value / nominal) if self.log else value
+
+    def from_x(self, x: float, nominal: float) -> float:
+        """The value at the search coordinate ``x`` (the inverse of :meth:`to_x`)."""
+        return nominal * math.exp(x) if self.log else x
+
+    def x_range(self) -> tuple[float, float]:
+        """The search coordinate's walls."""
+        return (math.log(self.lo), math.log(self.hi)) if self.log else (self.lo, self.hi)
+
 
 # the rig's linear parameters as the data determine them (harness.diagnosis.rigmodel), recalibrated before any effect
 # is tried; the bounds are far walls (a factor 20 on the drive), the spec's uncertainty is a prior inside them
@@ -117,18 +129,6 @@ class Fit:
     held: tuple[str, ...] = ()
     names: tuple[str, ...] = ()
     cov: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
-
-
-def _to_x(value: float, nominal: float, b: Bound) -> float:
-    return math.log(value / nominal) if b.log else value
-
-
-def _from_x(x: float, nominal: float, b: Bound) -> float:
-    return nominal * math.exp(x) if b.log else x
-
-
-def _x_bounds(b: Bound) -> tuple[float, float]:
-    return (math.log(b.lo), math.log(b.hi)) if b.log else (b.lo, b.hi)
 
 
 def fit(
@@ -206,16 +206,16 @@ def _fit(
     derivative_free = rough == "staircase"
     fixed = dict(fixed or {})
     start = {**nominal, **(start or {})}
-    lo_hi = [_x_bounds(bounds[n]) for n in names]
+    lo_hi = [bounds[n].x_range() for n in names]
     x0 = np.array(
         [
-            min(max(_to_x(start[n], nominal[n], bounds[n]), lo + 1e-9), hi - 1e-9)
+            min(max(bounds[n].to_x(start[n], nominal[n]), lo + 1e-9), hi - 1e-9)
             for n, (lo, hi) in zip(names, lo_hi, strict=True)
         ]
     )
 
     def params(x: np.ndarray) -> dict[str, float]:
-        return {**fixed, **{n: _from_x(float(v), nominal[n], bounds[n]) for n, v in zip(names, x, strict=True)}}
+        return {**fixed, **{n: bounds[n].from_x(float(v), nominal[n]) for n, v in zip(names, x, strict=True)}}
 
     last: list[tuple[bytes, np.ndarray]] = []
 
@@ -282,8 +282,8 @@ def _fit(
     values = params(res.x)
     ci = {}
     for i, n in enumerate(names):
-        lo = _from_x(float(res.x[i] - 1.96 * se[i]), nominal[n], bounds[n])
-        hi = _from_x(float(res.x[i] + 1.96 * se[i]), nominal[n], bounds[n])
+        lo = bounds[n].from_x(float(res.x[i] - 1.96 * se[i]), nominal[n])
+        hi = bounds[n].from_x(float(res.x[i] + 1.96 * se[i]), nominal[n])
         ci[n] = (min(lo, hi), max(lo, hi))
     sd_cov = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
     cov = cov / np.outer(sd_cov, sd_cov) * np.outer(se, se)  # the correlations, with the variances as capped
@@ -451,8 +451,8 @@ def at_bound(name: str, nominal: float, fitted: float) -> str | None:
     b = LINEAR.get(name)
     if b is None or not nominal:
         return None
-    lo, hi = _x_bounds(b)
-    x = _to_x(fitted, nominal, b)
+    lo, hi = b.x_range()
+    x = b.to_x(fitted, nominal)
     if x <= lo + AT_BOUND * (1.0 if b.log else abs(lo) or 1.0):
         return "lower"
     if x >= hi - AT_BOUND * (1.0 if b.log else abs(hi) or 1.0):

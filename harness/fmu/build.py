@@ -267,30 +267,35 @@ def build_fmu(name: str, out_dir: Path | None = None, force: bool = False) -> Pa
     return target
 
 
+MASTER_SOURCES = ("master.c", "kalman.c")  # the co-simulation's step loops, the likelihood engine's Kalman filter
 MASTER_CMAKE = """cmake_minimum_required(VERSION 3.10)
 project(flexjoint_master C)
-add_library(master SHARED master.c)
+add_library(master SHARED master.c kalman.c)
 if(NOT WIN32)
   target_link_libraries(master m)
 endif()
 """
 
 
-def master_source() -> bytes:
-    """The C source of the co-simulation master's step loops (``fmus/master/master.c``)."""
-    path = fmu_source_dir() / "master" / "master.c"
-    try:
-        return path.read_bytes()
-    except OSError as e:
-        raise BuildError(f"missing the co-simulation master {path}: {e.strerror or e}") from None
+def master_sources() -> dict[str, bytes]:
+    """The C sources of the compiled loops (``fmus/master/``: :data:`MASTER_SOURCES`) by file name."""
+    out = {}
+    for name in MASTER_SOURCES:
+        path = fmu_source_dir() / "master" / name
+        try:
+            out[name] = path.read_bytes()
+        except OSError as e:
+            raise BuildError(f"missing the co-simulation master {path}: {e.strerror or e}") from None
+    return out
 
 
 def build_master(out_dir: Path | None = None, force: bool = False) -> Path:
-    """Build (or reuse) the co-simulation master's shared library (:mod:`harness.fmu.cosim` calls its step loops)
-    and return its path: ``<cache>/master-<sha256 of the source[:12]>.so`` (``.dll``, ``.dylib``), compiled with
-    CMake in Release mode, moved in place atomically under a file lock like the FMUs; ``force`` rebuilds it."""
-    source = master_source()
-    digest = hashlib.sha256(BUILD_TAG.encode() + MASTER_CMAKE.encode() + source).hexdigest()
+    """Build (or reuse) the compiled loops' shared library (:mod:`harness.fmu.cosim` calls its step loops,
+    :mod:`harness.likelihood.kalman` its filter) and return its path: ``<cache>/master-<sha256 of the sources[:12]>.so``
+    (``.dll``, ``.dylib``), compiled with CMake in Release mode, moved in place atomically under a file lock like the
+    FMUs; ``force`` rebuilds it."""
+    sources = master_sources()
+    digest = hashlib.sha256(BUILD_TAG.encode() + MASTER_CMAKE.encode() + b"".join(sources.values())).hexdigest()
     suffix = {"win32": ".dll", "darwin": ".dylib"}.get(sys.platform, ".so")
     target_dir = _target_dir(out_dir)
     target = target_dir / f"master-{digest[:12]}{suffix}"
@@ -303,7 +308,8 @@ def build_master(out_dir: Path | None = None, force: bool = False) -> Path:
         with tempfile.TemporaryDirectory(prefix=".master-", dir=target_dir) as tmp:
             src, build = Path(tmp) / "src", Path(tmp) / "build"
             src.mkdir()
-            (src / "master.c").write_bytes(source)
+            for name, text in sources.items():
+                (src / name).write_bytes(text)
             (src / "CMakeLists.txt").write_text(MASTER_CMAKE)
             for cmd in (
                 ["cmake", "-S", str(src), "-B", str(build), "-DCMAKE_BUILD_TYPE=Release"],

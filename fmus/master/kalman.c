@@ -1,0 +1,98 @@
+/* The likelihood engine's Kalman filter (harness/likelihood/kalman.py): the per-sample loop only, the model's
+ * matrices come from Python. A time-invariant linear Gaussian state-space model
+ *
+ *     x[k+1] = A x[k] + B u[k] + w[k],   w[k] ~ N(0, Q)
+ *     y[k]   = C x[k] + v[k],            v[k] ~ N(0, diag(r))
+ *
+ * is run over n samples from x[0] ~ N(x0, P0). The channels of a sample are taken one at a time (the measurement
+ * noise is independent between channels), so a masked channel (mask 0: a sample that says nothing) is simply
+ * skipped and no matrix is inverted. Row-major arrays throughout: A nx x nx, B nx x nu, Q nx x nx, C ny x nx,
+ * u n x nu, y and mask n x ny.
+ *
+ * Returns the Gaussian log-likelihood sum over measured channels of -(log(2 pi s) + e^2 / s) / 2, NaN when an
+ * innovation's variance is not positive and finite. e and s (n x ny) receive each channel's innovation and its
+ * variance (0 and 0 where masked); xp, Pp (predicted: before sample k's measurements) and xf, Pf (filtered: after
+ * them), n x nx and n x nx x nx, are written when not NULL (the smoother's input).
+ */
+#include <math.h>
+#include <stddef.h>
+#include <string.h>
+
+#if defined(_WIN32)
+#define EXPORT __declspec(dllexport)
+#else
+#define EXPORT
+#endif
+
+#define KF_MAX_STATES 32
+
+EXPORT int kalman_max_states(void) { return KF_MAX_STATES; }
+
+EXPORT double kalman_filter(long nx, long ny, long nu, const double *A, const double *B, const double *Q,
+                            const double *C, const double *r, const double *x0, const double *P0, long n,
+                            const double *u, const double *y, const unsigned char *mask, double *e, double *s,
+                            double *xp, double *Pp, double *xf, double *Pf) {
+    double x[KF_MAX_STATES], xn[KF_MAX_STATES], ph[KF_MAX_STATES];
+    double P[KF_MAX_STATES * KF_MAX_STATES], AP[KF_MAX_STATES * KF_MAX_STATES];
+    const double log2pi = log(2.0 * 3.14159265358979323846);
+    double ll = 0.0;
+    if (nx < 1 || nx > KF_MAX_STATES) return NAN;
+    memcpy(x, x0, (size_t)nx * sizeof(double));
+    memcpy(P, P0, (size_t)(nx * nx) * sizeof(double));
+    for (long k = 0; k < n; k++) {
+        if (xp) memcpy(xp + k * nx, x, (size_t)nx * sizeof(double));
+        if (Pp) memcpy(Pp + k * nx * nx, P, (size_t)(nx * nx) * sizeof(double));
+        /* measurement update, one channel at a time */
+        for (long j = 0; j < ny; j++) {
+            const double *h = C + j * nx;
+            long kj = k * ny + j;
+            if (!mask[kj]) {
+                e[kj] = 0.0;
+                s[kj] = 0.0;
+                continue;
+            }
+            double pred = 0.0, sj = r[j];
+            for (long a = 0; a < nx; a++) {
+                double acc = 0.0;
+                for (long b = 0; b < nx; b++) acc += P[a * nx + b] * h[b];
+                ph[a] = acc;
+                pred += h[a] * x[a];
+            }
+            for (long a = 0; a < nx; a++) sj += h[a] * ph[a];
+            double ej = y[kj] - pred;
+            if (!(sj > 0.0) || !isfinite(sj) || !isfinite(ej)) return NAN;
+            e[kj] = ej;
+            s[kj] = sj;
+            ll -= 0.5 * (log2pi + log(sj) + ej * ej / sj);
+            for (long a = 0; a < nx; a++) x[a] += ph[a] * ej / sj;
+            for (long a = 0; a < nx; a++)
+                for (long b = a; b < nx; b++) {
+                    double v = 0.5 * (P[a * nx + b] + P[b * nx + a]) - ph[a] * ph[b] / sj;
+                    P[a * nx + b] = P[b * nx + a] = v;
+                }
+        }
+        if (xf) memcpy(xf + k * nx, x, (size_t)nx * sizeof(double));
+        if (Pf) memcpy(Pf + k * nx * nx, P, (size_t)(nx * nx) * sizeof(double));
+        /* time update: x <- A x + B u[k], P <- A P A' + Q */
+        for (long a = 0; a < nx; a++) {
+            double acc = 0.0;
+            for (long b = 0; b < nx; b++) acc += A[a * nx + b] * x[b];
+            for (long c = 0; c < nu; c++) acc += B[a * nu + c] * u[k * nu + c];
+            xn[a] = acc;
+        }
+        memcpy(x, xn, (size_t)nx * sizeof(double));
+        for (long a = 0; a < nx; a++)
+            for (long b = 0; b < nx; b++) {
+                double acc = 0.0;
+                for (long c = 0; c < nx; c++) acc += A[a * nx + c] * P[c * nx + b];
+                AP[a * nx + b] = acc;
+            }
+        for (long a = 0; a < nx; a++)
+            for (long b = a; b < nx; b++) {
+                double acc = Q[a * nx + b];
+                for (long c = 0; c < nx; c++) acc += AP[a * nx + c] * A[b * nx + c];
+                P[a * nx + b] = P[b * nx + a] = acc;
+            }
+    }
+    return ll;
+}

@@ -1,0 +1,148 @@
+"""The Kalman filter through a record and the Rauch-Tung-Striebel smoother, for a sampled linear Gaussian model.
+
+:func:`kalman_filter` runs ``fmus/master/kalman.c`` (built once into the FMU cache with the co-simulation's loops,
+:func:`harness.fmu.build.build_master`): a loop in C, since a record holds 5 000-20 000 samples and a fit asks for
+thousands of passes. The readings of a sample are taken one channel at a time (their noise is independent), so a
+masked reading is skipped. :func:`smooth` runs in numpy: it is asked for once per fit, for the force picture.
+"""
+
+from __future__ import annotations
+
+import ctypes
+from dataclasses import dataclass
+from functools import cache
+
+import numpy as np
+
+from ..fmu.build import build_master
+
+__all__ = ["Discrete", "Filtered", "kalman_filter", "smooth"]
+
+
+@dataclass(frozen=True)
+class Discrete:
+    """A sampled linear Gaussian model: x[k+1] = A x[k] + B u[k] + w[k], w ~ N(0, Q); y[k] = C x[k] + v[k],
+    v ~ N(0, diag(r)). Units are the caller's (the rig's: :mod:`harness.likelihood.model`)."""
+
+    A: np.ndarray
+    B: np.ndarray
+    Q: np.ndarray
+    C: np.ndarray
+    r: np.ndarray
+
+
+@dataclass(frozen=True)
+class Filtered:
+    """The filter's pass through a record: the Gaussian log-likelihood ``loglik`` of the measured readings, each
+    reading's innovation ``e`` and its variance ``s`` (n x ny; 0 where masked: the channels of a sample taken in
+    turn, each given the ones before it), and, when kept, the predicted (``xp``, ``Pp``: before sample k's readings)
+    and filtered (``xf``, ``Pf``: after them) states and covariances."""
+
+    loglik: float
+    e: np.ndarray
+    s: np.ndarray
+    xp: np.ndarray | None = None
+    Pp: np.ndarray | None = None
+    xf: np.ndarray | None = None
+    Pf: np.ndarray | None = None
+
+    def standardised(self) -> np.ndarray:
+        """The innovations over their standard deviations (n x ny), NaN where a reading was masked."""
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(self.s > 0, self.e / np.sqrt(self.s), np.nan)
+
+
+@cache
+def _library() -> ctypes.CDLL:
+    lib = ctypes.CDLL(str(build_master()))
+    ptr, n = ctypes.c_void_p, ctypes.c_long
+    lib.kalman_filter.restype = ctypes.c_double
+    lib.kalman_filter.argtypes = [n, n, n, *[ptr] * 7, n, *[ptr] * 9]
+    lib.kalman_max_states.restype = ctypes.c_int
+    return lib
+
+
+def _ptr(a: np.ndarray | None) -> int | None:
+    return None if a is None else a.__array_interface__["data"][0]
+
+
+def _c(a: np.ndarray, dtype: type = np.float64) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=dtype)
+
+
+def kalman_filter(
+    model: Discrete,
+    u: np.ndarray,
+    y: np.ndarray,
+    mask: np.ndarray,
+    x0: np.ndarray,
+    P0: np.ndarray,
+    keep: bool = False,
+) -> Filtered:
+    """Run the Kalman filter of ``model`` through a record.
+
+    Parameters
+    ----------
+    model : Discrete
+        The sampled model (nx states, nu inputs, ny readings).
+    u : ndarray, shape (n, nu)
+        The inputs, each held over its sample.
+    y : ndarray, shape (n, ny)
+        The readings.
+    mask : ndarray of bool, shape (n, ny)
+        True where a reading measures (False: skipped, no update).
+    x0, P0 : ndarray
+        The state's mean (nx) and covariance (nx x nx) at the first sample, before its readings.
+    keep : bool
+        Keep the predicted and filtered states and covariances (the smoother's input).
+
+    Returns
+    -------
+    Filtered
+        ``loglik`` is NaN when an innovation's variance is not positive or a number is not finite.
+    """
+    A, B, Q, C, r = (_c(m) for m in (model.A, model.B, model.Q, model.C, model.r))
+    nx, nu, ny = A.shape[0], B.shape[1], C.shape[0]
+    lib = _library()
+    if nx > lib.kalman_max_states():
+        raise ValueError(f"the filter takes at most {lib.kalman_max_states()} states, the model has {nx}")
+    u, y, x0, P0 = _c(u).reshape(-1, nu), _c(y), _c(x0), _c(P0)
+    n = u.shape[0]
+    if y.shape != (n, ny) or mask.shape != (n, ny):
+        raise ValueError(f"readings {y.shape} and mask {mask.shape} do not match {n} samples of {ny} channels")
+    m = _c(mask, np.uint8)
+    e, s = np.empty((n, ny)), np.empty((n, ny))
+    kept = [np.empty((n, nx)), np.empty((n, nx, nx)), np.empty((n, nx)), np.empty((n, nx, nx))] if keep else [None] * 4
+    ll = lib.kalman_filter(
+        nx, ny, nu, _ptr(A), _ptr(B), _ptr(Q), _ptr(C), _ptr(r), _ptr(x0), _ptr(P0), n, _ptr(u), _ptr(y), _ptr(m),
+        _ptr(e), _ptr(s), *(_ptr(k) for k in kept),
+    )  # fmt: skip
+    return Filtered(float(ll), e, s, *kept)
+
+
+def smooth(model: Discrete, filtered: Filtered) -> tuple[np.ndarray, np.ndarray]:
+    """The Rauch-Tung-Striebel smoother: each sample's state given the whole record.
+
+    Parameters
+    ----------
+    model : Discrete
+        The model the filter ran.
+    filtered : Filtered
+        A pass kept with ``keep=True``.
+
+    Returns
+    -------
+    x, P : ndarray
+        The smoothed states (n x nx) and their covariances (n x nx x nx).
+    """
+    if filtered.xp is None or filtered.Pp is None or filtered.xf is None or filtered.Pf is None:
+        raise ValueError("the smoother needs the filter's states: run kalman_filter with keep=True")
+    xp, Pp, xf, Pf = filtered.xp, filtered.Pp, filtered.xf, filtered.Pf
+    x, P = xf.copy(), Pf.copy()
+    A = model.A
+    for k in range(x.shape[0] - 2, -1, -1):
+        # J = Pf A' Pp[k+1]^-1, by a least-squares solve: a state the record never moves has a singular Pp
+        J = np.linalg.lstsq(Pp[k + 1], A @ Pf[k], rcond=None)[0].T
+        x[k] = xf[k] + J @ (x[k + 1] - xp[k + 1])
+        P[k] = Pf[k] + J @ (P[k + 1] - Pp[k + 1]) @ J.T
+    return x, P

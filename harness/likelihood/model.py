@@ -1,0 +1,138 @@
+"""The rig as a stochastic model: the plant's linear equations, the DAQ's sensors, process and measurement noise.
+
+In continuous time, with the state ``x = [theta, a_1..a_n, theta_dot, a_dot_1..a_dot_n, b_alpha]`` (rad, rad/s,
+deg: the plant's coordinates of :func:`harness.fmu.plant.state_space` and the record's gauge offset, a constant)::
+
+    dx = (A x + B [u, 1]) dt + G dW          W: white torques on the hub and at the link's tip [N m sqrt(s)]
+    y_k = C x(t_k) + v_k                      y: the readings theta, alpha [deg]; v_k white, var sigma^2
+
+The command ``u`` [V] is held over each sample (zero-order hold; the second input, a constant 1, carries the
+amplifier's input offset ``plant.u_offset``). The readings are the sensors' gains (``sensor.theta_gain``,
+``sensor.alpha_gauge_gain``: reading per true angle) times the hub angle and the gauge's root-curvature deflection;
+a record's theta offset is its hub's start, its gauge offset the state ``b_alpha``. The rig's linear parameters are
+those the recalibration fits (:data:`harness.diagnosis.recalibrate.LINEAR`, mapped to the plant by
+:func:`harness.diagnosis.rigmodel.to_plant`); the noise's are :class:`Noise`'s.
+
+:meth:`StochasticModel.discretise` gives the exact sampled model (the matrix exponential for A and B, Van Loan's
+for the process noise's covariance): the filter's input.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, fields
+from typing import Any
+
+import numpy as np
+from scipy.linalg import expm
+
+from ..diagnosis import rigmodel
+from ..diagnosis.recalibrate import LINEAR, Bound
+from ..fmu import plant as plantmod
+from .kalman import Discrete
+
+__all__ = ["NOISE", "Noise", "StochasticModel", "rig_model"]
+
+DEG = 180.0 / math.pi
+
+# the noise's parameters, each as a factor of a start the data give (harness.likelihood.fit.noise_start)
+NOISE: dict[str, Bound] = {
+    "noise.theta": Bound(1e-3, 1e3, "deg", "hub angle reading's white noise (rms)", part="noise"),
+    "noise.alpha": Bound(1e-3, 1e3, "deg", "gauge reading's white noise (rms)", part="noise"),
+    "noise.hub_torque": Bound(1e-4, 1e3, "N m sqrt(s)", "white torque on the hub (intensity)", part="noise"),
+    "noise.link_torque": Bound(1e-4, 1e3, "N m sqrt(s)", "white torque at the link's tip (intensity)", part="noise"),
+}
+
+
+@dataclass(frozen=True)
+class Noise:
+    """The model's noise: each reading's white noise [deg rms] and the intensities of the white torques on the hub
+    and at the link's tip [N m sqrt(s)] (a torque of intensity q held over a sample of Ts has the rms q / sqrt(Ts))."""
+
+    theta: float
+    alpha: float
+    hub_torque: float = 0.0
+    link_torque: float = 0.0
+
+    @classmethod
+    def from_values(cls, values: Mapping[str, float]) -> Noise:
+        """The noise from parameters named as in :data:`NOISE` (``noise.theta``, ...)."""
+        return cls(**{f.name: float(values[f"noise.{f.name}"]) for f in fields(cls) if f"noise.{f.name}" in values})
+
+
+@dataclass(frozen=True)
+class StochasticModel:
+    """The rig in continuous time (the module docstring's equations): ``A`` (nx x nx), ``B`` (nx x 2: the command
+    [V] and the constant input), ``G`` (nx x 2: the hub's and the tip's white torques), ``C`` (2 x nx: theta and
+    alpha [deg]), its ``noise``, the state names ``states``, and the link's first free-hub frequency ``w1`` [rad/s]
+    (the scale of its start's uncertainty)."""
+
+    A: np.ndarray
+    B: np.ndarray
+    G: np.ndarray
+    C: np.ndarray
+    noise: Noise
+    states: tuple[str, ...]
+    w1: float
+
+    def discretise(self, Ts: float) -> Discrete:
+        """The model sampled every ``Ts`` [s] with the inputs held over each sample: A_d = exp(A Ts), B_d its
+        integral on B, Q_d = int_0^Ts exp(A s) G W G' exp(A' s) ds (Van Loan), r the readings' variances."""
+        nx, nu = self.B.shape
+        M = np.zeros((nx + nu, nx + nu))
+        M[:nx, :nx], M[:nx, nx:] = self.A, self.B
+        E = expm(M * Ts)
+        W = np.diag([self.noise.hub_torque**2, self.noise.link_torque**2])
+        V = np.zeros((2 * nx, 2 * nx))
+        V[:nx, :nx], V[:nx, nx:], V[nx:, nx:] = -self.A, self.G @ W @ self.G.T, self.A.T
+        F = expm(V * Ts)
+        Q = F[nx:, nx:].T @ F[:nx, nx:]
+        r = np.array([self.noise.theta**2, self.noise.alpha**2])
+        return Discrete(A=E[:nx, :nx], B=E[:nx, nx:], Q=0.5 * (Q + Q.T), C=self.C, r=r)
+
+
+def rig_model(plant: Mapping[str, Any], values: Mapping[str, float], noise: Noise) -> StochasticModel:
+    """The stochastic model of the rig ``plant`` (a spec's plant table, FMU defaults for the rest) with the linear
+    parameters ``values`` (any of :data:`harness.diagnosis.recalibrate.LINEAR`; the others keep the plant's) and
+    ``noise``.
+
+    Parameters
+    ----------
+    plant : mapping
+        The plant FMU's parameters by name (``Ks``, ``zeta_link``, ``n_modes``, ...).
+    values : mapping
+        Linear parameters by their diagnosis names (``rig.drive_gain``, ``plant.Ks``, ``sensor.theta_gain``, ...).
+    noise : Noise
+        The readings' and the torques' noise.
+
+    Returns
+    -------
+    StochasticModel
+    """
+    unknown = sorted(set(values) - set(LINEAR))
+    if unknown:
+        raise ValueError(f"not a linear parameter of the rig: {', '.join(unknown)}")
+    table = {k: v for k, v in plant.items() if not isinstance(v, str)}
+    table |= rigmodel.to_plant({k: v for k, v in values.items() if k in rigmodel.COMBOS}, table)
+    table |= {k.removeprefix("plant."): float(v) for k, v in values.items() if k in ("plant.Ks", "plant.zeta_link")}
+    p = plantmod.PlantParams(**{k: table[k] for k in plantmod.FLEXJOINT.parameters() if k in table})
+    A, B, Cp, _ = plantmod.state_space(p)
+    G_volt, _ = plantmod.motor_constants(p)
+    n2 = A.shape[0]
+    nx = n2 + 1  # and the gauge offset
+    Ax = np.zeros((nx, nx))
+    Ax[:n2, :n2] = A
+    u_offset = float(values.get("plant.u_offset", table.get("u_offset", 0.0)))
+    Bx = np.zeros((nx, 2))
+    Bx[:n2, 0], Bx[:n2, 1] = B[:, 0], B[:, 0] * u_offset
+    Gx = np.zeros((nx, 2))
+    Gx[:n2, 0], Gx[:n2, 1] = B[:, 0] / G_volt, B[:, 1]  # a unit torque on the hub; at the tip
+    Cx = np.zeros((2, nx))
+    Cx[0, :n2] = DEG * float(values.get("sensor.theta_gain", 1.0)) * Cp[0]
+    Cx[1, :n2] = DEG * float(values.get("sensor.alpha_gauge_gain", 1.0)) * Cp[5]
+    Cx[1, n2] = 1.0
+    n = int(p.n_modes)
+    states = ("theta", *(f"a_{i + 1}" for i in range(n)), "theta_dot", *(f"a_dot_{i + 1}" for i in range(n)))
+    w1 = float(plantmod.mode_frequencies(p)[0, 0]) * 2.0 * math.pi
+    return StochasticModel(A=Ax, B=Bx, G=Gx, C=Cx, noise=noise, states=(*states, "b_alpha"), w1=w1)
