@@ -404,9 +404,9 @@ def import_(
     files: Annotated[
         list[str],
         typer.Argument(
-            help="records: .csv/.txt/.tsv, .mat (v5, v7.3), .parquet; one record in several files sharing its time "
-            "base (a QUARC or Simulink To File per scope): [NAME=]FILE+FILE+..., a headerless file's columns as "
-            "STEM:POSITION in --columns"
+            help="records: .csv/.txt/.tsv, .mat (v5, v7.3), .parquet, each [NAME=]FILE (named NAME, else by its "
+            "stem); one record in several files sharing its time base (a QUARC or Simulink To File per scope): "
+            "[NAME=]FILE+FILE+..., a headerless file's columns as STEM:POSITION in --columns"
         ),
     ],
     out_dir: Annotated[Path, typer.Option("--out", help="run directory to write")],

@@ -439,6 +439,29 @@ def test_calibration_options(tmp_path):
     assert not math.isnan(read_dataset(tmp_path / "r" / "data" / "a.parquet")["theta"].iloc[3])
 
 
+def test_one_file_named_on_the_command_line(tmp_path):
+    """``NAME=FILE``: a record of one file named like a record of several (it was read as a file named
+    ``x=fine.csv`` and refused as missing)."""
+    _record().to_csv(tmp_path / "fine.csv", index=False)
+    CAL.to_json(tmp_path / "cal.json")
+    r = flexjoint(
+        "import", f"x={tmp_path / 'fine.csv'}", "--out", tmp_path / "r", "--calibration", tmp_path / "cal.json"
+    )
+    assert r.returncode == 0 and "imported 1 dataset(s)" in r.stdout, r.stderr
+    m = Manifest.load(tmp_path / "r")
+    assert [e.name for e in m.experiments] == ["x"] and sorted(m.sources) == ["x"]
+    assert [p.name for p in (tmp_path / "r" / "data").iterdir()] == ["x.parquet"]
+    _import([tmp_path / "fine.csv"], tmp_path / "unnamed")
+    pd.testing.assert_frame_equal(read_dataset(tmp_path / "r" / "data" / "x.parquet"),
+                                  read_dataset(tmp_path / "unnamed" / "data" / "fine.parquet"))  # fmt: skip
+    line = _error_line(flexjoint("import", f"x={tmp_path / 'gone.csv'}", "--out", tmp_path / "r2"))
+    assert line == f"error: {tmp_path / 'gone.csv'}: no such file (in the record x={tmp_path / 'gone.csv'})"
+    line = _error_line(flexjoint("import", f"x={tmp_path / 'fine.csv'}", f"x={tmp_path / 'fine.csv'}", "--out",
+                                 tmp_path / "r2"))  # fmt: skip
+    assert line.startswith("error: two records named 'x'")
+    assert not (tmp_path / "r2").exists()
+
+
 # ----------------------------------------------------------------------------------------------- closed loop
 K_SF = [14.1, -28.1, 1.7, 0.2]  # V/rad, V/rad, V s/rad, V s/rad: a lab's LQR-type state feedback
 SF = Controller(K=K_SF, cutoff=25.0, u_limit=5.0)

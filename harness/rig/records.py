@@ -6,7 +6,7 @@ vector per channel or one N x k matrix, and Parquet. One record may be spread ov
 time base, ``[NAME=]FILE+FILE+...`` (what a QUARC or Simulink model writes: a To File block per scope, each its own
 time column then its signals): their columns are joined, a headerless file's addressed as ``STEM:POSITION``
 (``data_theta:2``), the files' time columns checked to be one clock, the dataset named NAME (default: the files'
-common stem, else the first's). Channels: time ``t``, command ``u`` [V], shaft angle
+common stem, else the first's; one file alike, ``NAME=FILE``). Channels: time ``t``, command ``u`` [V], shaft angle
 ``theta`` and link deflection ``alpha``, found by name (``t``/``time``, ``u``/``Vm``, ``theta_deg``, ``alpha_v``,
 ``theta [rad]`` ...) or given with a map (``{"time": "t", "Vm": "u", "hub": "theta", "tip": "alpha"}``;
 positions ``{"0": "t", ...}`` for a headerless file; ``-alpha`` for a channel recorded with the opposite sign: alpha
@@ -236,14 +236,19 @@ def read_table(path: Path) -> RawTable:
 
 def record_files(arg: str | Path) -> tuple[str, list[Path]]:
     """(dataset name, files) of a record argument: an existing file (named by its stem), or ``[NAME=]FILE+FILE+...``,
-    one record spread over several files (named NAME, else the files' common stem, else the first file's)."""
+    one record in one file or spread over several (named NAME, else the files' common stem, else the first file's).
+    """
     text = str(arg)
-    if Path(text).is_file() or "+" not in text:
+    if Path(text).is_file():
         return Path(text).stem, [Path(text)]
     name, eq, rest = text.partition("=")
     if not eq or "+" in name or "/" in name:
         name, rest = "", text
+    if not name and "+" not in rest:
+        return Path(rest).stem, [Path(rest)]  # one file, unnamed: read_table says if it is missing
     files = [Path(f) for f in rest.split("+")]
+    if len(files) == 1 and not files[0].name:
+        raise DataError(f"{text}: no file after NAME= (a named record is NAME=FILE or NAME=FILE+FILE+...)")
     if any(not f.name for f in files):
         raise DataError(f"{text}: a record of several files is FILE+FILE+... (an empty name between the '+')")
     missing = [f for f in files if not f.is_file()]
@@ -1064,7 +1069,7 @@ def import_records(
     dup = sorted({s for s in stems if stems.count(s) > 1})
     if dup:
         raise DataError(f"two records named {dup[0]!r}: dataset names come from the file names, rename one "
-                        "(or name a record of several files: NAME=FILE+FILE)")  # fmt: skip
+                        "(or name it: NAME=FILE, NAME=FILE+FILE for a record of several files)")  # fmt: skip
     out = Path(out)
     check_new_run(out, force)
     _check_options(opts)
