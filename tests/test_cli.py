@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+import scipy.io
 
 from harness.rundir import Manifest
 
@@ -58,6 +59,20 @@ def test_import_rejects_nan_and_accepts_good_csv(tmp_path):
     r = flexjoint("import", tmp_path / "good.csv", "--out", tmp_path / "run")
     assert r.returncode == 0, r.stderr
     assert (tmp_path / "run" / "data" / "good.parquet").exists()
+
+
+@pytest.mark.parametrize("cell, kinds", [(np.inf, "infinite/NaN"), (-np.inf, "infinite/NaN"), (np.nan, "NaN")])
+def test_import_says_what_a_non_finite_cell_holds(tmp_path, cell, kinds):
+    t = np.arange(200) * 0.02
+    rec = {"t": t, "u": np.sign(np.sin(t)), "theta_v": 0.01 * t, "alpha_v": 0 * t}
+    rec["theta_v"][17] = cell
+    scipy.io.savemat(tmp_path / "bad.mat", rec)
+    line = _one_line_error(flexjoint("import", tmp_path / "bad.mat", "--out", tmp_path / "run"))
+    assert line == (
+        f"error: bad.mat: column 'theta_v' (theta) has 1 {kinds}/missing/non-numeric value(s), first at row 17: "
+        f"{cell:g}; MATLAB v5"
+    )
+    assert not (tmp_path / "run").exists()
 
 
 def test_campaign_command_writes_a_run(tmp_path):

@@ -396,6 +396,18 @@ def test_clock_jitter_small_resampled_large_refused(tmp_path):
         ({"alpha_v": None}, r"no column for alpha; found t, u, theta_v \(CSV, separator ','\)"),
         ({"u": "nan17"}, r"column 'u' \(u\) has 1 NaN/missing/non-numeric value\(s\), first at row 17 \(line 19\)"),
         ({"u": "text5"}, r"first at row 5 \(line 7\): 'oops'"),
+        (
+            {"theta_v": "inf"},
+            r"column 'theta_v' \(theta\) has 1 infinite/NaN/missing/non-numeric value\(s\), first at "
+            r"row 17: inf; CSV",
+        ),
+        (
+            {"alpha_v": "-inf"},
+            r"column 'alpha_v' \(alpha\) has 1 infinite/NaN/missing/non-numeric value\(s\), first "
+            r"at row 17: -inf; CSV",
+        ),
+        ({"u": "nan"}, r"column 'u' \(u\) has 1 NaN/missing/non-numeric value\(s\), first at row 17: nan; CSV"),
+        ({"u": "inf199"}, r"column 'u' \(u\) has 1 infinite/NaN/missing/non-numeric value\(s\), first at row 199: inf"),
         ({"t": "repeat"}, r"not strictly increasing: row 100 has t = 0 s after 1.98 s"),
         ({"theta_v": "counts"}, r"theta column 'theta_counts' is in encoder counts: give --counts-per-rev"),
         ({"alpha_v": "metres"}, r"alpha column 'alpha_m' is a tip deflection in m: give --link-length"),
@@ -412,6 +424,9 @@ def test_hostile_records_refused_without_writing(tmp_path, change, message):
     elif what == "text5":
         df[col] = df[col].astype(object)
         df.loc[5, col] = "oops"
+    elif what in ("inf", "-inf", "nan", "inf199"):  # a number that is not finite, as the file writes it
+        df[col] = df[col].astype(object)
+        df.loc[199 if what == "inf199" else 17, col] = what.removesuffix("199")
     elif what == "repeat":
         df["t"] = np.r_[df["t"][:100], df["t"][:100]]
     elif what == "counts":

@@ -622,22 +622,31 @@ def _unit_of(table: RawTable, ch: str, cand: tuple[int, str | None, bool], opts:
 
 # ----------------------------------------------------------------------------------------------- normalising
 def _bad_cells(table: RawTable, chans: dict[str, Channel]) -> None:
+    """Refuse a channel with a cell that is not a finite number, in one line naming the column, the first such row
+    and what it holds (the text of a cell that is not a number, an empty cell, or nan, inf, -inf); a column whose
+    cells are only missing at its end is said to be shorter than the record."""
     for ch, c in chans.items():
-        nan = np.flatnonzero(~np.isfinite(c.values))
-        n = c.values.size
+        raw = table.values[table.names.index(c.column)]  # as in the file: before a -ROLE map flips its sign
+        nan = np.flatnonzero(~np.isfinite(raw))
+        n = raw.size
         bad = table.bad.get(c.column)
-        if nan.size and nan.size < n and nan[0] == n - nan.size and (bad is None or not bad[2].strip()):
+        short = 0 < nan.size < n and nan[0] == n - nan.size and bool(np.isnan(raw[nan]).all())
+        if short and (bad is None or not bad[2].strip()):
             raise DataError(
                 f"{table.file}: column {c.column!r} ({ch}) ends at row {nan[0]}: {n - nan.size} values for the "
                 f"record's {n} rows (a column of another length); {table.form}"
             )
         if nan.size:
-            row, line, text = table.bad.get(c.column, (int(nan[0]), 0, "nan"))
-            row = min(row, int(nan[0]))
+            row = int(nan[0])
+            if bad is not None and bad[0] == row:  # the first is a cell that is not a number: its text
+                line, held = bad[1], repr(bad[2]) if bad[2].strip() else "an empty cell"
+            else:  # a number that is not finite
+                line, held = 0, f"{raw[row]:g}"
             where = f"row {row}" + (f" (line {line})" if line else "")
+            kinds = "infinite/NaN/missing/non-numeric" if np.isinf(raw).any() else "NaN/missing/non-numeric"
             raise DataError(
-                f"{table.file}: column {c.column!r} ({ch}) has {nan.size} NaN/missing/non-numeric value(s), "
-                f"first at {where}: {repr(text) if text.strip() else 'an empty cell'}; {table.form}"
+                f"{table.file}: column {c.column!r} ({ch}) has {nan.size} {kinds} value(s), first at {where}: {held}; "
+                f"{table.form}"
             )
 
 
