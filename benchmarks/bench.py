@@ -533,7 +533,77 @@ def bench_predict(n: int = 200, duration_s: float = 10.0, rate_hz: float = 1000.
     }
 
 
-STEPS = ("commands", "campaign", "armax", "executor", "parallel", "unit", "predict")
+def _likelihood_twin(seed: int, n: int, Ts: float) -> tuple[Any, dict[str, Any], dict[str, Any]]:
+    """A twin record of the lab rig without its friction (``n`` samples at ``Ts``, 2 mV of noise, a random square
+    command of +-0.8 V), as the likelihood engine reads it, with the plant and DAQ tables it ran on."""
+    from harness.fmu.cosim import Rig
+    from harness.likelihood.record import Record
+
+    plant = {**specmod.load("lab").raw["plant"], "coulomb_torque": 0.0}
+    daq = {"noise_theta": 0.002, "noise_alpha": 0.002, "seed": seed}
+    rng = np.random.default_rng(seed)
+    u = 0.8 * np.where(np.cumsum(rng.random(n) < 0.004) % 2 == 0, 1.0, -1.0)
+    fmus = build_all()
+    with Rig(fmus["flexjoint"], fmus["daq"]) as rig:
+        out = rig.run(u, Ts, plant=plant, daq=daq)
+    y = np.column_stack([out["theta_v"] * 35.5145, out["alpha_v"] * -3.3636])  # the DAQ's default gains, deg/V
+    return Record(f"twin{seed}", Ts, u, y, np.ones((n, 2), bool)), plant, daq
+
+
+def bench_likelihood(repeats: int = 20, records: int = 3) -> dict[str, Any]:
+    """The likelihood engine (:mod:`harness.likelihood`) on twin records of 10 s at 1 kHz (the lab rig without its
+    friction, 2 mV of noise): one log-likelihood (the model built, sampled and filtered; median of ``repeats``),
+    beside today's replay score of the same record (its command replayed through the plant and DAQ FMUs and the
+    squared gap summed); and one unit's maximum-likelihood fit of ``records`` such records on one core (the five
+    linear parameters from 15-25 % off and the four noise intensities, the sensors' gains held)."""
+    from harness.diagnosis import rigmodel
+    from harness.fmu.cosim import Rig
+    from harness.likelihood import fit as mlfit
+
+    Ts, n = 1e-3, 10_000
+    recs, plant, daq = zip(*(_likelihood_twin(seed, n, Ts) for seed in range(records)), strict=True)
+    truth = rigmodel.combos(plant[0]) | {
+        "plant.Ks": rigmodel.plant_value(plant[0], "Ks"),
+        "plant.zeta_link": rigmodel.plant_value(plant[0], "zeta_link"),
+    }
+    fixed = {"sensor.theta_gain": 1.0, "sensor.alpha_gauge_gain": 1.0}
+    noise = mlfit.noise_start(recs)
+    at_truth = truth | fixed | noise
+    walls = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        mlfit.log_likelihood(plant[0], at_truth, recs[:1])
+        walls.append(time.perf_counter() - t0)
+    fmus = build_all()
+    replays = []
+    with Rig(fmus["flexjoint"], fmus["daq"]) as rig:
+        for _ in range(max(3, repeats // 4)):
+            t0 = time.perf_counter()
+            out = rig.run(recs[0].u, Ts, plant=plant[0], daq={**daq[0], "noise_theta": 0.0, "noise_alpha": 0.0})
+            float(np.sum((out["theta_v"] * 35.5145 - recs[0].y[:, 0]) ** 2))
+            replays.append(time.perf_counter() - t0)
+    off = dict(zip(truth, (1.15, 0.85, 1.2, 0.8, 1.25), strict=True))
+    t0 = time.perf_counter()
+    res = mlfit.fit(plant[0], recs, {k: v * off[k] for k, v in truth.items()} | noise, fixed=fixed,
+                    nominal=truth | noise)  # fmt: skip
+    fit_s = time.perf_counter() - t0
+    return {
+        "record": {"samples": n, "rate_hz": 1 / Ts, "states": 2 * int(plant[0].get("n_modes", 1)) + 3},
+        "loglik_ms": 1e3 * statistics.median(walls),
+        "replay_score_ms": 1e3 * statistics.median(replays),
+        "target_loglik_ms": 10.0,
+        "fit": {
+            "records": records,
+            "wall_s": fit_s,
+            "evaluations": res.nfev,
+            "converged": res.converged,
+            "worst_linear_error_pct": max(100 * abs(res.estimates[k].value / v - 1) for k, v in truth.items()),
+            "target_s": 30.0,
+        },
+    }
+
+
+STEPS = ("commands", "campaign", "armax", "executor", "parallel", "unit", "predict", "likelihood")
 
 
 def run_all(
@@ -549,7 +619,8 @@ def run_all(
     with each stage's time, ``identify`` serially and on 2 workers, the CU unit's ``diagnose``, ``--version``), with
     ``vs_commit`` side by side with that commit (:func:`benchmarks.commands.bench_commands`); ``parallel`` is every
     parallel stage serial, on 2 Dask workers and on 2 plain processes (``identify`` and ``diagnose`` are its 2-worker
-    runs); ``table`` adds the off-datasheet diagnosis table (~3 min), ``blind`` the full blind test of that many rigs
+    runs); ``likelihood`` is one log-likelihood of the likelihood engine beside a replay's score, and a unit's
+    fit; ``table`` adds the off-datasheet diagnosis table (~3 min), ``blind`` the full blind test of that many rigs
     (~20 min for 45); ``predict`` is ``flexjoint predict`` serially and on 2 workers."""
 
     if only is not None and (unknown := sorted(set(only) - set(STEPS))):
@@ -565,6 +636,7 @@ def run_all(
         ("parallel", lambda: bench_parallel(rounds=1 if quick else 2, blind_n=8 if quick else 24)),
         ("unit", bench_unit),
         ("predict", lambda: bench_predict(50 if quick else 200)),
+        ("likelihood", lambda: bench_likelihood(5 if quick else 20)),
     ]
     if table:
         steps.append(("diagnosis_table", bench_diagnosis_table))

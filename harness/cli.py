@@ -1043,7 +1043,9 @@ def bench(
     ] = None,
     only: Annotated[
         str | None,
-        typer.Option(help="only these, comma-separated: commands, campaign, armax, executor, parallel, unit, predict"),
+        typer.Option(
+            help="only these, comma-separated: commands, campaign, armax, executor, parallel, unit, predict, likelihood"
+        ),
     ] = None,
 ) -> None:
     """Measure speed against the named peers (fmpy simulate_fmu, sippy-unipi, another commit) and write JSON."""
