@@ -2,17 +2,25 @@
  * matrices come from Python. A time-invariant linear Gaussian state-space model
  *
  *     x[k+1] = A x[k] + B u[k] + w[k],   w[k] ~ N(0, Q)
- *     y[k]   = C x[k] + v[k],            v[k] ~ N(0, diag(r))
+ *     z[k]   = C x[k] + v[k],            v[k] ~ N(0, diag(r))
  *
  * is run over n samples from x[0] ~ N(x0, P0). The channels of a sample are taken one at a time (the measurement
  * noise is independent between channels), so a masked channel (mask 0: a sample that says nothing) is simply
  * skipped and no matrix is inverted. Row-major arrays throughout: A nx x nx, B nx x nu, Q nx x nx, C ny x nx,
  * u n x nu, y and mask n x ny.
  *
- * Returns the Gaussian log-likelihood sum over measured channels of -(log(2 pi s) + e^2 / s) / 2, NaN when an
- * innovation's variance is not positive and finite. e and s (n x ny) receive each channel's innovation and its
- * variance (0 and 0 where masked); xp, Pp (predicted: before sample k's measurements) and xf, Pf (filtered: after
- * them), n x nx and n x nx x nx, are written when not NULL (the smoother's input).
+ * A channel with a lattice step q[j] > 0 was written on a lattice (an ADC, an encoder): its reading y says only that
+ * z lay in the cell [y - q/2, y + q/2]. Its term of the likelihood is that cell's probability under the predicted
+ * N(mu, s), s = h P h' + r, and the update conditions on the cell: the state moves by the truncated normal's mean
+ * and its covariance keeps the truncated normal's variance (moment matching). Far in a tail, where the cell's
+ * probability is below what a double holds, the cell is taken as a reading at its centre with r + q^2 / 12.
+ * A channel with q[j] = 0 is a plain Gaussian reading.
+ *
+ * Returns the log-likelihood: the sum over measured channels of -(log(2 pi s) + e^2 / s) / 2, or log P(cell) on a
+ * lattice; NaN when a variance is not positive and finite. e and s (n x ny) receive each channel's innovation
+ * y - mu and its predicted variance s (without the lattice; 0 and 0 where masked); xp, Pp (predicted: before
+ * sample k's measurements) and xf, Pf (filtered: after them), n x nx and n x nx x nx, are written when not NULL (the
+ * smoother's input).
  */
 #include <math.h>
 #include <stddef.h>
@@ -28,8 +36,30 @@
 
 EXPORT int kalman_max_states(void) { return KF_MAX_STATES; }
 
+static double upper_tail(double x) { return 0.5 * erfc(x / sqrt(2.0)); } /* P(Z > x), Z standard normal */
+static double density(double x) { return exp(-0.5 * x * x) / sqrt(2.0 * 3.14159265358979323846); }
+
+/* The cell [a, b] (standardised) of a standard normal: its probability *p, and its truncated mean *m and variance
+ * *v. Returns 0 when the probability underflows (the caller falls back to a Gaussian reading). */
+static int cell(double a, double b, double *p, double *m, double *v) {
+    double z;
+    if (a > 0.0) z = upper_tail(a) - upper_tail(b);
+    else if (b < 0.0) z = upper_tail(-b) - upper_tail(-a);
+    else z = 1.0 - upper_tail(b) - upper_tail(-a);
+    if (!(z > 1e-300)) return 0;
+    double fa = density(a), fb = density(b);
+    double d1 = (fa - fb) / z, d2 = (a * fa - b * fb) / z;
+    *p = z;
+    *m = d1;
+    *v = 1.0 + d2 - d1 * d1;
+    if (*v < 0.0) *v = 0.0;
+    if (*v > 1.0) *v = 1.0;
+    return 1;
+}
+
 EXPORT double kalman_filter(long nx, long ny, long nu, const double *A, const double *B, const double *Q,
-                            const double *C, const double *r, const double *x0, const double *P0, long n,
+                            const double *C, const double *r, const double *q, const double *x0, const double *P0,
+                            long n,
                             const double *u, const double *y, const unsigned char *mask, double *e, double *s,
                             double *xp, double *Pp, double *xf, double *Pf) {
     double x[KF_MAX_STATES], xn[KF_MAX_STATES], ph[KF_MAX_STATES];
@@ -63,12 +93,23 @@ EXPORT double kalman_filter(long nx, long ny, long nu, const double *A, const do
             if (!(sj > 0.0) || !isfinite(sj) || !isfinite(ej)) return NAN;
             e[kj] = ej;
             s[kj] = sj;
-            ll -= 0.5 * (log2pi + log(sj) + ej * ej / sj);
-            for (long a = 0; a < nx; a++) x[a] += ph[a] * ej / sj;
+            /* x += ph move / s, P -= ph ph' shrink: move is how far the reading moves the channel's mean */
+            double move = ej, shrink = 1.0 / sj, sd = sqrt(sj), p, m, v;
+            if (q[j] > 0.0 && cell((ej - 0.5 * q[j]) / sd, (ej + 0.5 * q[j]) / sd, &p, &m, &v)) {
+                ll += log(p);
+                move = m * sd; /* to the truncated normal's mean */
+                shrink = (1.0 - v) / sj;
+            } else {
+                double sq = sj + (q[j] > 0.0 ? q[j] * q[j] / 12.0 : 0.0);
+                ll -= 0.5 * (log2pi + log(sq) + ej * ej / sq);
+                move = ej * sj / sq;
+                shrink = 1.0 / sq;
+            }
+            for (long a = 0; a < nx; a++) x[a] += ph[a] * move / sj;
             for (long a = 0; a < nx; a++)
                 for (long b = a; b < nx; b++) {
-                    double v = 0.5 * (P[a * nx + b] + P[b * nx + a]) - ph[a] * ph[b] / sj;
-                    P[a * nx + b] = P[b * nx + a] = v;
+                    double w = 0.5 * (P[a * nx + b] + P[b * nx + a]) - ph[a] * ph[b] * shrink;
+                    P[a * nx + b] = P[b * nx + a] = w;
                 }
         }
         if (xf) memcpy(xf + k * nx, x, (size_t)nx * sizeof(double));

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -119,6 +119,7 @@ def start_state(model: StochasticModel, record: Record) -> tuple[np.ndarray, np.
 def _run(model: StochasticModel, discrete: Discrete, record: Record, delay: int, keep: bool = False) -> Filtered:
     x0, P0 = start_state(model, record)
     u = np.column_stack([record.delayed(delay), np.ones(record.n)])
+    discrete = replace(discrete, q=np.asarray(record.lattice, dtype=float))
     return kalman_filter(discrete, u, record.y, record.mask, x0, P0, keep=keep)
 
 

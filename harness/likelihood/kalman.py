@@ -3,7 +3,10 @@
 :func:`kalman_filter` runs ``fmus/master/kalman.c`` (built once into the FMU cache with the co-simulation's loops,
 :func:`harness.fmu.build.build_master`): a loop in C, since a record holds 5 000-20 000 samples and a fit asks for
 thousands of passes. The readings of a sample are taken one channel at a time (their noise is independent), so a
-masked reading is skipped. :func:`smooth` runs in numpy: it is asked for once per fit, for the force picture.
+masked reading is skipped. A reading written on a lattice (an ADC's, an encoder's counts) is scored by its cell's
+probability and conditions the state on its cell (moment matching, the C file's header), not as a point with
+q^2 / 12 of noise: at rest a lattice's error is one constant, not white, and a point reading would count it as
+information on every sample. :func:`smooth` runs in numpy: it is asked for once per fit, for the force picture.
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ from dataclasses import dataclass
 from functools import cache
 
 import numpy as np
+from scipy.special import ndtr, ndtri
 
 from ..fmu.build import build_master
 
@@ -21,14 +25,16 @@ __all__ = ["Discrete", "Filtered", "kalman_filter", "smooth"]
 
 @dataclass(frozen=True)
 class Discrete:
-    """A sampled linear Gaussian model: x[k+1] = A x[k] + B u[k] + w[k], w ~ N(0, Q); y[k] = C x[k] + v[k],
-    v ~ N(0, diag(r)). Units are the caller's (the rig's: :mod:`harness.likelihood.model`)."""
+    """A sampled linear Gaussian model: x[k+1] = A x[k] + B u[k] + w[k], w ~ N(0, Q); z[k] = C x[k] + v[k],
+    v ~ N(0, diag(r)); the reading y[k] is z[k], or the centre of its cell on a lattice of step ``q`` per channel
+    (0: none). Units are the caller's (the rig's: :mod:`harness.likelihood.model`)."""
 
     A: np.ndarray
     B: np.ndarray
     Q: np.ndarray
     C: np.ndarray
     r: np.ndarray
+    q: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -46,10 +52,20 @@ class Filtered:
     xf: np.ndarray | None = None
     Pf: np.ndarray | None = None
 
-    def standardised(self) -> np.ndarray:
-        """The innovations over their standard deviations (n x ny), NaN where a reading was masked."""
+    def standardised(self, q: np.ndarray | None = None, seed: int = 0) -> np.ndarray:
+        """The innovations as standard normal residuals (n x ny), NaN where a reading was masked: e / sqrt(s) for a
+        plain reading; for one on a lattice of step ``q`` (per channel), a randomised quantile residual (Dunn and
+        Smyth 1996): the predicted distribution's CDF drawn uniformly across the reading's cell (``seed``: the same
+        draws every time), mapped through the normal quantile. Under the right model both are independent standard
+        normals, so that a whiteness test holds its level on quantised records."""
         with np.errstate(invalid="ignore", divide="ignore"):
-            return np.where(self.s > 0, self.e / np.sqrt(self.s), np.nan)
+            z = np.where(self.s > 0, self.e / np.sqrt(self.s), np.nan)
+            if q is None or not np.any(np.asarray(q) > 0):
+                return z
+            half = 0.5 * np.broadcast_to(np.asarray(q, dtype=float), z.shape) / np.sqrt(self.s)
+            lo, hi = ndtr(z - half), ndtr(z + half)
+            u = lo + np.random.default_rng(seed).random(z.shape) * (hi - lo)
+            return np.where(half > 0, ndtri(np.clip(u, 1e-300, 1.0 - 1e-16)), z)
 
 
 @cache
@@ -57,7 +73,7 @@ def _library() -> ctypes.CDLL:
     lib = ctypes.CDLL(str(build_master()))
     ptr, n = ctypes.c_void_p, ctypes.c_long
     lib.kalman_filter.restype = ctypes.c_double
-    lib.kalman_filter.argtypes = [n, n, n, *[ptr] * 7, n, *[ptr] * 9]
+    lib.kalman_filter.argtypes = [n, n, n, *[ptr] * 8, n, *[ptr] * 9]
     lib.kalman_max_states.restype = ctypes.c_int
     return lib
 
@@ -103,6 +119,7 @@ def kalman_filter(
     """
     A, B, Q, C, r = (_c(m) for m in (model.A, model.B, model.Q, model.C, model.r))
     nx, nu, ny = A.shape[0], B.shape[1], C.shape[0]
+    q = _c(np.zeros(ny) if model.q is None else model.q)
     lib = _library()
     if nx > lib.kalman_max_states():
         raise ValueError(f"the filter takes at most {lib.kalman_max_states()} states, the model has {nx}")
@@ -114,8 +131,8 @@ def kalman_filter(
     e, s = np.empty((n, ny)), np.empty((n, ny))
     kept = [np.empty((n, nx)), np.empty((n, nx, nx)), np.empty((n, nx)), np.empty((n, nx, nx))] if keep else [None] * 4
     ll = lib.kalman_filter(
-        nx, ny, nu, _ptr(A), _ptr(B), _ptr(Q), _ptr(C), _ptr(r), _ptr(x0), _ptr(P0), n, _ptr(u), _ptr(y), _ptr(m),
-        _ptr(e), _ptr(s), *(_ptr(k) for k in kept),
+        nx, ny, nu, _ptr(A), _ptr(B), _ptr(Q), _ptr(C), _ptr(r), _ptr(q), _ptr(x0), _ptr(P0), n, _ptr(u), _ptr(y),
+        _ptr(m), _ptr(e), _ptr(s), *(_ptr(k) for k in kept),
     )  # fmt: skip
     return Filtered(float(ll), e, s, *kept)
 
