@@ -24,10 +24,13 @@ from harness.diagnosis.result import Diagnosis
 from harness.ident import armax, lti
 from harness.render import figures
 from harness.render.analysis import estimates, measured_frf
-from harness.render.gap_text import diagnosis_markdown
+from harness.render.gap_text import MANUAL, diagnosis_markdown
 from harness.render.load import load_results
 from harness.render.report import write_report
+from harness.render.tables import MAX_LINE, wrap_prose
 from harness.rundir import RunDir, write_dataset
+
+ROOT = Path(__file__).resolve().parents[1]
 
 AF = 0.8
 TS = 0.02
@@ -285,12 +288,25 @@ def real_report(real, tmp_path_factory) -> tuple[Path, dict, str]:
     return root, real[1], write_report(root).read_text()
 
 
+def _anchors(page: Path) -> set[str]:
+    """The anchors of a manual page's headings, as MyST (``myst_heading_anchors``) and a forge make them."""
+    heads = re.findall(r"^#{1,3} (.+)$", page.read_text(), flags=re.M)
+    return {re.sub(r"[^\w\- ]", "", h.strip().lower()).replace(" ", "-") for h in heads}
+
+
 def test_real_report_is_compact_and_reproducible(real_report):
-    """report.md of a real run: well under 25 kB, no line over 1,000 characters, no raw dictionary, every
-    figure it links exists; a second write gives the same bytes (text and figures)."""
+    """report.md of a real run: well under 25 kB, no line of prose over 200 characters (a table's row is one line,
+    however long), no raw dictionary, every manual section it names exists, every figure it links exists; a second
+    write gives the same bytes (text and figures)."""
     root, _, text = real_report
-    # 17.5 kB: each record's sensors as fitted and the command offset's row (16.3 kB before them)
-    assert len(text.encode()) < 18_000 and max(len(line) for line in text.splitlines()) < 1000
+    # 17.8 kB with each record's sensors as fitted and the command offset's row (16.3 kB before them), its longest line
+    # 881 characters; 17.1 kB and 197 with the explanations in the manual (issue 61: `flexjoint run`'s report.md
+    # 27.1 -> 24.5 kB, its longest line 903 -> 199)
+    assert len(text.encode()) < 18_000  # issue 61 asks under 25 kB of the lab run's report
+    long = [line for line in text.splitlines() if not line.startswith("|") and len(line) > MAX_LINE]
+    assert MAX_LINE == 200 and not long, long
+    named = re.findall(rf"`{re.escape(MANUAL)}#([\w-]+)`", text)
+    assert named and set(named) <= _anchors(ROOT / MANUAL)
     assert "{" not in text and "fit_model" not in text and "_pct" not in text and "seed 000" not in text
     links = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", text)
     assert {Path(x).name for x in links} == {p.name for p in RunDir(root).figures.glob("*.png")}
@@ -303,6 +319,37 @@ def test_real_report_is_compact_and_reproducible(real_report):
     figs = {p.name: p.read_bytes() for p in RunDir(root).figures.glob("*.png")}
     assert write_report(root).read_text() == text
     assert {p.name: p.read_bytes() for p in RunDir(root).figures.glob("*.png")} == figs
+
+
+def test_prose_is_cut_at_sentences_and_tables_code_and_headings_are_not():
+    """wrap_prose: a long paragraph in lines of at most 200 characters, cut at its sentences (at clauses, commas or
+    spaces only within a sentence longer than a line), that Markdown joins into the same text; a list item's lines
+    indented under its text; no line that would start a block (a list item, a table row) made of a cut; tables,
+    headings and code blocks as they were."""
+    sentence = "The gap falls from 0.3821 (fit 61.8 %) to 0.0038 (fit 99.6 %) with every effect, against 0.0039."
+    para = " ".join([sentence] * 5)
+    clauses = "; ".join(["link stiffness 1.03 (0.79x the spec) by recalibration alone, 1.3 (1x) with the effects"] * 4)
+    table_row = "| " + " | ".join(["a long cell of a table"] * 20) + " |"
+    code = "x = [" + ", ".join(["1.000000"] * 30) + "]"
+    heading = "## " + "a heading " * 30
+    block = ("- 1. " * 10 + "| x " * 60).strip()  # cut at spaces: no line of it may start a list item or a row
+    lines = [para, "", "- " + para, "", clauses + ".", "", table_row, "", "```", code, "```", "", heading, "", block]
+    out = wrap_prose(lines)
+    assert out[out.index(table_row)] == table_row and code in out and heading in out
+    prose = [line for line in out if line not in (table_row, code, heading, "```")]
+    assert all(len(line) <= MAX_LINE for line in prose)
+    first = out[: out.index("")]
+    assert all(line.endswith(".") for line in first) and " ".join(first) == para  # whole sentences, the same text
+    item = out[len(first) + 1 : out.index("", len(first) + 1)]
+    assert item[0].startswith("- The gap") and all(line.startswith("  The gap") for line in item[1:])
+    assert " ".join(line.strip() for line in item) == "- " + para
+    start = out.index("", len(first) + len(item) + 1) + 1
+    cut = out[start : out.index("", start)]
+    assert len(cut) == 2 and all(line.endswith((";", ".")) for line in cut)  # a sentence over a line: at clauses
+    tail = out[out.index(heading) + 2 :]
+    assert len(tail) > 1 and " ".join(line.strip() for line in tail) == block
+    assert not [line for line in tail[1:] if re.match(r"\s*([-+*>|]|\d+[.)])(\s|$)", line)]
+    assert wrap_prose(out) == out  # once is enough
 
 
 def test_real_report_diagnosis(real_report):
@@ -350,7 +397,7 @@ def test_real_report_diagnosis(real_report):
     ks = d["parameters"]["plant.Ks"]
     assert rows["plant.Ks"][2] == f"{ks['nominal']:.4g}" and rows["plant.Ks"][6] == ks["finding"]
     assert rows["plant.coulomb_torque"][3] == f"{d['parameters']['plant.coulomb_torque']['fitted']:.4g}"
-    where = [r for r in _rows(sec) if r[0] in ("simulation as given", "after recalibration") and len(r) == 6]
+    where = [r for r in _rows(sec) if r[0] in ("simulation as given", "after recalibration") and len(r) == 3]
     assert 1 <= len(where) <= 4 and {r[1] for r in where} <= {"theta", "alpha"}
 
 
@@ -381,10 +428,11 @@ def test_real_report_identification(real_report):
 
     res = load_results(root)
     resid = {r[0]: r for r in _rows(_section(text, "Residual tests"))[1:]}
+    header = _rows(_section(text, "Residual tests"))[0]
     assert set(resid) == set(REAL_EXPERIMENTS)
     for name, p in res.prepared.items():
         rt = armax.resid(m, p.u_d, p.y_f, lags=25)
-        assert resid[name][1] == f"{rt.n_out_acf}/25 (allowed {rt.allowed_acf})"
+        assert resid[name][1] == str(rt.n_out_acf) and header[1] == f"acf lags outside of 25 (allowed {rt.allowed_acf})"
         assert resid[name][2] == ("yes" if rt.white else "no") and resid[name][4] == ("yes" if rt.independent else "no")
     assert "Acceptance (`flexjoint accept`) gates on the fit only" in text
 

@@ -1,6 +1,7 @@
 """The diagnosis (:class:`harness.diagnosis.result.Diagnosis`) in words and tables for a person: the verdict and
 what it means, each effect's importance, the gap stage by stage (the waterfall), the folds of the cross-fit,
-where the gap lies. Nothing is printed as a raw dictionary; the full detail stays in ``diagnosis.json``."""
+where the gap lies. Nothing is printed as a raw dictionary; the full detail stays in ``diagnosis.json``, and what
+each part means is in the manual (:data:`MANUAL`, "Reading the report"), which the text names where it says less."""
 
 from __future__ import annotations
 
@@ -9,9 +10,17 @@ from typing import Any
 
 from ..diagnosis.effects import SELECTED_BY_SPREAD
 from ..diagnosis.result import Diagnosis, FittedParameter
-from .tables import fmt, fmt_any, num, table
+from .tables import fmt, fmt_any, num, table, wrap_prose
 
-__all__ = ["LATTICE", "diagnosis_markdown", "gap_rows", "verdict_sentence"]
+__all__ = ["LATTICE", "MANUAL", "diagnosis_markdown", "gap_rows", "manual", "verdict_sentence"]
+
+MANUAL = "docs/concepts/diagnosis.md"  # the manual's page that explains what the report of a diagnosis says
+
+
+def manual(section: str) -> str:
+    """Where the manual explains ``section`` (a heading of :data:`MANUAL`, as its anchor): "`docs/...md#section`"."""
+    return f"`{MANUAL}#{section}`"
+
 
 VERDICT_MEANING = {
     "none": "no gap beyond the measurement noise: the simulation explains the rig",
@@ -118,34 +127,51 @@ def _effects_lines(diag: Diagnosis) -> list[str]:
     lines = ["Effects, in the order they were added (gaps on held-out experiments):", "", *table(header, rows), ""]
     lines += [f"- `{e.effect}`: {e.against_record}." for e in diag.effects if e.against_record]
     lines += [""] if any(e.against_record for e in diag.effects) else []
-    lines += [f"- `{e.effect}`, each held-out experiment's fit [%] before -> after: " + ", ".join(
-        f"`{n}` {fmt(a, 1)} -> {fmt(b, 1)}" for n, (a, b) in e.held_out_fit_pct.items()) + "."
-        for e in diag.effects if e.held_out_fit_pct]  # fmt: skip
-    lines += [""] if any(e.held_out_fit_pct for e in diag.effects) else []
+    lines += _held_out_fit_lines(diag)
     lines += [
-        "Importance: remove each effect alone from the final rig (fitted on every record) and part of its gap "
-        "reopens; an effect's importance is its share of what the removals reopen. Shrink: how much the held-out "
-        "gap fell when the effect was added.",
+        "Importance: removing each effect alone from the final rig (fitted on every record) reopens part of its gap; "
+        "an effect's importance is its share of what the removals reopen. Shrink: how much the held-out gap fell "
+        "when the effect was added.",
         "",
     ]
     if any(LATTICE in r[-1] for r in rows):
         lines += [
-            "Quantization is not found by closing the gap but by its signature in the data: every sample sits on the "
-            "lattice of a converter's steps. It is kept for the record although its shrink is negative, because "
-            "quantisation error looks like noise and the simulation scores it against a noisy record (it has no "
-            "importance for the same reason).",
+            f"Quantization is found by its signature in the data (every sample on an {LATTICE}), not by closing the "
+            f"gap. It is kept although its shrink is negative, and has no importance (why: {manual('effects-found')}).",
             "",
         ]
     for e in (e for e in diag.effects if e.selected_by == SELECTED_BY_SPREAD):
         lines += [
-            f"{e.effect} is sized by its spread: in a closed loop it makes the motion depend on the noise the "
-            "controller feeds back (a gear's play rattles in a phase the noise sets), so no replay reproduces the "
-            "record sample by sample and a least-squares fit would take it to zero. Its size is the one whose "
-            "replays' spread between noise draws matches the record's gap window by window on the fitted fold, and "
-            "it is kept, as every effect is, by the held-out score that counts that spread.",
+            f"{e.effect} is sized by its spread in closed loop: its size is the one whose replays' spread between "
+            "noise draws matches the record's gap on the fitted fold. It is kept by the held-out score that counts "
+            f"that spread (why not least squares: {manual('effects-found')}).",
             "",
         ]
     return lines
+
+
+def _held_out_fit_lines(diag: Diagnosis) -> list[str]:
+    """Each held-out experiment's fit [%] before -> after each effect entered, a column per effect."""
+    effects = [e for e in diag.effects if e.held_out_fit_pct]
+    if not effects:
+        return []
+    names = list(dict.fromkeys(n for e in effects for n in e.held_out_fit_pct or {}))
+    columns: dict[str, list[str]] = {}  # effects that entered together (a pair: the same fits) share a column
+    for e in effects:
+        fits = e.held_out_fit_pct or {}
+        cells = [f"{fmt(fits[n][0], 1)} -> {fmt(fits[n][1], 1)}" if n in fits else "—" for n in names]
+        same = next((k for k, c in columns.items() if c == cells), None)
+        if same is not None:
+            columns[f"{same} + {e.effect}"] = columns.pop(same)
+        else:
+            columns[e.effect] = cells
+    rows = [[n, *(c[i] for c in columns.values())] for i, n in enumerate(names)]
+    return [
+        "Each held-out experiment's fit [%] before -> after each effect entered (where the evidence for it lies):",
+        "",
+        *table(["experiment", *columns], rows),
+        "",
+    ]
 
 
 def _ci_halfwidth(ci95: list[float], fitted: float, nominal: float = 1.0) -> str:
@@ -201,7 +227,7 @@ def _parameters_lines(diag: Diagnosis) -> list[str]:
     header += [f"each record alone ({' / '.join(records)})"] if records else []
     lines = [
         "Linear parameters of the simulation recalibrated against the data (within physical bounds): a linear "
-        f"mismatch is a finding about the rig, not an unmodelled effect.{note}",
+        f"mismatch is a finding about the rig, not an effect.{note}",
         "",
         *table(header, rows),
         "",
@@ -209,20 +235,19 @@ def _parameters_lines(diag: Diagnosis) -> list[str]:
     if per_fold:
         lines += [
             'Each fold alone: recalibrated on that fold\'s experiments only; "(apart)" where the two 95 % intervals '
-            "exclude each other: the model, not the noise, separates the folds (with two records or more, each fold "
-            "is records of its own).",
+            "exclude each other (the model, not the noise, separates the folds).",
             "",
         ]
     if records:
         lines += [
-            "Each record alone: recalibrated on that record only, from the grid and from the joint fit, the effects "
-            'found held at their joint values; "(apart: ...)" names the records whose 95 % intervals exclude each '
-            "other: the model does not describe them as one rig.",
+            "Each record alone: recalibrated on that record only, the effects held at their joint values; "
+            '"(apart: ...)" names the records whose 95 % intervals exclude each other (the model does not describe '
+            "them as one rig).",
             "",
         ]
     if alone:
         text = (
-            "Fitted: with the effects found, jointly, on every experiment (the interval, change and finding are this "
+            "Fitted: jointly with the effects found, on every experiment (the interval, change and finding are this "
             "fit's). Recalibration alone: before any effect (geometric mean of the two folds' fits), what the "
             "waterfall's recalibration stage scores."
         )
@@ -232,12 +257,15 @@ def _parameters_lines(diag: Diagnosis) -> list[str]:
                 " The linear parameters keep the spec's values: recalibrating them did not improve the held-out fit, "
                 "and no effect was refitted jointly with them."
             )
-        if moves:
-            text += (
-                " Where they differ the linear parameters traded off against the effects (bent to mimic an effect "
-                "not yet modelled, or moved to make room for one): " + "; ".join(moves) + "."
-            )
         lines += [text, ""]
+        if moves:
+            lines += [
+                "Where they differ, the linear parameters traded off against the effects "
+                f"(why: {manual('fitted-and-recalibrated')}):",
+                "",
+                *(f"- {m}{'.' if i == len(moves) - 1 else ';'}" for i, m in enumerate(moves)),
+                "",
+            ]
     return lines
 
 
@@ -281,15 +309,33 @@ def behaviour_outside(diag: Diagnosis) -> dict[str, list[str]]:
 
 
 def _sensors_lines(diag: Diagnosis) -> list[str]:
-    rows = sensor_lines(diag)
-    if not rows:
+    """A row per record: its gauge offset as fitted, with its interval or how it was read, and where its replay
+    started the link (the rows :func:`sensor_lines` words for the terminal)."""
+    sensors = diag.sensors or {}
+    if not sensors:
         return []
+    fitted = any(math.isfinite(r.gauge_offset_deg[1]) for r in sensors.values())  # else open-loop least squares
+    starts = [(r.link_start_deg, r.link_rate_start_deg_s) for r in sensors.values()]
+    at_rest = all(a == 0.0 and b == 0.0 for a, b in starts)
+    ring = not at_rest and any(a is not None and b is not None for a, b in starts)
+    rows = []
+    for name, r in sensors.items():
+        v, lo, hi = r.gauge_offset_deg
+        row = [name, f"{v:.4g}"]
+        row += [f"{lo:.4g}..{hi:.4g}" if math.isfinite(lo) else "— (least squares, open loop)"] if fitted else []
+        start = (r.link_start_deg, r.link_rate_start_deg_s)
+        row += [f"{x:.3g}" if x is not None else "—" for x in start] if ring else []
+        rows.append(row)
+    header = ["record", "gauge offset [deg]", *(["95 % interval"] if fitted else [])]
+    header += ["replay's link start [deg]", "its rate [deg/s]"] if ring else []
+    how = "" if fitted else " (by least squares in an open loop)"
+    link = "; where its replay started the link, its ring at the start from the data" if ring else ""
+    link = "; every replay starts the link at rest" if at_rest else link
     return [
-        "Each record's sensors as fitted: the strain gauge's offset (its reading of the link at rest, in the "
-        "record's own zero), fitted with the linear parameters where a closed loop acted on it, and where each "
-        "replay started the link (its ring at the record's start, amplitude and phase from the data).",
+        f"Each record's strain-gauge offset as fitted, its reading of the link at rest in the record's own zero{how}"
+        f"{link} ({manual('sensors-behaviour-and-replays')}):",
         "",
-        *(f"- {r}" for r in rows),
+        *table(header, rows),
         "",
     ]
 
@@ -299,9 +345,8 @@ def _behaviour_lines(diag: Diagnosis) -> list[str]:
         return []
     lines = [
         "Behaviour step by step, as the record measured it and as the final rig replays it: median and 95 % band "
-        "of replays with other noise draws and other draws of the fitted parameters (a replay follows a record "
-        "sample by sample only where the loop does not stick or rattle in a phase the noise sets; the band is what "
-        "the model says the record may do). Outside its band: **bold**.",
+        "of replays with other noise draws and other draws of the fitted parameters, what the model says the record "
+        f"may do ({manual('sensors-behaviour-and-replays')}). Outside its band: **bold**.",
         "",
     ]
     for name, rb in diag.behaviour.items():
@@ -378,14 +423,15 @@ def _overall_lines(diag: Diagnosis) -> list[str]:
     return lines
 
 
-def _channels(fit_pct: dict[str, float]) -> str:
-    return ", ".join(f"{k} {fmt(v)}" for k, v in fit_pct.items()) or "—"
+def _channels(fit_pct: dict[str, float], channels: list[str]) -> str:
+    return ", ".join(fmt(fit_pct.get(k)) for k in channels) or "—"
 
 
 def _experiments_lines(diag: Diagnosis) -> list[str]:
     before, after = diag.gap.before.experiments, diag.gap.after.experiments
     if not before:
         return []
+    chans = list(dict.fromkeys(k for e in [*before.values(), *after.values()] for k in e.fit_pct))
     rows = []
     for name, eb in before.items():
         ea = after.get(name)
@@ -393,17 +439,18 @@ def _experiments_lines(diag: Diagnosis) -> list[str]:
             [
                 name,
                 diag.folds.role(name),
-                _channels(eb.fit_pct),
-                _channels(ea.fit_pct) if ea else "—",
+                _channels(eb.fit_pct, chans),
+                _channels(ea.fit_pct, chans) if ea else "—",
                 fmt(eb.gap, 4),
                 fmt(ea.gap, 4) if ea else "—",
             ]
         )
-    header = ["experiment", "fold", "fit before [%]", "fit after [%]", "gap before", "gap after"]
+    of = f" ({', '.join(chans)})" if chans else ""
+    header = ["experiment", "fold", f"fit before [%]{of}", f"fit after [%]{of}", "gap before", "gap after"]
     split = diag.folds.scheme.split(";", 1)[1].strip() + "; " if ";" in diag.folds.scheme else ""  # a lone record
     intro = (
-        "Per experiment (2-fold cross-fit: what is fitted on one fold is scored on the other, so every experiment "
-        f"is held out once; {split}'after' here uses the final parameters):"
+        "Per experiment (2-fold cross-fit: fitted on one fold, scored on the other, so every experiment is held out "
+        f"once; {split}'after' here uses the final parameters):"
     )
     if _in_sample(diag):
         intro = (
@@ -474,6 +521,8 @@ def _where_lines(diag: Diagnosis) -> list[str]:
     lines = []
     if rows:
         header = ["residual of", "channel", "dominant band", "amplitude", "concentrates at", "finding"]
+        if all(r[-1] != "—" for r in rows):  # each finding says its band, amplitude law and events: not twice
+            header, rows = [*header[:2], header[-1]], [[*r[:2], r[-1]] for r in rows]
         lines += ["Where the gap is (pooled over experiments; per experiment in `diagnosis.json`):", ""]
         lines += [*table(header, rows), ""]
         used = (where.get("after_recalibration") or {}).get("parameters")
@@ -508,4 +557,4 @@ def diagnosis_markdown(diag: Diagnosis, waterfall_figure: str | None = None) -> 
     lines += _behaviour_lines(diag)
     lines += _candidates_lines(diag)
     lines += _noise_lines(diag)
-    return lines + _where_lines(diag)
+    return wrap_prose(lines + _where_lines(diag))

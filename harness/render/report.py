@@ -3,7 +3,8 @@ each section has a table or a figure a lab report would have; the full detail st
 
 The run is loaded by :mod:`harness.render.load`, the numbers are computed by :mod:`harness.render.analysis` and
 :mod:`harness.ident`, the figures drawn by :mod:`harness.render.figures`, the diagnosis worded by
-:mod:`harness.render.gap_text`.
+:mod:`harness.render.gap_text`. A line of prose is at most 200 characters (:func:`harness.render.tables.wrap_prose`
+cuts longer ones at their sentences); the report keeps the facts, the manual the explanations.
 """
 
 from __future__ import annotations
@@ -41,9 +42,9 @@ from .analysis import (
     residual_tests,
     zoom_window,
 )
-from .gap_text import diagnosis_markdown, gap_rows
+from .gap_text import diagnosis_markdown, gap_rows, manual
 from .load import RunResults, load_results
-from .tables import crossfit_table, fmt, fmt_any, orders, table, vec
+from .tables import crossfit_table, fmt, fmt_any, orders, table, vec, wrap_prose
 
 __all__ = ["PendingReport", "begin_report", "figure_name", "holds", "spec_overrides", "title", "write_report"]
 
@@ -273,7 +274,7 @@ def _per_dataset_lines(res: RunResults) -> list[str]:
     ]
     return [
         "Per dataset, the best model of the grid by mean cross-validation (CV) fit over all datasets, and the one "
-        "the selection rule keeps: the simplest within the tolerance of that best.",
+        "the selection rule keeps:",
         "",
         *table(header, rows),
         "",
@@ -472,16 +473,20 @@ def _section_resid(res: RunResults, figdir: Path, drawings: Drawings) -> list[st
         return []
     rec = res.selected[1] if res.selected else {}
     own = str(rec["dataset"]) if rec.get("dataset") in tests else next(iter(tests))
-    rows = [
+    acf = {(rt.lags, rt.allowed_acf) for rt in tests.values()}
+    ccf = {(rt.lags_ccf.size, rt.allowed_ccf) for rt in tests.values()}
+    rows = [  # the lags and how many may lie outside in the header where every dataset has the same
         [
             name,
-            f"{rt.n_out_acf}/{rt.lags} (allowed {rt.allowed_acf})",
+            f"{rt.n_out_acf}" + (f"/{rt.lags} (allowed {rt.allowed_acf})" if len(acf) > 1 else ""),
             fmt(rt.white),
-            f"{rt.n_out_ccf}/{rt.lags_ccf.size} (allowed {rt.allowed_ccf})",
+            f"{rt.n_out_ccf}" + (f"/{rt.lags_ccf.size} (allowed {rt.allowed_ccf})" if len(ccf) > 1 else ""),
             fmt(rt.independent),
         ]
         for name, rt in tests.items()
     ]
+    of_acf = f" of {next(iter(acf))[0]} (allowed {next(iter(acf))[1]})" if len(acf) == 1 else ""
+    of_ccf = f" of {next(iter(ccf))[0]} (allowed {next(iter(ccf))[1]})" if len(ccf) == 1 else ""
     job: figures.FigureJob = (
         figures.residual_correlations,
         (tests[own], f"residuals of the selected model on {own}"),
@@ -502,7 +507,7 @@ def _section_resid(res: RunResults, figdir: Path, drawings: Drawings) -> list[st
         f"One-step prediction errors of the selected model; 99 % bound 2.58/sqrt(N) = {fmt(tests[own].bound, 4)} "
         f"on `{own}`.",
         "",
-        *table(["dataset", "acf lags outside", "white", "ccf lags outside", "independent"], rows),
+        *table(["dataset", f"acf lags outside{of_acf}", "white", f"ccf lags outside{of_ccf}", "independent"], rows),
         "",
         verdict + " Acceptance (`flexjoint accept`) gates on the fit only; it does not test the residuals.",
         "",
@@ -535,7 +540,11 @@ def _section_diagnosis(res: RunResults, figdir: Path, drawings: Drawings) -> lis
     job: figures.FigureJob = (figures.gap_waterfall, (d.waterfall(), d.gap.decomposition.noise_floor), {})
     drawings.append((job, figdir / "gap_waterfall.png"))
     lines = ["## Sim-to-real gap diagnosis", ""]
-    lines += [f"The data of this run against the simulation `{d.sim_spec}`; every number is in `diagnosis.json`.", ""]
+    lines += [
+        f"The data of this run against the simulation `{d.sim_spec}`; every number is in `diagnosis.json` "
+        f"(how to read them: {manual('reading-the-report')}).",
+        "",
+    ]
     lines += diagnosis_markdown(d, "figures/gap_waterfall.png")
     rows = gap_rows(d)
     if rows:
@@ -553,9 +562,9 @@ def _replay_lines(res: RunResults, figdir: Path, drawings: Drawings) -> list[str
     lines = [
         "### Replays against the record",
         "",
-        "Every experiment re-simulated as the diagnosis replayed it (`diagnosis.replays.parquet`): the simulation as "
-        "given, recalibrated (the linear parameters recalibration alone fitted) and recalibrated with the effects "
-        "found (the final parameters), against the record; fit [%] pooled over theta and alpha:",
+        "Every experiment re-simulated as the diagnosis replayed it (`diagnosis.replays.parquet`): as given, "
+        "recalibrated (recalibration alone) and with the effects found (the final parameters), against the record; "
+        "fit [%] pooled over theta and alpha:",
         "",
         *table(["experiment", *(f"{label} [%]" for label in STAGES.values())], body),
         "",
@@ -646,7 +655,8 @@ def begin_report(run: Path, results: RunResults | None = None) -> PendingReport:
         lines += _section_resid(res, figdir, drawings)
         lines += _section_doubled(res)
     lines += _section_diagnosis(res, figdir, drawings)
-    return PendingReport(res.paths.report, figdir, "\n".join(lines).rstrip() + "\n", draw(drawings))
+    text = "\n".join(wrap_prose(lines)).rstrip() + "\n"  # no line of prose over MAX_LINE characters
+    return PendingReport(res.paths.report, figdir, text, draw(drawings))
 
 
 def write_report(run: Path, results: RunResults | None = None) -> Path:

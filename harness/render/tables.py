@@ -3,13 +3,19 @@
 from __future__ import annotations
 
 import math
+import re
 from typing import Any
 
 import numpy as np
 
 from .load import RunResults
 
-__all__ = ["crossfit_table", "fmt", "fmt_any", "num", "orders", "table", "vec"]
+__all__ = ["MAX_LINE", "crossfit_table", "fmt", "fmt_any", "num", "orders", "table", "vec", "wrap_prose"]
+
+MAX_LINE = 200  # characters: the longest line of prose report.md has (a table's row is one line, however long)
+_BREAKS = (r"(?<=[.!?])\s+", r"(?<=;)\s+", r"(?<=:)\s+", r"(?<=,)\s+", r"\s+")  # where a line breaks, the best first
+_BLOCK_START = re.compile(r"([-+*>#|]|\d+[.)]|`{3}|~{3}|=+$)(\s|$)")  # a line that starts a block, not a paragraph's
+_LIST_ITEM = re.compile(r"\s*([-+*]|\d+[.)])\s+")
 
 
 def num(x: Any) -> float:
@@ -83,3 +89,51 @@ def crossfit_table(res: RunResults) -> list[str]:
         "",
         "Datasets: " + ", ".join(f"{j + 1} = `{c}`" for j, c in enumerate(cols)) + ".",
     ]
+
+
+def _pieces(text: str, level: int) -> list[str]:
+    """``text`` cut at each break of ``_BREAKS[level]``, a piece that would start a block (a list item, a table
+    row, a heading) kept with the one before it."""
+    out: list[str] = []
+    start = 0
+    for m in [*re.finditer(_BREAKS[level], text), None]:
+        piece = text[start : m.start() if m else len(text)]
+        if out and _BLOCK_START.match(piece):
+            out[-1] += " " + piece
+        else:
+            out.append(piece)
+        start = m.end() if m else start
+    return [p for p in out if p]
+
+
+def _wrap(text: str, width: int, level: int = 0) -> list[str]:
+    """``text`` in lines of at most ``width`` characters, cut at sentences first, then at clauses, commas, spaces
+    (a word longer than ``width`` is left whole)."""
+    if len(text) <= width or level == len(_BREAKS):
+        return [text]
+    lines: list[str] = []
+    for piece in _pieces(text, level):
+        parts = _wrap(piece, width, level + 1) if len(piece) > width else [piece]
+        if lines and len(lines[-1]) + 1 + len(parts[0]) <= width:
+            lines[-1] += " " + parts.pop(0)
+        lines += parts
+    return lines
+
+
+def wrap_prose(lines: list[str], width: int = MAX_LINE) -> list[str]:
+    """Markdown ``lines`` with each line of prose longer than ``width`` characters cut into lines of a paragraph
+    (Markdown joins them again): at sentences where it can, at clauses, commas or spaces where a sentence is longer,
+    a list item's lines indented under its text. Tables, headings, images and code blocks are left as they are."""
+    out: list[str] = []
+    fenced = False
+    for line in lines:
+        if line.lstrip().startswith(("```", "~~~")):
+            fenced = not fenced
+        if fenced or len(line) <= width or line.lstrip().startswith(("|", "#", "![", "```", "~~~")):
+            out.append(line)
+            continue
+        item = _LIST_ITEM.match(line)
+        indent = len(item.group(0)) if item else len(line) - len(line.lstrip())
+        first, *rest = _wrap(line[indent:], width - indent)
+        out += [line[:indent] + first, *(" " * indent + r for r in rest)]
+    return out
