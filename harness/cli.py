@@ -764,6 +764,13 @@ def diagnose(
     scheduler: SchedulerOpt = None,
     workers: WorkersOpt = None,
     force: Annotated[bool, typer.Option("--force", help="write into --out even when it is another run")] = False,
+    engine: Annotated[
+        str,
+        typer.Option(
+            help="replay (today's diagnosis) or likelihood: today's, and beside it the likelihood engine's maximum-"
+            "likelihood fit of the linear model (likelihood.json)"
+        ),
+    ] = "replay",
 ) -> None:
     """Where the sim-to-real gap lies, which unmodelled effect causes it, how far it shrinks: diagnosis.json."""
     from . import spec as specmod
@@ -772,6 +779,8 @@ def diagnose(
     if out_dir is not None:
         _out_dir(out_dir)
     specmod.load(sim)  # a bad --sim: one line before anything starts
+    if engine not in ("replay", "likelihood"):
+        raise typer.BadParameter(f"--engine {engine!r}: replay or likelihood")
     prestart(workers, scheduler, ["harness.diagnosis.tasks"])  # the workers start while the diagnosis loads
     from .rundir import Manifest
 
@@ -782,6 +791,11 @@ def diagnose(
         real, sim, out_dir, progress=_progress("diagnose"), replay=replay, force=force, **_parallel(workers, scheduler)
     )
     out.print(diagnosis_summary(d))
+    if engine == "likelihood":
+        from .likelihood.unit import fit_run, write_likelihood
+
+        unit = fit_run(real, sim, progress=_progress("likelihood"))
+        out.print(unit.summary(write_likelihood(out_dir or real, unit)), soft_wrap=True)
 
 
 def _parallel(workers: int | None, scheduler: str | None) -> dict:

@@ -53,17 +53,26 @@ class Bound:
     label: str
     log: bool = True
     part: str = ""
+    square: bool = False
 
     def to_x(self, value: float, nominal: float) -> float:
-        """The search coordinate of ``value``: the log of its ratio to ``nominal``, or the value itself."""
+        """The search coordinate of ``value``: the log of its ratio to ``nominal``, the value itself (``log``
+        False), or the square of its ratio (``square``: a noise's intensity searched as its variance, so that the
+        slope at none says whether some would help)."""
+        if self.square:
+            return (value / nominal) ** 2
         return math.log(value / nominal) if self.log else value
 
     def from_x(self, x: float, nominal: float) -> float:
         """The value at the search coordinate ``x`` (the inverse of :meth:`to_x`)."""
+        if self.square:
+            return nominal * math.sqrt(max(x, 0.0))
         return nominal * math.exp(x) if self.log else x
 
     def x_range(self) -> tuple[float, float]:
         """The search coordinate's walls."""
+        if self.square:
+            return (self.lo**2, self.hi**2)
         return (math.log(self.lo), math.log(self.hi)) if self.log else (self.lo, self.hi)
 
 

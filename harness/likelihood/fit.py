@@ -5,8 +5,11 @@ noise's of :data:`harness.likelihood.model.NOISE`); each record has its own star
 enough that the first samples decide it) and gauge offset (a state). The objective is the records' summed Gaussian
 log-likelihood (:func:`log_likelihood`) plus the priors the caller gives (a normal in the search coordinate: the log
 of a parameter's ratio to its nominal value, or the value itself; :class:`harness.diagnosis.recalibrate.Bound`),
-maximised by L-BFGS-B within the bounds, its gradient by central differences. The intervals come from the
-numerical Hessian of that objective at its maximum: 95 %, symmetric in the search coordinate.
+maximised by L-BFGS-B within the bounds, its gradient by central differences, in units of a prior's sd where that is
+tighter than the coordinate's own. The linear model first: the noise is held at its start (:func:`noise_start`)
+until the linear parameters have been fitted, then all are freed, the torques' intensities searched as variances.
+The intervals come from the numerical Hessian of that objective at its maximum: 95 %, symmetric in the search
+coordinate.
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ TORQUES = ("noise.hub_torque", "noise.link_torque")  # the process noise: freed 
 GRAD_STEP = 1e-5  # search-coordinate step of the gradient's central differences
 HESS_STEP = 1e-3  # ... and of the Hessian's second differences
 OUTSIDE = 1e6  # the search's objective [nats per reading] where the model fails: a wall it backs off from
+TOL_NATS = 1e-4  # the search stops when an iteration gains less log-likelihood than this [nats]
 AT_BOUND = 1e-3  # a parameter this close to a wall (in the search coordinate) ends at its bound
 
 
@@ -73,18 +77,19 @@ def _split(values: Mapping[str, float]) -> tuple[dict[str, float], Noise]:
 
 
 def noise_start(records: Sequence[Record]) -> dict[str, float]:
-    """Where the noise's search starts: each reading's white noise [deg] from its second differences (their median
-    absolute value, as a white noise's: 0.6745 sqrt(6) sigma), at least a lattice's step / sqrt(12); the torques'
-    intensities at 1e-3 N m sqrt(s) on the hub and 1e-4 at the tip (a small share of the drive's torque)."""
+    """Where the noise's search starts: each reading's white noise [deg] from its third differences (their median
+    absolute value, as a white noise's: 0.6745 sqrt(20) sigma; a record's smooth motion cancels in them), at least a
+    tenth of a lattice's step; the torques' intensities at 1e-3 N m sqrt(s) on the hub and 1e-4 at the tip (a small
+    share of the drive's torque)."""
     out = {}
     for j, name in enumerate(("noise.theta", "noise.alpha")):
         sds = []
         for rec in records:
-            y = rec.y[:, j]
-            ok = rec.mask[2:, j] & rec.mask[1:-1, j] & rec.mask[:-2, j]
-            d2 = (y[2:] - 2.0 * y[1:-1] + y[:-2])[ok]
-            sd = float(np.median(np.abs(d2))) / (0.6745 * math.sqrt(6.0)) if d2.size else 0.0
-            sds.append(max(sd, rec.lattice[j] / math.sqrt(12.0), 1e-4))
+            y, m = rec.y[:, j], rec.mask[:, j]
+            ok = m[3:] & m[2:-1] & m[1:-2] & m[:-3]
+            d3 = (y[3:] - 3.0 * y[2:-1] + 3.0 * y[1:-2] - y[:-3])[ok]
+            sd = float(np.median(np.abs(d3))) / (0.6745 * math.sqrt(20.0)) if d3.size else 0.0
+            sds.append(max(sd, 0.1 * rec.lattice[j], 1e-4))
         out[name] = float(np.median(sds))
     return out | {"noise.hub_torque": 1e-3, "noise.link_torque": 1e-4}
 
@@ -208,16 +213,26 @@ def fit(
             return math.inf
         return math.inf if not math.isfinite(ll) else -ll + 0.5 * float(np.sum((x / sd) ** 2))
 
-    # the linear model first: the torques' noise is held at its start until the rest has been fitted, so that a
-    # white torque cannot carry the hub from a start far off (its basin lies there: the drive twice too strong)
-    first = np.array([n not in TORQUES for n in names])
-    x, converged, message = x0, True, ""
+    # the linear model first: the noise held at its start until the rest has been fitted, so that a white torque
+    # cannot carry the hub from a start far off (its basin lies there: the drive twice too strong) nor a link's
+    # torque take its gauge's noise; then all of it, the torques searched as variances (their slope at none says
+    # whether any helps)
+    # searched in units of a tight prior's sd (a sensor's gain known to 3e-5 would otherwise be a wall of curvature
+    # a million times the others', and the search would stop where it starts)
+    c = np.minimum(sd, 1.0)
+
+    def scaled(xi: np.ndarray) -> float:
+        return objective(xi * c)
+
+    first = np.array([n not in NOISE for n in names])
+    xi, converged, message = x0 / c, True, ""
+    walls_xi = [(lo / ci, hi / ci) for (lo, hi), ci in zip(walls, c, strict=True)]
     for free in (first, np.ones(len(names), bool)) if not first.all() else (first,):
-        x, converged, message = _search(objective, x, free, walls, 1.0 / max(n_obs, 1), maxiter)
-    H = _hessian(objective, x, walls)
+        xi, converged, message = _search(scaled, xi, free, walls_xi, 1.0 / max(n_obs, 1), maxiter)
+    x = xi * c
+    H = _hessian(scaled, xi, walls_xi)
     try:
-        cov = np.linalg.inv(H)
-        se = np.sqrt(np.maximum(np.diag(cov), 0.0))
+        se = np.sqrt(np.maximum(np.diag(np.linalg.inv(H)), 0.0)) * c
     except np.linalg.LinAlgError:
         se = np.full(x.size, math.inf)
     estimates = {}
@@ -260,7 +275,7 @@ def _search(
         return g * scale
 
     res = minimize(value, x0[idx], jac=gradient, method="L-BFGS-B", bounds=[walls[int(i)] for i in idx],
-                   options={"maxiter": maxiter, "ftol": 1e-12, "gtol": 1e-7})  # fmt: skip
+                   options={"maxiter": maxiter, "ftol": TOL_NATS * scale, "gtol": 1e-7})  # fmt: skip
     return full(res.x), bool(res.success), str(res.message)
 
 

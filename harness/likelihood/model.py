@@ -36,12 +36,17 @@ __all__ = ["NOISE", "Noise", "StochasticModel", "rig_model"]
 
 DEG = 180.0 / math.pi
 
-# the noise's parameters, each as a factor of a start the data give (harness.likelihood.fit.noise_start)
+# the noise's parameters, each as a factor of a start the data give (harness.likelihood.fit.noise_start); the torques'
+# searched as variances from none
 NOISE: dict[str, Bound] = {
     "noise.theta": Bound(1e-3, 1e3, "deg", "hub angle reading's white noise (rms)", part="noise"),
     "noise.alpha": Bound(1e-3, 1e3, "deg", "gauge reading's white noise (rms)", part="noise"),
-    "noise.hub_torque": Bound(1e-4, 1e3, "N m sqrt(s)", "white torque on the hub (intensity)", part="noise"),
-    "noise.link_torque": Bound(1e-4, 1e3, "N m sqrt(s)", "white torque at the link's tip (intensity)", part="noise"),
+    "noise.hub_torque": Bound(
+        0.0, 1e3, "N m sqrt(s)", "white torque on the hub (intensity)", part="noise", square=True
+    ),
+    "noise.link_torque": Bound(
+        0.0, 1e3, "N m sqrt(s)", "white torque at the link's tip (intensity)", part="noise", square=True
+    ),
 }
 
 

@@ -1,0 +1,178 @@
+"""A unit's records through the likelihood engine: its linear model fitted by maximum likelihood, and what it finds.
+
+The run directory is read as the diagnosis reads it (:func:`harness.diagnosis.experiments.load_experiments`: the
+run's calibration, the pot's dead band and the ADC's rails masked); each record carries the lattice its readings sit
+on (an ADC's found in its volts, an encoder's counts or a record's last decimal). The sheet's linear parameters are
+the start and the priors' centre (:func:`harness.diagnosis.diagnose.priors`: the spec's uncertainty, a sensor
+measured with the data known to its calibration's error), the noise's start is the data's (:func:`.fit.noise_start`).
+
+The linear model first: a linear parameter at its bound says that the spec does not describe the rig (which part, in
+words: :func:`harness.diagnosis.recalibrate.parts_at_bound`), a white torque at its upper bound that the linear
+model cannot draw what the records show; both are findings, not a start for effects (:attr:`UnitFit.findings`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .. import spec as specmod
+from ..diagnosis import rigmodel
+from ..diagnosis.diagnose import priors
+from ..diagnosis.experiments import load_experiments
+from ..diagnosis.noise import adc_lattice
+from ..diagnosis.recalibrate import LINEAR, parts_at_bound
+from ..diagnosis.simulation import fmu_value, sim_rig
+from ..ident.calibration import load_calibration
+from ..rundir import write_json
+from .fit import BOUNDS, TORQUES, MLFit, filter_record, fit, noise_start
+from .record import Record
+
+__all__ = ["UnitFit", "fit_run", "linear_start", "write_likelihood"]
+
+FREE = ("rig.drive_gain", "rig.drive_tau", "rig.inertia_ratio", "plant.Ks", "plant.zeta_link", "sensor.theta_gain",
+        "sensor.alpha_gauge_gain")  # fmt: skip
+
+
+@dataclass(frozen=True)
+class UnitFit:
+    """The likelihood engine's fit of a unit's linear model: the ``fit``, the ``records`` it ran through, the sheet's
+    ``nominal`` values, the ``held`` parameters (a sensor known exactly), each record's residuals' lag-one
+    autocorrelation per channel (``lag_one``: white residuals give about 0, within +-2/sqrt(n)) and the
+    ``findings`` (a parameter at its bound, in words; none: effects may be tried from here)."""
+
+    fit: MLFit
+    records: tuple[str, ...]
+    nominal: dict[str, float]
+    held: dict[str, float]
+    lag_one: dict[str, dict[str, float]]
+    findings: tuple[str, ...]
+
+    def summary(self, path: Path | None = None) -> str:
+        """A few lines for the terminal (under 100 characters each): the fit, the parameters that moved most from
+        the sheet, the findings, and where the whole fit is (``path``)."""
+        f = self.fit
+        head = f"likelihood engine: {len(self.records)} records, {f.n} readings, log-likelihood {f.loglik:.1f}"
+        lines = [head + ("" if f.converged else f" (search stopped: {f.message[:40]})")]
+        moved = sorted(((abs(np.log(e.value / self.nominal[k])), k, e) for k, e in f.estimates.items()
+                        if k in self.nominal and e.value > 0 and self.nominal[k] > 0), reverse=True)  # fmt: skip
+        for _, k, e in moved[:5]:
+            lines.append(f"  {k:24s} {e.value:.4g} {e.unit} ({e.value / self.nominal[k]:.3g}x the sheet), "
+                         f"95 % {e.ci95[0]:.4g}..{e.ci95[1]:.4g}")  # fmt: skip
+        lines += [f"  finding: {x}" for x in self.findings[:5]] or ["  nothing at a bound: effects may be tried"]
+        if path is not None:
+            lines.append(f"  the whole fit: {path}")
+        return "\n".join(lines)
+
+    def to_json(self) -> dict[str, Any]:
+        """The fit as ``likelihood.json`` holds it."""
+        f = self.fit
+        return {
+            "engine": "likelihood",
+            "records": list(self.records),
+            "loglik": f.loglik,
+            "n": f.n,
+            "k": f.k,
+            "converged": f.converged,
+            "evaluations": f.nfev,
+            "parameters": {
+                name: {
+                    "nominal": self.nominal.get(name),
+                    "fitted": e.value,
+                    "ci95": list(e.ci95),
+                    "unit": e.unit,
+                    "at_bound": e.at,
+                }  # fmt: skip
+                for name, e in f.estimates.items()
+            },
+            "held": self.held,
+            "lag_one": self.lag_one,
+            "findings": list(self.findings),
+        }
+
+
+def linear_start(plant: dict[str, Any]) -> dict[str, float]:
+    """The sheet's values of the linear parameters the engine fits (:data:`FREE`) for a plant table."""
+    return rigmodel.combos(plant) | {
+        "plant.Ks": rigmodel.plant_value(plant, "Ks"),
+        "plant.zeta_link": rigmodel.plant_value(plant, "zeta_link"),
+        "sensor.theta_gain": 1.0,
+        "sensor.alpha_gauge_gain": 1.0,
+    }
+
+
+def _records(real: Path, sim: specmod.Spec) -> tuple[list[Record], int, bool]:
+    """The run's records as the filter reads them, each with its lattice [deg]; the command's delay [samples];
+    whether every record's hub angle is an encoder's."""
+    cal = load_calibration(real)
+    _, daq = sim_rig(sim)
+    adc_range = fmu_value(daq, "daq", "adc_range")
+    exps = load_experiments(real, cal, sim, adc_range)
+    bits = adc_lattice(exps, adc_range)
+    lsb = 2.0 * adc_range / 2.0**bits if bits else 0.0
+    out = []
+    for x in exps.values():
+        rec = Record.from_experiment(x)
+        step = (max(rec.lattice[0], abs(cal.Kp) * lsb), max(rec.lattice[1], abs(cal.Ke) * lsb))
+        out.append(Record(rec.name, rec.Ts, rec.u, rec.y, rec.mask, step))
+    encoder = all(x.encoder for x in exps.values())
+    return out, int(fmu_value(daq, "daq", "delay_samples")), encoder
+
+
+def fit_run(real: Path, sim: str | Path | specmod.Spec, progress: Callable[[str], None] | None = None) -> UnitFit:
+    """Fit the linear model of run ``real``'s records against the sim spec ``sim`` by maximum likelihood.
+
+    Parameters
+    ----------
+    real : Path
+        A run directory (a campaign or an import) with its calibration.
+    sim : str, Path or Spec
+        The spec whose sheet the fit starts from and whose uncertainty makes the priors.
+    progress : callable, optional
+        Told what runs now.
+
+    Returns
+    -------
+    UnitFit
+    """
+    say = progress or (lambda _m: None)
+    spec = sim if isinstance(sim, specmod.Spec) else specmod.load(sim)
+    plant, _ = sim_rig(spec)
+    say("records")
+    records, delay, encoder = _records(Path(real), spec)
+    sd, _ = priors(spec, load_calibration(Path(real)).gain_rel_se(), encoder)
+    nominal = linear_start(plant)
+    held = {k: nominal[k] for k in FREE if sd.get(k, 1.0) == 0.0}
+    free = {k: v for k, v in nominal.items() if k not in held}
+    noise = noise_start(records)
+    say(f"maximum likelihood over {len(records)} records")
+    res = fit(plant, records, free | noise, fixed=held, nominal=nominal | noise,
+              prior_sd={k: sd[k] for k in free if k in sd}, delay=delay)  # fmt: skip
+    values = res.values() | held
+    lag_one = {}
+    for rec in records:
+        z = filter_record(plant, values, rec, delay).standardised(np.asarray(rec.lattice))
+        lag_one[rec.name] = {c: _lag_one(z[:, j]) for j, c in enumerate(("theta", "alpha"))}
+    linear = {k: (nominal[k], e.value) for k, e in res.estimates.items() if k in LINEAR}
+    findings = [*parts_at_bound(linear)]
+    findings += [f"{BOUNDS[k].label} ends at its upper bound: the linear model cannot draw what the records show"
+                 for k, side in res.at_bounds().items() if k in TORQUES and side == "upper"]  # fmt: skip
+    return UnitFit(res, tuple(r.name for r in records), nominal, held, lag_one, tuple(findings))
+
+
+def _lag_one(z: np.ndarray) -> float:
+    ok = np.isfinite(z[:-1]) & np.isfinite(z[1:])
+    if ok.sum() < 3:
+        return float("nan")
+    return float(np.corrcoef(z[:-1][ok], z[1:][ok])[0, 1])
+
+
+def write_likelihood(out: Path, unit: UnitFit) -> Path:
+    """Write ``out/likelihood.json`` (atomically, byte-stable) and return its path."""
+    path = Path(out) / "likelihood.json"
+    write_json(path, unit.to_json())
+    return path
