@@ -6,6 +6,8 @@ open and closed loop (the logged command as the input: no controller replayed)."
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -259,3 +261,10 @@ def test_a_units_linear_model_is_fitted_from_an_off_sheet_with_nothing_at_a_boun
     assert all(abs(r) < 0.1 for chans in unit.lag_one.values() for r in chans.values()), unit.lag_one
     text = unit.summary(tmp_path / "likelihood.json")
     assert "nothing at a bound" in text and max(map(len, text.splitlines())) <= 100
+
+
+def test_diagnose_says_which_engines_it_knows():
+    """A misspelt --engine: a usage error naming the two engines, exit 2, before anything loads."""
+    r = subprocess.run([sys.executable, "-m", "harness.cli", "diagnose", "--real", ".", "--engine", "kalman"],
+                       capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert r.returncode == 2 and "--engine 'kalman': replay or likelihood" in r.stderr, r.stderr
