@@ -27,7 +27,7 @@ from .kalman import Discrete, Filtered, kalman_filter
 from .model import NOISE, Noise, StochasticModel, rig_model
 from .record import Record
 
-__all__ = ["Estimate", "MLFit", "filter_record", "fit", "log_likelihood", "noise_start", "start_state"]
+__all__ = ["Estimate", "MLFit", "filter_record", "fit", "log_likelihood", "noise_start", "run_filter", "start_state"]
 
 BOUNDS: dict[str, Bound] = {**LINEAR, **NOISE}
 TORQUES = ("noise.hub_torque", "noise.link_torque")  # the process noise: freed once the rest is fitted
@@ -96,11 +96,14 @@ def noise_start(records: Sequence[Record]) -> dict[str, float]:
 
 def start_state(model: StochasticModel, record: Record) -> tuple[np.ndarray, np.ndarray]:
     """The filter's first state and its covariance for ``record``: the hub where its first reading puts it, the
-    link at rest and the gauge offset its first reading, each with a variance wide enough for the first samples to
-    decide it (the hub's speed up to the record's fastest, the link's deflection up to its largest)."""
+    link at rest, the gauge offset its first reading and no missing force, each with a variance wide enough for the
+    first samples to decide it (the hub's speed up to the record's fastest, the link's deflection up to its largest,
+    the force up to the drive's at 1 V)."""
     nx = model.A.shape[0]
-    n = (nx - 2) // 2  # modes
-    c_theta = model.C[0, 0]
+    idx = {name: i for i, name in enumerate(model.states)}
+    links = [i for name, i in idx.items() if name.startswith("a_") and not name.startswith("a_dot")]
+    rates = [i for name, i in idx.items() if name.startswith("a_dot")]
+    c_theta = model.C[0, idx["theta"]]
     y, m = record.y, record.mask
     first = [int(np.argmax(m[:, j])) if m[:, j].any() else 0 for j in range(2)]
     sd_theta, sd_alpha = model.noise.theta + record.lattice[0], model.noise.alpha + record.lattice[1]
@@ -108,20 +111,26 @@ def start_state(model: StochasticModel, record: Record) -> tuple[np.ndarray, np.
     speed = float(np.max(np.abs(np.diff(th)))) / record.Ts if th.size > 1 else 0.0
     al = y[m[:, 1], 1]
     amp = float(np.max(np.abs(al - np.median(al)))) if al.size else 0.0
-    c_alpha = abs(model.C[1, 1]) or 1.0
+    c_alpha = abs(model.C[1, links[0]]) or 1.0
     x0 = np.zeros(nx)
-    x0[0] = y[first[0], 0] / c_theta
-    x0[-1] = y[first[1], 1]
-    var = np.empty(nx)
-    var[0] = ((3.0 * sd_theta + 1.0) / c_theta) ** 2
-    var[1 : 1 + n] = ((amp + 1.0) / c_alpha) ** 2
-    var[1 + n] = ((speed + 10.0) / abs(c_theta)) ** 2
-    var[2 + n : 2 + 2 * n] = model.w1**2 * var[1 : 1 + n]
-    var[-1] = (amp + 3.0 * sd_alpha + 1.0) ** 2
+    x0[idx["theta"]] = y[first[0], 0] / c_theta
+    x0[idx["b_alpha"]] = y[first[1], 1]
+    var = np.zeros(nx)
+    var[idx["theta"]] = ((3.0 * sd_theta + 1.0) / c_theta) ** 2
+    var[links] = ((amp + 1.0) / c_alpha) ** 2
+    var[idx["theta_dot"]] = ((speed + 10.0) / abs(c_theta)) ** 2
+    var[rates] = model.w1**2 * var[links]
+    var[idx["b_alpha"]] = (amp + 3.0 * sd_alpha + 1.0) ** 2
+    if "d" in idx:
+        var[idx["d"]] = model.drive**2
     return x0, np.diag(var)
 
 
-def _run(model: StochasticModel, discrete: Discrete, record: Record, delay: int, keep: bool = False) -> Filtered:
+def run_filter(
+    model: StochasticModel, discrete: Discrete, record: Record, delay: int = 0, keep: bool = False
+) -> Filtered:
+    """The filter of ``model`` (sampled: ``discrete``) through ``record`` from :func:`start_state`, the command
+    delayed by ``delay`` samples, the readings on the record's lattice; ``keep`` keeps the states for the smoother."""
     x0, P0 = start_state(model, record)
     u = np.column_stack([record.delayed(delay), np.ones(record.n)])
     discrete = replace(discrete, q=np.asarray(record.lattice, dtype=float))
@@ -134,7 +143,7 @@ def filter_record(
     """The filter of the rig ``plant`` with ``values`` (linear and noise parameters) through ``record``, its command
     delayed by ``delay`` samples (the DAQ's ``delay_samples``); ``keep`` keeps its states for the smoother."""
     model = rig_model(plant, *_split(values))
-    return _run(model, model.discretise(record.Ts), record, delay, keep)
+    return run_filter(model, model.discretise(record.Ts), record, delay, keep)
 
 
 def log_likelihood(
@@ -148,7 +157,7 @@ def log_likelihood(
     for rec in records:
         if rec.Ts not in discrete:
             discrete[rec.Ts] = model.discretise(rec.Ts)
-        total += _run(model, discrete[rec.Ts], rec, delay).loglik
+        total += run_filter(model, discrete[rec.Ts], rec, delay).loglik
     return total
 
 

@@ -52,13 +52,16 @@ NOISE: dict[str, Bound] = {
 
 @dataclass(frozen=True)
 class Noise:
-    """The model's noise: each reading's white noise [deg rms] and the intensities of the white torques on the hub
-    and at the link's tip [N m sqrt(s)] (a torque of intensity q held over a sample of Ts has the rms q / sqrt(Ts))."""
+    """The model's noise: each reading's white noise [deg rms], the intensities of the white torques on the hub
+    and at the link's tip [N m sqrt(s)] (a torque of intensity q held over a sample of Ts has the rms q / sqrt(Ts)),
+    and that of the missing force's random walk [N m / sqrt(s)] (a model with the force state,
+    :func:`rig_model`'s ``force``)."""
 
     theta: float
     alpha: float
     hub_torque: float = 0.0
     link_torque: float = 0.0
+    hub_force: float = 0.0
 
     @classmethod
     def from_values(cls, values: Mapping[str, float]) -> Noise:
@@ -70,8 +73,9 @@ class Noise:
 class StochasticModel:
     """The rig in continuous time (the module docstring's equations): ``A`` (nx x nx), ``B`` (nx x 2: the command
     [V] and the constant input), ``G`` (nx x 2: the hub's and the tip's white torques), ``C`` (2 x nx: theta and
-    alpha [deg]), its ``noise``, the state names ``states``, and the link's first free-hub frequency ``w1`` [rad/s]
-    (the scale of its start's uncertainty)."""
+    alpha [deg]), its ``noise``, the state names ``states``, the link's first free-hub frequency ``w1`` [rad/s] (the
+    scale of its start's uncertainty) and the drive's torque per volt ``drive`` [N m/V] (its force's scale). With the
+    missing force, ``G`` has a third column: the force's random walk."""
 
     A: np.ndarray
     B: np.ndarray
@@ -80,6 +84,7 @@ class StochasticModel:
     noise: Noise
     states: tuple[str, ...]
     w1: float
+    drive: float
 
     def discretise(self, Ts: float) -> Discrete:
         """The model sampled every ``Ts`` [s] with the inputs held over each sample: A_d = exp(A Ts), B_d its
@@ -88,7 +93,7 @@ class StochasticModel:
         M = np.zeros((nx + nu, nx + nu))
         M[:nx, :nx], M[:nx, nx:] = self.A, self.B
         E = expm(M * Ts)
-        W = np.diag([self.noise.hub_torque**2, self.noise.link_torque**2])
+        W = np.diag([self.noise.hub_torque**2, self.noise.link_torque**2, self.noise.hub_force**2][: self.G.shape[1]])
         V = np.zeros((2 * nx, 2 * nx))
         V[:nx, :nx], V[:nx, nx:], V[nx:, nx:] = -self.A, self.G @ W @ self.G.T, self.A.T
         F = expm(V * Ts)
@@ -97,10 +102,13 @@ class StochasticModel:
         return Discrete(A=E[:nx, :nx], B=E[:nx, nx:], Q=0.5 * (Q + Q.T), C=self.C, r=r)
 
 
-def rig_model(plant: Mapping[str, Any], values: Mapping[str, float], noise: Noise) -> StochasticModel:
+def rig_model(
+    plant: Mapping[str, Any], values: Mapping[str, float], noise: Noise, force: bool = False
+) -> StochasticModel:
     """The stochastic model of the rig ``plant`` (a spec's plant table, FMU defaults for the rest) with the linear
     parameters ``values`` (any of :data:`harness.diagnosis.recalibrate.LINEAR`; the others keep the plant's) and
-    ``noise``.
+    ``noise``; with ``force``, the missing force: a torque on the hub [N m], the state ``d``, a random walk of
+    intensity ``noise.hub_force`` (CTSM's systematic model improvement: what the model lacks, estimated as a state).
 
     Parameters
     ----------
@@ -110,6 +118,8 @@ def rig_model(plant: Mapping[str, Any], values: Mapping[str, float], noise: Nois
         Linear parameters by their diagnosis names (``rig.drive_gain``, ``plant.Ks``, ``sensor.theta_gain``, ...).
     noise : Noise
         The readings' and the torques' noise.
+    force : bool
+        Add the missing force's state.
 
     Returns
     -------
@@ -125,19 +135,25 @@ def rig_model(plant: Mapping[str, Any], values: Mapping[str, float], noise: Nois
     A, B, Cp, _ = plantmod.state_space(p)
     G_volt, _ = plantmod.motor_constants(p)
     n2 = A.shape[0]
-    nx = n2 + 1  # and the gauge offset
+    nx = n2 + 1 + int(force)  # and the gauge offset, the missing force
+    hub = B[:, 0] / G_volt  # a unit torque on the hub
     Ax = np.zeros((nx, nx))
     Ax[:n2, :n2] = A
+    if force:
+        Ax[:n2, -1] = hub
     u_offset = float(values.get("plant.u_offset", table.get("u_offset", 0.0)))
     Bx = np.zeros((nx, 2))
     Bx[:n2, 0], Bx[:n2, 1] = B[:, 0], B[:, 0] * u_offset
-    Gx = np.zeros((nx, 2))
-    Gx[:n2, 0], Gx[:n2, 1] = B[:, 0] / G_volt, B[:, 1]  # a unit torque on the hub; at the tip
+    Gx = np.zeros((nx, 2 + int(force)))
+    Gx[:n2, 0], Gx[:n2, 1] = hub, B[:, 1]  # on the hub; at the tip
+    if force:
+        Gx[-1, 2] = 1.0
     Cx = np.zeros((2, nx))
     Cx[0, :n2] = DEG * float(values.get("sensor.theta_gain", 1.0)) * Cp[0]
     Cx[1, :n2] = DEG * float(values.get("sensor.alpha_gauge_gain", 1.0)) * Cp[5]
     Cx[1, n2] = 1.0
     n = int(p.n_modes)
     states = ("theta", *(f"a_{i + 1}" for i in range(n)), "theta_dot", *(f"a_dot_{i + 1}" for i in range(n)))
+    states += ("b_alpha", "d") if force else ("b_alpha",)
     w1 = float(plantmod.mode_frequencies(p)[0, 0]) * 2.0 * math.pi
-    return StochasticModel(A=Ax, B=Bx, G=Gx, C=Cx, noise=noise, states=(*states, "b_alpha"), w1=w1)
+    return StochasticModel(A=Ax, B=Bx, G=Gx, C=Cx, noise=noise, states=states, w1=w1, drive=G_volt)
