@@ -26,6 +26,8 @@ if TYPE_CHECKING:
 
     from .diagnosis.result import Diagnosis
     from .ident.identify import GridResult
+    from .pipeline import PipelineResult
+    from .render.summary import Summary
 
 # A command imports what it runs when it runs (here, and only here, imports sit inside functions): ``--help`` and
 # ``--version`` then answer without loading numpy, fmpy, Dask or the pipeline (tests/test_cli_startup.py).
@@ -120,8 +122,8 @@ def _out_dir(path: Path, option: str = "--out") -> Path:
     return path
 
 
-def _fit(table: Any) -> Any:
-    """A rich table made to fit ``out``'s width without cutting a cell: every column folds instead of ending in "…"
+def _fit(table: Any, width: int | None = None) -> Any:
+    """A rich table made to fit ``width`` (default ``out``'s) without cutting a cell: every column folds, never "…"
     (a column marked no_wrap keeps its widest cell whole); a table too wide for its borders loses them (one space
     between columns); one still too wide is wrapped: its columns in parts, one under the other, each part with the
     first column again (the title above the first, the caption under all, as wide as the terminal)."""
@@ -136,14 +138,15 @@ def _fit(table: Any) -> Any:
         if c.no_wrap:
             c.min_width = max((len(str(x)) for x in (c.header, *c.cells)), default=0)
     wide = out.options.update_width(10_000)
-    if Measurement.get(out, wide, table).maximum <= out.width:
+    width = width or out.width
+    if Measurement.get(out, wide, table).maximum <= width:
         return table
     table.box, table.padding, table.show_edge = box.SIMPLE_HEAD, (0, 1), False
-    if Measurement.get(out, wide, table).minimum <= out.width:
+    if Measurement.get(out, wide, table).minimum <= width:
         return table
     first, parts = table.columns[0], [list[Any]()]
     for c in table.columns[1:]:
-        if parts[-1] and sum((x.min_width or 12) + 3 for x in (first, *parts[-1], c)) > out.width:  # pad, rule
+        if parts[-1] and sum((x.min_width or 12) + 3 for x in (first, *parts[-1], c)) > width:  # pad, rule
             parts.append([])
         parts[-1].append(c)
     tables = []
@@ -156,6 +159,14 @@ def _fit(table: Any) -> Any:
             t.add_row(*(c._cells[r] for c in (first, *cols)))
         tables.append(t)
     return Group(*tables, *([Text(str(table.caption), style="dim")] if table.caption else []))
+
+
+def _table(table: Any) -> Any:
+    """A table of a command's summary: :func:`_fit` to the summary's width (:data:`harness.render.summary.WIDTH`
+    at most)."""
+    from .render.summary import WIDTH
+
+    return _fit(table, min(out.width, WIDTH))
 
 
 class _Elapsed:
@@ -491,38 +502,75 @@ def identify(
 
     with session(workers, scheduler):  # the grid's tasks run on this session's cluster
         res, _, cal, ident = identify_run(run_dir, over, progress=_progress("grid"))
+    from .render.summary import Summary
+
     g = res.grid
-    out.print(
+    s = Summary("grid.csv")
+    s.line(
         f"Kp {cal.Kp:.4f} deg/V, Ke {cal.Ke:.4f} deg/V, dead zone {cal.dead_zone_v:.4f} V; "
         f"{len(g)} orders x datasets, {int(g['causal'].sum())} causal, {int(g['survivor'].sum())} survivors"
     )
-    out.print(_fit(crossval_table(res)))
+    s.table(_table(crossval_table(res)))
     sel = g.loc[res.selected]
-    out.print(f"selected ARMAX({sel.na},{sel.nb},{sel.nc},{sel.nk}) from {sel.dataset}: {res.rule}")
+    s.line(f"selected ARMAX({sel.na},{sel.nb},{sel.nc},{sel.nk}) from {sel.dataset}: {res.rule}")
     if ident.get("doubled_rate", True):
         d = doubled_rate_check(run_dir, res.models[res.selected], ident, cal)
         if "skipped" not in d:
-            out.print(
+            s.line(
                 f"doubled rate ({d['sample_rate_hz']:g} Hz, {d['experiment']}): 50 Hz model as is "
                 f"{d['fit_model_50hz_as_is']:.1f} %, re-identified {d['fit_reidentified_100hz']:.1f} %"
             )
+    s.close(f"full detail: {run_dir / 'grid.csv'}, {run_dir / 'models'}")
+    s.print(out)
 
 
 def crossval_table(res: GridResult) -> Table:
-    """Lab 1's table 2: each dataset's best model (rows) cross-validated on every dataset (columns)."""
+    """Lab 1's table 2: each dataset's best model (rows) cross-validated on every dataset (columns); of more than
+    :data:`harness.render.summary.MAX_ROWS` datasets the first ones (the average over all of them)."""
     from rich.table import Table
 
+    from .render.summary import MAX_ROWS, more
+
+    shown = res.datasets[: MAX_ROWS - 1] if len(res.datasets) > MAX_ROWS else res.datasets
     t = Table(title="cross-validation fit % (rows: model of dataset i; columns: dataset j)")
     t.add_column("model", no_wrap=True)
-    for j in range(1, len(res.datasets) + 1):
+    for j in range(1, len(shown) + 1):
         t.add_column(str(j), justify="right", no_wrap=True)
     t.add_column("average", justify="right", no_wrap=True)
-    t.caption = "datasets: " + ", ".join(f"{j} {n}" for j, n in enumerate(res.datasets, 1))
-    for i, (name, row_i) in enumerate([*res.best.items(), ("selected", res.selected)], 1):
+    t.caption = "datasets: " + ", ".join(f"{j} {n}" for j, n in enumerate(shown, 1))
+    if len(shown) < len(res.datasets):
+        t.caption += f", {more(len(res.datasets) - len(shown), 'grid.csv')}"
+    rows = [(n, res.best[n]) for n in shown if n in res.best]
+    for i, (name, row_i) in enumerate([*rows, ("selected", res.selected)], 1):
         r = res.grid.loc[row_i]
-        cells = [f"{r[f'cv_{n}']:.2f}" for n in res.datasets]
+        cells = [f"{r[f'cv_{n}']:.2f}" for n in shown]
         label = f"{i} ({r.na},{r.nb},{r.nc})" if name != "selected" else f"sel ({r.na},{r.nb},{r.nc})"
         t.add_row(label, *cells, f"{r['cv_mean']:.2f}")
+    return t
+
+
+def crossfit_table(df: Any) -> Table:
+    """The cross-fit matrix (a pandas frame: each dataset's model and the selected one (rows) through its FMU on
+    every dataset (columns) and their average), its datasets numbered; of more than
+    :data:`harness.render.summary.MAX_ROWS` datasets the first ones (the average over all of them)."""
+    from rich.table import Table
+
+    from .render.summary import MAX_ROWS, more
+
+    names = [c for c in df.columns if c != "average"]
+    shown = names[: MAX_ROWS - 1] if len(names) > MAX_ROWS else names
+    t = Table(title="cross-fit through the exported FMUs, fit % (rows: model of dataset i; columns: dataset j)")
+    t.add_column("model", no_wrap=True)
+    for j in range(1, len(shown) + 1):
+        t.add_column(str(j), justify="right", no_wrap=True)
+    t.add_column("average", justify="right", no_wrap=True)
+    t.caption = "datasets: " + ", ".join(f"{j} {n}" for j, n in enumerate(shown, 1))
+    if len(shown) < len(names):
+        t.caption += f", {more(len(names) - len(shown), 'crossfit.csv')}"
+    number = {n: str(j) for j, n in enumerate(names, 1)}
+    for model in [*(m for m in df.index if m in shown), *(m for m in df.index if m not in names)]:
+        cells = [f"{df.loc[model, n]:.2f}" for n in (*shown, "average")]
+        t.add_row(number.get(model, str(model)), *cells)
     return t
 
 
@@ -574,19 +622,29 @@ RigArg = Annotated[
 ]
 
 
-def _prediction_line(doc: dict) -> str:
-    """The terminal's summary of a prediction: each metric's median [band] (measured)."""
+def prediction_screen(doc: dict, directory: Path, n: int) -> Summary:
+    """What ``flexjoint predict`` prints (:mod:`harness.render.summary`'s rule: one screen): each metric's median
+    [95 % band] (and measured), the median's fit to the record, the specs judged, where the prediction is."""
+    from .render.summary import Summary, joined
     from .render.tables import fmt_any
 
-    parts = []
+    s = Summary("prediction.json")
+    metrics, measured = [], False
     for m, b in doc["metrics"].items():
         if m.startswith("stop_error_") or m == "ring_hz":
             continue
+        measured = measured or b.get("measured") is not None
         meas = f", measured {fmt_any(b['measured'])}" if b.get("measured") is not None else ""
-        parts.append(f"{m} {fmt_any(b['median'])} [{fmt_any(b['lo'])}..{fmt_any(b['hi'])}]{meas}")
-    fit = doc.get("fit_pct")
-    tail = f"; median's fit theta {fit['theta']:.1f} %, alpha {fit['alpha']:.1f} %" if fit else ""
-    return "; ".join(parts) + tail
+        metrics.append(f"{m} {fmt_any(b['median'])} [{fmt_any(b['lo'])}..{fmt_any(b['hi'])}]{meas}")
+    s.line("each metric's median [95 % band]" + (", measured on the record:" if measured else ":"))
+    s.items(metrics, 2)
+    if fit := doc.get("fit_pct"):
+        s.line(f"median's fit theta {fit['theta']:.1f} %, alpha {fit['alpha']:.1f} %")
+    if doc.get("specs"):
+        s.line(f"specs: {'met' if doc['passed'] else 'NOT met'} ("
+               + joined((v["spec"] for v in doc["specs"].values()), "prediction.json") + ")")  # fmt: skip
+    s.close(f"{n} members -> {directory} (prediction.json, report.md)")
+    return s
 
 
 @app.command()
@@ -657,12 +715,7 @@ def predict(
     )  # fmt: skip
     path = write_prediction(pred, out_dir)
     doc = json.loads((out_dir / "prediction.json").read_text())
-    out.print(_prediction_line(doc))
-    if judged is not None:
-        out.print(
-            f"specs: {'met' if doc['passed'] else 'NOT met'} ({', '.join(v['spec'] for v in doc['specs'].values())})"
-        )
-    out.print(f"{n} members -> {path.parent}")
+    prediction_screen(doc if judged is not None else {**doc, "specs": None}, path.parent, n).print(out)
 
 
 @app.command()
@@ -733,20 +786,33 @@ def design(
             progress=_progress("design"),
         )  # fmt: skip
     path = write_design(d, twin, out_dir)
-    doc = d.to_json()
-    out.print(f"{method}: {doc['parameters']}; disk margin {doc['linear']['disk_margin']:.3g}")
-    out.print("; ".join(f"{v['spec']}: predicted {v['predicted']:.3g} ({'met' if v['met'] else 'NOT met'})"
-                        for v in (doc["specs"] or {}).values()))  # fmt: skip
-    out.print(f"-> {path.parent} (controller.toml, loop.ssp, design.json, prediction.json)")
+    design_screen(d.to_json(), method, path.parent).print(out)
+
+
+def design_screen(doc: dict, method: str, directory: Path) -> Summary:
+    """What ``flexjoint design`` prints (:mod:`harness.render.summary`'s rule: one screen): the controller's
+    parameters and disk margin, each spec predicted (met or not), where the design is."""
+    from .render.summary import Summary
+
+    s = Summary("design.json")
+    s.line(f"{method}: {doc['parameters']}; disk margin {doc['linear']['disk_margin']:.3g}")
+    s.items([f"{v['spec']}: predicted {v['predicted']:.3g} ({'met' if v['met'] else 'NOT met'})"
+             for v in (doc["specs"] or {}).values()])  # fmt: skip
+    s.close(f"-> {directory} (controller.toml, loop.ssp, design.json, prediction.json)")
+    return s
 
 
 @app.command()
 def crossfit(run_dir: Annotated[Path, typer.Argument(help="run directory with identified models")]) -> None:
     """Export every model as an FMU and score each on every dataset through fmpy: crossfit.csv."""
     from .ident.crossfit import crossfit_run
+    from .render.summary import Summary
 
     df = crossfit_run(run_dir, progress=_progress("crossfit"))
-    out.print(df.round(2).to_string())
+    s = Summary("crossfit.csv")
+    s.table(_table(crossfit_table(df)))
+    s.close(f"full detail: {run_dir / 'crossfit.csv'}")
+    s.print(out)
 
 
 @app.command()
@@ -790,7 +856,7 @@ def diagnose(
     d = diagnose_run(
         real, sim, out_dir, progress=_progress("diagnose"), replay=replay, force=force, **_parallel(workers, scheduler)
     )
-    out.print(diagnosis_summary(d))
+    diagnosis_screen(d, out_dir or real).print(out)
     if engine == "likelihood":
         from .likelihood.unit import fit_run, write_likelihood
 
@@ -849,10 +915,14 @@ def sweep(
         if math.isfinite(top["s1"])
         else f"sensitivity indices: n = {p['n']} rigs too few"
     )
-    out.print(
+    from .render.summary import Summary
+
+    screen = Summary("sweep.json")
+    screen.line(
         f"{p['n']} rigs: {p['passed']} pass = {100 * p['rate']:.1f} % (95 % CI {100 * p['ci95'][0]:.1f}-"
         f"{100 * p['ci95'][1]:.1f} %); {most}; {doc['wall_s']:.1f} s -> {out_dir}"
     )
+    screen.print(out)
 
 
 @app.command()
@@ -883,47 +953,108 @@ def interval_text(lo: float, hi: float) -> str:
 
 
 def diagnosis_summary(d: Diagnosis) -> str:
-    """A few lines for the terminal: verdict, effects in greedy order with their fitted parameters, the shrink."""
-    from .render.gap_text import behaviour_outside, sensor_lines
+    """The terminal's summary of a diagnosis (:func:`diagnosis_screen`) as text, one line per line, unwrapped."""
+    return str(diagnosis_screen(d))
 
-    lines = [f"verdict: {d.verdict}"]
+
+def _moved(p: Any) -> tuple[int, float]:
+    """A parameter's place in "the parameters that moved most": first those found off the spec beyond their 95 %
+    interval, then the others the data determine, then those they do not; in each, the largest move first (the log
+    of fitted over the spec's value; off a spec of 0, an offset, the largest when beyond its interval)."""
+    lo, hi = p.ci95
+    undetermined = p.identifiable is False or "not determined" in (p.finding or "")
+    beyond = p.off_spec and math.isfinite(lo) and math.isfinite(hi) and not lo <= p.nominal <= hi
+    kind = 2 if undetermined else 0 if beyond else 1
+    if p.nominal == 0 or p.fitted == 0 or p.fitted / p.nominal <= 0:
+        moved = math.inf if beyond else 0.0
+    else:
+        moved = abs(math.log(p.fitted / p.nominal))
+    return kind, -moved
+
+
+def diagnosis_screen(d: Diagnosis, directory: Path | None = None) -> Summary:
+    """What ``flexjoint diagnose`` prints (:mod:`harness.render.summary`'s rule: one screen): the verdict, the gap
+    (as given, recalibrated, with the effects, the noise floor; per channel and on every experiment), the effects,
+    the parameters that moved most, each record's fit, sensors and behaviour, the caveats' first sentences, how
+    experiments were replayed, and where the full detail is (``directory``'s diagnosis.json and report.md)."""
+    from .render.gap_text import behaviour_outside
+    from .render.summary import Summary, brief, joined, more
+
+    where = "diagnosis.json"
+    s = Summary(where)
+    s.line(f"verdict: {d.verdict}")
     if d.calibration.gauge_delay_s:
-        lines.append(f"  data: {d.calibration.gauge_delay_method}")
-    for name, p in d.parameters.items():
-        if p.finding is not None:
-            lo, hi = p.ci95
-            shown = p.kept or "95 % interval" in p.finding  # an undetermined one's finding gives it already
-            lines.append(f"  {name}: {p.finding}" + ("" if shown else f" (95 % interval {interval_text(lo, hi)})"))
-    lines += [f"  sensors: {r}" for r in sensor_lines(d)]
-    for e in d.effects:
-        params = ", ".join(f"{k}={v:.4g}" for k, v in e.params.items())
-        lines.append(f"  + {e.effect} ({params}): shrink {e.shrink_pct:.1f} % on held-out experiments")
-        if e.against_record:
-            lines.append(f"    {e.against_record}")
+        s.line(f"data: {brief(d.calibration.gauge_delay_method or '', where)}", 2)
+    for e in cut_effects(d, where):
+        s.line(e, 2)
     dec = d.gap.decomposition
     fits = {"before": dec.before, "after recalibration": dec.after_recalibration,
             "after effects": dec.after_effects, "noise floor": dec.noise_floor}  # fmt: skip
-    lines.append("held-out fit: " + ", ".join(f"{k} {100 * (1 - g):.2f} %" for k, g in fits.items()))
+    s.line("held-out fit: " + ", ".join(f"{k} {100 * (1 - g):.2f} %" for k, g in fits.items()))
     if dec.channels:
-        lines.append("held-out fit per channel: " + ", ".join(
+        s.line("held-out fit per channel: " + ", ".join(
             f"{k.replace('_', ' ')} " + " ".join(f"{c} {v:.1f} %" for c, v in by.items())
             for k, by in dec.channel_stages()
         ) + ("; what is left is within the replays' own spread" if dec.at_floor()
              else f"; the gap is in {dec.gap_channel()}"))  # fmt: skip
+    gap = d.gap
+    s.line(f"gap: fit {gap.before.fit_pct:.2f} % -> {gap.after.fit_pct:.2f} %, total shrink {gap.shrink_pct:.1f} %")
+    found = [(n, p) for n, p in d.parameters.items() if p.finding is not None]
+    kept = [n for n, p in found if p.kept]
+    found = sorted(((n, p) for n, p in found if not p.kept), key=lambda x: _moved(x[1]))
+    if found:
+        s.line("parameters that moved most:")
+        lines = []
+        for name, p in found:
+            lo, hi = p.ci95
+            shown = p.kept or "95 % interval" in (p.finding or "")  # an undetermined one's finding gives it already
+            lines.append(f"{name}: {p.finding}" + ("" if shown else f" (95 % interval {interval_text(lo, hi)})"))
+        s.items(lines, 2)
+    if kept:
+        s.line("kept at the spec's values (recalibrating them did not improve the held-out fit): "
+               + joined(kept, where))  # fmt: skip
+    s.items([f"caveat: {brief(c, where)}" for c in d.caveats or []])
+    kinds: dict[str, list[str]] = {}
+    for r in (d.replays or {}).values():
+        kinds.setdefault(r["replay"], []).append(r["reason"])
+    for kind, why in sorted(kinds.items()):  # each kind's first reason; the others (their R^2) in the file
+        n, other = len(why), len(set(why)) - 1
+        s.line(f"replay: {kind}" + (f", {n} experiments" if n > 1 else "") + f" ({why[0]})"
+               + (f", {more(other, where).replace('more', 'more reasons')}" if other else ""))  # fmt: skip
     if d.gap.records:
-        lines.append("each record's fit, recalibrated alone -> with the joint parameters: " + ", ".join(
-            f"{n} {r['own']:.1f} -> {r['joint']:.1f} %" for n, r in d.gap.records.items()))  # fmt: skip
-    lines.append(
-        f"gap: fit {d.gap.before.fit_pct:.2f} % -> {d.gap.after.fit_pct:.2f} %, total shrink {d.gap.shrink_pct:.1f} %"
-    )
-    for name, outside in behaviour_outside(d).items():
-        cover = 100.0 * d.behaviour[name].coverage if d.behaviour else math.nan
-        lines.append(f"behaviour {name}: {cover:.0f} % of its step metrics inside the replays' 95 % band"
-                     + (f"; outside: {', '.join(outside)}" if outside else ""))  # fmt: skip
-    lines += [f"caveat: {c}" for c in d.caveats or []]
-    replays = sorted({(r["replay"], r["reason"]) for r in (d.replays or {}).values()})
-    lines += [f"replay: {kind} ({why})" for kind, why in replays]
-    return "\n".join(lines)
+        s.line("each record's fit, recalibrated alone -> with the joint parameters: " + joined(
+            (f"{n} {r['own']:.1f} -> {r['joint']:.1f} %" for n, r in d.gap.records.items()), where))  # fmt: skip
+    if d.sensors:
+        s.line("sensors, each record's gauge offset: " + joined(
+            (f"{n} {r.gauge_offset_deg[0]:.4g} deg" + (f" ({r.gauge_offset_deg[1]:.4g}..{r.gauge_offset_deg[2]:.4g})"
+             if math.isfinite(r.gauge_offset_deg[1]) else " (least squares, open loop)")
+             for n, r in d.sensors.items()), where))  # fmt: skip
+    outside = behaviour_outside(d)
+    if outside and d.behaviour:
+        s.line("behaviour, each record's step metrics inside the replays' 95 % band: " + joined(
+            (f"{n} {100.0 * d.behaviour[n].coverage:.0f} %" + (f" ({len(ms)} outside)" if ms else "")
+             for n, ms in outside.items()), where))  # fmt: skip
+    if directory is not None:
+        report = directory / "report.md"
+        s.close(f"full detail: {directory / 'diagnosis.json'}, " + (
+            f"{report}" if report.is_file() else f"report.md (flexjoint report {directory})"))  # fmt: skip
+    return s
+
+
+def cut_effects(d: Diagnosis, where: str) -> list[str]:
+    """The effects found, in the order they were added, each with its fitted parameters and shrink (and a line of
+    its parameter against the record's own range), cut after :data:`harness.render.summary.MAX_ITEMS`."""
+    from .render.summary import MAX_ITEMS, more
+
+    lines = []
+    for e in d.effects[:MAX_ITEMS]:
+        params = ", ".join(f"{k}={v:.4g}" for k, v in e.params.items())
+        lines.append(f"+ {e.effect} ({params}): shrink {e.shrink_pct:.1f} % on held-out experiments")
+        if e.against_record:
+            lines.append(f"  {e.against_record}")
+    if len(d.effects) > MAX_ITEMS:
+        lines.append(more(len(d.effects) - MAX_ITEMS, where))
+    return lines
 
 
 @app.command()
@@ -960,12 +1091,15 @@ def blindtest(
         n, seed, out_dir, progress=_progress("blindtest"), families=fams, quick=quick, keep=keep,
         **_parallel(workers, scheduler),
     )  # fmt: skip
-    out.print(_fit(blindtest_table(res["totals"])))
+    from .render.summary import Summary
+
+    s = Summary("blindtest.json")
+    s.table(_table(blindtest_table(res["totals"])))
     if line := not_fitted_line(res["totals"]):
-        out.print(line)
-    out.print(f"{res['n']} cases in {res['timing_s']:.0f} s -> {Path(out_dir) / 'blindtest.json'}")
-    for why in res.get("skipped", []):
-        out.print(f"skipped family {why}")
+        s.line(line)
+    s.items([f"skipped family {why}" for why in res.get("skipped", [])])
+    s.close(f"{res['n']} cases in {res['timing_s']:.0f} s -> {Path(out_dir) / 'blindtest.json'}")
+    s.print(out)
 
 
 def blindtest_table(tot: dict[str, Any]) -> Table:
@@ -979,6 +1113,7 @@ def blindtest_table(tot: dict[str, Any]) -> Table:
         return f"{share['pct']:.0f} % [{lo:.0f}-{hi:.0f}] ({share['k']}/{share['n']})"
 
     from .diagnosis.blindtest import score_share, shown_rows
+    from .render.summary import joined
 
     cols = [*tot.get("families", {}), "pooled"]
     t = Table(title="blind test (share, 95 % Wilson interval, count)")
@@ -995,7 +1130,8 @@ def blindtest_table(tot: dict[str, Any]) -> Table:
             return f"too few cases to tell: {v['n']}"
         return "met" if v["met"] else "NOT met"
 
-    t.caption = "targets: " + "; ".join(f"{k} >= {v['target']:g} ({verdict(v)})" for k, v in tot["targets"].items())
+    targets = (f"{k} >= {v['target']:g} ({verdict(v)})" for k, v in tot["targets"].items())
+    t.caption = "targets: " + joined(targets, "blindtest.json", "; ")
     return t
 
 
@@ -1036,8 +1172,20 @@ def run(
             spec, out_dir, set_ or [], sim=sim, rrd=rrd, spawn=spawn, connect=connect, progress=progress,
             status=progress.status, force=force,  # type: ignore[attr-defined]
         )  # fmt: skip
-    out.print(result.summary)
-    out.print("stages: " + ", ".join(f"{k} {v:.1f} s" for k, v in result.stages.items()))
+    run_screen(result, out_dir).print(out)
+
+
+def run_screen(result: PipelineResult, run_dir: Path) -> Summary:
+    """What ``flexjoint run`` prints (:mod:`harness.render.summary`'s rule: one screen): the pipeline's summary and
+    stages, then the diagnosis's (:func:`diagnosis_screen`) of ``run_dir``."""
+    from .diagnosis.result import Diagnosis
+    from .render.summary import Summary
+
+    s = Summary("report.md")
+    s.line(result.summary)
+    s.line("stages: " + ", ".join(f"{k} {v:.1f} s" for k, v in result.stages.items()))
+    s.extend(diagnosis_screen(Diagnosis.load(run_dir), run_dir))
+    return s
 
 
 @app.command()
