@@ -99,7 +99,8 @@ def test_cu_records_diagnosed_against_their_lab_sheet(cu_run):
     assert all(line.count("95 % interval") <= 1 for line in summary.splitlines())
     assert "sensors, each record's gauge offset: flexibleArm_test_3 " in summary
     assert "behaviour, each record's step metrics inside the replays' 95 % band: flexibleArm_test_3 " in summary
-    assert any(line.startswith(f"Gauge timing (every replay reads it so): {said}") for line in diagnosis_markdown(d))
+    paragraphs = "\n".join(diagnosis_markdown(d)).replace("\n\n", "\0").replace("\n", " ").split("\0")  # lines joined
+    assert any(p.startswith(f"Gauge timing (every replay reads it so): {said}") for p in paragraphs)
     dec = d.gap.decomposition
     assert 100 * (1 - dec.before) < 67.0 and 100 * (1 - dec.after_recalibration) > 86.0
     assert dec.channels["after_recalibration"]["alpha"] > 81.0

@@ -61,7 +61,8 @@ class UnitFit:
         moved = sorted(((abs(np.log(e.value / self.nominal[k])), k, e) for k, e in f.estimates.items()
                         if k in self.nominal and e.value > 0 and self.nominal[k] > 0), reverse=True)  # fmt: skip
         for _, k, e in moved[:5]:
-            lines.append(f"  {k:24s} {e.value:.4g} {e.unit} ({e.value / self.nominal[k]:.3g}x the sheet), "
+            unit = "" if e.unit == "1" else f" {e.unit}"
+            lines.append(f"  {k:24s} {e.value:.4g}{unit} ({e.value / self.nominal[k]:.3g}x the sheet), "
                          f"95 % {e.ci95[0]:.4g}..{e.ci95[1]:.4g}")  # fmt: skip
         lines += [f"  finding: {x}" for x in self.findings[:5]] or ["  nothing at a bound: effects may be tried"]
         if path is not None:
