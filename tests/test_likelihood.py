@@ -276,8 +276,10 @@ def test_the_missing_force_draws_friction_against_the_hubs_speed(coulomb):
     model lacks, the rig's linear parameters given: the smoothed missing force is the friction, -0.03 N m while the
     hub turns forward and +0.03 backward (its median within 5 %; measured 0.2 %), and the records want it (a
     random walk's intensity above zero, a log-likelihood gain). On the same twin without friction: no force (an
-    intensity of zero, the force under 1e-4 N m)."""
-    from harness.likelihood.force import force_picture
+    intensity of zero, the force under 1e-4 N m). The classifier names them friction, its size and its dead band in
+    volts within 5 %, and none; some samples, under a tenth, lie at rest."""
+    from harness.fmu.plant import PlantParams, motor_constants
+    from harness.likelihood.force import classify, force_picture
 
     n = 5000
     u = np.where(np.arange(n) * TS % 2.0 < 1.0, 1.0, -1.0)
@@ -290,9 +292,15 @@ def test_the_missing_force_draws_friction_against_the_hubs_speed(coulomb):
     pic = force_picture(PLANT, values, [rec])
     tr = pic.traces[0]
     forward, backward = np.median(tr.force[tr.speed > 20.0]), np.median(tr.force[tr.speed < -20.0])
+    named = classify(pic)
     if coulomb:
         assert pic.intensity > 0 and pic.gain > 100
         assert forward == pytest.approx(-coulomb, rel=0.05) and backward == pytest.approx(coulomb, rel=0.05)
+        assert named.shape == "friction" and named.size == pytest.approx(coulomb, rel=0.05)
+        G, _ = motor_constants(PlantParams(**PLANT))
+        assert named.dead_band_v == pytest.approx(coulomb / G, rel=0.05)
     else:
         assert pic.intensity == 0 and pic.gain == 0
         assert np.abs(tr.force).max() < 1e-4
+        assert named.shape == "none" and named.size == 0
+    assert 0 < named.samples_near_zero < n // 10

@@ -21,7 +21,7 @@ from .kalman import smooth
 from .model import DEG, Noise, rig_model
 from .record import Record
 
-__all__ = ["ForcePicture", "ForceTrace", "force_picture"]
+__all__ = ["ForcePicture", "ForceTrace", "MissingForce", "classify", "force_picture"]
 
 INTENSITY_RANGE = (1e-5, 10.0)  # N m / sqrt(s): where the force's intensity is searched (log), beside none
 
@@ -29,14 +29,15 @@ INTENSITY_RANGE = (1e-5, 10.0)  # N m / sqrt(s): where the force's intensity is 
 @dataclass(frozen=True)
 class ForceTrace:
     """One record's smoothed missing force ``force`` [N m] and its standard deviation ``force_sd``, beside the
-    hub's smoothed speed ``speed`` [deg/s], the command ``u`` [V] and the smoothed deflection ``alpha`` [deg], at
-    times ``t`` [s]."""
+    hub's smoothed speed ``speed`` [deg/s] and its standard deviation ``speed_sd``, the command ``u`` [V] and the
+    smoothed deflection ``alpha`` [deg], at times ``t`` [s]."""
 
     name: str
     t: np.ndarray
     force: np.ndarray
     force_sd: np.ndarray
     speed: np.ndarray
+    speed_sd: np.ndarray
     u: np.ndarray
     alpha: np.ndarray
 
@@ -44,11 +45,32 @@ class ForceTrace:
 @dataclass(frozen=True)
 class ForcePicture:
     """The missing force of a fitted model: its random walk's ``intensity`` [N m/sqrt(s)] (0: the records want none),
-    the log-likelihood it gains over the model without it ``gain`` [nats], and each record's ``traces``."""
+    the log-likelihood it gains over the model without it ``gain`` [nats], each record's ``traces``, and the drive's
+    torque per volt ``drive`` [N m/V] (a force's size as the command that would make it)."""
 
     intensity: float
     gain: float
     traces: tuple[ForceTrace, ...]
+    drive: float
+
+
+@dataclass(frozen=True)
+class MissingForce:
+    """What the missing force's shape says: ``shape`` "friction" (a jump at zero speed, against the motion) or "none";
+    its ``size`` [N m] (half the jump: the Coulomb level) with its ``unit``, the command it takes to make it
+    ``dead_band_v`` [V], and the samples the records hold at rest (``samples_near_zero``: within three of the speed's
+    standard deviations of zero), where a stick phase would show."""
+
+    shape: str
+    size: float
+    unit: str
+    dead_band_v: float
+    samples_near_zero: int
+
+    def to_json(self) -> dict[str, Any]:
+        """As ``missing_force`` in likelihood.json."""
+        return {"shape": self.shape, "size": self.size, "unit": self.unit, "dead_band_v": self.dead_band_v,
+                "samples_near_zero": self.samples_near_zero}  # fmt: skip
 
 
 def _loglik(plant: Mapping[str, Any], values: Mapping[str, float], records: Sequence[Record], delay: int,
@@ -101,6 +123,36 @@ def force_picture(
         gauge = model.C[1, : i_d - 1]  # the gauge's row without its offset
         traces.append(ForceTrace(
             rec.name, np.arange(rec.n) * rec.Ts, x[:, i_d], np.sqrt(np.maximum(P[:, i_d, i_d], 0.0)),
-            x[:, i_w] * DEG, rec.u, x[:, : i_d - 1] @ gauge,
+            x[:, i_w] * DEG, np.sqrt(np.maximum(P[:, i_w, i_w], 0.0)) * DEG, rec.u, x[:, : i_d - 1] @ gauge,
         ))  # fmt: skip
-    return ForcePicture(intensity, ll - none, tuple(traces))
+    return ForcePicture(intensity, ll - none, tuple(traces), model.drive)
+
+
+def classify(picture: ForcePicture) -> MissingForce:
+    """Name the missing force's shape: friction where the force, while the hub turns (its speed more than three of
+    its standard deviations from zero), opposes the motion on both sides and the step between the two sides' medians
+    stands out of their spread (each side's median absolute deviation over the square root of its samples, three
+    times over); none where the records want no force or it does not stand out.
+
+    Parameters
+    ----------
+    picture : ForcePicture
+        :func:`force_picture`'s.
+
+    Returns
+    -------
+    MissingForce
+    """
+    force = np.concatenate([tr.force for tr in picture.traces])
+    speed = np.concatenate([tr.speed for tr in picture.traces])
+    moving = np.abs(speed) > 3.0 * np.concatenate([tr.speed_sd for tr in picture.traces])
+    near = int(np.sum(~moving))
+    fwd, back = force[moving & (speed > 0)], force[moving & (speed < 0)]
+    if picture.intensity == 0.0 or fwd.size < 3 or back.size < 3:
+        return MissingForce("none", 0.0, "N m", 0.0, near)
+    f, b = float(np.median(fwd)), float(np.median(back))
+    spread = sum(float(np.median(np.abs(x - np.median(x)))) / math.sqrt(x.size) for x in (fwd, back))
+    if f < 0.0 < b and b - f > 3.0 * spread:
+        size = 0.5 * (b - f)
+        return MissingForce("friction", size, "N m", size / picture.drive, near)
+    return MissingForce("none", 0.0, "N m", 0.0, near)
