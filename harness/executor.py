@@ -40,6 +40,16 @@ without Dask's statistical profiler and with a slow event-loop tick and monitors
 otherwise take the GIL from a task's thread; a remote cluster keeps its own configuration. The measurements behind each
 are on the manual's validation page.
 
+The same bytes on a cluster the user started: numpy and OpenBLAS pick their kernels as numpy loads, from the variables
+:func:`harness.numerics.pin_numerics` sets, which a ``dask worker`` started by hand does not have, and which are too
+late once its worker process runs (``distributed`` imports numpy; its own ``Environ`` plugin sets them there, and the
+kernels stay SkylakeX). Connecting to a remote scheduler registers :class:`PinnedNumerics`, a nanny plugin that puts
+the client's variables into each nanny's pre-spawn environment and restarts its worker when they change it, so the
+worker process loads numpy pinned: a plain ``dask worker ADDRESS --nworkers 2 --nthreads 1`` then gives the serial
+bytes. Then every worker's kernels are checked against the client's (:func:`harness.workercall.check_kernels`), and
+so is every task's worker (one that joined later); a worker that differs (started ``--no-nanny``, other numpy) is a
+one-line ``RuntimeError`` saying how to start it, before any task runs.
+
 No shared filesystem: built FMUs travel as :class:`FmuBytes` and :func:`fmu_file` writes each once per worker
 process; the co-simulation's step loops (``fmus/master``) reach a remote cluster's workers as bytes too
 (:class:`MasterLibrary`), so a worker needs no compiler; :func:`worker_cache` keeps per-process objects (a loaded
@@ -53,6 +63,7 @@ import contextlib
 import contextvars
 import hashlib
 import multiprocessing
+import os
 import pickle
 import shutil
 import tempfile
@@ -68,7 +79,7 @@ from typing import Any, TypeVar
 
 from distributed import Client, as_completed, get_worker
 from distributed.client import FutureCancelledError
-from distributed.diagnostics.plugin import WorkerPlugin
+from distributed.diagnostics.plugin import NannyPlugin, WorkerPlugin
 from distributed.scheduler import KilledWorker
 
 from .clusterprocess import LocalProcessCluster, adopt, prestart, scheduler_from_env
@@ -76,7 +87,8 @@ from .fmu.build import build_master, install_master
 from .fmu.cosim import Rig
 from .localcluster import CLUSTER_CONFIG
 from .machine import default_workers, env_workers
-from .workercall import call, one_blas_thread, pack, run_packed
+from .numerics import pinned_environ
+from .workercall import call, check_kernels, kernels, one_blas_thread, pack, run_packed
 
 __all__ = [
     "CLUSTER_CONFIG",
@@ -85,6 +97,7 @@ __all__ = [
     "FmuBytes",
     "LocalProcessCluster",
     "MasterLibrary",
+    "PinnedNumerics",
     "fmu_bytes",
     "fmu_file",
     "in_session",
@@ -164,6 +177,36 @@ class MasterLibrary(WorkerPlugin):
 
     def setup(self, worker: Any) -> None:
         install_master(self.library.name, self.library.data)
+
+
+class PinnedNumerics(NannyPlugin):
+    """The client's pinned numerics (:func:`harness.numerics.pinned_environ`: ``OPENBLAS_CORETYPE``,
+    ``NPY_DISABLE_CPU_FEATURES``) for every nanny of a remote cluster, present and joining later: each puts them into
+    the environment it starts its worker process with (its pre-spawn environment, set before the process starts and
+    so before it loads numpy; distributed's ``Environ`` plugin sets them inside the running process, too late) and
+    restarts its worker when that changes its environment. Registered once per cluster and set of variables
+    (idempotent): a later command on the same cluster restarts nothing.
+
+    Parameters
+    ----------
+    environ : mapping of str to str
+        The variables, as the client computes under them.
+    """
+
+    idempotent = True
+
+    def __init__(self, environ: Mapping[str, str]) -> None:
+        self.environ = dict(environ)
+        self.restart = False
+        digest = hashlib.sha256(repr(sorted(self.environ.items())).encode()).hexdigest()
+        self.name = f"flexjoint-numerics-{digest[:12]}"
+
+    def setup(self, nanny: Any) -> None:
+        """Set the variables for the worker processes ``nanny`` starts; restart the running one when it was started
+        without them (the nanny's own environment is what it started it with)."""
+        self.restart = any(os.environ.get(k) != v for k, v in self.environ.items())
+        nanny.pre_spawn_env.update(self.environ)
+        nanny.env.update(self.environ)
 
 
 # ----------------------------------------------------------------------------------------------- per-process cache
@@ -282,12 +325,13 @@ class Executor:
         self._scattered: dict[int, tuple[Any, Any]] = {}
         self._blobs: dict[tuple[int, ...], tuple[tuple, str, Path | None]] = {}
         self._scratch: Path | None = None
+        self.numerics: dict[str, dict[str, str]] | None = None  # the kernels a remote task checks it runs with
         active = _SESSION.get()
         single = workers is None and scheduler is None and default_workers() == 1
         if workers == 1 or (scheduler is None and in_worker()):
             self.kind = "serial"
         elif active is not None and workers is None and scheduler is None:
-            self.kind, self.client = active.kind, active.client
+            self.kind, self.client, self.numerics = active.kind, active.client, active.numerics
             self.pool, self._pool_size = active.pool, active._pool_size
         elif backend == "processes":
             n = workers or default_workers()
@@ -311,8 +355,13 @@ class Executor:
             except (OSError, TimeoutError, ValueError) as exc:
                 first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
                 raise RuntimeError(f"cannot connect to the Dask scheduler at {scheduler}: {first}") from None
-            self.kind = "remote"
-            self.client.register_plugin(MasterLibrary(fmu_bytes(build_master())))
+            self.kind, self._owns_client = "remote", True
+            self.numerics = {"kernels": kernels(), "pinned": pinned_environ()}
+            try:
+                self._prepare_remote(scheduler, self.numerics)
+            except BaseException:
+                self.close()
+                raise
         else:
             n = workers or default_workers()
             self._cluster = adopt(n, dashboard) or local_cluster(n, dashboard)
@@ -321,8 +370,17 @@ class Executor:
             except BaseException:
                 self._cluster.close()
                 raise
-            self.kind = "local"
-        self._owns_client = True
+            self.kind, self._owns_client = "local", True  # its workers start with this process's environment
+
+    def _prepare_remote(self, scheduler: str, expected: dict[str, dict[str, str]]) -> None:
+        """A remote cluster's workers made ready for this client's tasks, or one line why they cannot be: pinned as
+        this process is (:class:`PinnedNumerics`, restarting a worker started without), given the co-simulation's step
+        loops (:class:`MasterLibrary`), and each one's kernels checked against this process's."""
+        plugins: list[Any] = [PinnedNumerics(expected["pinned"])] if expected["pinned"] else []
+        plugins.append(MasterLibrary(fmu_bytes(build_master())))
+        for plugin in plugins:
+            self.client.register_plugin(plugin)
+        self.client.run(check_kernels, expected)  # the first worker whose kernels differ: what and how, one line
 
     def __enter__(self) -> Executor:
         return self
@@ -426,7 +484,7 @@ class Executor:
             return []
         refs = [self._scatter(s) for s in shared]
         stem = f"{desc or getattr(fn, '__name__', 'task')}-{uuid.uuid4().hex[:12]}".replace(" ", "_")
-        packed = [pack(fn, item) for item in items]  # opaque to the scheduler (harness.workercall)
+        packed = [pack(fn, item, self.numerics) for item in items]  # opaque to the scheduler (harness.workercall)
         futures = [
             self.client.submit(run_packed, task, *refs, key=f"{stem}-{i}", pure=False) for i, task in enumerate(packed)
         ]

@@ -17,6 +17,12 @@ does it before it imports numpy::
     harness.pin_numerics()
     import numpy as np
 
+A Dask worker the command did not start computes as its own environment says, and a variable set in a running worker
+is too late: numpy (which ``distributed`` imports) has picked its kernels. :func:`harness.workercall.kernels` says
+what a process computes with and :func:`kernels_mismatch` what differs between two of them, in one line that says how
+to start the workers; :class:`harness.executor.PinnedNumerics` pins a remote cluster's workers by their nannies, which
+set the variables before the worker process they start loads numpy.
+
 This module imports nothing but the standard library (``import harness`` loads numpy only on first use of a name).
 """
 
@@ -25,13 +31,24 @@ from __future__ import annotations
 import os
 import platform
 import sys
-from collections.abc import MutableMapping
+from collections.abc import Mapping, MutableMapping
 from importlib import metadata
 from pathlib import Path
 
-__all__ = ["OPENBLAS_CORE", "avx512_features", "pin_numerics", "pinnable", "pytest_load_initial_conftests"]
+__all__ = [
+    "OPENBLAS_CORE",
+    "PIN_VARS",
+    "avx512_features",
+    "computes_pinned",
+    "kernels_mismatch",
+    "pin_numerics",
+    "pinnable",
+    "pinned_environ",
+    "pytest_load_initial_conftests",
+]
 
 OPENBLAS_CORE = "Haswell"  # OpenBLAS's kernels for AVX2 and FMA
+PIN_VARS = ("OPENBLAS_CORETYPE", "NPY_DISABLE_CPU_FEATURES")  # what pin_numerics sets, read once numpy loads
 NEEDED_FLAGS = frozenset({"avx2", "fma"})  # /proc/cpuinfo's names of what numpy's X86_V3 and Haswell's kernels use
 
 
@@ -88,6 +105,77 @@ def pin_numerics(environ: MutableMapping[str, str] | None = None) -> bool:
     env.setdefault("OPENBLAS_CORETYPE", OPENBLAS_CORE)
     env.setdefault("NPY_DISABLE_CPU_FEATURES", avx512_features(version))
     return env is os.environ and "numpy" not in sys.modules
+
+
+def pinned_environ(environ: Mapping[str, str] | None = None) -> dict[str, str]:
+    """The variables of :data:`PIN_VARS` that ``environ`` (default ``os.environ``) sets: what a process started with
+    it computes under, and what a remote cluster's workers are started with (:class:`harness.executor.PinnedNumerics`).
+    """
+    env = os.environ if environ is None else environ
+    return {k: env[k] for k in PIN_VARS if k in env}
+
+
+def computes_pinned(kernels: Mapping[str, str], pinned: Mapping[str, str]) -> bool:
+    """Does a process with these kernels (:func:`harness.workercall.kernels`) compute as the variables ``pinned`` say
+    (no loop numpy was told to leave out, OpenBLAS's kernels the core type asked for)? False for one that loaded numpy
+    before it was pinned.
+
+    Parameters
+    ----------
+    kernels : mapping of str to str
+        :func:`harness.workercall.kernels` of the process.
+    pinned : mapping of str to str
+        :func:`pinned_environ` of the process.
+
+    Returns
+    -------
+    bool
+        True when nothing in ``kernels`` contradicts ``pinned``.
+    """
+    left_out = set(pinned.get("NPY_DISABLE_CPU_FEATURES", "").split())
+    core = pinned.get("OPENBLAS_CORETYPE", "").lower()
+    blas = {b.lower() for b in kernels.get("BLAS kernels", "").split()} - {"mkl", "blis", "none"}  # not OpenBLAS
+    return not (left_out & set(kernels.get("numpy loops", "").split())) and (not core or blas <= {core})
+
+
+def kernels_mismatch(
+    here: Mapping[str, str], there: Mapping[str, str], where: str, pinned: Mapping[str, str]
+) -> str | None:
+    """What differs between the kernels this process computes with (``here``) and a worker's (``there``, at
+    ``where``), as one line that says how to start the worker so that it gives this process's bytes; None when
+    nothing differs.
+
+    Parameters
+    ----------
+    here, there : mapping of str to str
+        :func:`harness.workercall.kernels` of this process and of the worker.
+    where : str
+        The worker, as the line names it (its address).
+    pinned : mapping of str to str
+        :func:`pinned_environ` of this process: the variables the worker must be started with.
+
+    Returns
+    -------
+    str or None
+        ``"worker tcp://...: BLAS kernels SkylakeX (here Haswell), ...; start ..."``, or None.
+    """
+    diff = [f"{k} {there.get(k)} (here {v})" for k, v in here.items() if there.get(k) != v]
+    if not diff:
+        return None
+    line = f"worker {where} computes with {', '.join(diff)}: its results would not be this process's bytes; "
+    if any(there.get(k) != here.get(k) for k in ("numpy", "scipy")):
+        return line + "install the same numpy and scipy on the workers as here"
+    if pinned and not computes_pinned(here, pinned):
+        return line + "this process loaded numpy before it was pinned: call harness.pin_numerics() before numpy loads"
+    if pinned:
+        env = " ".join(f"{k}='{v}'" for k, v in pinned.items())
+        return line + (
+            "start the workers with their nanny (plain `dask worker ADDRESS`, not --no-nanny: flexjoint pins them"
+            f" itself) or with {env} in their environment"
+        )
+    return (
+        line + "this process is not pinned: call harness.pin_numerics() before numpy is imported (as the command does)"
+    )
 
 
 def pytest_load_initial_conftests(early_config: object, parser: object, args: list[str]) -> None:
