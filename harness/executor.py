@@ -48,7 +48,8 @@ the client's variables into each nanny's pre-spawn environment and restarts its 
 worker process loads numpy pinned: a plain ``dask worker ADDRESS --nworkers 2 --nthreads 1`` then gives the serial
 bytes. Then every worker's kernels are checked against the client's (:func:`harness.workercall.check_kernels`), and
 so is every task's worker (one that joined later); a worker that differs (started ``--no-nanny``, other numpy) is a
-one-line ``RuntimeError`` saying how to start it, before any task runs.
+one-line ``RuntimeError`` saying how to start it, before any task runs. A scheduler that does not answer, or workers
+that cannot load this package, are one line too, within :data:`CONNECT_TIMEOUT_S`.
 
 No shared filesystem: built FMUs travel as :class:`FmuBytes` and :func:`fmu_file` writes each once per worker
 process; the co-simulation's step loops (``fmus/master``) reach a remote cluster's workers as bytes too
@@ -66,6 +67,7 @@ import multiprocessing
 import os
 import pickle
 import shutil
+import socket
 import tempfile
 import threading
 import uuid
@@ -79,6 +81,7 @@ from typing import Any, TypeVar
 
 from distributed import Client, as_completed, get_worker
 from distributed.client import FutureCancelledError
+from distributed.comm.addressing import parse_address, parse_host_port
 from distributed.diagnostics.plugin import NannyPlugin, WorkerPlugin
 from distributed.scheduler import KilledWorker
 
@@ -114,8 +117,9 @@ __all__ = [
 T = TypeVar("T")
 Progress = Callable[[str], None]
 
-CONNECT_TIMEOUT_S = 10.0
+CONNECT_TIMEOUT_S = 5.0  # a scheduler that does not answer by then is an error (the command's line well within 10 s)
 CACHE_SIZE = 8  # worker_cache entries kept per process (least recently used dropped, and closed, first)
+INSTALL = "install flexjoint-harness, the version of this command, where the workers run"
 RESUBMITS = 2  # a task the scheduler cancelled on its own (lost with its worker) is submitted this many times more
 BACKENDS = ("dask", "processes")
 _SESSION: contextvars.ContextVar[Executor | None] = contextvars.ContextVar("flexjoint_executor", default=None)
@@ -286,6 +290,32 @@ def in_worker() -> bool:
 
 
 # ----------------------------------------------------------------------------------------------- executor
+def _first_line(exc: BaseException) -> str:
+    """An exception's message, its first line (its type's name when it has none)."""
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
+def _connect(scheduler: str, timeout: float | None = None) -> Any:
+    """A ``distributed.Client`` of the scheduler at ``scheduler``, or a one-line ``RuntimeError`` within ``timeout``
+    seconds (default :data:`CONNECT_TIMEOUT_S`): a TCP address is first dialled once (nothing listening is an answer
+    at once, where Dask retries until its timeout)."""
+    timeout = CONNECT_TIMEOUT_S if timeout is None else timeout
+    try:
+        protocol, loc = parse_address(scheduler)
+        if protocol in ("tcp", "tls"):
+            host, port = parse_host_port(loc)
+            with socket.create_connection((host, port), timeout=timeout):
+                pass
+        return Client(scheduler, timeout=timeout, set_as_default=False)
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise RuntimeError(f"cannot connect to the Dask scheduler at {scheduler}: {_first_line(exc)}") from None
+    except Exception as exc:  # something else answers there (Dask read its reply's length as 3 EiB: MemoryError)
+        raise RuntimeError(
+            f"cannot connect to the Dask scheduler at {scheduler}: what answers there is not one ({type(exc).__name__})"
+        ) from None
+
+
 def local_cluster(n_workers: int, dashboard: str | None = None) -> LocalProcessCluster:
     """The embedded local cluster (:class:`LocalProcessCluster`): ``n_workers`` processes of one thread on
     127.0.0.1, worker logs below CRITICAL silenced, the dashboard only at ``dashboard`` (e.g. ``":8787"``) when
@@ -350,11 +380,7 @@ class Executor:
 
     def _start(self, workers: int | None, scheduler: str | None, dashboard: str | None) -> None:
         if scheduler is not None:
-            try:
-                self.client = Client(scheduler, timeout=CONNECT_TIMEOUT_S, set_as_default=False)
-            except (OSError, TimeoutError, ValueError) as exc:
-                first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-                raise RuntimeError(f"cannot connect to the Dask scheduler at {scheduler}: {first}") from None
+            self.client = _connect(scheduler)
             self.kind, self._owns_client = "remote", True
             self.numerics = {"kernels": kernels(), "pinned": pinned_environ()}
             try:
@@ -379,8 +405,24 @@ class Executor:
         plugins: list[Any] = [PinnedNumerics(expected["pinned"])] if expected["pinned"] else []
         plugins.append(MasterLibrary(fmu_bytes(build_master())))
         for plugin in plugins:
-            self.client.register_plugin(plugin)
-        self.client.run(check_kernels, expected)  # the first worker whose kernels differ: what and how, one line
+            try:
+                self.client.register_plugin(plugin)
+            except Exception as exc:
+                nanny = isinstance(plugin, NannyPlugin)
+                with contextlib.suppress(Exception):  # workers or nannies joining later would fail on it too
+                    self.client.unregister_worker_plugin(plugin.name, nanny=nanny)
+                who = "nannies" if nanny else "workers"
+                raise RuntimeError(
+                    f"the Dask {who} at {scheduler} cannot take this command's plugin ({_first_line(exc)}): {INSTALL}"
+                ) from None
+        try:
+            self.client.run(check_kernels, expected)
+        except RuntimeError:  # the first worker whose kernels differ: what and how to start it, one line
+            raise
+        except Exception as exc:
+            raise RuntimeError(
+                f"the Dask workers at {scheduler} cannot check their kernels ({_first_line(exc)}): {INSTALL}"
+            ) from None
 
     def __enter__(self) -> Executor:
         return self

@@ -2,7 +2,8 @@
 1`` started by hand, from a shell without the variables that pin numpy's and OpenBLAS's kernels (on an AVX-512 CPU its
 workers compute with OpenBLAS's SkylakeX kernels and numpy's X86_V4 loops, and fits differed from the serial ones in
 their 13th to 15th digit), give the serial bytes for ``sweep``, ``identify`` and ``blindtest``: the command pins the
-workers through their nannies as it connects. A worker that computes with other kernels is refused in one line.
+workers through their nannies as it connects. A scheduler at nothing, or a cluster whose workers lack the package or
+compute with other kernels, is one line and exit 2 within 10 s, nothing written.
 
 The commands run as a user runs them (``python -m harness``, the environment without the pinning variables the suite's
 own processes have); one cluster serves the module's tests (in one test process: its tests are one xdist group)."""
@@ -15,6 +16,7 @@ import math
 import os
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -197,6 +199,35 @@ def test_a_blind_test_on_a_users_cluster_is_the_serial_bytes(tmp_path, cluster):
     _same_bytes(tmp_path / "serial", tmp_path / "remote", skip=["blindtest.timing.json"])
 
 
+def test_a_scheduler_at_nothing_or_workers_without_the_package_is_one_line(tmp_path):
+    """One line, exit 2, within 10 s, nothing written: nothing listening at the address; a user's cluster whose workers
+    do not have the package (its editable install hidden from them)."""
+    hide = _mkdir(tmp_path / "hide")
+    (hide / "sitecustomize.py").write_text(
+        "import sys\nsys.meta_path[:] = [f for f in sys.meta_path if 'editable' not in repr(f).lower()]\n"
+    )
+    env = {k: v for k, v in user_env().items() if k != "PYTHONPATH"} | {"PYTHONPATH": str(hide)}
+    nopkg = UserCluster(_mkdir(tmp_path / "nopkg-cluster"), ["--nworkers", "1", "--nthreads", "1"], env=env)
+    try:
+        (tmp_path / "tiny.toml").write_text(TINY_SPEC)
+        sweep = ["sweep", "tiny.toml", "--vary", "plant.Ks=uniform(1.3,1.8)", "--n", 2]
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            nothing = f"tcp://127.0.0.1:{s.getsockname()[1]}"
+        runs = {"nothing": Flexjoint(*sweep, "--out", "nothing", "--scheduler", nothing, cwd=tmp_path)}
+        runs["nopkg"] = Flexjoint(*sweep, "--out", "nopkg", "--scheduler", nopkg.wait(), cwd=tmp_path)
+        lines = {}
+        for name, run in runs.items():
+            err, took = run.wait(code=2)
+            assert took < 10 and not (tmp_path / name).exists(), (name, took)
+            assert len(err.strip().splitlines()) == 1 and err.startswith("error: "), err
+            lines[name] = err
+    finally:
+        nopkg.close()
+    assert "cannot connect to the Dask scheduler" in lines["nothing"] and "Connection refused" in lines["nothing"]
+    assert "No module named 'harness'" in lines["nopkg"] and "install flexjoint-harness" in lines["nopkg"]
+
+
 def test_a_worker_with_other_kernels_refuses_the_task_in_one_line():
     """What every worker runs as the client connects, and every task first (a worker that joined later): a worker
     whose kernels are not the client's (here: the client's BLAS kernels said to be another core type) says what
@@ -235,3 +266,8 @@ def test_a_nanny_starts_its_worker_with_the_clients_variables_and_restarts_it_on
         monkeypatch.setenv(k, v)
     plugin.setup(nanny)
     assert not plugin.restart
+
+
+def _mkdir(d: Path) -> Path:
+    d.mkdir()
+    return d
