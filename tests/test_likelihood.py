@@ -243,8 +243,8 @@ def test_a_units_linear_model_is_fitted_from_an_off_sheet_with_nothing_at_a_boun
     """The nominal twin's two records (6000 readings on a 12-bit lattice) fitted from a sheet 15-50 % off
     (:func:`_nominal_twin`), the priors the sheet's uncertainty: the drive's gain and time constant, the inertia
     ratio, the link's stiffness and damping within 1 % of the rig's and inside 3.29 standard errors, the sensors'
-    gains within 0.5 % of 1, the torques' noise at its floor, nothing at a bound, no finding, residuals white (lag-one
-    autocorrelation within +-0.1)."""
+    gains within 0.5 % of 1, the torques' noise at its floor, nothing at a bound, no finding, no missing force,
+    residuals white (lag-one autocorrelation within +-0.1)."""
     run, sheet = _nominal_twin(tmp_path)
     unit = fit_run(run, sheet)
     assert unit.fit.converged, unit.fit.message
@@ -259,8 +259,9 @@ def test_a_units_linear_model_is_fitted_from_an_off_sheet_with_nothing_at_a_boun
         assert unit.fit.estimates[name].value == pytest.approx(1.0, abs=5e-3)
     assert not {k: v for k, v in unit.fit.at_bounds().items() if not (k.startswith("noise.") and v == "lower")}
     assert all(abs(r) < 0.1 for chans in unit.lag_one.values() for r in chans.values()), unit.lag_one
+    assert unit.missing_force.shape == "none"
     text = unit.summary(tmp_path / "likelihood.json")
-    assert "nothing at a bound" in text and max(map(len, text.splitlines())) <= 100
+    assert "nothing at a bound" in text and "missing force: none" in text and max(map(len, text.splitlines())) <= 100
 
 
 def test_diagnose_says_which_engines_it_knows():

@@ -30,6 +30,7 @@ from ..diagnosis.simulation import fmu_value, sim_rig
 from ..ident.calibration import load_calibration
 from ..rundir import write_json
 from .fit import BOUNDS, TORQUES, MLFit, filter_record, fit, noise_start
+from .force import MissingForce, classify, force_picture
 from .record import Record
 
 __all__ = ["UnitFit", "fit_run", "linear_start", "write_likelihood"]
@@ -42,8 +43,9 @@ FREE = ("rig.drive_gain", "rig.drive_tau", "rig.inertia_ratio", "plant.Ks", "pla
 class UnitFit:
     """The likelihood engine's fit of a unit's linear model: the ``fit``, the ``records`` it ran through, the sheet's
     ``nominal`` values, the ``held`` parameters (a sensor known exactly), each record's residuals' lag-one
-    autocorrelation per channel (``lag_one``: white residuals give about 0, within +-2/sqrt(n)) and the
-    ``findings`` (a parameter at its bound, in words; none: effects may be tried from here)."""
+    autocorrelation per channel (``lag_one``: white residuals give about 0, within +-2/sqrt(n)), the
+    ``findings`` (a parameter at its bound, in words; none: effects may be tried from here) and what the fitted
+    model lacks (``missing_force``, :func:`harness.likelihood.force.classify`)."""
 
     fit: MLFit
     records: tuple[str, ...]
@@ -51,6 +53,7 @@ class UnitFit:
     held: dict[str, float]
     lag_one: dict[str, dict[str, float]]
     findings: tuple[str, ...]
+    missing_force: MissingForce
 
     def summary(self, path: Path | None = None) -> str:
         """A few lines for the terminal (under 100 characters each): the fit, the parameters that moved most from
@@ -65,6 +68,9 @@ class UnitFit:
             lines.append(f"  {k:24s} {e.value:.4g}{unit} ({e.value / self.nominal[k]:.3g}x the sheet), "
                          f"95 % {e.ci95[0]:.4g}..{e.ci95[1]:.4g}")  # fmt: skip
         lines += [f"  finding: {x}" for x in self.findings[:5]] or ["  nothing at a bound: effects may be tried"]
+        mf = self.missing_force
+        lines.append(f"  missing force: {mf.shape}" + (f", {mf.size:.3g} {mf.unit} ({mf.dead_band_v:.3g} V)"
+                                                         if mf.shape != "none" else ""))  # fmt: skip
         if path is not None:
             lines.append(f"  the whole fit: {path}")
         return "\n".join(lines)
@@ -93,6 +99,7 @@ class UnitFit:
             "held": self.held,
             "lag_one": self.lag_one,
             "findings": list(self.findings),
+            "missing_force": self.missing_force.to_json(),
         }
 
 
@@ -162,7 +169,9 @@ def fit_run(real: Path, sim: str | Path | specmod.Spec, progress: Callable[[str]
     findings = [*parts_at_bound(linear)]
     findings += [f"{BOUNDS[k].label} ends at its upper bound: the linear model cannot draw what the records show"
                  for k, side in res.at_bounds().items() if k in TORQUES and side == "upper"]  # fmt: skip
-    return UnitFit(res, tuple(r.name for r in records), nominal, held, lag_one, tuple(findings))
+    say("the missing force")
+    force = classify(force_picture(plant, values, records, delay))
+    return UnitFit(res, tuple(r.name for r in records), nominal, held, lag_one, tuple(findings), force)
 
 
 def _lag_one(z: np.ndarray) -> float:
