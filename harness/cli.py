@@ -524,22 +524,32 @@ def identify(
     s.print(out)
 
 
-def crossval_table(res: GridResult) -> Table:
-    """Lab 1's table 2: each dataset's best model (rows) cross-validated on every dataset (columns); of more than
-    :data:`harness.render.summary.MAX_ROWS` datasets the first ones (the average over all of them)."""
+def _numbered_table(title: str, names: list[str], file: str) -> tuple[Table, list[str]]:
+    """A rich table of datasets numbered as its columns (``names``; of more than
+    :data:`harness.render.summary.MAX_ROWS` the first ones, the rest named as in ``file``), with a model column and
+    an average column, and the datasets it shows."""
     from rich.table import Table
 
     from .render.summary import MAX_ROWS, more
 
-    shown = res.datasets[: MAX_ROWS - 1] if len(res.datasets) > MAX_ROWS else res.datasets
-    t = Table(title="cross-validation fit % (rows: model of dataset i; columns: dataset j)")
+    shown = names[: MAX_ROWS - 1] if len(names) > MAX_ROWS else names
+    t = Table(title=title)
     t.add_column("model", no_wrap=True)
     for j in range(1, len(shown) + 1):
         t.add_column(str(j), justify="right", no_wrap=True)
     t.add_column("average", justify="right", no_wrap=True)
     t.caption = "datasets: " + ", ".join(f"{j} {n}" for j, n in enumerate(shown, 1))
-    if len(shown) < len(res.datasets):
-        t.caption += f", {more(len(res.datasets) - len(shown), 'grid.csv')}"
+    if len(shown) < len(names):
+        t.caption += f", {more(len(names) - len(shown), file)}"
+    return t, shown
+
+
+def crossval_table(res: GridResult) -> Table:
+    """Lab 1's table 2: each dataset's best model (rows) cross-validated on every dataset (columns); of more than
+    :data:`harness.render.summary.MAX_ROWS` datasets the first ones (the average over all of them)."""
+    t, shown = _numbered_table(
+        "cross-validation fit % (rows: model of dataset i; columns: dataset j)", list(res.datasets), "grid.csv"
+    )
     rows = [(n, res.best[n]) for n in shown if n in res.best]
     for i, (name, row_i) in enumerate([*rows, ("selected", res.selected)], 1):
         r = res.grid.loc[row_i]
@@ -553,20 +563,11 @@ def crossfit_table(df: Any) -> Table:
     """The cross-fit matrix (a pandas frame: each dataset's model and the selected one (rows) through its FMU on
     every dataset (columns) and their average), its datasets numbered; of more than
     :data:`harness.render.summary.MAX_ROWS` datasets the first ones (the average over all of them)."""
-    from rich.table import Table
-
-    from .render.summary import MAX_ROWS, more
-
     names = [c for c in df.columns if c != "average"]
-    shown = names[: MAX_ROWS - 1] if len(names) > MAX_ROWS else names
-    t = Table(title="cross-fit through the exported FMUs, fit % (rows: model of dataset i; columns: dataset j)")
-    t.add_column("model", no_wrap=True)
-    for j in range(1, len(shown) + 1):
-        t.add_column(str(j), justify="right", no_wrap=True)
-    t.add_column("average", justify="right", no_wrap=True)
-    t.caption = "datasets: " + ", ".join(f"{j} {n}" for j, n in enumerate(shown, 1))
-    if len(shown) < len(names):
-        t.caption += f", {more(len(names) - len(shown), 'crossfit.csv')}"
+    t, shown = _numbered_table(
+        "cross-fit through the exported FMUs, fit % (rows: model of dataset i; columns: dataset j)", names,
+        "crossfit.csv",
+    )  # fmt: skip
     number = {n: str(j) for j, n in enumerate(names, 1)}
     for model in [*(m for m in df.index if m in shown), *(m for m in df.index if m not in names)]:
         cells = [f"{df.loc[model, n]:.2f}" for n in (*shown, "average")]
