@@ -142,7 +142,7 @@ def filter_record(
 ) -> Filtered:
     """The filter of the rig ``plant`` with ``values`` (linear and noise parameters) through ``record``, its command
     delayed by ``delay`` samples (the DAQ's ``delay_samples``); ``keep`` keeps its states for the smoother."""
-    model = rig_model(plant, *_split(values))
+    model = rig_model(plant, *_split(values), force="noise.hub_force" in values)
     return run_filter(model, model.discretise(record.Ts), record, delay, keep)
 
 
@@ -151,7 +151,7 @@ def log_likelihood(
 ) -> float:
     """The records' summed Gaussian log-likelihood [nats] under the rig ``plant`` with ``values`` (NaN if the
     filter fails)."""
-    model = rig_model(plant, *_split(values))
+    model = rig_model(plant, *_split(values), force="noise.hub_force" in values)
     discrete: dict[float, Discrete] = {}
     total = 0.0
     for rec in records:

@@ -47,6 +47,9 @@ NOISE: dict[str, Bound] = {
     "noise.link_torque": Bound(
         0.0, 1e3, "N m sqrt(s)", "white torque at the link's tip (intensity)", part="noise", square=True
     ),
+    "noise.hub_force": Bound(
+        0.0, 1e3, "N m/sqrt(s)", "the missing force's random walk (intensity)", part="noise", square=True
+    ),
 }
 
 
