@@ -34,7 +34,8 @@ TORQUES = ("noise.hub_torque", "noise.link_torque")  # the process noise: freed 
 GRAD_STEP = 1e-5  # search-coordinate step of the gradient's central differences
 HESS_STEP = 1e-3  # ... and of the Hessian's second differences
 OUTSIDE = 1e6  # the search's objective [nats per reading] where the model fails: a wall it backs off from
-TOL_NATS = 1e-4  # the search stops when an iteration gains less log-likelihood than this [nats]
+TOL_NATS = 1e-4  # the search stops when an iteration gains less log-likelihood than this [nats] ...
+RESTART_GAIN, RESTARTS = 0.01, 5  # ... and starts again from there, up to 5 times, while a search gains more [nats]
 AT_BOUND = 1e-3  # a parameter this close to a wall (in the search coordinate) ends at its bound
 
 
@@ -237,7 +238,13 @@ def fit(
     xi, converged, message = x0 / c, True, ""
     walls_xi = [(lo / ci, hi / ci) for (lo, hi), ci in zip(walls, c, strict=True)]
     for free in (first, np.ones(len(names), bool)) if not first.all() else (first,):
-        xi, converged, message = _search(scaled, xi, free, walls_xi, 1.0 / max(n_obs, 1), maxiter)
+        before = math.inf
+        for _ in range(RESTARTS):  # L-BFGS-B can stop in a slow valley on a poor step: restarted while that pays
+            xi, converged, message = _search(scaled, xi, free, walls_xi, 1.0 / max(n_obs, 1), maxiter)
+            after = scaled(xi)
+            if not before - after > RESTART_GAIN:
+                break
+            before = after
     x = xi * c
     H = _hessian(scaled, xi, walls_xi)
     try:
