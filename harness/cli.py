@@ -860,9 +860,13 @@ def diagnose(
     diagnosis_screen(d, out_dir or real).print(out)
     if engine == "likelihood":
         from .likelihood.unit import fit_run, write_likelihood
+        from .render.summary import Summary
 
         unit = fit_run(real, sim, progress=_progress("likelihood"))
-        out.print(unit.summary(write_likelihood(out_dir or real, unit)), soft_wrap=True)
+        s = Summary("likelihood.json")
+        s.lines(unit.summary())
+        s.close(f"the whole fit: {write_likelihood(out_dir or real, unit)}")
+        s.print(out)
 
 
 def _parallel(workers: int | None, scheduler: str | None) -> dict:

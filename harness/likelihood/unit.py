@@ -55,9 +55,9 @@ class UnitFit:
     findings: tuple[str, ...]
     missing_force: MissingForce
 
-    def summary(self, path: Path | None = None) -> str:
+    def summary(self) -> list[str]:
         """A few lines for the terminal (under 100 characters each): the fit, the parameters that moved most from
-        the sheet, the findings, and where the whole fit is (``path``)."""
+        the sheet, the findings and the missing force."""
         f = self.fit
         head = f"likelihood engine: {len(self.records)} records, {f.n} readings, log-likelihood {f.loglik:.1f}"
         lines = [head + ("" if f.converged else f" (search stopped: {f.message[:40]})")]
@@ -71,9 +71,7 @@ class UnitFit:
         mf = self.missing_force
         lines.append(f"  missing force: {mf.shape}" + (f", {mf.size:.3g} {mf.unit} ({mf.dead_band_v:.3g} V)"
                                                          if mf.shape != "none" else ""))  # fmt: skip
-        if path is not None:
-            lines.append(f"  the whole fit: {path}")
-        return "\n".join(lines)
+        return lines
 
     def to_json(self) -> dict[str, Any]:
         """The fit as ``likelihood.json`` holds it."""
