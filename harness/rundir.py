@@ -234,7 +234,10 @@ class ExperimentEntry:
 
     A closed-loop experiment has ``loop`` "closed", its dataset a ``ref`` column (the reference of theta [deg]) and
     its ``controller`` (:class:`harness.rig.controller.Controller` as a dict: kind, gains, source, R^2 when
-    identified). ``theta_sensor`` is "pot" (default) or "encoder" with ``counts_per_rev``."""
+    identified). ``theta_sensor`` is "pot" (default) or "encoder" with ``counts_per_rev``. An import names each
+    sensor fault it found (:class:`harness.rig.faults.Fault` as a dict, with its ``line``) in ``faults`` and the
+    samples it masked per channel, [first, end) ranges, in ``masked``: the identification and the diagnosis leave
+    them out."""
 
     name: str
     role: str = "identification"
@@ -250,6 +253,8 @@ class ExperimentEntry:
     controller: dict[str, Any] | None = None
     theta_sensor: str | None = None
     counts_per_rev: float | None = None
+    faults: list[dict[str, Any]] | None = None
+    masked: dict[str, list[list[int]]] | None = None
 
 
 @dataclass

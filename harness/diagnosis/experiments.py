@@ -354,7 +354,8 @@ def load_experiments(
 ) -> dict[str, RigExperiment]:
     """Every non-calibration experiment of run ``real`` as a :class:`RigExperiment` (manifest order), converted
     with ``cal``, with the sim spec's per-experiment overrides and the samples that can be compared marked valid
-    (pot dead band and clipping at the ADC's ``adc_range`` [V] masked; an encoder has neither dead band nor wrap).
+    (pot dead band and clipping at the ADC's ``adc_range`` [V] masked; an encoder has neither dead band nor wrap;
+    the samples an import masked, a channel pinned at a rail or stuck: the manifest's ``masked``).
     ``replay``: "auto" (closed-loop records in closed loop where their controller is known, else by multiple
     shooting; open-loop ones as logged) or one of :data:`REPLAYS` for every experiment."""
     manifest = Manifest.load(real)
@@ -409,11 +410,15 @@ def load_experiments(
         out[e.name] = x
     readings = {n: theta_deg(x.theta_v, cal, unwrap=False) for n, x in out.items()}
     ends = pot_track_ends([r for n, r in readings.items() if not out[n].encoder] or [np.zeros(1)])
+    masked = {e.name: e.masked or {} for e in exps}
     for n, x in out.items():
         x.valid = {
             "theta": valid_samples(readings[n], None if x.encoder else ends, x.theta_v, adc_range),
             "alpha": valid_samples(np.zeros(1), None, x.alpha_v, adc_range),
         }
+        for c, spans in masked[n].items():
+            for a, b in spans:
+                x.valid[c][a:b] = False
     return out
 
 
@@ -435,7 +440,7 @@ def one_rate(experiments: dict[str, RigExperiment]) -> float:
 
 
 def masked_share(experiments: dict[str, RigExperiment]) -> dict[str, float]:
-    """Share of the real samples per channel not compared (pot dead band, ADC clipping)."""
+    """Share of the real samples per channel not compared (pot dead band, ADC clipping, a fault found at import)."""
     n = sum(x.u.size for x in experiments.values())
     return {c: float(sum(int(np.sum(~x.valid[c])) for x in experiments.values())) / n for c in CHANNELS}
 

@@ -22,7 +22,7 @@ from ..rundir import atomic_write_text, check_fresh, load_run, record_inputs
 from . import armax
 from .calibration import load_calibration
 from .export import ModelFMU, export_model, model_records
-from .identify import PreparedExperiment, prepare
+from .identify import PreparedExperiment, prepare, run_masks
 
 __all__ = ["TOLERANCE", "CrossfitMismatch", "CrossfitResult", "crossfit_run", "format_csv", "score_models"]
 
@@ -151,7 +151,7 @@ def crossfit_run(run: Path, progress: Callable[[str], None] | None = None) -> pd
         rec = records[name]
         key = _preprocessing(rec, name)
         if key not in cache:
-            cache[key] = prepare(datasets, cal, key[0], key[1])
+            cache[key] = prepare(datasets, cal, key[0], key[1], run_masks(run))
         prepared[name] = cache[key]
         model = armax.ArmaxModel.from_dict(rec)
         path = run / "models" / f"{name}.fmu"

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar, cast
@@ -50,13 +50,41 @@ def output_angle(df: pd.DataFrame, cal: Calibration, output: str = "y") -> np.nd
     raise ValueError(f"identify.output must be y, theta or alpha, got {output!r}")
 
 
+OUTPUT_CHANNELS = {"y": ("theta", "alpha"), "theta": ("theta",), "alpha": ("alpha",)}  # the sensors an output reads
+
+
+def run_masks(run: Path) -> dict[str, dict[str, list[list[int]]]]:
+    """The samples an import masked per dataset and channel, [first, end) ranges (the manifest's ``masked``: a
+    channel pinned at a rail or stuck, :mod:`harness.rig.faults`); empty for a run without any."""
+    return {e.name: e.masked for e in Manifest.load(run).experiments if e.masked}
+
+
+def unmasked_stretch(n: int, spans: Sequence[Sequence[int]]) -> tuple[int, int]:
+    """The longest stretch [first, end) of ``n`` samples that holds none of the masked ranges ``spans``."""
+    bad = np.zeros(n, dtype=bool)
+    for a, b in spans:
+        bad[int(a) : int(b)] = True
+    edges = np.flatnonzero(np.diff(np.r_[1, bad.astype(int), 1]))  # starts and ends of the unmasked runs
+    if not edges.size:
+        return 0, 0
+    runs = list(zip(edges[0::2], edges[1::2], strict=True))
+    a, b = max(runs, key=lambda r: (r[1] - r[0], -r[0]))
+    return int(a), int(b)
+
+
 def prepare(
-    datasets: dict[str, pd.DataFrame], cal: Calibration, af: float = 0.8, output: str = "y"
+    datasets: dict[str, pd.DataFrame],
+    cal: Calibration,
+    af: float = 0.8,
+    output: str = "y",
+    masked: Mapping[str, Mapping[str, Sequence[Sequence[int]]]] | None = None,
 ) -> dict[str, PreparedExperiment]:
     """Convert a run's volts to the output angle and apply lab 1's preprocessing to every dataset.
 
     The command is detrended; the angle [deg] is differentiated and low-passed by H(z) = (1 - af)(z - 1)/(z - af),
-    which removes the integrator.
+    which removes the integrator. A dataset with masked samples in a channel the output reads (``masked``:
+    :func:`run_masks`) is identified on its longest stretch without any (:func:`unmasked_stretch`): an ARMAX model
+    fits a stretch of contiguous samples, and none is fitted across a fault.
 
     Parameters
     ----------
@@ -68,6 +96,8 @@ def prepare(
         The filter's pole.
     output : {"y", "theta", "alpha"}
         The identified angle: the tip (theta + alpha), the shaft, or the deflection.
+    masked : mapping, optional
+        Dataset -> channel -> masked [first, end) sample ranges.
 
     Returns
     -------
@@ -76,6 +106,10 @@ def prepare(
     """
     out = {}
     for name, df in datasets.items():
+        spans = [r for c in OUTPUT_CHANNELS.get(output, ()) for r in (masked or {}).get(name, {}).get(c, [])]
+        if spans:
+            a, b = unmasked_stretch(len(df), spans)
+            df = df.iloc[a:b]
         y = output_angle(df, cal, output)
         u = df["u"].to_numpy(dtype=float)
         u_d, y_f = preprocess(u, y, af, "constant", initial="rest")
@@ -312,7 +346,7 @@ def identify_run(
     if stale and not Manifest.load(run).entries("calibration"):
         raise DataError(stale.replace("re-run flexjoint identify", "import the records again"))
     cal = calibrate_run(run) if stale else load_calibration(run)
-    prepared = prepare(load_run(run), cal, float(ident["af"]), str(ident["output"]))
+    prepared = prepare(load_run(run), cal, float(ident["af"]), str(ident["output"]), run_masks(run))
     res = run_grid(prepared, ident, progress=progress)
     write_grid(res, run, ident, cal)
     return res, prepared, cal, ident
