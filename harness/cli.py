@@ -474,7 +474,7 @@ def import_(
     )
 
     def note(m: str) -> None:
-        err.print(m if m.startswith("warning: ") else f"note: {m}", markup=False, soft_wrap=True)
+        err.print(m if m.startswith(("warning: ", "fault: ")) else f"note: {m}", markup=False, soft_wrap=True)
 
     written = import_records(files, out_dir, opts, note=note, force=force)
     out.print(f"imported {len(written)} dataset(s) -> {out_dir}")

@@ -28,6 +28,13 @@ Rules, no silent guesses:
   uniform grid are resampled onto it by linear interpolation (the pot's wrap jumps are not interpolated
   across: the nearer sample is taken) and the largest correction is reported; beyond that: refused;
 - no calibration given: lab 1's Kp and Ke are assumed and a note says so;
+- sensor faults (:mod:`harness.rig.faults`), each said in one ``fault: RECORD: ...`` line (channel, kind, time, row,
+  size, what was done) and kept in the manifest (the experiment's ``faults``), none fitted across: a jump of theta
+  no hub makes in one sample (the drive's fastest motion, or half a turn) is a pot's wrap when it is a turn less
+  the dead band through the calibration, and unwrapped; any other cuts the record into ``NAME_1``, ``NAME_2``, ...
+  (each kept if long enough for two folds; none: refused); a run of identical samples of theta or alpha that its
+  noise makes improbable while another channel moves, at the channel's extreme (a rail) or not (stuck), is masked:
+  kept in the dataset, listed in the manifest's ``masked``, left out by the identification and the diagnosis;
 - ``zero_alpha``: the deflection is zeroed on the record's quietest ``ZERO_SECONDS`` (the shaft at rest there, the
   link too: its deflection varies no more than ``REST_SIGMAS`` times its noise), as labs zero their gauge, with a
   note; where the link never rests, a warning says so and the record is left as read (the diagnosis fits each
@@ -85,6 +92,7 @@ from ..rundir import (
     write_dataset,
 )
 from .controller import IDENTIFIABLE, R2_MIN, Controller, command_r2, identify_controller
+from .faults import Fault, fastest_step_deg, impossible_jumps, is_turn, mask, pinned_runs
 
 __all__ = [
     "CHANNELS",
@@ -761,10 +769,74 @@ def _angle(ch: str, c: Channel, opts: ImportOptions, file: str) -> np.ndarray:
     return np.degrees(np.arctan2(d, float(length)))
 
 
-def normalise(table: RawTable, opts: ImportOptions, cal: Calibration, note: Note) -> tuple[dict, dict]:
+class _Cut(Exception):  # noqa: N818 - not an error: a record to be cut at its jumps
+    """A record's theta jumps where no hub moves and no pot wraps: cut it at ``rows`` (the first sample of each part
+    after the first); ``jumps`` (row, time [s], jump [deg], limit [deg]) per cut."""
+
+    def __init__(self, rows: list[int], jumps: list[tuple[int, float, float, float]], need: int) -> None:
+        super().__init__(f"cut at rows {rows}")
+        self.rows, self.jumps, self.need = rows, jumps, need
+
+
+def _faults(
+    name: str, chans: dict[str, Channel], cols: dict[str, np.ndarray], t: np.ndarray, cal: Calibration, encoder: bool
+) -> tuple[list[Fault], dict[str, list[list[int]]], list[tuple[int, float, float, float]]]:
+    """A record's sensor faults (:mod:`harness.rig.faults`): (the wraps and the pinned runs found, the masked sample
+    ranges [first, end) per channel, the jumps to cut at as (row, time [s], jump [deg], limit [deg])). ``cols`` are
+    the dataset's angle columns before resampling, at times ``t`` [s]; a wrap is unwrapped in place
+    (``cols["theta"]``, by :func:`harness.ident.calibration.theta_deg`, as the diagnosis and the identification read
+    theta). A pinned run is found first: where it lets go, theta's jump is the fault's, not the hub's."""
+    Ts, u = float(np.median(np.diff(t))), chans["u"].values
+    faults: list[Fault] = []
+    masked: dict[str, list[list[int]]] = {}
+    for ch, other in (("alpha", "theta"),) if encoder else (("theta", "alpha"), ("alpha", "theta")):
+        c = chans[ch]  # an encoder's count has no noise to lose nor a rail: its runs at rest say nothing
+        for kind, spans in pinned_runs(c.values, [u, cols[other]]):
+            a, count = spans[0][0], sum(e - s for s, e in spans)
+            runs = f" in {len(spans)} runs" if len(spans) > 1 else ""
+            what = "its extreme: a rail (an ADC's clamp, a pot's track end)" if kind == "rail" else (
+                "while the other channels move: stuck")  # fmt: skip
+            size = f"{count} samples{runs} ({count * Ts:.3g} s) held at {float(c.values[a]):.6g} {c.unit or ''}, {what}"
+            done = "masked (left out of the identification and the diagnosis), not deleted"
+            faults.append(Fault(name, ch, kind, a, float(t[a]), count, size, done))
+            masked.setdefault(ch, []).extend([s, e] for s, e in spans)
+    held = mask(t.size, [(a, b) for a, b in masked.get("theta", [])])
+    reading = theta_deg(cols["theta_v"], cal, unwrap=False)  # the pot's angle as read: its wraps in it
+    limit = fastest_step_deg(Ts, float(np.max(np.abs(u))))
+    cuts: list[tuple[int, float, float, float]] = []
+    wrapped = False
+    for i in impossible_jumps(reading, limit):
+        jump = float(reading[i + 1] - reading[i])
+        k = int(i) + 1
+        if held[i] or held[k]:
+            continue  # a pinned run letting go
+        if encoder or not is_turn(jump, limit):
+            cuts.append((k, float(t[k]), jump, limit))
+            continue
+        wrapped = True
+        volts = f" ({float(cols['theta_v'][k] - cols['theta_v'][i]):+.4g} V)" if chans["theta"].unit == "V" else ""
+        size = f"a jump of {jump:+.4g} deg{volts} in one sample, beyond the {limit:.3g} deg a hub turns in one: a wrap"
+        done = f"unwrapped by one turn (360 deg = {360.0 / cal.Kp:.4g} V through Kp {cal.Kp:.4g} deg/V)"
+        faults.append(Fault(name, "theta", "wrap", k, float(t[k]), 1, size, done))
+    if wrapped and not cuts:
+        cols["theta"] = theta_deg(cols["theta_v"], cal)
+    return sorted(faults, key=lambda f: (f.row, f.channel)), masked, cuts
+
+
+def normalise(
+    table: RawTable,
+    opts: ImportOptions,
+    cal: Calibration,
+    note: Note,
+    name: str = "",
+    rows: tuple[int, int] | None = None,
+) -> tuple[dict, dict]:
     """(dataset columns, {"entry": manifest entry, "form", "notes"}) of one record: channels resolved, units
-    converted, time checked and made uniform, angles turned into the DAQ's volts with ``cal``. ``note``
-    receives each remark, prefixed with the file name (a warning as ``warning: <file>: ...``)."""
+    converted, time checked and made uniform, angles turned into the DAQ's volts with ``cal``, sensor faults found
+    (:func:`_faults`: a wrap unwrapped, a pinned run masked, each said as a ``fault: `` line). ``note`` receives each
+    remark, prefixed with the file name (a warning as ``warning: <file>: ...``). ``name``: the dataset's (for the
+    faults' lines); ``rows``: only the table's rows first..end-1 (a part of a record cut at a jump). A jump of theta
+    that is no wrap raises :class:`_Cut` (:func:`_normalise_record` cuts the record there)."""
     notes: list[str] = []
 
     def remark(msg: str) -> None:
@@ -800,6 +872,8 @@ def normalise(table: RawTable, opts: ImportOptions, cal: Calibration, note: Note
         raise DataError(f"{table.file}: only {table.values[0].size} rows; need at least 16 samples")
     _bad_cells(table, chans)
     _command_in_range(chans["u"], table.file)
+    if rows is not None:
+        chans = {ch: replace(c, values=c.values[rows[0] : rows[1]]) for ch, c in chans.items()}
     t, chans["t"].unit = time_seconds(chans["t"].values, chans["t"].unit, table, chans["t"].column, remark)
     grid, worst, Ts = uniform_time(t, table, chans["t"].column)
     if Ts > 1.0 / MIN_RATE:
@@ -825,6 +899,12 @@ def normalise(table: RawTable, opts: ImportOptions, cal: Calibration, note: Note
             deg = _angle(ch, c, opts, table.file)
             off, gain = (cal.pot_offset_v, cal.Kp) if ch == "theta" else (cal.gauge_offset_v, cal.Ke)
             cols[f"{ch}_v"], cols[ch] = deg / gain + off, deg
+    faults, masked, cuts = _faults(name or table.file, chans, cols, t, cal, bool(sensor))
+    if cuts:
+        raise _Cut([k for k, *_ in cuts], cuts, need)
+    for f in faults:
+        notes.append(f.line())
+        note(f.line())
     zero = 0.0
     if opts.zero_alpha:
         zero, where = _gauge_zero(cols, Ts)
@@ -877,6 +957,10 @@ def normalise(table: RawTable, opts: ImportOptions, cal: Calibration, note: Note
                    f"resampled?); its step is recorded as {step:.6g} deg all the same")  # fmt: skip
     if lattice:
         entry["lattice_deg"] = lattice
+    if faults:
+        entry["faults"] = [f.to_dict() for f in faults]
+    if masked:
+        entry["masked"] = masked
     entry.update(sensor)
     if "ref" in cols:
         entry["loop"] = "closed"
@@ -1083,13 +1167,62 @@ def import_records(
     check_new_run(out, force)
     _check_options(opts)
     cal = _calibration(opts)
-    done = {name: (files, *normalise(read_record(files), opts, cal, say)) for name, files in records}
+    done: dict[str, tuple[list[Path], dict, dict]] = {}
+    for name, files in records:
+        for part, cols, info in _normalise_record(name, read_record(files), opts, cal, say):
+            if part in done or part in stems and part != name:
+                raise DataError(f"two records named {part!r}: a part of the record {name!r} cut at a jump of theta "
+                                "and another record; rename one (NAME=FILE)")  # fmt: skip
+            done[part] = (files, cols, info)
     if opts.calibration is None:
         say(f"calibration: none given; assumed lab 1's Kp {cal.Kp:g} deg/V, Ke {cal.Ke:g} deg/V, gauge offset 0 V "
             f"(give --kp/--ke or --calibration FILE)")  # fmt: skip
     with new_run(out, force) as work:
         _write_import(work, done, cal, opts, say)
     return [RunDir(out).dataset(name) for name in done]
+
+
+def _normalise_record(
+    name: str, table: RawTable, opts: ImportOptions, cal: Calibration, say: Note
+) -> list[tuple[str, dict, dict]]:
+    """[(dataset name, columns, info)] of one record (:func:`normalise`): the record itself, or where theta jumps
+    as no hub moves and no pot wraps, the parts it is cut into there, named ``NAME_1``, ``NAME_2``, ... in time order,
+    each kept if it is long enough for two folds; the jump is said in one ``fault: `` line, and a record of which no
+    part is long enough is refused."""
+    held: list[str] = []
+    read_notes = list(table.notes)
+    try:
+        cols, info = normalise(table, opts, cal, held.append, name)
+    except _Cut as cut:
+        edges = [0, *cut.rows, table.values[0].size]
+        spans = list(zip(edges[:-1], edges[1:], strict=True))
+        names = [f"{name}_{k + 1}" for k in range(len(spans))]
+        kept = [(n, a, b) for n, (a, b) in zip(names, spans, strict=True) if b - a >= cut.need]
+        said = ", ".join(f"{n} (rows {a}-{b - 1})" for n, a, b in kept) or "no part"
+        short = len(spans) - len(kept)
+        done = (f"cut there into {len(spans)} parts, kept {said}"
+                + (f"; {short} shorter than {cut.need} samples dropped" if short else ""))  # fmt: skip
+        why = "and no turn of the pot (an encoder's, or a span the calibration does not give)"
+        lines = [
+            Fault(name, "theta", "jump", k, time, 1, f"a jump of {jump:+.4g} deg in one sample, beyond the {limit:.3g} "
+                  f"deg a hub turns in one, {why}", done).to_dict()
+            for k, time, jump, limit in cut.jumps
+        ]  # fmt: skip
+        if not kept:
+            raise DataError(f"{table.file}: {lines[0]['line']}: nothing left to import") from None
+        for f in lines:
+            say(str(f["line"]))
+        out = []
+        for n, a, b in kept:
+            part = replace(table, file=f"{table.file} rows {a}-{b - 1}", notes=list(read_notes))
+            cols, info = normalise(part, opts, cal, say, n, (a, b))
+            info["entry"]["faults"] = [*lines, *info["entry"].get("faults", [])]
+            info["notes"] = [str(f["line"]) for f in lines] + info["notes"]
+            out.append((n, cols, info))
+        return out
+    for m in held:
+        say(m)
+    return [(name, cols, info)]
 
 
 def _write_import(out: Path, done: dict, cal: Calibration, opts: ImportOptions, say: Note) -> None:
