@@ -121,6 +121,22 @@ def test_a_wrap_in_degrees_and_in_volts_is_said_and_unwrapped(twins, tmp_path):
                                    rtol=1e-6, atol=1e-9)  # fmt: skip
 
 
+def test_a_wrap_through_a_calibration_that_does_not_give_the_pots_span_cuts_the_record(twins, tmp_path):
+    """A pot of 35.5 deg/V read as 30 deg/V: its wraps are 298 deg, no turn: the record is cut at each, not fitted
+    across, and its parts long enough for two folds kept."""
+    volts = tmp_path / "volts.csv"
+    twins["turning"][["t", "u", "theta_v", "alpha_v"]].to_csv(volts, index=False)
+    said: list[str] = []
+    import_records([volts], tmp_path / "run", ImportOptions(calibration=Calibration(Kp=30.0, Ke=KE)), note=said.append)
+    faults = _faults(tmp_path / "run")
+    lines = sorted({f["line"] for f in faults if f["kind"] == "jump"})
+    assert lines == sorted(m for m in said if m.startswith("fault: ")) and len(lines) >= 3
+    assert all("and no turn of the pot" in m and "cut there into" in m for m in lines)
+    for e in Manifest.load(tmp_path / "run").experiments:
+        theta = read_dataset(tmp_path / "run" / "data" / f"{e.name}.parquet")["theta"].to_numpy()
+        assert e.name.startswith("volts_") and np.max(np.abs(np.diff(theta))) < fastest_step_deg(1.0 / RATE, 2.5)
+
+
 def test_a_rail_is_masked_left_out_and_identified_as_without_it(twins, tmp_path):
     clean, rail = twins["clean"], twins["rail"]
     top = rail.attrs["adc_range"]
