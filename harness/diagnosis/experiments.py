@@ -90,7 +90,9 @@ class RigExperiment:
     ``lattice_deg``: the angle step [deg] per channel a record was written on (from its import). The fit
     window (first FIT_SECONDS) and the screening window (first SCREEN_SECONDS) have their own sample counts and
     sums of squares. ``record``: the record it is (a part of); ``measured_start``: where a part cut from an open-loop
-    record starts; ``quiet``: the channels that do not move beyond their noise (:meth:`moves`)."""
+    record starts; ``quiet``: the channels that do not move beyond their noise (:meth:`moves`); ``faulty``: the samples
+    an import masked in either channel (a sensor pinned at a rail or stuck: never a quiet point, its stillness is the
+    sensor's), None where it masked none."""
 
     name: str
     kind: str
@@ -121,6 +123,7 @@ class RigExperiment:
     record: str = ""
     measured_start: dict[str, float] | None = None
     quiet: frozenset[str] = frozenset()
+    faulty: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.record = self.record or self.name
@@ -419,7 +422,14 @@ def load_experiments(
         for c, spans in masked[n].items():
             for a, b in spans:
                 x.valid[c][a:b] = False
+        if masked[n]:
+            x.faulty = np.isin(np.arange(x.u.size), _spans(masked[n]))
     return out
+
+
+def _spans(masked: dict[str, list[list[int]]]) -> np.ndarray:
+    """The samples of [first, end) ranges per channel."""
+    return np.concatenate([np.arange(a, b) for spans in masked.values() for a, b in spans])
 
 
 def one_rate(experiments: dict[str, RigExperiment]) -> float:
@@ -554,6 +564,8 @@ def _quietness(x: RigExperiment) -> np.ndarray:
         rms = float(np.sqrt(np.mean(z**2)))
         if rms > 0:
             score += (z / rms) ** 2
+    if x.faulty is not None and x.faulty.any():  # a sensor held still by its fault is not the rig at rest
+        score[x.faulty] = 1e6 * (1.0 + float(np.max(score)))
     w = max(1, int(round(QUIET_SECONDS / x.Ts)))
     return np.convolve(score, np.ones(w) / w, mode="same")
 
@@ -695,6 +707,7 @@ def _part(x: RigExperiment, a: int, b: int, bla: bool, state: np.ndarray) -> Rig
         lines=x.lines if periodic and bla else None,
         valid={c: v[s] for c, v in x.valid.items()},
         ref=None if x.ref is None else x.ref[s],
+        faulty=None if x.faulty is None else x.faulty[s],
     )
 
 
