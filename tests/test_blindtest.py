@@ -85,6 +85,10 @@ def test_scoring_rules():
     assert s["ks_error"] == pytest.approx(0.14 / 1.5) and s["recal_ok"]
     diag.parameters["plant.Beq"].fitted = 0.0101
     assert not bt.score_case(nuis, diag)["recal_ok"]
+    # a diagnosis without a Beq row (its drive held: blindtest --family closed --quick --n 2 --seed 5 raised
+    # KeyError 'plant.Beq'): Beq missed, the case scored
+    s = bt.score_case(nuis, _diag("none", [], 0.0, {"plant.Ks": 1.64}))
+    assert math.isinf(s["beq_error"]) and not s["recal_ok"] and s["ks_error"] == pytest.approx(0.14 / 1.5)
 
 
 def test_wilson_interval():

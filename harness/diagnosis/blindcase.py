@@ -128,9 +128,10 @@ def score_case(case: dict[str, Any], diag: Diagnosis) -> dict[str, Any]:
     params = diag.parameters
     if case.get("sheet_truth"):
         out.update(sheet_scores(case["sheet_truth"], diag))
-    elif case.get("nuisance") and "plant.Ks" in params:
+    elif case.get("nuisance") and "plant.Ks" in params:  # a row the diagnosis has not (the drive held): a miss
         ks = _rel_err(case["nuisance"]["plant.Ks"], params["plant.Ks"].fitted)
-        beq = _rel_err(case["nuisance"]["plant.Beq"], params["plant.Beq"].fitted)
+        beq_row = params.get("plant.Beq")
+        beq = _rel_err(case["nuisance"]["plant.Beq"], None if beq_row is None else beq_row.fitted)
         out.update(ks_error=ks, beq_error=beq, recal_ok=bool(ks <= KS_TOL and beq <= BEQ_TOL))
     return out
 
