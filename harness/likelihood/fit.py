@@ -223,10 +223,6 @@ def fit(
             return math.inf
         return math.inf if not math.isfinite(ll) else -ll + 0.5 * float(np.sum((x / sd) ** 2))
 
-    # the linear model first: the noise held at its start until the rest has been fitted, so that a white torque
-    # cannot carry the hub from a start far off (its basin lies there: the drive twice too strong) nor a link's
-    # torque take its gauge's noise; then all of it, the torques searched as variances (their slope at none says
-    # whether any helps)
     # searched in units of a tight prior's sd (a sensor's gain known to 3e-5 would otherwise be a wall of curvature
     # a million times the others', and the search would stop where it starts)
     c = np.minimum(sd, 1.0)
@@ -234,6 +230,10 @@ def fit(
     def scaled(xi: np.ndarray) -> float:
         return objective(xi * c)
 
+    # the linear model first: the noise held at its start until the rest has been fitted, so that a white torque
+    # cannot carry the hub from a start far off (its basin lies there: the drive twice too strong) nor a link's
+    # torque take its gauge's noise; then all of it, the torques searched as variances (their slope at none says
+    # whether any helps)
     first = np.array([n not in NOISE for n in names])
     xi, converged, message = x0 / c, True, ""
     walls_xi = [(lo / ci, hi / ci) for (lo, hi), ci in zip(walls, c, strict=True)]
