@@ -227,12 +227,12 @@ def test_a_reading_on_a_lattice_is_scored_by_its_cell():
 
 
 def _nominal_twin(tmp_path) -> tuple[Path, specmod.Spec]:
-    """The nominal rig's campaign (its calibration, a PRBS and a square wave of 60 s at 50 Hz) logged through a 12-bit
+    """The nominal rig's campaign (its calibration, a PRBS and a square wave of 30 s at 50 Hz) logged through a 12-bit
     ADC with 2 mV of noise, and a sheet for it that is off: Ks 1.6 for 1.3, Beq 0.006 for 0.004, Jeq 0.0025 for
     0.00208."""
     raw = specmod.load("nominal").raw
     raw["daq"] = {"noise_theta": NOISE_V, "noise_alpha": NOISE_V, "adc_bits": 12}
-    raw["experiment"] = [e for e in raw["experiment"] if e["name"] in ("prbs_b010", "square_030")]
+    raw["experiment"] = [{**e, "duration": 30.0} for e in raw["experiment"] if e["name"] in ("prbs_b010", "square_030")]
     real = specmod.from_dict(raw, str(specmod.resolve_path("nominal")))
     run_campaign(real, tmp_path / "real", workers=1)
     sheet = {**raw, "plant": {**raw["plant"], "Ks": 1.6, "Beq": 0.006, "Jeq": 0.0025}}
@@ -240,7 +240,7 @@ def _nominal_twin(tmp_path) -> tuple[Path, specmod.Spec]:
 
 
 def test_a_units_linear_model_is_fitted_from_an_off_sheet_with_nothing_at_a_bound(tmp_path):
-    """The nominal twin's two records (6000 readings on a 12-bit lattice) fitted from a sheet 15-50 % off
+    """The nominal twin's two records (3000 readings each on a 12-bit lattice) fitted from a sheet 15-50 % off
     (:func:`_nominal_twin`), the priors the sheet's uncertainty: the drive's gain and time constant, the inertia
     ratio, the link's stiffness and damping within 1 % of the rig's and inside 3.29 standard errors, the sensors'
     gains within 0.5 % of 1, the torques' noise at its floor, nothing at a bound, no finding, no missing force,
