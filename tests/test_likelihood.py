@@ -24,6 +24,7 @@ from harness.likelihood.kalman import Discrete, kalman_filter, smooth
 from harness.likelihood.model import Noise, rig_model
 from harness.likelihood.record import Record
 from harness.likelihood.unit import fit_run
+from harness.likelihood.whiteness import ljung_box
 from harness.rig.campaign import run_campaign
 from harness.rig.controller import Controller
 
@@ -244,7 +245,7 @@ def test_a_units_linear_model_is_fitted_from_an_off_sheet_with_nothing_at_a_boun
     (:func:`_nominal_twin`), the priors the sheet's uncertainty: the drive's gain and time constant, the inertia
     ratio, the link's stiffness and damping within 1 % of the rig's and inside 3.29 standard errors, the sensors'
     gains within 0.5 % of 1, the torques' noise at its floor, nothing at a bound, no finding, no missing force,
-    residuals white (lag-one autocorrelation within +-0.1)."""
+    residuals white (lag-one autocorrelation within +-0.1, Ljung-Box at 1 % on every record and channel)."""
     run, sheet = _nominal_twin(tmp_path)
     unit = fit_run(run, sheet)
     assert unit.fit.converged, unit.fit.message
@@ -259,6 +260,7 @@ def test_a_units_linear_model_is_fitted_from_an_off_sheet_with_nothing_at_a_boun
         assert unit.fit.estimates[name].value == pytest.approx(1.0, abs=5e-3)
     assert not {k: v for k, v in unit.fit.at_bounds().items() if not (k.startswith("noise.") and v == "lower")}
     assert all(abs(r) < 0.1 for chans in unit.lag_one.values() for r in chans.values()), unit.lag_one
+    assert all(p >= 0.01 for chans in unit.whiteness.values() for p in chans.values()), unit.whiteness
     assert unit.missing_force.shape == "none"
     lines = unit.summary()
     assert "  nothing at a bound: effects may be tried" in lines and "  missing force: none" in lines
@@ -306,3 +308,60 @@ def test_the_missing_force_draws_friction_against_the_hubs_speed(coulomb):
         assert np.abs(tr.force).max() < 1e-4
         assert named.shape == "none" and named.size == 0
     assert 0 < named.samples_near_zero < n // 10
+
+
+def _white_share(bits: int, seeds: range) -> tuple[int, int]:
+    """Of closed-loop twins through a ``bits`` ADC (``seeds``), filtered at their true parameters: how many have
+    both channels' residuals white by Ljung-Box at 1 % with the readings' cells, and how many with the lattice taken
+    as points of q^2 / 12 more noise."""
+    cells = points = 0
+    truth = _truth(PLANT) | {"sensor.theta_gain": 1.0, "sensor.alpha_gauge_gain": 1.0, "noise.theta": NOISE_V * KP,
+                             "noise.alpha": NOISE_V * abs(KE)}  # fmt: skip
+    for seed in seeds:
+        rec = _twin(True, seed, bits)
+        z = mlfit.filter_record(PLANT, truth, rec).standardised(np.array(rec.lattice))[50:]
+        cells += all(ljung_box(z[:, j]).white for j in range(2))
+        flat = Record(rec.name, rec.Ts, rec.u, rec.y, rec.mask)
+        wider = {f"noise.{c}": math.hypot(truth[f"noise.{c}"], q / math.sqrt(12.0))
+                 for c, q in zip(("theta", "alpha"), rec.lattice, strict=True)}  # fmt: skip
+        z = mlfit.filter_record(PLANT, truth | wider, flat).standardised()[50:]
+        points += all(ljung_box(z[:, j]).white for j in range(2))
+    return cells, points
+
+
+def test_a_quantised_twins_residuals_are_white_with_its_cells_and_not_as_points():
+    """Ten closed-loop twins through a 10-bit ADC (the hub's lattice 0.69 deg, ten times its noise), filtered at
+    their true parameters: with the readings' cells the residuals pass Ljung-Box (20 lags, 1 %) on at least 9 of 10
+    (measured 10); with the lattice as points of q^2 / 12 on none (measured 0)."""
+    cells, points = _white_share(10, range(1, 11))
+    assert cells >= 9 and points == 0
+
+
+@pytest.mark.open(
+    reason=(
+        "issue 63 open: through an 8-bit ADC (the hub's lattice 2.8 deg, forty times its noise) 7 of 10 twins are "
+        "white with cells (as points: 0); on the other three the residuals blow up after a reference step (up to 37 "
+        "sd on the gauge): at rest the moment-matched cells shrink the state's variance where the true posterior is "
+        "a cell's width"
+    ),
+)
+def test_an_8bit_twins_residuals_are_white_with_its_cells():
+    cells, _ = _white_share(8, range(1, 11))
+    assert cells >= 9
+
+
+def test_ljung_box_holds_its_level_on_white_noise_and_rejects_an_ar1():
+    """On 400 series of 1000 independent normals (a tenth of them masked at random) the test rejects at 1 % on 0-12
+    of them (measured 3; on 3000 series 1.13 %, unmasked 0.93 %); on an AR(1) of coefficient 0.2 it rejects every
+    one of 50."""
+    rng = np.random.default_rng(11)
+    z = rng.standard_normal((400, 1000))
+    z[rng.random(z.shape) < 0.1] = np.nan
+    assert sum(not ljung_box(s).white for s in z) <= 12
+    e = rng.standard_normal((50, 1000))
+    ar = np.zeros_like(e)
+    for k in range(1, 1000):
+        ar[:, k] = 0.2 * ar[:, k - 1] + e[:, k]
+    assert not any(ljung_box(s).white for s in ar)
+    with pytest.raises(ValueError, match="too few"):
+        ljung_box(np.ones(10))

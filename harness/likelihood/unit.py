@@ -32,6 +32,7 @@ from ..rundir import write_json
 from .fit import BOUNDS, TORQUES, MLFit, filter_record, fit, noise_start
 from .force import MissingForce, classify, force_picture
 from .record import Record
+from .whiteness import LAGS, LEVEL, ljung_box
 
 __all__ = ["UnitFit", "fit_run", "linear_start", "write_likelihood"]
 
@@ -43,7 +44,8 @@ FREE = ("rig.drive_gain", "rig.drive_tau", "rig.inertia_ratio", "plant.Ks", "pla
 class UnitFit:
     """The likelihood engine's fit of a unit's linear model: the ``fit``, the ``records`` it ran through, the sheet's
     ``nominal`` values, the ``held`` parameters (a sensor known exactly), each record's residuals' lag-one
-    autocorrelation per channel (``lag_one``: white residuals give about 0, within +-2/sqrt(n)), the
+    autocorrelation per channel (``lag_one``: white residuals give about 0, within +-2/sqrt(n)) and its Ljung-Box
+    p-value (``whiteness``: white at :data:`harness.likelihood.whiteness.LEVEL` and above), the
     ``findings`` (a parameter at its bound, in words; none: effects may be tried from here) and what the fitted
     model lacks (``missing_force``, :func:`harness.likelihood.force.classify`)."""
 
@@ -52,6 +54,7 @@ class UnitFit:
     nominal: dict[str, float]
     held: dict[str, float]
     lag_one: dict[str, dict[str, float]]
+    whiteness: dict[str, dict[str, float]]
     findings: tuple[str, ...]
     missing_force: MissingForce
 
@@ -68,6 +71,11 @@ class UnitFit:
             lines.append(f"  {k:24s} {e.value:.4g}{unit} ({e.value / self.nominal[k]:.3g}x the sheet), "
                          f"95 % {e.ci95[0]:.4g}..{e.ci95[1]:.4g}")  # fmt: skip
         lines += [f"  finding: {x}" for x in self.findings[:5]] or ["  nothing at a bound: effects may be tried"]
+        grey = [f"{r} {c}" for r, ps in self.whiteness.items() for c, p in ps.items() if p < LEVEL]
+        lines.append(
+            f"  residuals white (Ljung-Box, {LEVEL:g}): {len(self.records) * 2 - len(grey)} of "
+            f"{len(self.records) * 2} record channels" + (f"; not: {', '.join(grey[:3])}" if grey else "")
+        )
         mf = self.missing_force
         lines.append(f"  missing force: {mf.shape}" + (f", {mf.size:.3g} {mf.unit} ({mf.dead_band_v:.3g} V)"
                                                          if mf.shape != "none" else ""))  # fmt: skip
@@ -96,6 +104,7 @@ class UnitFit:
             },
             "held": self.held,
             "lag_one": self.lag_one,
+            "whiteness": {"test": "Ljung-Box", "lags": LAGS, "level": LEVEL, "p": self.whiteness},
             "findings": list(self.findings),
             "missing_force": self.missing_force.to_json(),
         }
@@ -159,17 +168,18 @@ def fit_run(real: Path, sim: str | Path | specmod.Spec, progress: Callable[[str]
     res = fit(plant, records, free | noise, fixed=held, nominal=nominal | noise,
               prior_sd={k: sd[k] for k in free if k in sd}, delay=delay)  # fmt: skip
     values = res.values() | held
-    lag_one = {}
+    lag_one, white = {}, {}
     for rec in records:
         z = filter_record(plant, values, rec, delay).standardised(np.asarray(rec.lattice))
         lag_one[rec.name] = {c: _lag_one(z[:, j]) for j, c in enumerate(("theta", "alpha"))}
+        white[rec.name] = {c: ljung_box(z[:, j]).p for j, c in enumerate(("theta", "alpha"))}
     linear = {k: (nominal[k], e.value) for k, e in res.estimates.items() if k in LINEAR}
     findings = [*parts_at_bound(linear)]
     findings += [f"{BOUNDS[k].label} ends at its upper bound: the linear model cannot draw what the records show"
                  for k, side in res.at_bounds().items() if k in TORQUES and side == "upper"]  # fmt: skip
     say("the missing force")
     force = classify(force_picture(plant, values, records, delay))
-    return UnitFit(res, tuple(r.name for r in records), nominal, held, lag_one, tuple(findings), force)
+    return UnitFit(res, tuple(r.name for r in records), nominal, held, lag_one, white, tuple(findings), force)
 
 
 def _lag_one(z: np.ndarray) -> float:
