@@ -27,7 +27,17 @@ from .kalman import Discrete, Filtered, kalman_filter
 from .model import NOISE, Noise, StochasticModel, rig_model
 from .record import Record
 
-__all__ = ["Estimate", "MLFit", "filter_record", "fit", "log_likelihood", "noise_start", "run_filter", "start_state"]
+__all__ = [
+    "Estimate",
+    "MLFit",
+    "filter_record",
+    "fit",
+    "log_likelihood",
+    "noise_start",
+    "run_filter",
+    "split_values",
+    "start_state",
+]
 
 BOUNDS: dict[str, Bound] = {**LINEAR, **NOISE}
 TORQUES = ("noise.hub_torque", "noise.link_torque")  # the process noise: freed once the rest is fitted
@@ -73,7 +83,8 @@ class MLFit:
         return {name: e.at for name, e in self.estimates.items() if e.at is not None}
 
 
-def _split(values: Mapping[str, float]) -> tuple[dict[str, float], Noise]:
+def split_values(values: Mapping[str, float]) -> tuple[dict[str, float], Noise]:
+    """Parameters by name as :func:`harness.likelihood.model.rig_model` takes them: the linear ones and the noise."""
     return {k: v for k, v in values.items() if k in LINEAR}, Noise.from_values(values)
 
 
@@ -143,7 +154,7 @@ def filter_record(
 ) -> Filtered:
     """The filter of the rig ``plant`` with ``values`` (linear and noise parameters) through ``record``, its command
     delayed by ``delay`` samples (the DAQ's ``delay_samples``); ``keep`` keeps its states for the smoother."""
-    model = rig_model(plant, *_split(values), force="noise.hub_force" in values)
+    model = rig_model(plant, *split_values(values), force="noise.hub_force" in values)
     return run_filter(model, model.discretise(record.Ts), record, delay, keep)
 
 
@@ -152,7 +163,7 @@ def log_likelihood(
 ) -> float:
     """The records' summed Gaussian log-likelihood [nats] under the rig ``plant`` with ``values`` (NaN if the
     filter fails)."""
-    model = rig_model(plant, *_split(values), force="noise.hub_force" in values)
+    model = rig_model(plant, *split_values(values), force="noise.hub_force" in values)
     discrete: dict[float, Discrete] = {}
     total = 0.0
     for rec in records:

@@ -16,9 +16,9 @@ from typing import Any
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from .fit import run_filter
+from .fit import log_likelihood, run_filter, split_values
 from .kalman import smooth
-from .model import DEG, Noise, rig_model
+from .model import DEG, rig_model
 from .record import Record
 
 __all__ = ["ForcePicture", "ForceTrace", "MissingForce", "classify", "force_picture"]
@@ -73,19 +73,6 @@ class MissingForce:
                 "samples_near_zero": self.samples_near_zero}  # fmt: skip
 
 
-def _loglik(plant: Mapping[str, Any], values: Mapping[str, float], records: Sequence[Record], delay: int,
-            intensity: float) -> float:  # fmt: skip
-    model = rig_model(plant, *_split(values, intensity), force=True)
-    d = {rec.Ts: model.discretise(rec.Ts) for rec in records}
-    return sum(run_filter(model, d[rec.Ts], rec, delay).loglik for rec in records)
-
-
-def _split(values: Mapping[str, float], intensity: float) -> tuple[dict[str, float], Noise]:
-    linear = {k: v for k, v in values.items() if not k.startswith("noise.")}
-    noise = Noise.from_values({**values, "noise.hub_force": intensity})
-    return linear, noise
-
-
 def force_picture(
     plant: Mapping[str, Any], values: Mapping[str, float], records: Sequence[Record], delay: int = 0
 ) -> ForcePicture:
@@ -107,19 +94,22 @@ def force_picture(
     -------
     ForcePicture
     """
-    values = {k: v for k, v in values.items() if k != "noise.hub_force"}
-    none = _loglik(plant, values, records, delay, 0.0)
+
+    def loglik(intensity: float) -> float:  # the model with the force state (also at none)
+        return log_likelihood(plant, {**values, "noise.hub_force": intensity}, records, delay)
+
+    none = loglik(0.0)
     lo, hi = (math.log(x) for x in INTENSITY_RANGE)
-    best = minimize_scalar(lambda s: -_loglik(plant, values, records, delay, math.exp(s)), bounds=(lo, hi),
-                           method="bounded", options={"xatol": 1e-3})  # fmt: skip
+    best = minimize_scalar(lambda s: -loglik(math.exp(s)), bounds=(lo, hi), method="bounded",
+                           options={"xatol": 1e-3})  # fmt: skip
     intensity, ll = (math.exp(best.x), -best.fun) if -best.fun > none else (0.0, none)
-    model = rig_model(plant, *_split(values, intensity), force=True)
+    model = rig_model(plant, *split_values({**values, "noise.hub_force": intensity}), force=True)
+    i_d, i_w = model.states.index("d"), model.states.index("theta_dot")
     traces = []
     for rec in records:
         disc = model.discretise(rec.Ts)
         f = run_filter(model, disc, rec, delay, keep=True)
         x, P = smooth(disc, f)
-        i_d, i_w = model.states.index("d"), model.states.index("theta_dot")
         gauge = model.C[1, : i_d - 1]  # the gauge's row without its offset
         traces.append(ForceTrace(
             rec.name, np.arange(rec.n) * rec.Ts, x[:, i_d], np.sqrt(np.maximum(P[:, i_d, i_d], 0.0)),

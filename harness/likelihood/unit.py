@@ -36,9 +36,6 @@ from .whiteness import LAGS, LEVEL, ljung_box
 
 __all__ = ["UnitFit", "fit_run", "linear_start", "write_likelihood"]
 
-FREE = ("rig.drive_gain", "rig.drive_tau", "rig.inertia_ratio", "plant.Ks", "plant.zeta_link", "sensor.theta_gain",
-        "sensor.alpha_gauge_gain")  # fmt: skip
-
 
 @dataclass(frozen=True)
 class UnitFit:
@@ -111,7 +108,8 @@ class UnitFit:
 
 
 def linear_start(plant: dict[str, Any]) -> dict[str, float]:
-    """The sheet's values of the linear parameters the engine fits (:data:`FREE`) for a plant table."""
+    """The sheet's values of the linear parameters the engine fits for a plant table: the drive's combos, the link's
+    stiffness and damping, the sensors' gains (1: as calibrated)."""
     return rigmodel.combos(plant) | {
         "plant.Ks": rigmodel.plant_value(plant, "Ks"),
         "plant.zeta_link": rigmodel.plant_value(plant, "zeta_link"),
@@ -161,7 +159,7 @@ def fit_run(real: Path, sim: str | Path | specmod.Spec, progress: Callable[[str]
     records, delay, encoder = _records(Path(real), spec)
     sd, _ = priors(spec, load_calibration(Path(real)).gain_rel_se(), encoder)
     nominal = linear_start(plant)
-    held = {k: nominal[k] for k in FREE if sd.get(k, 1.0) == 0.0}
+    held = {k: v for k, v in nominal.items() if sd.get(k, 1.0) == 0.0}  # a sensor known exactly
     free = {k: v for k, v in nominal.items() if k not in held}
     noise = noise_start(records)
     say(f"maximum likelihood over {len(records)} records")
