@@ -44,7 +44,7 @@ class UnitFit:
     autocorrelation per channel (``lag_one``: white residuals give about 0, within +-2/sqrt(n)) and its Ljung-Box
     p-value (``whiteness``: white at :data:`harness.likelihood.whiteness.LEVEL` and above), the
     ``findings`` (a parameter at its bound, in words; none: effects may be tried from here) and what the fitted
-    model lacks (``missing_force``, :func:`harness.likelihood.force.classify`)."""
+    model lacks (``missing_force``, :func:`harness.likelihood.force.classify`: its shape and size)."""
 
     fit: MLFit
     records: tuple[str, ...]
@@ -73,9 +73,7 @@ class UnitFit:
             f"  residuals white (Ljung-Box, {LEVEL:g}): {len(self.records) * 2 - len(grey)} of "
             f"{len(self.records) * 2} record channels" + (f"; not: {', '.join(grey[:3])}" if grey else "")
         )
-        mf = self.missing_force
-        lines.append(f"  missing force: {mf.shape}" + (f", {mf.size:.3g} {mf.unit} ({mf.dead_band_v:.3g} V)"
-                                                         if mf.shape != "none" else ""))  # fmt: skip
+        lines.append(_force_line(self.missing_force))
         return lines
 
     def to_json(self) -> dict[str, Any]:
@@ -178,6 +176,20 @@ def fit_run(real: Path, sim: str | Path | specmod.Spec, progress: Callable[[str]
     say("the missing force")
     force = classify(force_picture(plant, values, records, delay))
     return UnitFit(res, tuple(r.name for r in records), nominal, held, lag_one, white, tuple(findings), force)
+
+
+def _force_line(mf: MissingForce) -> str:
+    """The missing force in one line: its shape and, where it has one, its size (friction's levels each way and the
+    command its mean takes)."""
+    head = f"  missing force: {mf.shape}"
+    if mf.shape in ("friction", "asymmetric_friction"):
+        ways = f"{mf.levels[0]:.3g} forward, {mf.levels[1]:.3g} backward, " if mf.levels[0] != mf.levels[1] else ""
+        return head + f", {ways}{mf.size:.3g} {mf.unit} ({mf.dead_band_v:.3g} V)"
+    if mf.shape in ("limit", "offset"):
+        return head + f" at {mf.size:.3g} {mf.unit}"
+    if mf.shape == "too_few_at_rest":
+        return head + " (the hub never rests: friction and an offset look alike)"
+    return head
 
 
 def _lag_one(z: np.ndarray) -> float:
