@@ -835,7 +835,7 @@ def diagnose(
         str,
         typer.Option(
             help="replay (today's diagnosis) or likelihood: today's, and beside it the likelihood engine's maximum-"
-            "likelihood fit of the linear model (likelihood.json)"
+            "likelihood fit of the linear model (likelihood.json) and its missing force (force_picture.png, .parquet)"
         ),
     ] = "replay",
 ) -> None:
@@ -860,12 +860,17 @@ def diagnose(
     diagnosis_screen(d, out_dir or real).print(out)
     if engine == "likelihood":
         from .likelihood.unit import fit_run, write_likelihood
+        from .render.force import verdict_text, write_force_views
         from .render.summary import Summary
 
         unit = fit_run(real, sim, progress=_progress("likelihood"))
+        mf = unit.missing_force
+        _, png = write_force_views(out_dir or real, unit.picture, verdict_text(mf.shape, mf.size, mf.unit,
+                                                                               mf.dead_band_v))  # fmt: skip
         s = Summary("likelihood.json")
         s.lines(unit.summary())
         s.close(f"the whole fit: {write_likelihood(out_dir or real, unit)}")
+        s.close(f"the missing force drawn: {png} (its traces: force_picture.parquet)")
         s.print(out)
 
 

@@ -13,6 +13,8 @@ Layout::
     doubled_rate.json       the selected orders re-identified at twice the sample rate
     diagnosis.json          the diagnosis (harness.diagnosis.result.Diagnosis); diagnosis.timing.json its wall times
     diagnosis.replays.parquet  its replays beside the record, per stage (harness.diagnosis.replays)
+    likelihood.json         the likelihood engine's fit (diagnose --engine likelihood; harness.likelihood.unit)
+    force_picture.parquet   its missing force smoothed per record, force_picture.png drawn (harness.render.force)
     report.md, figures/     the report;   run.rrd  the Rerun recording
     run.timing.json         flexjoint run's wall time per stage (timings apart: every other file is byte-stable)
 
@@ -112,6 +114,18 @@ class RunDir:
         return self.root / "diagnosis.replays.parquet"
 
     @property
+    def likelihood(self) -> Path:
+        return self.root / "likelihood.json"
+
+    @property
+    def force_traces(self) -> Path:
+        return self.root / "force_picture.parquet"
+
+    @property
+    def force_figure(self) -> Path:
+        return self.root / "force_picture.png"
+
+    @property
     def run_timing(self) -> Path:
         return self.root / "run.timing.json"
 
@@ -130,8 +144,8 @@ class RunDir:
     def derived(self) -> list[Path]:
         """Every artefact made from the data (everything of the layout but manifest.json and data/)."""
         return [self.calibration, self.models, self.grid, self.crossfit, self.doubled_rate, self.diagnosis,
-                self.diagnosis_replays, self.diagnosis_timing, self.run_timing, self.report, self.figures,
-                self.recording]  # fmt: skip
+                self.diagnosis_replays, self.diagnosis_timing, self.likelihood, self.force_traces,
+                self.force_figure, self.run_timing, self.report, self.figures, self.recording]  # fmt: skip
 
 
 class DataError(ValueError):

@@ -30,7 +30,7 @@ from ..diagnosis.simulation import fmu_value, sim_rig
 from ..ident.calibration import load_calibration
 from ..rundir import write_json
 from .fit import BOUNDS, TORQUES, MLFit, filter_record, fit, noise_start
-from .force import MissingForce, classify, force_picture
+from .force import ForcePicture, MissingForce, classify, force_picture
 from .record import Record
 from .whiteness import LAGS, LEVEL, ljung_box
 
@@ -44,7 +44,8 @@ class UnitFit:
     autocorrelation per channel (``lag_one``: white residuals give about 0, within +-2/sqrt(n)) and its Ljung-Box
     p-value (``whiteness``: white at :data:`harness.likelihood.whiteness.LEVEL` and above), the
     ``findings`` (a parameter at its bound, in words; none: effects may be tried from here) and what the fitted
-    model lacks (``missing_force``, :func:`harness.likelihood.force.classify`: its shape and size)."""
+    model lacks (``missing_force``, :func:`harness.likelihood.force.classify`: its shape and size, of the smoothed
+    ``picture``, :func:`harness.likelihood.force.force_picture`)."""
 
     fit: MLFit
     records: tuple[str, ...]
@@ -54,6 +55,7 @@ class UnitFit:
     whiteness: dict[str, dict[str, float]]
     findings: tuple[str, ...]
     missing_force: MissingForce
+    picture: ForcePicture
 
     def summary(self) -> list[str]:
         """A few lines for the terminal (under 100 characters each): the fit, the parameters that moved most from
@@ -174,8 +176,9 @@ def fit_run(real: Path, sim: str | Path | specmod.Spec, progress: Callable[[str]
     findings += [f"{BOUNDS[k].label} ends at its upper bound: the linear model cannot draw what the records show"
                  for k, side in res.at_bounds().items() if k in TORQUES and side == "upper"]  # fmt: skip
     say("the missing force")
-    force = classify(force_picture(plant, values, records, delay))
-    return UnitFit(res, tuple(r.name for r in records), nominal, held, lag_one, white, tuple(findings), force)
+    picture = force_picture(plant, values, records, delay)
+    return UnitFit(res, tuple(r.name for r in records), nominal, held, lag_one, white, tuple(findings),
+                   classify(picture), picture)  # fmt: skip
 
 
 def _force_line(mf: MissingForce) -> str:

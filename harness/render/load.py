@@ -21,12 +21,15 @@ from ..diagnosis.result import Diagnosis
 from ..ident import armax
 from ..ident.calibration import Calibration
 from ..ident.identify import PreparedExperiment, prepare
+from ..likelihood.force import ForceTrace
+from ..likelihood.traces import read_traces
 from ..rundir import DataError, Manifest, RunDir, load_run, stale_artefacts
 from ..spec import IDENTIFY_DEFAULTS
 
 __all__ = ["GRID_COLUMNS", "RunResults", "load_results"]
 
 GRID_COLUMNS = ("dataset", "na", "nb", "nc", "nk", "causal", "stable", "fit")
+MISSING_FORCE = ("shape", "size", "unit", "dead_band_v", "samples_near_zero")  # what is shown of likelihood.json's
 
 
 @dataclass
@@ -38,7 +41,10 @@ class RunResults:
     ``simulated``: dataset -> y_f simulated by the selected model (ic of its preprocessing record);
     ``crossfit``: models x datasets fit [%] (no average column), ``crossfit_source`` where it came from;
     ``records``: every experiment's dataset (all roles, manifest order); ``replays``: the diagnosis's replays beside
-    the record per experiment (:mod:`harness.diagnosis.replays`). A directory that ``flexjoint diagnose --out``
+    the record per experiment (:mod:`harness.diagnosis.replays`); ``missing_force``: the likelihood engine's verdict
+    (likelihood.json's ``missing_force``) and ``force`` the smoothed force per record it was read from
+    (force_picture.parquet, :mod:`harness.likelihood.traces`), beside a diagnosis when ``diagnose --engine likelihood``
+    wrote them. A directory that ``flexjoint diagnose --out``
     wrote holds a diagnosis only: its manifest is then a stand-in of kind "diagnosis" with no experiments.
     ``stale``: the artefacts left out because they were made from other inputs than the directory holds
     (:func:`harness.rundir.stale_artefacts`: artefact -> the line that says so).
@@ -59,6 +65,8 @@ class RunResults:
     doubled_rate: dict[str, Any] | None = None
     records: dict[str, pd.DataFrame] = field(default_factory=dict)
     replays: dict[str, Replay] = field(default_factory=dict)
+    missing_force: dict[str, Any] | None = None
+    force: tuple[ForceTrace, ...] = ()
     af: float = float(IDENTIFY_DEFAULTS["af"])
     ic: str = str(IDENTIFY_DEFAULTS["ic"])
     stale: dict[str, str] = field(default_factory=dict)
@@ -164,8 +172,20 @@ def load_results(run: Path) -> RunResults:
     res.diagnosis = Diagnosis.load(paths.diagnosis) if fresh else None
     if res.diagnosis is not None and paths.diagnosis_replays.exists():
         res.replays = read_replays(paths.diagnosis_replays)
+    likelihood = _read_json(paths.likelihood) if res.diagnosis is not None else None
+    if likelihood is not None and paths.force_traces.exists():
+        res.missing_force, res.force = _verdict(paths.likelihood, likelihood), read_traces(paths.force_traces)
     res.doubled_rate = _read_json(paths.doubled_rate) if "doubled_rate.json" not in res.stale else None
     return res
+
+
+def _verdict(path: Path, doc: dict[str, Any]) -> dict[str, Any]:
+    """likelihood.json's ``missing_force`` with the fields the report and the recording show; one line when not."""
+    mf = doc.get("missing_force")
+    missing = [k for k in MISSING_FORCE if k not in mf] if isinstance(mf, dict) else list(MISSING_FORCE)
+    if missing or not isinstance(mf, dict):
+        raise DataError(f"{path}: missing_force lacks {', '.join(missing)} (re-run diagnose --engine likelihood)")
+    return mf
 
 
 def _load_crossfit(res: RunResults) -> None:

@@ -42,6 +42,7 @@ from .analysis import (
     residual_tests,
     zoom_window,
 )
+from .force import force_markdown
 from .gap_text import diagnosis_markdown, gap_rows, manual
 from .load import RunResults, load_results
 from .tables import crossfit_table, fmt, fmt_any, orders, table, vec, wrap_prose
@@ -550,7 +551,18 @@ def _section_diagnosis(res: RunResults, figdir: Path, drawings: Drawings) -> lis
     if rows:
         drawings.append(((figures.diagnosis_bars, (rows,), {}), figdir / "diagnosis.png"))
         lines += ["![gap per experiment](figures/diagnosis.png)", ""]
-    return lines + _replay_lines(res, figdir, drawings)
+    return lines + _force_lines(res) + _replay_lines(res, figdir, drawings)
+
+
+def _force_lines(res: RunResults) -> list[str]:
+    """The likelihood engine's missing force (when ``diagnose --engine likelihood`` wrote it): its shape, size and
+    samples at rest, its figure (drawn by diagnose, beside report.md) linked."""
+    mf = res.missing_force
+    if mf is None:
+        return []
+    png = res.paths.force_figure
+    return force_markdown(str(mf["shape"]), float(mf["size"]), str(mf["unit"]), float(mf["dead_band_v"]),
+                          int(mf["samples_near_zero"]), res.force, png.name if png.exists() else None)  # fmt: skip
 
 
 def _replay_lines(res: RunResults, figdir: Path, drawings: Drawings) -> list[str]:

@@ -23,6 +23,10 @@ Entity tree (all logged from the run directory alone, via :func:`harness.render.
   ``diagnosis/waterfall`` (the held-out gap stage by stage, named), ``diagnosis/summary`` (markdown),
   ``diagnosis/replays/<experiment>/<channel>/{record,given,recalibrated,effects}`` (the replays against the record,
   [deg] over ``time``)
+- ``diagnosis/force/time/<record>/{force,upper,lower}`` (the likelihood engine's missing force [N m] and its +-2
+  standard deviation band over ``time``) and ``diagnosis/force/speed/<record>`` (2D points: the force against the
+  hub's speed [deg/s]), ``diagnosis/force/speed/axes``: when ``diagnose --engine likelihood`` wrote
+  force_picture.parquet (:mod:`harness.render.force`)
 
 Time series use one ``send_columns`` call per entity.
 """
@@ -58,6 +62,7 @@ from .analysis import (
     residual_tests,
     tip_from_filtered,
 )
+from .force import verdict_text
 from .gap_text import diagnosis_markdown, gap_rows
 from .load import RunResults, load_results
 from .report import holds, title
@@ -72,6 +77,8 @@ DB_PER_UNIT = 20.0  # Bode magnitude: one 2D unit per 20 dB (a decade of gain, a
 DEG_PER_UNIT = 90.0  # Bode phase: one 2D unit per 90 deg
 LAG_WIDTH = 10.0  # residual plots: the lag axis spans 10 units
 CORR_HEIGHT = 4.0  # residual plots: a correlation of 1 is 4 units high
+FORCE_WIDTH = 10.0  # the force against the hub's speed: the speeds span 10 units
+FORCE_HEIGHT = 4.0  # and the forces 4
 MIN_BAR = 0.01  # 2D bar charts: half the thickness of a bar of (about) zero
 BAR_HEIGHT = 4.0  # 2D bar charts: the tallest bar is 4 units high, a category 1 unit wide
 
@@ -381,6 +388,42 @@ def _log_replays(rec: rr.RecordingStream, res: RunResults) -> None:
                 _series(rec, f"{base}/{stage}", t, rp.sim[stage][ch])
 
 
+def _step(span: float) -> float:
+    """A tick step of 1, 2 or 5 times a power of ten, about a quarter of ``span`` (> 0)."""
+    step = 10.0 ** math.floor(math.log10(span / 2))
+    return step * 5 if span / step > 10 else step * 2 if span / step > 5 else step
+
+
+def _log_force(rec: rr.RecordingStream, res: RunResults) -> rrb.VisualBounds2D | None:
+    """The likelihood engine's missing force per record: over ``time`` with its +-2 sd band
+    (``diagnosis/force/time/<record>/{force,upper,lower}``), and against the hub's speed as 2D points
+    (``diagnosis/force/speed/<record>``, x the speed, y the force, scaled to :data:`FORCE_WIDTH` by
+    :data:`FORCE_HEIGHT`); returns the scatter's bounds (None: no force picture)."""
+    if not res.force:
+        return None
+    speed = np.concatenate([tr.speed for tr in res.force])
+    force = np.concatenate([tr.force for tr in res.force])
+    smax = float(np.nanmax(np.abs(speed), initial=0.0)) or 1.0
+    fmax = float(np.nanmax(np.abs(force), initial=0.0)) or 1.0
+    sx, sy = 0.5 * FORCE_WIDTH / smax, 0.5 * FORCE_HEIGHT / fmax  # 2D units per deg/s, per N m
+    for i, tr in enumerate(res.force):
+        color = _PALETTE[i % len(_PALETTE)]
+        base = f"diagnosis/force/time/{_part(tr.name)}"
+        t = rr.TimeColumn("time", duration=tr.t)
+        _style(rec, f"{base}/force", f"{tr.name}: missing force [N m]", color, 1.5)
+        _series(rec, f"{base}/force", t, tr.force)
+        for side, sign in (("upper", 1.0), ("lower", -1.0)):
+            _style(rec, f"{base}/{side}", f"{tr.name}: {side} 2 sd", color, 0.5)
+            _series(rec, f"{base}/{side}", t, tr.force + sign * 2.0 * tr.force_sd)
+        rec.log(f"diagnosis/force/speed/{_part(tr.name)}", rr.Points2D(_xy(tr.speed * sx, tr.force * sy),
+                radii=0.02, colors=[color]), static=True)  # fmt: skip
+    ds, df = _step(2.0 * smax), _step(2.0 * fmax)
+    xticks = [(x * sx, f"{x:g}") for x in _ticks(-smax, smax, ds) if abs(x) <= smax]
+    yticks = [(y * sy, f"{y:g}") for y in _ticks(-fmax, fmax, df) if abs(y) <= fmax]
+    half_w, half_h = 0.5 * FORCE_WIDTH, 0.5 * FORCE_HEIGHT
+    return _log_axes(rec, "diagnosis/force/speed/axes", xticks, yticks, (-half_w, half_w), (-half_h, half_h))
+
+
 def _log_data(rec: rr.RecordingStream, res: RunResults) -> None:
     """Every experiment's data as measured over ``time``: ``data/<experiment>/{u,theta,alpha}``."""
     for name, df in res.records.items():
@@ -411,6 +454,10 @@ def _log_overview(rec: rr.RecordingStream, res: RunResults) -> None:
         lines.append(f"- selected ARMAX (na,nb,nc,nk) = {orders}, trained on `{r.get('dataset')}`")
     if res.diagnosis is not None:
         lines.append(f"- diagnosis verdict: **{res.diagnosis.verdict}**")
+    if res.missing_force is not None:
+        mf = res.missing_force
+        verdict = verdict_text(mf["shape"], float(mf["size"]), mf["unit"], float(mf["dead_band_v"]))
+        lines.append(f"- missing force (likelihood engine): **{verdict}**; its tab draws it against time and hub speed")
     lines += [
         "",
         "Tabs: data (each experiment as measured), datasets (identification domain, measured vs the selected",
@@ -435,6 +482,9 @@ def _log_all(rec: rr.RecordingStream, res: RunResults) -> dict[str, rrb.VisualBo
     bounds.update({f"bode_{k}": v for k, v in _log_bode(rec, res).items()})
     bounds.update({f"resid_{k}": v for k, v in _log_resid(rec, res).items()})
     bounds.update({f"diagnosis_{k}": v for k, v in _log_diagnosis(rec, res).items()})
+    force = _log_force(rec, res)
+    if force is not None:
+        bounds["force_speed"] = force
     _log_replays(rec, res)
     return bounds
 
@@ -511,6 +561,16 @@ def _diagnosis_tab(res: RunResults, bounds: dict[str, rrb.VisualBounds2D]) -> An
     return rrb.Tabs(summary, rrb.Horizontal(*bars, name="gaps"), name="diagnosis")  # the summary's tables at full width
 
 
+def _force_tab(bounds: dict[str, rrb.VisualBounds2D]) -> Any:
+    """The missing force: over time with its band, and against the hub's speed."""
+    return rrb.Vertical(
+        rrb.TimeSeriesView(origin="diagnosis/force/time", name="missing force [N m] vs t [s], +-2 sd band"),
+        rrb.Spatial2DView(origin="diagnosis/force/speed", visual_bounds=bounds["force_speed"],
+                          name="missing force [N m] (up) vs hub speed [deg/s] (right)"),
+        name="missing force",
+    )  # fmt: skip
+
+
 def _replays_tab(res: RunResults) -> Any:
     """Per experiment: theta and alpha of the record and the replays (as given, recalibrated, with the effects)."""
     per = []
@@ -560,6 +620,8 @@ def _blueprint(res: RunResults, bounds: dict[str, rrb.VisualBounds2D], active: i
         )  # fmt: skip
     if res.diagnosis is not None:
         tabs.append(_diagnosis_tab(res, bounds))
+    if "force_speed" in bounds:
+        tabs.append(_force_tab(bounds))
     if res.replays:
         tabs.append(_replays_tab(res))
     return rrb.Blueprint(
