@@ -506,8 +506,10 @@ def identify(
 
     g = res.grid
     s = Summary("grid.csv")
+    zone = f"dead zone {cal.dead_zone_v:.4f} V" if math.isfinite(cal.dead_zone_v) else "dead zone not measured"
+    assumed = " (lab 1's, assumed: no calibration given)" if cal.source.get("assumed") else ""
     s.line(
-        f"Kp {cal.Kp:.4f} deg/V, Ke {cal.Ke:.4f} deg/V, dead zone {cal.dead_zone_v:.4f} V; "
+        f"Kp {cal.Kp:.4f} deg/V, Ke {cal.Ke:.4f} deg/V{assumed}, {zone}; "
         f"{len(g)} orders x datasets, {int(g['causal'].sum())} causal, {int(g['survivor'].sum())} survivors"
     )
     s.table(_table(crossval_table(res)))
@@ -1039,6 +1041,9 @@ def diagnosis_screen(d: Diagnosis, directory: Path | None = None) -> Summary:
             (f"{n} {r.gauge_offset_deg[0]:.4g} deg" + (f" ({r.gauge_offset_deg[1]:.4g}..{r.gauge_offset_deg[2]:.4g})"
              if math.isfinite(r.gauge_offset_deg[1]) else " (least squares, open loop)")
              for n, r in d.sensors.items()), where))  # fmt: skip
+    speed = d.where.get("speed_per_volt") if isinstance(d.where, dict) else None
+    if isinstance(speed, dict) and speed.get("line"):
+        s.line(f"where, in amplitude: {brief(str(speed['line']), where)}")
     outside = behaviour_outside(d)
     if outside and d.behaviour:
         s.line("behaviour, each record's step metrics inside the replays' 95 % band: " + joined(

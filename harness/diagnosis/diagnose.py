@@ -52,6 +52,7 @@ from .result import Diagnosis, FittedParameter, Folds, RecordSensors, RigFit, Se
 from .rigmodel import prior_sd
 from .search import POLICY, Policy, SearchResult, search
 from .simulation import Setup, fit_pct, fmu_value, link_keys, offset_key, replay_noise, sim_rig
+from .speed import records_speed
 from .tasks import SENSOR_CHANNELS, Pool, Replay, Where, rough
 
 __all__ = ["diagnose_run", "priors", "thresholds"]
@@ -257,6 +258,9 @@ def diagnose_run(
         pool.close()
     after["parameters"] = dict(sorted(found.recalibrated.items()))
     where = {"before": before, "after_recalibration": after, "masked": masked_share(experiments)}
+    speed = records_speed(records)  # in amplitude: the hub's speed per volt over open-loop square waves
+    if speed is not None:
+        where["speed_per_volt"] = speed.to_dict()
     noise = replace(noise, gap=math.sqrt(found.floor.msg), fit_pct=fit_pct(found.floor.msg))
     if any(x.replay == "closed" for x in experiments.values()):
         less = " (less the lattice's LSB^2 / 12 where the replay's ADC quantises: it adds that)" if lattice else ""

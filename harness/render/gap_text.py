@@ -506,6 +506,27 @@ def _where_cells(s: dict[str, Any]) -> list[str]:
     return [band_text, regime, ", ".join(conc) or "none", str(s.get("headline", "—"))]
 
 
+def _speed_lines(speed: Any) -> list[str]:
+    """The hub's speed per volt by amplitude over the open-loop square waves (``where.speed_per_volt``): the finding,
+    a row per amplitude, and the records not read."""
+    if not isinstance(speed, dict) or not speed.get("line"):
+        return []
+    lines = [f"In amplitude, from the open-loop square waves: {speed['line']}.", ""]
+    rows = [
+        [fmt(num(a["amplitude_v"]), 3), str(a["n_plateaus"]), str(a["n_still"]), fmt(num(a["speed_per_volt"]), 1),
+         fmt(100.0 * num(a["relative"]), 0), ", ".join(a["records"])]
+        for a in speed.get("amplitudes") or []
+    ]  # fmt: skip
+    if rows:
+        header = ["amplitude [V]", "plateaus", "at rest", "speed per volt [deg/s/V]", "of the linear gain [%]",
+                  "records"]  # fmt: skip
+        lines += [*table(header, rows), ""]
+    skipped = speed.get("skipped") or {}
+    if skipped:
+        lines += ["Not read: " + "; ".join(f"{k} ({v})" for k, v in skipped.items()) + ".", ""]
+    return lines
+
+
 def _where_lines(diag: Diagnosis) -> list[str]:
     where = diag.where
     if not isinstance(where, dict) or not where:
@@ -536,6 +557,7 @@ def _where_lines(diag: Diagnosis) -> list[str]:
                 "improve the held-out fit), so this is the simulation as given.",
                 "",
             ]
+    lines += _speed_lines(where.get("speed_per_volt"))
     masked = where.get("masked")
     if isinstance(masked, dict) and masked:
         share = ", ".join(f"{k} {fmt(100.0 * num(v), 1)} %" for k, v in masked.items())
