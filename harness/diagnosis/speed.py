@@ -83,7 +83,9 @@ class PlateauSpeed:
 class AmplitudeSpeed:
     """One amplitude's plateaus: ``amplitude_v`` [V] (median |u|), how many (``n_plateaus``; ``n_still`` of them
     with the hub at rest), the records holding them, the median speed per volt ``speed_per_volt`` [deg/s/V] and the
-    median ``relative`` one: speed over ``k_g |u|``, the gain the fit gives the plateau's group (1 on a linear rig)."""
+    median ``relative`` one: speed over ``k_g |u|``, the gain the fit gives the plateau's group (1 on a linear rig),
+    or, when the speed per volt falls at large commands, over the group's highest speed per volt (its small
+    commands')."""
 
     amplitude_v: float
     n_plateaus: int
@@ -266,8 +268,21 @@ def speed_per_volt(
     params = cov = None
     if moving.size and two_amps:
         params, cov = _fit(a, sgn, s, g, len(gkeys))
-    rel_all = np.full(a_all.size, math.nan)
+    db = se = off = math.nan
+    gains: dict[str, float] = {}
     if params is not None:
+        gains = {k: float(params[i]) for i, k in enumerate(gkeys)}
+        off, db = float(params[-2]), float(params[-1])
+        if cov is not None:
+            se = math.sqrt(max(float(cov[-1, -1]), 0.0))
+    trend = _trend(db, se, float(a_all.min()))
+    rel_all = np.full(a_all.size, math.nan)
+    if trend == FALLS_LARGE:  # the small commands' speed per volt is the linear gain; the fit's is not
+        spv_m = s / a
+        ref = [max(float(np.median(spv_m[(g == i) & (amp_group[moving] == j)])) for j in set(amp_group[moving][g == i]))
+               for i in range(len(gkeys))]  # fmt: skip
+        rel_all[moving] = spv_m / np.array(ref)[g]
+    elif params is not None:
         rel_all[moving] = s / (params[g] * a)
     amps = []
     for j in range(int(amp_group.max()) + 1):
@@ -282,14 +297,6 @@ def speed_per_volt(
             speed_per_volt=float(np.median(spv)),
             relative=float(np.median(rel)) if rel.size else math.nan,
         ))  # fmt: skip
-    db = se = off = math.nan
-    gains: dict[str, float] = {}
-    if params is not None:
-        gains = {k: float(params[i]) for i, k in enumerate(gkeys)}
-        off, db = float(params[-2]), float(params[-1])
-        if cov is not None:
-            se = math.sqrt(max(float(cov[-1, -1]), 0.0))
-    trend = _trend(db, se, min(x.amplitude_v for x in amps))
     result = SpeedPerVolt(trend, db, se, off, tuple(amps), gains, tuple(per_record), skipped)
     return SpeedPerVolt(**{**result.__dict__, "line": _line(result)})
 
@@ -322,7 +329,7 @@ def _line(r: SpeedPerVolt) -> str:
     if r.trend == FALLS_SMALL:
         return f"hub speed per volt {r.trend}, {fit} (friction or a dead zone){tail}"
     if r.trend == FALLS_LARGE:
-        return f"hub speed per volt {r.trend} (saturation; {fit}){tail}"
+        return f"hub speed per volt {r.trend} (saturation){tail.replace('the linear gain', 'the small ones')}"
     return f"hub speed per volt holds ({fit}: none){tail}"
 
 
