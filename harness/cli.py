@@ -1042,7 +1042,7 @@ def diagnosis_screen(d: Diagnosis, directory: Path | None = None) -> Summary:
              if math.isfinite(r.gauge_offset_deg[1]) else " (least squares, open loop)")
              for n, r in d.sensors.items()), where))  # fmt: skip
     speed = d.where.get("speed_per_volt") if isinstance(d.where, dict) else None
-    if isinstance(speed, dict) and speed.get("line"):
+    if isinstance(speed, dict) and speed.get("line") and speed.get("trend") != "undetermined":  # else in the report
         s.line(f"where, in amplitude: {brief(str(speed['line']), where)}")
     outside = behaviour_outside(d)
     if outside and d.behaviour:

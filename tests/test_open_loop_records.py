@@ -22,7 +22,15 @@ from rerun.chunk import RrdReader
 
 from harness import spec as specmod
 from harness.diagnosis.experiments import load_experiments
-from harness.diagnosis.speed import FALLS_LARGE, FALLS_SMALL, HOLDS, records_speed
+from harness.diagnosis.speed import (
+    FALLS_LARGE,
+    FALLS_SMALL,
+    HOLDS,
+    UNDETERMINED,
+    PlateauSpeed,
+    records_speed,
+    speed_per_volt,
+)
 from harness.fmu.plant import PlantParams, motor_constants
 from harness.ident.calibration import Calibration
 from harness.render.summary import MAX_LINES, WIDTH
@@ -166,3 +174,30 @@ def test_speed_per_volt_on_rigs_built_blind(case, tmp_path, fmus):
         assert sp.dead_band_v == pytest.approx(size, rel=0.2), sp.line
     else:  # the largest command's speed per volt that of the small ones capped at the limit
         assert sp.amplitudes[-1].relative == pytest.approx(size / sp.amplitudes[-1].amplitude_v, rel=0.1), sp.line
+
+
+def test_speed_per_volt_recovers_a_known_law_and_says_when_it_cannot():
+    """Plateaus drawn from s = k (|u| + u0 sgn u - u_db) with noise (k 100 deg/s/V for steady records, 90 at a 0.25 s
+    plateau length, u0 0.02 V, u_db 0.3 V): the fit gives u_db and u0 within 3 standard errors; one amplitude, or
+    two amplitudes never at one plateau length, are undetermined, and a dead band at rest is counted."""
+    rng = np.random.default_rng(4)
+
+    def record(amp: float, k: float, length: float, n: int = 8) -> list[PlateauSpeed]:
+        u = amp * np.resize([1.0, -1.0], n)
+        s = k * (np.abs(u) + 0.02 * np.sign(u) - 0.3)
+        noisy = np.maximum(s, 0.0) + rng.normal(0.0, 0.5, n)
+        return [PlateauSpeed(float(a), float(b), 0.5, length) for a, b in zip(u, noisy, strict=True)]
+
+    per = {"a": (record(0.6, 100.0, 1.0), True), "b": (record(1.2, 100.0, 1.0), True),
+           "c": (record(1.2, 90.0, 0.25), False), "d": (record(2.4, 90.0, 0.25), False)}  # fmt: skip
+    sp = speed_per_volt(per)
+    assert sp.trend == FALLS_SMALL and abs(sp.dead_band_v - 0.3) < 3 * sp.dead_band_se_v, sp.line
+    assert sp.gains_deg_s_v == pytest.approx({"steady": 100.0, "0.25 s": 90.0}, rel=0.02)
+    assert abs(sp.offset_v - 0.02) < 0.01
+    assert [a.relative for a in sp.amplitudes] == pytest.approx([0.5, 0.75, 0.875], abs=0.02)
+    assert speed_per_volt({"a": per["a"]}).trend == UNDETERMINED
+    apart = speed_per_volt({"a": per["a"], "d": per["d"]})
+    assert apart.trend == UNDETERMINED and "one amplitude per plateau length" in apart.line
+    still = speed_per_volt({**per, "e": (record(0.2, 100.0, 1.0), True)})
+    assert still.amplitudes[0].n_still == 8 and "the hub at rest on 8 plateaus" in still.line
+    assert abs(still.dead_band_v - 0.3) < 3 * still.dead_band_se_v
