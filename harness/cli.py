@@ -854,6 +854,10 @@ def diagnose(
     from .rundir import Manifest
 
     Manifest.load(real)  # not a run directory: one line before the diagnosis loads
+    if engine == "likelihood":  # records it cannot fit: one line before anything is written
+        from .likelihood.unit import check_run
+
+        check_run(real, sim)
     from .diagnosis.diagnose import diagnose_run
 
     d = diagnose_run(

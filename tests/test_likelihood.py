@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 from scipy.stats import multivariate_normal
 
@@ -272,6 +273,34 @@ def test_diagnose_says_which_engines_it_knows():
     r = subprocess.run([sys.executable, "-m", "harness.cli", "diagnose", "--real", ".", "--engine", "kalman"],
                        capture_output=True, text=True, timeout=120)  # fmt: skip
     assert r.returncode == 2 and "--engine 'kalman': replay or likelihood" in r.stderr, r.stderr
+
+
+@pytest.mark.parametrize(
+    ("n", "flat", "says"),
+    [(100, False, "record rec: 100 readings, too short for the filter to settle"),
+     (1000, True, "the gauge readings (alpha) have no third differences on any record")],
+    ids=["too_short", "noise_undetermined"],
+)  # fmt: skip
+def test_diagnose_refuses_records_the_likelihood_engine_cannot_fit(tmp_path, n, flat, says):
+    """A record of 100 samples at 50 Hz (the shortest the import takes; the filter settles after a few, the whiteness
+    test needs 100 more), or a gauge channel that never changes: one line that says which, exit 2, no
+    diagnosis.json."""
+    from harness.ident.calibration import Calibration
+    from harness.rig.records import ImportOptions, import_records
+
+    rng = np.random.default_rng(1)
+    t = np.arange(n) / 50.0
+    u = np.where(np.sin(2 * np.pi * 0.5 * t) >= 0, 1.0, -1.0)
+    theta = 20.0 * np.sin(2 * np.pi * 0.4 * t) + rng.normal(0, 0.05, n)
+    alpha = np.zeros(n) if flat else rng.normal(0, 0.05, n)
+    path = tmp_path / "rec.csv"
+    pd.DataFrame({"t": t, "u": u, "theta_deg": theta, "alpha_deg": alpha}).to_csv(path, index=False)
+    import_records([path], tmp_path / "run", ImportOptions(calibration=Calibration(Kp=KP, Ke=KE)))
+    args = ["diagnose", "--real", str(tmp_path / "run"), "--engine", "likelihood", "--out", str(tmp_path / "out")]
+    r = subprocess.run([sys.executable, "-m", "harness.cli", *args], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 2 and says in r.stderr, r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert not (tmp_path / "out" / "diagnosis.json").exists()
 
 
 @pytest.mark.parametrize("coulomb", [0.03, 0.0], ids=["coulomb_0.03", "friction_free"])

@@ -16,6 +16,16 @@
  * probability is below what a double holds, the cell is taken as a reading at its centre with r + q^2 / 12.
  * A channel with q[j] = 0 is a plain Gaussian reading.
  *
+ * Coulomb friction of level Fc > 0 on the state i_speed (the hub's speed), as the time-stepping methods of
+ * non-smooth mechanics take it: over each sample the friction is one torque f held, which adds f bf to the state (bf:
+ * a unit torque's effect over a sample). It is the torque that brings the speed to rest at the sample's end where
+ * that is within +-Fc (the hub sticks), else +-Fc against the motion (it slides): f = clip(-v / bf[i], -Fc, Fc) for
+ * the speed v the step would reach without it. The filter knows v only as N(v^, sv^2), so f is taken by its moments
+ * over that normal (an assumed-density filter, like the lattice's cells): the state moves by E[f] bf, the covariance
+ * maps through J = I - p bf e_i' / bf[i] (p: the probability that the hub sticks, which is E[df/dv] bf[i]) and gains
+ * bf bf' times f's variance that J leaves out. Sure of its speed (sv = 0), the filter takes the hard decision. The
+ * likelihood is then smooth in Fc and the model's parameters, as a fit needs it.
+ *
  * Returns the log-likelihood: the sum over measured channels of -(log(2 pi s) + e^2 / s) / 2, or log P(cell) on a
  * lattice; NaN when a variance is not positive and finite. e and s (n x ny) receive each channel's innovation
  * y - mu and its predicted variance s (without the lattice; 0 and 0 where masked); xp, Pp (predicted: before
@@ -57,11 +67,41 @@ static int cell(double a, double b, double *p, double *m, double *v) {
     return 1;
 }
 
+/* Coulomb friction over one sample (the header's moments): x and P (nx, nx x nx) before it, changed in place; W is
+ * nx x nx of scratch. */
+static void friction(long nx, double *x, double *P, double *W, const double *bf, long i, double Fc) {
+    const double b = bf[i], m = -x[i] / b, sd = sqrt(P[i * nx + i] > 0.0 ? P[i * nx + i] : 0.0) / fabs(b);
+    double mean, p, resid = 0.0;
+    if (sd > 1e-12 * (Fc + fabs(m))) {
+        const double al = (-Fc - m) / sd, be = (Fc - m) / sd, fa = density(al), fb = density(be);
+        const double lo = upper_tail(-al), hi = upper_tail(be); /* P(f = -Fc), P(f = +Fc) */
+        p = al > 0.0 ? upper_tail(al) - upper_tail(be) : be < 0.0 ? upper_tail(-be) - upper_tail(-al) : 1.0 - lo - hi;
+        mean = Fc * (hi - lo) + m * p + sd * (fa - fb);
+        const double second =
+            Fc * Fc * (hi + lo) + m * m * p + 2.0 * m * sd * (fa - fb) + sd * sd * (p + al * fa - be * fb);
+        resid = second - mean * mean - p * p * sd * sd;
+        if (resid < 0.0) resid = 0.0;
+    } else {
+        mean = m > Fc ? Fc : m < -Fc ? -Fc : m;
+        p = fabs(m) < Fc ? 1.0 : 0.0;
+    }
+    for (long a = 0; a < nx; a++) x[a] += mean * bf[a];
+    if (p > 0.0) { /* P <- J P J', J = I - p g e_i', g = bf / b: row a of J P is P[a] - p g[a] P[i] */
+        for (long a = 0; a < nx; a++)
+            for (long c = 0; c < nx; c++) W[a * nx + c] = P[a * nx + c] - p * bf[a] / b * P[i * nx + c];
+        for (long a = 0; a < nx; a++)
+            for (long c = a; c < nx; c++) P[a * nx + c] = P[c * nx + a] = W[a * nx + c] - p * W[a * nx + i] * bf[c] / b;
+    }
+    for (long a = 0; a < nx; a++)
+        for (long c = a; c < nx; c++) P[a * nx + c] = P[c * nx + a] = P[a * nx + c] + resid * bf[a] * bf[c];
+}
+
 EXPORT double kalman_filter(long nx, long ny, long nu, const double *A, const double *B, const double *Q,
                             const double *C, const double *r, const double *q, const double *x0, const double *P0,
                             long n,
-                            const double *u, const double *y, const unsigned char *mask, double *e, double *s,
-                            double *xp, double *Pp, double *xf, double *Pf) {
+                            const double *u, const double *y, const unsigned char *mask, const double *bf,
+                            long i_speed, double Fc, double *e, double *s, double *xp, double *Pp, double *xf,
+                            double *Pf) {
     double x[KF_MAX_STATES], xn[KF_MAX_STATES], ph[KF_MAX_STATES];
     double P[KF_MAX_STATES * KF_MAX_STATES], AP[KF_MAX_STATES * KF_MAX_STATES];
     const double log2pi = log(2.0 * 3.14159265358979323846);
@@ -134,6 +174,7 @@ EXPORT double kalman_filter(long nx, long ny, long nu, const double *A, const do
                 for (long c = 0; c < nx; c++) acc += AP[a * nx + c] * A[b * nx + c];
                 P[a * nx + b] = P[b * nx + a] = acc;
             }
+        if (Fc > 0.0 && bf) friction(nx, x, P, AP, bf, i_speed, Fc);
     }
     return ll;
 }

@@ -24,7 +24,7 @@ from scipy.optimize import minimize
 
 from ..diagnosis.recalibrate import LINEAR, Bound
 from .kalman import Discrete, Filtered, kalman_filter
-from .model import NOISE, Noise, StochasticModel, rig_model
+from .model import EFFECTS, NOISE, Noise, StochasticModel, rig_model
 from .record import Record
 
 __all__ = [
@@ -39,7 +39,7 @@ __all__ = [
     "start_state",
 ]
 
-BOUNDS: dict[str, Bound] = {**LINEAR, **NOISE}
+BOUNDS: dict[str, Bound] = {**LINEAR, **EFFECTS, **NOISE}
 TORQUES = ("noise.hub_torque", "noise.link_torque")  # the process noise: freed once the rest is fitted
 GRAD_STEP = 1e-5  # search-coordinate step of the gradient's central differences
 HESS_STEP = 1e-3  # ... and of the Hessian's second differences
@@ -84,8 +84,9 @@ class MLFit:
 
 
 def split_values(values: Mapping[str, float]) -> tuple[dict[str, float], Noise]:
-    """Parameters by name as :func:`harness.likelihood.model.rig_model` takes them: the linear ones and the noise."""
-    return {k: v for k, v in values.items() if k in LINEAR}, Noise.from_values(values)
+    """Parameters by name as :func:`harness.likelihood.model.rig_model` takes them: the linear ones and the effects,
+    and the noise."""
+    return {k: v for k, v in values.items() if k in LINEAR or k in EFFECTS}, Noise.from_values(values)
 
 
 def noise_start(records: Sequence[Record]) -> dict[str, float]:

@@ -27,7 +27,11 @@ __all__ = ["Discrete", "Filtered", "kalman_filter", "smooth"]
 class Discrete:
     """A sampled linear Gaussian model: x[k+1] = A x[k] + B u[k] + w[k], w ~ N(0, Q); z[k] = C x[k] + v[k],
     v ~ N(0, diag(r)); the reading y[k] is z[k], or the centre of its cell on a lattice of step ``q`` per channel
-    (0: none). Units are the caller's (the rig's: :mod:`harness.likelihood.model`)."""
+    (0: none). Units are the caller's (the rig's: :mod:`harness.likelihood.model`).
+
+    With ``friction`` Fc > 0, Coulomb friction acts on the state ``speed``: over each sample one torque f held, its
+    effect on the state ``hub`` per unit (nx), the torque that brings the speed to rest where that is within +-Fc
+    (stuck), else +-Fc against the motion (``fmus/master/kalman.c``'s header)."""
 
     A: np.ndarray
     B: np.ndarray
@@ -35,6 +39,9 @@ class Discrete:
     C: np.ndarray
     r: np.ndarray
     q: np.ndarray | None = None
+    friction: float = 0.0
+    hub: np.ndarray | None = None
+    speed: int = 0
 
 
 @dataclass(frozen=True)
@@ -73,7 +80,7 @@ def _library() -> ctypes.CDLL:
     lib = ctypes.CDLL(str(build_master()))
     ptr, n = ctypes.c_void_p, ctypes.c_long
     lib.kalman_filter.restype = ctypes.c_double
-    lib.kalman_filter.argtypes = [n, n, n, *[ptr] * 8, n, *[ptr] * 9]
+    lib.kalman_filter.argtypes = [n, n, n, *[ptr] * 8, n, *[ptr] * 4, n, ctypes.c_double, *[ptr] * 6]
     lib.kalman_max_states.restype = ctypes.c_int
     return lib
 
@@ -128,11 +135,13 @@ def kalman_filter(
     if y.shape != (n, ny) or mask.shape != (n, ny):
         raise ValueError(f"readings {y.shape} and mask {mask.shape} do not match {n} samples of {ny} channels")
     m = _c(mask, np.uint8)
+    friction = model.friction if model.hub is not None else 0.0
+    hub = _c(model.hub) if friction > 0.0 and model.hub is not None else None
     e, s = np.empty((n, ny)), np.empty((n, ny))
     kept = [np.empty((n, nx)), np.empty((n, nx, nx)), np.empty((n, nx)), np.empty((n, nx, nx))] if keep else [None] * 4
     ll = lib.kalman_filter(
         nx, ny, nu, _ptr(A), _ptr(B), _ptr(Q), _ptr(C), _ptr(r), _ptr(q), _ptr(x0), _ptr(P0), n, _ptr(u), _ptr(y),
-        _ptr(m), _ptr(e), _ptr(s), *(_ptr(k) for k in kept),
+        _ptr(m), _ptr(hub), model.speed, friction, _ptr(e), _ptr(s), *(_ptr(k) for k in kept),
     )  # fmt: skip
     return Filtered(float(ll), e, s, *kept)
 
@@ -154,6 +163,8 @@ def smooth(model: Discrete, filtered: Filtered) -> tuple[np.ndarray, np.ndarray]
     """
     if filtered.xp is None or filtered.Pp is None or filtered.xf is None or filtered.Pf is None:
         raise ValueError("the smoother needs the filter's states: run kalman_filter with keep=True")
+    if model.friction > 0.0:
+        raise ValueError("the smoother takes a linear model: one without friction")
     xp, Pp, xf, Pf = filtered.xp, filtered.Pp, filtered.xf, filtered.Pf
     x, P = xf.copy(), Pf.copy()
     A = model.A

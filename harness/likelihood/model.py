@@ -32,7 +32,7 @@ from ..diagnosis.recalibrate import LINEAR, Bound
 from ..fmu import plant as plantmod
 from .kalman import Discrete
 
-__all__ = ["NOISE", "Noise", "StochasticModel", "rig_model"]
+__all__ = ["EFFECTS", "NOISE", "Noise", "StochasticModel", "rig_model"]
 
 DEG = 180.0 / math.pi
 
@@ -50,6 +50,12 @@ NOISE: dict[str, Bound] = {
     "noise.hub_force": Bound(
         0.0, 1e3, "N m/sqrt(s)", "the missing force's random walk (intensity)", part="noise", square=True
     ),
+}
+
+# the effects, each a nested extension of the linear rig (off at 0), in the plant FMU's names and units; searched as
+# the square of their ratio to a nominal size (a step of the search's differences is then a share of the size)
+EFFECTS: dict[str, Bound] = {
+    "plant.coulomb_torque": Bound(0.0, 1e3, "N m", "Coulomb friction at the hub", part="effect", square=True),
 }
 
 
@@ -78,7 +84,8 @@ class StochasticModel:
     [V] and the constant input), ``G`` (nx x 2: the hub's and the tip's white torques), ``C`` (2 x nx: theta and
     alpha [deg]), its ``noise``, the state names ``states``, the link's first free-hub frequency ``w1`` [rad/s] (the
     scale of its start's uncertainty) and the drive's torque per volt ``drive`` [N m/V] (its force's scale). With the
-    missing force, ``G`` has a third column: the force's random walk."""
+    missing force, ``G`` has a third column: the force's random walk. ``coulomb`` [N m] is the Coulomb friction at
+    the hub (0: none; the filter's, :class:`harness.likelihood.kalman.Discrete`'s ``friction``)."""
 
     A: np.ndarray
     B: np.ndarray
@@ -88,6 +95,7 @@ class StochasticModel:
     states: tuple[str, ...]
     w1: float
     drive: float
+    coulomb: float = 0.0
 
     def discretise(self, Ts: float) -> Discrete:
         """The model sampled every ``Ts`` [s] with the inputs held over each sample: A_d = exp(A Ts), B_d its
@@ -102,7 +110,9 @@ class StochasticModel:
         F = expm(V * Ts)
         Q = F[nx:, nx:].T @ F[:nx, nx:]
         r = np.array([self.noise.theta**2, self.noise.alpha**2])
-        return Discrete(A=E[:nx, :nx], B=E[:nx, nx:], Q=0.5 * (Q + Q.T), C=self.C, r=r)
+        Bd = E[:nx, nx:]
+        return Discrete(A=E[:nx, :nx], B=Bd, Q=0.5 * (Q + Q.T), C=self.C, r=r, friction=self.coulomb,
+                        hub=Bd[:, 0] / self.drive, speed=self.states.index("theta_dot"))  # fmt: skip
 
 
 def rig_model(
@@ -118,7 +128,8 @@ def rig_model(
     plant : mapping
         The plant FMU's parameters by name (``Ks``, ``zeta_link``, ``n_modes``, ...).
     values : mapping
-        Linear parameters by their diagnosis names (``rig.drive_gain``, ``plant.Ks``, ``sensor.theta_gain``, ...).
+        Linear parameters by their diagnosis names (``rig.drive_gain``, ``plant.Ks``, ``sensor.theta_gain``, ...)
+        and effects (:data:`EFFECTS`: ``plant.coulomb_torque``).
     noise : Noise
         The readings' and the torques' noise.
     force : bool
@@ -128,9 +139,9 @@ def rig_model(
     -------
     StochasticModel
     """
-    unknown = sorted(set(values) - set(LINEAR))
+    unknown = sorted(set(values) - set(LINEAR) - set(EFFECTS))
     if unknown:
-        raise ValueError(f"not a linear parameter of the rig: {', '.join(unknown)}")
+        raise ValueError(f"not a linear parameter or an effect of the rig: {', '.join(unknown)}")
     table = {k: v for k, v in plant.items() if not isinstance(v, str)}
     table |= rigmodel.to_plant({k: v for k, v in values.items() if k in rigmodel.COMBOS}, table)
     table |= {k.removeprefix("plant."): float(v) for k, v in values.items() if k in ("plant.Ks", "plant.zeta_link")}
@@ -159,4 +170,5 @@ def rig_model(
     states = ("theta", *(f"a_{i + 1}" for i in range(n)), "theta_dot", *(f"a_dot_{i + 1}" for i in range(n)))
     states += ("b_alpha", "d") if force else ("b_alpha",)
     w1 = float(plantmod.mode_frequencies(p)[0, 0]) * 2.0 * math.pi
-    return StochasticModel(A=Ax, B=Bx, G=Gx, C=Cx, noise=noise, states=states, w1=w1, drive=G_volt)
+    coulomb = float(values.get("plant.coulomb_torque", 0.0))
+    return StochasticModel(A=Ax, B=Bx, G=Gx, C=Cx, noise=noise, states=states, w1=w1, drive=G_volt, coulomb=coulomb)

@@ -34,7 +34,7 @@ from .force import ForcePicture, MissingForce, classify, force_picture
 from .record import Record
 from .whiteness import LAGS, LEVEL, ljung_box
 
-__all__ = ["UnitFit", "fit_run", "linear_start", "write_likelihood"]
+__all__ = ["UnitFit", "check_records", "check_run", "fit_run", "linear_start", "write_likelihood"]
 
 
 @dataclass(frozen=True)
@@ -136,6 +136,53 @@ def _records(real: Path, sim: specmod.Spec) -> tuple[list[Record], int, bool]:
     return out, int(fmu_value(daq, "daq", "delay_samples")), encoder
 
 
+def check_records(plant: dict[str, Any], values: dict[str, float], records: list[Record], delay: int = 0) -> None:
+    """Refuse, in one line, records the engine cannot fit: a reading whose noise the data cannot determine (its third
+    differences are zero on every record: a channel that never changes, or one written without noise or lattice) and
+    a record too short for the filter to settle. The filter has settled from the sample on which the hub's predicted
+    reading variance stays within twice its median over the record's second half; a record needs half its readings
+    and :data:`harness.likelihood.whiteness.LAGS` times five after that (the whiteness test's).
+
+    Parameters
+    ----------
+    plant : dict
+        The spec's plant table.
+    values : dict
+        Parameters the filter runs with (the sheet's and the noise's start).
+    records : list of Record
+        The unit's records.
+    delay : int
+        The command's delay [samples].
+
+    Raises
+    ------
+    ValueError
+        Naming the record or channel and why.
+    """
+    for j, (channel, name) in enumerate((("theta", "hub angle"), ("alpha", "gauge"))):
+        d3 = [np.diff(r.y[r.mask[:, j], j], 3) for r in records]
+        if not any(np.any(d != 0.0) for d in d3):
+            raise ValueError(f"the {name} readings ({channel}) have no third differences on any record (no noise, no "
+                             "lattice): the data cannot determine their noise")  # fmt: skip
+    for rec in records:
+        s = filter_record(plant, values, rec, delay).s[:, 0][rec.mask[:, 0]]
+        late = s[s.size // 2 :]
+        wide = np.flatnonzero(s > 2.0 * np.median(late)) if late.size else np.array([s.size])
+        settled = int(wide[-1]) + 1 if wide.size else 0
+        if settled > s.size // 2 or s.size - settled < 5 * LAGS:
+            raise ValueError(f"record {rec.name}: {s.size} readings, too short for the filter to settle "
+                             f"(it settles after {settled}; it needs half the record and {5 * LAGS} more)")  # fmt: skip
+
+
+def check_run(real: Path, sim: str | Path | specmod.Spec) -> None:
+    """:func:`check_records` on run ``real``'s records with the sheet of ``sim`` (the command line asks before it
+    writes anything)."""
+    spec = sim if isinstance(sim, specmod.Spec) else specmod.load(sim)
+    plant, _ = sim_rig(spec)
+    records, delay, _ = _records(Path(real), spec)
+    check_records(plant, linear_start(plant) | noise_start(records), records, delay)
+
+
 def fit_run(real: Path, sim: str | Path | specmod.Spec, progress: Callable[[str], None] | None = None) -> UnitFit:
     """Fit the linear model of run ``real``'s records against the sim spec ``sim`` by maximum likelihood.
 
@@ -162,6 +209,7 @@ def fit_run(real: Path, sim: str | Path | specmod.Spec, progress: Callable[[str]
     held = {k: v for k, v in nominal.items() if sd.get(k, 1.0) == 0.0}  # a sensor known exactly
     free = {k: v for k, v in nominal.items() if k not in held}
     noise = noise_start(records)
+    check_records(plant, nominal | noise, records, delay)
     say(f"maximum likelihood over {len(records)} records")
     res = fit(plant, records, free | noise, fixed=held, nominal=nominal | noise,
               prior_sd={k: sd[k] for k in free if k in sd}, delay=delay)  # fmt: skip

@@ -1,0 +1,110 @@
+"""Coulomb friction in the likelihood engine's filter (``fmus/master/kalman.c``): its step against the exact moments
+of the time-stepping friction law over a normal speed (quadrature), and the friction with the rig's linear parameters
+recovered by maximum likelihood from twins run through the FMUs (Karnopp friction with its stick phase, integrated
+by the plant FMU), open and closed loop, where the linear model alone bent the drive's gain by 20-25 %."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.integrate import quad
+from scipy.stats import norm
+from test_likelihood import KE, KP, NOISE_V, PLANT, TS, _readings, _truth
+
+from harness.fmu.build import build_all
+from harness.fmu.cosim import Rig
+from harness.likelihood import fit as mlfit
+from harness.likelihood.kalman import Discrete, kalman_filter
+from harness.likelihood.record import Record
+from harness.rig.controller import Controller
+
+
+def _exact(mean: float, var: float, b: float, fc: float) -> tuple[float, float]:
+    """The mean and variance of v + b clip(-v / b, -fc, fc) for v ~ N(mean, var), by quadrature."""
+
+    def after(v: float) -> float:
+        return v + b * min(max(-v / b, -fc), fc)
+
+    sd = math.sqrt(var)
+    lo, hi = mean - 12 * sd, mean + 12 * sd
+    pts = sorted({min(max(p, lo), hi) for p in (-fc * b, fc * b)})
+    m = quad(lambda v: after(v) * norm.pdf(v, mean, sd), lo, hi, points=pts, epsabs=1e-14, limit=200)[0]
+    m2 = quad(lambda v: after(v) ** 2 * norm.pdf(v, mean, sd), lo, hi, points=pts, epsabs=1e-14, limit=200)[0]
+    return m, m2 - m * m
+
+
+@pytest.mark.parametrize(
+    ("mean", "var", "fc"),
+    [(0.0, 1.0, 0.5), (0.3, 0.04, 0.5), (2.0, 0.25, 0.5), (-1.0, 1.0, 0.8), (5.0, 1e-4, 0.5), (0.1, 1e-30, 0.5)],
+    ids=["at_rest", "sticks", "slides", "either", "sure_slides", "sure_sticks"],
+)
+def test_the_filters_friction_step_has_the_exact_moments_of_the_friction_law(mean, var, fc):
+    """One speed state N(mean, var) and a unit torque's effect b = 2 over the sample: after the filter's time update
+    its mean and variance are those of v + b clip(-v / b, -Fc, Fc) (the time-stepping friction law) over that normal,
+    to 1e-9 by quadrature; for one state the assumed-density step is exact. Sure of its speed, the hard law."""
+    b = 2.0
+    model = Discrete(A=np.eye(1), B=np.zeros((1, 1)), Q=np.zeros((1, 1)), C=np.eye(1), r=np.ones(1),
+                     friction=fc, hub=np.array([b]), speed=0)  # fmt: skip
+    f = kalman_filter(model, np.zeros((2, 1)), np.zeros((2, 1)), np.zeros((2, 1), bool), np.array([mean]),
+                      np.array([[var]]), keep=True)  # fmt: skip
+    assert f.xp is not None and f.Pp is not None
+    if var < 1e-20:
+        assert f.xp[1, 0] == pytest.approx(mean + b * min(max(-mean / b, -fc), fc), abs=1e-15)
+        return
+    m, v = _exact(mean, var, b, fc)
+    assert f.xp[1, 0] == pytest.approx(m, abs=1e-9)
+    assert f.Pp[1, 0, 0] == pytest.approx(v, abs=1e-9 * max(var, 1e-3))
+
+
+def _twin(closed: bool, coulomb: float, seed: int = 1) -> Record:
+    """A 5 s twin at 500 Hz through a 12-bit ADC (2 mV of noise) with Coulomb friction ``coulomb`` [N m]: open loop a
+    random +-1 V square, closed loop the state feedback on a +-20 deg square reference."""
+    n = 2500
+    rng = np.random.default_rng(seed)
+    daq = {"noise_theta": NOISE_V, "noise_alpha": NOISE_V, "seed": seed, "adc_bits": 12}
+    fmus, plant = build_all(), {**PLANT, "coulomb_torque": coulomb}
+    if closed:
+        ref = np.radians(np.where(np.arange(n) * TS % 2.0 < 1.0, 20.0, -20.0))
+        ctrl = Controller(K=[9.231, -18.769, 1.203, -0.041], cutoff=15.0).fmu_parameters(1 / TS)
+        with Rig(fmus["flexjoint"], fmus["daq"], fmus["controller"]) as rig:
+            out = rig.run_closed(ref, TS, ctrl, plant=plant, daq=daq)
+    else:
+        u = np.where(np.cumsum(rng.random(n) < 0.01) % 2 == 0, 1.0, -1.0)
+        with Rig(fmus["flexjoint"], fmus["daq"]) as rig:
+            out = rig.run(u, TS, plant=plant, daq=daq)
+    lsb = 20.0 / 2**12
+    return Record("twin", TS, out["u"], _readings(out), np.ones((n, 2), bool), (lsb * KP, lsb * abs(KE)))
+
+
+@pytest.mark.parametrize(
+    ("closed", "coulomb"),
+    [(False, 0.03), (True, 0.01), (True, 0.0)],
+    ids=["open_loop_0.03", "closed_loop_0.01", "closed_loop_none"],
+)
+def test_friction_and_the_linear_model_are_recovered_together(closed, coulomb):
+    """From a start 15-25 % off and friction at 0.005 N m, the friction within 5 % of the twin's (measured: 0.030093
+    for 0.03 in open loop, where the linear model alone put the drive's gain 25 % low and a white hub torque in the
+    friction's place) and the linear parameters within 2 % of the rig's; in closed loop each inside 3.29 of its
+    standard errors. In open loop, where the hub sticks at every reversal, the intervals are too narrow: the inertia
+    ratio -0.68 % at 6.7 standard errors, the link's damping -1.6 % (the filter holds one friction torque over a
+    sample, the FMU switches within it). On the friction-free twin, the friction at its lower bound (under 1e-3 N m)."""
+    rec = _twin(closed, coulomb)
+    truth = _truth(PLANT)
+    off = dict(zip(truth, (1.15, 0.85, 1.2, 0.8, 1.25), strict=True))
+    noise = mlfit.noise_start([rec])
+    start = {k: v * off[k] for k, v in truth.items()} | noise | {"plant.coulomb_torque": 0.005}
+    fixed = {"sensor.theta_gain": 1.0, "sensor.alpha_gauge_gain": 1.0}
+    res = mlfit.fit(PLANT, [rec], start, fixed=fixed, nominal=truth | noise | {"plant.coulomb_torque": 0.01})
+    fc = res.estimates["plant.coulomb_torque"]
+    if coulomb:
+        assert fc.value == pytest.approx(coulomb, rel=0.05)
+    else:
+        assert fc.value < 1e-3 and fc.at == "lower", fc
+    for name, want in truth.items() | ({"plant.coulomb_torque": coulomb}.items() if coulomb else set()):
+        e, b = res.estimates[name], mlfit.BOUNDS[name]
+        half = (b.to_x(e.ci95[1], want) - b.to_x(e.ci95[0], want)) / 2
+        assert e.value == pytest.approx(want, rel=0.05 if name == "plant.coulomb_torque" else 0.02), name
+        assert half > 0
+        assert not closed or abs(b.to_x(e.value, want) - b.to_x(want, want)) < 3.29 / 1.96 * half, (name, want, e)
