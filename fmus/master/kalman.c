@@ -27,8 +27,8 @@
  * likelihood is then smooth in Fc and the model's parameters, as a fit needs it.
  *
  * Returns the log-likelihood: the sum over measured channels of -(log(2 pi s) + e^2 / s) / 2, or log P(cell) on a
- * lattice; NaN when a variance is not positive and finite. e and s (n x ny) receive each channel's innovation
- * y - mu and its predicted variance s (without the lattice; 0 and 0 where masked); xp, Pp (predicted: before
+ * lattice; NaN when a variance is not positive and finite. e, s and l (n x ny) receive each channel's innovation
+ * y - mu, its predicted variance s (without the lattice) and its term of the log-likelihood (0 where masked); xp, Pp (predicted: before
  * sample k's measurements) and xf, Pf (filtered: after them), n x nx and n x nx x nx, are written when not NULL (the
  * smoother's input).
  */
@@ -100,7 +100,7 @@ EXPORT double kalman_filter(long nx, long ny, long nu, const double *A, const do
                             const double *C, const double *r, const double *q, const double *x0, const double *P0,
                             long n,
                             const double *u, const double *y, const unsigned char *mask, const double *bf,
-                            long i_speed, double Fc, double *e, double *s, double *xp, double *Pp, double *xf,
+                            long i_speed, double Fc, double *e, double *s, double *l, double *xp, double *Pp, double *xf,
                             double *Pf) {
     double x[KF_MAX_STATES], xn[KF_MAX_STATES], ph[KF_MAX_STATES];
     double P[KF_MAX_STATES * KF_MAX_STATES], AP[KF_MAX_STATES * KF_MAX_STATES];
@@ -119,6 +119,7 @@ EXPORT double kalman_filter(long nx, long ny, long nu, const double *A, const do
             if (!mask[kj]) {
                 e[kj] = 0.0;
                 s[kj] = 0.0;
+                l[kj] = 0.0;
                 continue;
             }
             double pred = 0.0, sj = r[j];
@@ -136,15 +137,16 @@ EXPORT double kalman_filter(long nx, long ny, long nu, const double *A, const do
             /* x += ph move / s, P -= ph ph' shrink: move is how far the reading moves the channel's mean */
             double move = ej, shrink = 1.0 / sj, sd = sqrt(sj), p, m, v;
             if (q[j] > 0.0 && cell((ej - 0.5 * q[j]) / sd, (ej + 0.5 * q[j]) / sd, &p, &m, &v)) {
-                ll += log(p);
+                l[kj] = log(p);
                 move = m * sd; /* to the truncated normal's mean */
                 shrink = (1.0 - v) / sj;
             } else {
                 double sq = sj + (q[j] > 0.0 ? q[j] * q[j] / 12.0 : 0.0);
-                ll -= 0.5 * (log2pi + log(sq) + ej * ej / sq);
+                l[kj] = -0.5 * (log2pi + log(sq) + ej * ej / sq);
                 move = ej * sj / sq;
                 shrink = 1.0 / sq;
             }
+            ll += l[kj];
             for (long a = 0; a < nx; a++) x[a] += ph[a] * move / sj;
             for (long a = 0; a < nx; a++)
                 for (long b = a; b < nx; b++) {

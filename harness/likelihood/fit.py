@@ -5,8 +5,8 @@ noise's of :data:`harness.likelihood.model.NOISE`); each record has its own star
 enough that the first samples decide it) and gauge offset (a state). The objective is the records' summed Gaussian
 log-likelihood (:func:`log_likelihood`) plus the priors the caller gives (a normal in the search coordinate: the log
 of a parameter's ratio to its nominal value, or the value itself; :class:`harness.diagnosis.recalibrate.Bound`),
-maximised by L-BFGS-B within the bounds, its gradient by central differences, in units of a prior's sd where that is
-tighter than the coordinate's own. The linear model first: the noise is held at its start (:func:`noise_start`)
+maximised within the bounds by scoring (Levenberg-Marquardt on the filter's prediction errors, :func:`_ascend`), in
+units of a prior's sd where that is tighter than the coordinate's own. The linear model first: the noise is held at its start (:func:`noise_start`)
 until the linear parameters have been fitted, then all are freed, the torques' intensities searched as variances.
 The intervals come from the numerical Hessian of that objective at its maximum: 95 %, symmetric in the search
 coordinate.
@@ -20,7 +20,6 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
-from scipy.optimize import minimize
 
 from ..diagnosis.recalibrate import LINEAR, Bound
 from .kalman import Discrete, Filtered, kalman_filter
@@ -41,11 +40,10 @@ __all__ = [
 
 BOUNDS: dict[str, Bound] = {**LINEAR, **EFFECTS, **NOISE}
 TORQUES = ("noise.hub_torque", "noise.link_torque")  # the process noise: freed once the rest is fitted
-GRAD_STEP = 1e-5  # search-coordinate step of the gradient's central differences
+GRAD_STEP = 1e-5  # search-coordinate step of the gradient's forward differences
 HESS_STEP = 1e-3  # ... and of the Hessian's second differences
-OUTSIDE = 1e6  # the search's objective [nats per reading] where the model fails: a wall it backs off from
-TOL_NATS = 1e-4  # the search stops when an iteration gains less log-likelihood than this [nats] ...
-RESTART_GAIN, RESTARTS = 0.01, 5  # ... and starts again from there, up to 5 times, while a search gains more [nats]
+TOL_NATS = 1e-4  # the search stops when a step gains less log-likelihood than this [nats]
+LM_START, LM_FACTOR, LM_GIVE_UP = 1e-3, 10.0, 1e8  # Levenberg-Marquardt's damping: its least, its factor, its most
 AT_BOUND = 1e-3  # a parameter this close to a wall (in the search coordinate) ends at its bound
 
 
@@ -164,14 +162,37 @@ def log_likelihood(
 ) -> float:
     """The records' summed Gaussian log-likelihood [nats] under the rig ``plant`` with ``values`` (NaN if the
     filter fails)."""
+    return innovations(plant, values, records, delay).loglik
+
+
+@dataclass(frozen=True)
+class Innovations:
+    """The records' summed log-likelihood ``loglik`` [nats] and, one after another, their measured readings'
+    innovations ``e`` [deg], predicted variances ``s`` [deg^2], terms of the log-likelihood ``terms`` [nats] and
+    whether each sits on a lattice (``cell``): what a scoring step needs of a filter's pass."""
+
+    loglik: float
+    e: np.ndarray
+    s: np.ndarray
+    terms: np.ndarray
+    cell: np.ndarray
+
+
+def innovations(
+    plant: Mapping[str, Any], values: Mapping[str, float], records: Sequence[Record], delay: int = 0
+) -> Innovations:
+    """The filter of the rig ``plant`` with ``values`` through ``records``: :class:`Innovations`."""
     model = rig_model(plant, *split_values(values), force="noise.hub_force" in values)
     discrete: dict[float, Discrete] = {}
-    total = 0.0
+    total, parts = 0.0, []
     for rec in records:
         if rec.Ts not in discrete:
             discrete[rec.Ts] = model.discretise(rec.Ts)
-        total += run_filter(model, discrete[rec.Ts], rec, delay).loglik
-    return total
+        f = run_filter(model, discrete[rec.Ts], rec, delay)
+        total += f.loglik
+        cell = np.broadcast_to(np.asarray(rec.lattice) > 0, f.e.shape)
+        parts.append([a[rec.mask] for a in (f.e, f.s, f.terms, cell)])
+    return Innovations(total, *(np.concatenate(p) for p in zip(*parts, strict=True)))
 
 
 def fit(
@@ -226,22 +247,24 @@ def fit(
     def values(x: np.ndarray) -> dict[str, float]:
         return fixed | {n: b.from_x(float(v), nominal[n]) for n, b, v in zip(names, bounds, x, strict=True)}
 
-    def objective(x: np.ndarray) -> float:  # minus the log posterior [nats]
+    def point(xi: np.ndarray) -> tuple[float, Innovations | None]:  # the log posterior [nats], the innovations
         nonlocal evaluations
         evaluations += 1
+        x = xi * c
         try:
-            ll = log_likelihood(plant, values(x), records, delay)
+            inn = innovations(plant, values(x), records, delay)
         except ValueError:  # values the plant refuses (a damping past its range)
-            return math.inf
-        return math.inf if not math.isfinite(ll) else -ll + 0.5 * float(np.sum((x / sd) ** 2))
+            return -math.inf, None
+        if not math.isfinite(inn.loglik):
+            return -math.inf, None
+        return inn.loglik - 0.5 * float(np.sum((x / sd) ** 2)), inn
+
+    def scaled(xi: np.ndarray) -> float:  # minus the log posterior, for the Hessian
+        return -point(xi)[0]
 
     # searched in units of a tight prior's sd (a sensor's gain known to 3e-5 would otherwise be a wall of curvature
-    # a million times the others', and the search would stop where it starts)
+    # a million times the others')
     c = np.minimum(sd, 1.0)
-
-    def scaled(xi: np.ndarray) -> float:
-        return objective(xi * c)
-
     # the linear model first: the noise held at its start until the rest has been fitted, so that a white torque
     # cannot carry the hub from a start far off (its basin lies there: the drive twice too strong) nor a link's
     # torque take its gauge's noise; then all of it, the torques searched as variances (their slope at none says
@@ -250,13 +273,7 @@ def fit(
     xi, converged, message = x0 / c, True, ""
     walls_xi = [(lo / ci, hi / ci) for (lo, hi), ci in zip(walls, c, strict=True)]
     for free in (first, np.ones(len(names), bool)) if not first.all() else (first,):
-        before = math.inf
-        for _ in range(RESTARTS):  # L-BFGS-B can stop in a slow valley on a poor step: restarted while that pays
-            xi, converged, message = _search(scaled, xi, free, walls_xi, 1.0 / max(n_obs, 1), maxiter)
-            after = scaled(xi)
-            if not before - after > RESTART_GAIN:
-                break
-            before = after
+        xi, converged, message = _ascend(point, xi, free, walls_xi, (c / sd) ** 2, maxiter)
     x = xi * c
     H = _hessian(scaled, xi, walls_xi)
     try:
@@ -272,39 +289,85 @@ def fit(
     return MLFit(estimates, ll, n_obs, len(names), evaluations, converged, message)
 
 
-def _search(
-    f: Callable[[np.ndarray], float],
+def _ascend(
+    point: Callable[[np.ndarray], tuple[float, Innovations | None]],
     x0: np.ndarray,
     free: np.ndarray,
     walls: Sequence[tuple[float, float]],
-    scale: float,
+    prior_curvature: np.ndarray,
     maxiter: int,
 ) -> tuple[np.ndarray, bool, str]:
-    """Minimise ``f`` (scaled by ``scale`` for L-BFGS-B's tolerances) over the coordinates ``free`` of ``x0`` within
-    ``walls``, its gradient by central differences; returns the minimum, whether the search converged and why it
-    stopped."""
-    idx = np.flatnonzero(free)
+    """Maximise the log posterior ``point`` gives over the coordinates ``free`` of ``x0`` within ``walls`` by scoring
+    (Levenberg-Marquardt on the prediction errors, as Ljung's prediction-error method does it): the gradient by
+    forward differences of the log posterior; the curvature from the same passes, the Fisher information of the
+    readings' Gaussian law, (de/dx)^2 / s + (ds/dx)^2 / (2 s^2) summed (s with a lattice's q^2 / 12), plus the
+    priors' ``prior_curvature``. A reading on a lattice is not Gaussian (its cell's probability): where there are
+    some, a second step takes their curvature as the square of their terms' slopes (Berndt-Hall-Hall-Hausman), and
+    the step that gains more is taken (the Gaussian's leads from far off, the cells' near a noise below the step).
+    A step is taken where it gains, and where it gains more than its quadratic promised, the search goes on along it,
+    twice as far each time, while that gains; a coordinate at a wall that its gradient leans against is held. Returns the
+    maximum, whether the search converged (a step gains under :data:`TOL_NATS`, or none gains) and why it stopped."""
     lo, hi = np.array(walls).T
-
-    def full(z: np.ndarray) -> np.ndarray:
-        x = x0.copy()
-        x[idx] = z
-        return x
-
-    def value(z: np.ndarray) -> float:
-        return min(f(full(z)) * scale, OUTSIDE)
-
-    def gradient(z: np.ndarray) -> np.ndarray:
-        g = np.empty(z.size)
-        for j, i in enumerate(idx):
-            up, down = full(z), full(z)
-            up[i], down[i] = min(up[i] + GRAD_STEP, hi[i]), max(down[i] - GRAD_STEP, lo[i])
-            g[j] = (f(up) - f(down)) / (up[i] - down[i])
-        return g * scale
-
-    res = minimize(value, x0[idx], jac=gradient, method="L-BFGS-B", bounds=[walls[int(i)] for i in idx],
-                   options={"maxiter": maxiter, "ftol": TOL_NATS * scale, "gtol": 1e-7})  # fmt: skip
-    return full(res.x), bool(res.success), str(res.message)
+    x = x0.copy()
+    f, inn = point(x)
+    if inn is None:
+        return x, False, "the search's start is outside the model"
+    lam = LM_START
+    for _ in range(maxiter):
+        g, de, ds, dl, idx = [], [], [], [], []
+        for i in np.flatnonzero(free):
+            h = GRAD_STEP if x[i] + GRAD_STEP <= hi[i] else -GRAD_STEP
+            xp = x.copy()
+            xp[i] += h
+            fp, ip = point(xp)
+            if ip is None:  # past where the model holds: held this time
+                continue
+            gi = (fp - f) / h
+            if (x[i] <= lo[i] and gi <= 0.0) or (x[i] >= hi[i] and gi >= 0.0):
+                continue
+            g.append(gi)
+            de.append((ip.e - inn.e) / h)
+            ds.append((ip.s - inn.s) / h)
+            dl.append((ip.terms - inn.terms) / h)
+            idx.append(i)
+        if not idx:
+            return x, True, "every coordinate at a wall it leans against"
+        Je, Js, Jl, gv = np.array(de).T, np.array(ds).T, np.array(dl).T, np.array(g)
+        fisher = Je.T @ (Je / inn.s[:, None]) + 0.5 * Js.T @ (Js / inn.s[:, None] ** 2) + np.diag(prior_curvature[idx])
+        curvatures = [fisher]
+        if inn.cell.any():  # a lattice: its cells' own curvature beside the Gaussian's, the step that gains more
+            gauss, cell = ~inn.cell, inn.cell
+            Jg, Sg = Je[gauss], inn.s[gauss][:, None]
+            curvatures.append(Jg.T @ (Jg / Sg) + 0.5 * Js[gauss].T @ (Js[gauss] / Sg**2) + Jl[cell].T @ Jl[cell]
+                              + np.diag(prior_curvature[idx]))  # fmt: skip
+        while True:
+            steps = []
+            for F in curvatures:
+                step = np.linalg.lstsq(F + lam * np.diag(np.diag(F)), gv, rcond=None)[0]
+                xn = x.copy()
+                xn[idx] = np.clip(x[idx] + step, lo[idx], hi[idx])
+                fn, i_n = point(xn)
+                steps.append((fn, xn, i_n, float(gv @ step - 0.5 * step @ F @ step)))
+            fn, xn, i_n, promised = max(steps, key=lambda t: t[0])
+            if i_n is not None and fn > f:
+                gain = fn - f
+                while fn - f > promised:  # the quadratic undersells the way: on along it, twice as far each time
+                    xe = x.copy()
+                    xe[idx] = np.clip(x[idx] + 2.0 * (xn[idx] - x[idx]), lo[idx], hi[idx])
+                    fe, i_e = point(xe)
+                    if i_e is None or fe <= fn:
+                        break
+                    promised = 2.0 * (fn - f)
+                    xn, fn, i_n = xe, fe, i_e
+                gain, x, f, inn = fn - f, xn, fn, i_n
+                lam = max(lam / LM_FACTOR, LM_START)
+                break
+            lam *= LM_FACTOR
+            if lam > LM_GIVE_UP:
+                return x, True, "no step gains"
+        if gain < TOL_NATS:
+            return x, True, "a step gains under the tolerance"
+    return x, False, f"{maxiter} iterations"
 
 
 def _hessian(f: Any, x: np.ndarray, walls: Sequence[tuple[float, float]]) -> np.ndarray:

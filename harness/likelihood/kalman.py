@@ -47,13 +47,15 @@ class Discrete:
 @dataclass(frozen=True)
 class Filtered:
     """The filter's pass through a record: the Gaussian log-likelihood ``loglik`` of the measured readings, each
-    reading's innovation ``e`` and its variance ``s`` (n x ny; 0 where masked: the channels of a sample taken in
-    turn, each given the ones before it), and, when kept, the predicted (``xp``, ``Pp``: before sample k's readings)
+    reading's innovation ``e``, its variance ``s`` and its term of the log-likelihood ``terms`` (n x ny; 0 where
+    masked: the channels of a sample taken in turn, each given the ones before it), and, when kept, the predicted
+    (``xp``, ``Pp``: before sample k's readings)
     and filtered (``xf``, ``Pf``: after them) states and covariances."""
 
     loglik: float
     e: np.ndarray
     s: np.ndarray
+    terms: np.ndarray
     xp: np.ndarray | None = None
     Pp: np.ndarray | None = None
     xf: np.ndarray | None = None
@@ -80,7 +82,7 @@ def _library() -> ctypes.CDLL:
     lib = ctypes.CDLL(str(build_master()))
     ptr, n = ctypes.c_void_p, ctypes.c_long
     lib.kalman_filter.restype = ctypes.c_double
-    lib.kalman_filter.argtypes = [n, n, n, *[ptr] * 8, n, *[ptr] * 4, n, ctypes.c_double, *[ptr] * 6]
+    lib.kalman_filter.argtypes = [n, n, n, *[ptr] * 8, n, *[ptr] * 4, n, ctypes.c_double, *[ptr] * 7]
     lib.kalman_max_states.restype = ctypes.c_int
     return lib
 
@@ -137,13 +139,13 @@ def kalman_filter(
     m = _c(mask, np.uint8)
     friction = model.friction if model.hub is not None else 0.0
     hub = _c(model.hub) if friction > 0.0 and model.hub is not None else None
-    e, s = np.empty((n, ny)), np.empty((n, ny))
+    e, s, terms = np.empty((n, ny)), np.empty((n, ny)), np.empty((n, ny))
     kept = [np.empty((n, nx)), np.empty((n, nx, nx)), np.empty((n, nx)), np.empty((n, nx, nx))] if keep else [None] * 4
     ll = lib.kalman_filter(
         nx, ny, nu, _ptr(A), _ptr(B), _ptr(Q), _ptr(C), _ptr(r), _ptr(q), _ptr(x0), _ptr(P0), n, _ptr(u), _ptr(y),
-        _ptr(m), _ptr(hub), model.speed, friction, _ptr(e), _ptr(s), *(_ptr(k) for k in kept),
+        _ptr(m), _ptr(hub), model.speed, friction, _ptr(e), _ptr(s), _ptr(terms), *(_ptr(k) for k in kept),
     )  # fmt: skip
-    return Filtered(float(ll), e, s, *kept)
+    return Filtered(float(ll), e, s, terms, *kept)
 
 
 def smooth(model: Discrete, filtered: Filtered) -> tuple[np.ndarray, np.ndarray]:
