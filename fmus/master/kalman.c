@@ -24,7 +24,9 @@
  * over that normal (an assumed-density filter, like the lattice's cells): the state moves by E[f] bf, the covariance
  * maps through J = I - p bf e_i' / bf[i] (p: the probability that the hub sticks, which is E[df/dv] bf[i]) and gains
  * bf bf' times f's variance that J leaves out. Sure of its speed (sv = 0), the filter takes the hard decision. The
- * likelihood is then smooth in Fc and the model's parameters, as a fit needs it.
+ * likelihood is then smooth in Fc and the model's parameters, as a fit needs it. The hub sticks or slides within a
+ * sample: with substeps > 1, A, B, Q and bf are a substep's, taken substeps times per sample (the command held), the
+ * friction after each.
  *
  * Returns the log-likelihood: the sum over measured channels of -(log(2 pi s) + e^2 / s) / 2, or log P(cell) on a
  * lattice; NaN when a variance is not positive and finite. e, s and l (n x ny) receive each channel's innovation
@@ -100,7 +102,7 @@ EXPORT double kalman_filter(long nx, long ny, long nu, const double *A, const do
                             const double *C, const double *r, const double *q, const double *x0, const double *P0,
                             long n,
                             const double *u, const double *y, const unsigned char *mask, const double *bf,
-                            long i_speed, double Fc, double *e, double *s, double *l, double *xp, double *Pp, double *xf,
+                            long i_speed, double Fc, long substeps, double *e, double *s, double *l, double *xp, double *Pp, double *xf,
                             double *Pf) {
     double x[KF_MAX_STATES], xn[KF_MAX_STATES], ph[KF_MAX_STATES];
     double P[KF_MAX_STATES * KF_MAX_STATES], AP[KF_MAX_STATES * KF_MAX_STATES];
@@ -156,27 +158,29 @@ EXPORT double kalman_filter(long nx, long ny, long nu, const double *A, const do
         }
         if (xf) memcpy(xf + k * nx, x, (size_t)nx * sizeof(double));
         if (Pf) memcpy(Pf + k * nx * nx, P, (size_t)(nx * nx) * sizeof(double));
-        /* time update: x <- A x + B u[k], P <- A P A' + Q */
-        for (long a = 0; a < nx; a++) {
-            double acc = 0.0;
-            for (long b = 0; b < nx; b++) acc += A[a * nx + b] * x[b];
-            for (long c = 0; c < nu; c++) acc += B[a * nu + c] * u[k * nu + c];
-            xn[a] = acc;
-        }
-        memcpy(x, xn, (size_t)nx * sizeof(double));
-        for (long a = 0; a < nx; a++)
-            for (long b = 0; b < nx; b++) {
+        /* time update: x <- A x + B u[k], P <- A P A' + Q, over each of the sample's substeps */
+        for (long sub = 0; sub < substeps; sub++) {
+            for (long a = 0; a < nx; a++) {
                 double acc = 0.0;
-                for (long c = 0; c < nx; c++) acc += A[a * nx + c] * P[c * nx + b];
-                AP[a * nx + b] = acc;
+                for (long b = 0; b < nx; b++) acc += A[a * nx + b] * x[b];
+                for (long c = 0; c < nu; c++) acc += B[a * nu + c] * u[k * nu + c];
+                xn[a] = acc;
             }
-        for (long a = 0; a < nx; a++)
-            for (long b = a; b < nx; b++) {
-                double acc = Q[a * nx + b];
-                for (long c = 0; c < nx; c++) acc += AP[a * nx + c] * A[b * nx + c];
-                P[a * nx + b] = P[b * nx + a] = acc;
-            }
-        if (Fc > 0.0 && bf) friction(nx, x, P, AP, bf, i_speed, Fc);
+            memcpy(x, xn, (size_t)nx * sizeof(double));
+            for (long a = 0; a < nx; a++)
+                for (long b = 0; b < nx; b++) {
+                    double acc = 0.0;
+                    for (long c = 0; c < nx; c++) acc += A[a * nx + c] * P[c * nx + b];
+                    AP[a * nx + b] = acc;
+                }
+            for (long a = 0; a < nx; a++)
+                for (long b = a; b < nx; b++) {
+                    double acc = Q[a * nx + b];
+                    for (long c = 0; c < nx; c++) acc += AP[a * nx + c] * A[b * nx + c];
+                    P[a * nx + b] = P[b * nx + a] = acc;
+                }
+            if (Fc > 0.0 && bf) friction(nx, x, P, AP, bf, i_speed, Fc);
+        }
     }
     return ll;
 }

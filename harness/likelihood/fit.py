@@ -1,4 +1,4 @@
-"""The rig's parameters by maximum likelihood over the records of one unit, with intervals from the Hessian.
+"""The rig's parameters by maximum likelihood over the records of one unit, with intervals from the information.
 
 The records share one parameter set (the linear parameters of :data:`harness.diagnosis.recalibrate.LINEAR` and the
 noise's of :data:`harness.likelihood.model.NOISE`); each record has its own start (the filter's first state, wide
@@ -6,10 +6,12 @@ enough that the first samples decide it) and gauge offset (a state). The objecti
 log-likelihood (:func:`log_likelihood`) plus the priors the caller gives (a normal in the search coordinate: the log
 of a parameter's ratio to its nominal value, or the value itself; :class:`harness.diagnosis.recalibrate.Bound`),
 maximised within the bounds by scoring (Levenberg-Marquardt on the filter's prediction errors, :func:`_ascend`), in
-units of a prior's sd where that is tighter than the coordinate's own. The linear model first: the noise is held at its start (:func:`noise_start`)
-until the linear parameters have been fitted, then all are freed, the torques' intensities searched as variances.
-The intervals come from the numerical Hessian of that objective at its maximum: 95 %, symmetric in the search
-coordinate.
+units of a prior's sd where that is tighter than the coordinate's own. The linear model first: the noise is held at
+its start (:func:`noise_start`) until the linear parameters have been fitted, then all are freed, the torques'
+intensities searched as variances.
+The intervals come from the Fisher information at the maximum, the Jacobian of the prediction errors (Ljung's
+covariance of the prediction-error estimate; a lattice's readings taken as Gaussian with its q^2 / 12, which errs
+wide): 95 %, symmetric in the search coordinate.
 """
 
 from __future__ import annotations
@@ -41,7 +43,6 @@ __all__ = [
 BOUNDS: dict[str, Bound] = {**LINEAR, **EFFECTS, **NOISE}
 TORQUES = ("noise.hub_torque", "noise.link_torque")  # the process noise: freed once the rest is fitted
 GRAD_STEP = 1e-5  # search-coordinate step of the gradient's forward differences
-HESS_STEP = 1e-3  # ... and of the Hessian's second differences
 TOL_NATS = 1e-4  # the search stops when a step gains less log-likelihood than this [nats]
 LM_START, LM_FACTOR, LM_GIVE_UP = 1e-3, 10.0, 1e8  # Levenberg-Marquardt's damping: its least, its factor, its most
 AT_BOUND = 1e-3  # a parameter this close to a wall (in the search coordinate) ends at its bound
@@ -259,9 +260,6 @@ def fit(
             return -math.inf, None
         return inn.loglik - 0.5 * float(np.sum((x / sd) ** 2)), inn
 
-    def scaled(xi: np.ndarray) -> float:  # minus the log posterior, for the Hessian
-        return -point(xi)[0]
-
     # searched in units of a tight prior's sd (a sensor's gain known to 3e-5 would otherwise be a wall of curvature
     # a million times the others')
     c = np.minimum(sd, 1.0)
@@ -275,11 +273,12 @@ def fit(
     for free in (first, np.ones(len(names), bool)) if not first.all() else (first,):
         xi, converged, message = _ascend(point, xi, free, walls_xi, (c / sd) ** 2, maxiter)
     x = xi * c
-    H = _hessian(scaled, xi, walls_xi)
-    try:
-        se = np.sqrt(np.maximum(np.diag(np.linalg.inv(H)), 0.0)) * c
-    except np.linalg.LinAlgError:
-        se = np.full(x.size, math.inf)
+    se = np.full(x.size, math.inf)  # no interval where the information is not positive
+    f, inn = point(xi)
+    if inn is not None:
+        sl = _slopes(point, xi, f, inn, np.arange(xi.size), walls_xi)
+        var = np.diag(np.linalg.pinv(sl.fisher(inn, (c / sd) ** 2)))
+        se[sl.idx] = np.where(var > 0.0, np.sqrt(np.abs(var)), math.inf) * c[sl.idx]
     estimates = {}
     for i, (n, b, (lo, hi)) in enumerate(zip(names, bounds, walls, strict=True)):
         at = "lower" if x[i] <= lo + AT_BOUND else "upper" if x[i] >= hi - AT_BOUND else None
@@ -287,6 +286,59 @@ def fit(
         estimates[n] = Estimate(b.from_x(float(x[i]), nominal[n]), ci, b.unit, at)
     ll = log_likelihood(plant, values(x), records, delay)
     return MLFit(estimates, ll, n_obs, len(names), evaluations, converged, message)
+
+
+@dataclass(frozen=True)
+class _Slopes:
+    """Forward differences at a point of the search: the coordinates ``idx`` they were taken on, the log posterior's
+    slopes ``g`` and the innovations', their variances' and the likelihood terms' (``Je``, ``Js``, ``Jl``: one column
+    per coordinate)."""
+
+    idx: np.ndarray
+    g: np.ndarray
+    Je: np.ndarray
+    Js: np.ndarray
+    Jl: np.ndarray
+
+    def fisher(self, inn: Innovations, prior_curvature: np.ndarray) -> np.ndarray:
+        """The Fisher information of the readings' Gaussian law (a lattice's q^2 / 12 in their variance) plus the
+        priors' curvature: sum_k (de/dx)^2 / s + (ds/dx)^2 / (2 s^2)."""
+        s = inn.s[:, None]
+        return self.Je.T @ (self.Je / s) + 0.5 * self.Js.T @ (self.Js / s**2) + np.diag(prior_curvature[self.idx])
+
+
+def _slopes(
+    point: Callable[[np.ndarray], tuple[float, Innovations | None]],
+    x: np.ndarray,
+    f: float,
+    inn: Innovations,
+    coords: np.ndarray,
+    walls: Sequence[tuple[float, float]],
+    leaning: bool = True,
+) -> _Slopes:
+    """:class:`_Slopes` at ``x`` (log posterior ``f``, innovations ``inn``) along ``coords``, each step inward from
+    a wall; a coordinate past which the model fails is left out, and unless ``leaning``, one at a wall that its
+    slope leans against."""
+    g, de, ds, dl, idx = [], [], [], [], []
+    for i in coords:
+        lo, hi = walls[i]
+        h = GRAD_STEP if x[i] + GRAD_STEP <= hi else -GRAD_STEP
+        xp = x.copy()
+        xp[i] += h
+        fp, ip = point(xp)
+        if ip is None:  # past where the model holds
+            continue
+        gi = (fp - f) / h
+        if not leaning and ((x[i] <= lo and gi <= 0.0) or (x[i] >= hi and gi >= 0.0)):
+            continue
+        g.append(gi)
+        de.append((ip.e - inn.e) / h)
+        ds.append((ip.s - inn.s) / h)
+        dl.append((ip.terms - inn.terms) / h)
+        idx.append(i)
+    n = inn.e.size
+    cols = [np.array(a).T if a else np.zeros((n, 0)) for a in (de, ds, dl)]
+    return _Slopes(np.array(idx, dtype=int), np.array(g), *cols)
 
 
 def _ascend(
@@ -305,8 +357,9 @@ def _ascend(
     some, a second step takes their curvature as the square of their terms' slopes (Berndt-Hall-Hall-Hausman), and
     the step that gains more is taken (the Gaussian's leads from far off, the cells' near a noise below the step).
     A step is taken where it gains, and where it gains more than its quadratic promised, the search goes on along it,
-    twice as far each time, while that gains; a coordinate at a wall that its gradient leans against is held. Returns the
-    maximum, whether the search converged (a step gains under :data:`TOL_NATS`, or none gains) and why it stopped."""
+    twice as far each time, while that gains; a coordinate at a wall that its gradient leans against is held.
+    Returns the maximum, whether the search converged (a step gains under :data:`TOL_NATS`, or none gains) and why
+    it stopped."""
     lo, hi = np.array(walls).T
     x = x0.copy()
     f, inn = point(x)
@@ -314,26 +367,11 @@ def _ascend(
         return x, False, "the search's start is outside the model"
     lam = LM_START
     for _ in range(maxiter):
-        g, de, ds, dl, idx = [], [], [], [], []
-        for i in np.flatnonzero(free):
-            h = GRAD_STEP if x[i] + GRAD_STEP <= hi[i] else -GRAD_STEP
-            xp = x.copy()
-            xp[i] += h
-            fp, ip = point(xp)
-            if ip is None:  # past where the model holds: held this time
-                continue
-            gi = (fp - f) / h
-            if (x[i] <= lo[i] and gi <= 0.0) or (x[i] >= hi[i] and gi >= 0.0):
-                continue
-            g.append(gi)
-            de.append((ip.e - inn.e) / h)
-            ds.append((ip.s - inn.s) / h)
-            dl.append((ip.terms - inn.terms) / h)
-            idx.append(i)
-        if not idx:
+        sl = _slopes(point, x, f, inn, np.flatnonzero(free), walls, leaning=False)
+        if not sl.idx.size:
             return x, True, "every coordinate at a wall it leans against"
-        Je, Js, Jl, gv = np.array(de).T, np.array(ds).T, np.array(dl).T, np.array(g)
-        fisher = Je.T @ (Je / inn.s[:, None]) + 0.5 * Js.T @ (Js / inn.s[:, None] ** 2) + np.diag(prior_curvature[idx])
+        idx, gv, Je, Js, Jl = sl.idx, sl.g, sl.Je, sl.Js, sl.Jl
+        fisher = sl.fisher(inn, prior_curvature)
         curvatures = [fisher]
         if inn.cell.any():  # a lattice: its cells' own curvature beside the Gaussian's, the step that gains more
             gauss, cell = ~inn.cell, inn.cell
@@ -368,24 +406,3 @@ def _ascend(
         if gain < TOL_NATS:
             return x, True, "a step gains under the tolerance"
     return x, False, f"{maxiter} iterations"
-
-
-def _hessian(f: Any, x: np.ndarray, walls: Sequence[tuple[float, float]]) -> np.ndarray:
-    """The Hessian of ``f`` at ``x`` by second differences of step :data:`HESS_STEP` (one-sided at a wall)."""
-    p = x.size
-    h = np.full(p, HESS_STEP)
-    for i, (lo, hi) in enumerate(walls):  # a step that would cross a wall moves the point inside instead
-        h[i] = min(HESS_STEP, max((hi - lo) / 4.0, 1e-12))
-    xc = np.array([min(max(x[i], lo + h[i]), hi - h[i]) for i, (lo, hi) in enumerate(walls)])
-    f0 = f(xc)
-    H = np.empty((p, p))
-    e = np.eye(p) * h
-    fp = [f(xc + e[i]) for i in range(p)]
-    fm = [f(xc - e[i]) for i in range(p)]
-    for i in range(p):
-        H[i, i] = (fp[i] - 2.0 * f0 + fm[i]) / h[i] ** 2
-        for j in range(i):
-            H[i, j] = H[j, i] = (
-                f(xc + e[i] + e[j]) - f(xc + e[i] - e[j]) - f(xc - e[i] + e[j]) + f(xc - e[i] - e[j])
-            ) / (4.0 * h[i] * h[j])
-    return H

@@ -31,7 +31,8 @@ class Discrete:
 
     With ``friction`` Fc > 0, Coulomb friction acts on the state ``speed``: over each sample one torque f held, its
     effect on the state ``hub`` per unit (nx), the torque that brings the speed to rest where that is within +-Fc
-    (stuck), else +-Fc against the motion (``fmus/master/kalman.c``'s header)."""
+    (stuck), else +-Fc against the motion (``fmus/master/kalman.c``'s header). With ``substeps`` > 1, A, B, Q and
+    ``hub`` are a substep's, taken that many times per sample (the input held), the friction after each."""
 
     A: np.ndarray
     B: np.ndarray
@@ -42,6 +43,7 @@ class Discrete:
     friction: float = 0.0
     hub: np.ndarray | None = None
     speed: int = 0
+    substeps: int = 1
 
 
 @dataclass(frozen=True)
@@ -82,7 +84,7 @@ def _library() -> ctypes.CDLL:
     lib = ctypes.CDLL(str(build_master()))
     ptr, n = ctypes.c_void_p, ctypes.c_long
     lib.kalman_filter.restype = ctypes.c_double
-    lib.kalman_filter.argtypes = [n, n, n, *[ptr] * 8, n, *[ptr] * 4, n, ctypes.c_double, *[ptr] * 7]
+    lib.kalman_filter.argtypes = [n, n, n, *[ptr] * 8, n, *[ptr] * 4, n, ctypes.c_double, n, *[ptr] * 7]
     lib.kalman_max_states.restype = ctypes.c_int
     return lib
 
@@ -143,7 +145,8 @@ def kalman_filter(
     kept = [np.empty((n, nx)), np.empty((n, nx, nx)), np.empty((n, nx)), np.empty((n, nx, nx))] if keep else [None] * 4
     ll = lib.kalman_filter(
         nx, ny, nu, _ptr(A), _ptr(B), _ptr(Q), _ptr(C), _ptr(r), _ptr(q), _ptr(x0), _ptr(P0), n, _ptr(u), _ptr(y),
-        _ptr(m), _ptr(hub), model.speed, friction, _ptr(e), _ptr(s), _ptr(terms), *(_ptr(k) for k in kept),
+        _ptr(m), _ptr(hub), model.speed, friction, model.substeps, _ptr(e), _ptr(s), _ptr(terms),
+        *(_ptr(k) for k in kept),
     )  # fmt: skip
     return Filtered(float(ll), e, s, terms, *kept)
 
@@ -165,7 +168,7 @@ def smooth(model: Discrete, filtered: Filtered) -> tuple[np.ndarray, np.ndarray]
     """
     if filtered.xp is None or filtered.Pp is None or filtered.xf is None or filtered.Pf is None:
         raise ValueError("the smoother needs the filter's states: run kalman_filter with keep=True")
-    if model.friction > 0.0:
+    if model.friction > 0.0 or model.substeps != 1:
         raise ValueError("the smoother takes a linear model: one without friction")
     xp, Pp, xf, Pf = filtered.xp, filtered.Pp, filtered.xf, filtered.Pf
     x, P = xf.copy(), Pf.copy()

@@ -52,6 +52,8 @@ NOISE: dict[str, Bound] = {
     ),
 }
 
+FRICTION_STEP = 1e-3  # s: the longest step over which the filter holds a friction torque (kalman.c's substeps)
+
 # the effects, each a nested extension of the linear rig (off at 0), in the plant FMU's names and units; searched as
 # the square of their ratio to a nominal size (a step of the search's differences is then a share of the size)
 EFFECTS: dict[str, Bound] = {
@@ -99,7 +101,11 @@ class StochasticModel:
 
     def discretise(self, Ts: float) -> Discrete:
         """The model sampled every ``Ts`` [s] with the inputs held over each sample: A_d = exp(A Ts), B_d its
-        integral on B, Q_d = int_0^Ts exp(A s) G W G' exp(A' s) ds (Van Loan), r the readings' variances."""
+        integral on B, Q_d = int_0^Ts exp(A s) G W G' exp(A' s) ds (Van Loan), r the readings' variances. With
+        friction, the filter's steps are substeps of at most :data:`FRICTION_STEP` (the hub sticks and slides within
+        a sample)."""
+        substeps = max(1, math.ceil(Ts / FRICTION_STEP - 1e-9)) if self.coulomb > 0.0 else 1
+        Ts /= substeps
         nx, nu = self.B.shape
         M = np.zeros((nx + nu, nx + nu))
         M[:nx, :nx], M[:nx, nx:] = self.A, self.B
@@ -112,7 +118,7 @@ class StochasticModel:
         r = np.array([self.noise.theta**2, self.noise.alpha**2])
         Bd = E[:nx, nx:]
         return Discrete(A=E[:nx, :nx], B=Bd, Q=0.5 * (Q + Q.T), C=self.C, r=r, friction=self.coulomb,
-                        hub=Bd[:, 0] / self.drive, speed=self.states.index("theta_dot"))  # fmt: skip
+                        hub=Bd[:, 0] / self.drive, speed=self.states.index("theta_dot"), substeps=substeps)  # fmt: skip
 
 
 def rig_model(
