@@ -282,7 +282,8 @@ def fit(
     estimates = {}
     for i, (n, b, (lo, hi)) in enumerate(zip(names, bounds, walls, strict=True)):
         at = "lower" if x[i] <= lo + AT_BOUND else "upper" if x[i] >= hi - AT_BOUND else None
-        ci = (b.from_x(float(x[i] - 1.96 * se[i]), nominal[n]), b.from_x(float(x[i] + 1.96 * se[i]), nominal[n]))
+        ends = np.clip([x[i] - 1.96 * se[i], x[i] + 1.96 * se[i]], lo, hi)  # an interval ends at the bounds
+        ci = (b.from_x(float(ends[0]), nominal[n]), b.from_x(float(ends[1]), nominal[n]))
         estimates[n] = Estimate(b.from_x(float(x[i]), nominal[n]), ci, b.unit, at)
     ll = log_likelihood(plant, values(x), records, delay)
     return MLFit(estimates, ll, n_obs, len(names), evaluations, converged, message)

@@ -29,12 +29,47 @@ from ..diagnosis.recalibrate import LINEAR, parts_at_bound
 from ..diagnosis.simulation import fmu_value, sim_rig
 from ..ident.calibration import load_calibration
 from ..rundir import write_json
-from .fit import BOUNDS, TORQUES, MLFit, filter_record, fit, noise_start
+from .fit import BOUNDS, TORQUES, MLFit, filter_record, fit, noise_start, split_values
 from .force import ForcePicture, MissingForce, classify, force_picture
+from .model import rig_model
 from .record import Record
 from .whiteness import LAGS, LEVEL, ljung_box
 
-__all__ = ["UnitFit", "check_records", "check_run", "fit_run", "linear_start", "write_likelihood"]
+__all__ = ["EffectFit", "UnitFit", "check_records", "check_run", "fit_run", "linear_start", "write_likelihood"]
+
+
+@dataclass(frozen=True)
+class EffectFit:
+    """A nested effect fitted with the linear model from the linear fit: its ``name`` (as ``diagnosis.json`` names
+    effects), the ``fit`` (the linear parameters and the noise refitted beside the effect's own), the effect's own
+    ``parameters`` (names as the plant FMU's) and the likelihood-ratio statistic ``lr`` over the linear model, 2
+    (logL - logL_linear) [nats]; the drive's torque per volt ``drive`` [N m/V] (a torque's size as a command)."""
+
+    name: str
+    fit: MLFit
+    parameters: tuple[str, ...]
+    lr: float
+    drive: float
+
+    def line(self) -> str:
+        """The effect in one line (under 100 characters): its parameters with their intervals (a torque also as the
+        command it takes) and its LR."""
+        parts = []
+        for k in self.parameters:
+            e = self.fit.estimates[k]
+            volts = f" = {e.value / self.drive:.3g} V" if e.unit == "N m" else ""
+            parts.append(f"{e.value:.4g} {e.unit}{volts} (95 % {e.ci95[0]:.3g}..{e.ci95[1]:.3g})")
+        return f"  nested {self.name}: {'; '.join(parts)}, LR {self.lr:.3g}"
+
+    def to_json(self) -> dict[str, Any]:
+        """As an entry of ``effects`` in likelihood.json."""
+        f = self.fit
+        return {
+            "parameters": {k: {"fitted": f.estimates[k].value, "ci95": list(f.estimates[k].ci95),
+                               "unit": f.estimates[k].unit, "at_bound": f.estimates[k].at} for k in self.parameters},
+            "likelihood": {"logL": f.loglik, "k": f.k, "n": f.n, "lr": self.lr},
+            "converged": f.converged,
+        }  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -45,7 +80,8 @@ class UnitFit:
     p-value (``whiteness``: white at :data:`harness.likelihood.whiteness.LEVEL` and above), the
     ``findings`` (a parameter at its bound, in words; none: effects may be tried from here) and what the fitted
     model lacks (``missing_force``, :func:`harness.likelihood.force.classify`: its shape and size, of the smoothed
-    ``picture``, :func:`harness.likelihood.force.force_picture`)."""
+    ``picture``, :func:`harness.likelihood.force.force_picture`), and the ``effects`` fitted as nested models from the
+    linear fit (none where it has a finding)."""
 
     fit: MLFit
     records: tuple[str, ...]
@@ -56,10 +92,11 @@ class UnitFit:
     findings: tuple[str, ...]
     missing_force: MissingForce
     picture: ForcePicture
+    effects: tuple[EffectFit, ...] = ()
 
     def summary(self) -> list[str]:
         """A few lines for the terminal (under 100 characters each): the fit, the parameters that moved most from
-        the sheet, the findings and the missing force."""
+        the sheet, the findings, the missing force and the nested effects."""
         f = self.fit
         head = f"likelihood engine: {len(self.records)} records, {f.n} readings, log-likelihood {f.loglik:.1f}"
         lines = [head + ("" if f.converged else f" (search stopped: {f.message[:40]})")]
@@ -76,6 +113,7 @@ class UnitFit:
             f"{len(self.records) * 2} record channels" + (f"; not: {', '.join(grey[:3])}" if grey else "")
         )
         lines.append(_force_line(self.missing_force))
+        lines += [x.line() for x in self.effects]
         return lines
 
     def to_json(self) -> dict[str, Any]:
@@ -104,6 +142,7 @@ class UnitFit:
             "whiteness": {"test": "Ljung-Box", "lags": LAGS, "level": LEVEL, "p": self.whiteness},
             "findings": list(self.findings),
             "missing_force": self.missing_force.to_json(),
+            "effects": {x.name: x.to_json() for x in self.effects},
         }
 
 
@@ -139,8 +178,9 @@ def _records(real: Path, sim: specmod.Spec) -> tuple[list[Record], int, bool]:
 def check_records(plant: dict[str, Any], values: dict[str, float], records: list[Record], delay: int = 0) -> None:
     """Refuse, in one line, records the engine cannot fit: a reading whose noise the data cannot determine (its third
     differences are zero on every record: a channel that never changes, or one written without noise or lattice) and
-    a record too short for the filter to settle. The filter has settled from the sample on which the hub's predicted
-    reading variance stays within twice its median over the record's second half; a record needs half its readings
+    a record too short for the filter to settle. The filter has settled on the first sample on which the hub's
+    predicted reading variance (without a lattice: the Riccati recursion's, which the readings do not move) comes
+    within twice its median over the record's second half; a record needs half its readings
     and :data:`harness.likelihood.whiteness.LAGS` times five after that (the whiteness test's).
 
     Parameters
@@ -165,10 +205,11 @@ def check_records(plant: dict[str, Any], values: dict[str, float], records: list
             raise ValueError(f"the {name} readings ({channel}) have no third differences on any record (no noise, no "
                              "lattice): the data cannot determine their noise")  # fmt: skip
     for rec in records:
-        s = filter_record(plant, values, rec, delay).s[:, 0][rec.mask[:, 0]]
+        plain = Record(rec.name, rec.Ts, rec.u, np.zeros_like(rec.y), rec.mask)  # its variances the readings' own
+        s = filter_record(plant, values, plain, delay).s[:, 0][rec.mask[:, 0]]
         late = s[s.size // 2 :]
-        wide = np.flatnonzero(s > 2.0 * np.median(late)) if late.size else np.array([s.size])
-        settled = int(wide[-1]) + 1 if wide.size else 0
+        near = np.flatnonzero(s <= 2.0 * np.median(late)) if late.size else np.array([], dtype=int)
+        settled = int(near[0]) if near.size else s.size
         if settled > s.size // 2 or s.size - settled < 5 * LAGS:
             raise ValueError(f"record {rec.name}: {s.size} readings, too short for the filter to settle "
                              f"(it settles after {settled}; it needs half the record and {5 * LAGS} more)")  # fmt: skip
@@ -225,8 +266,30 @@ def fit_run(real: Path, sim: str | Path | specmod.Spec, progress: Callable[[str]
                  for k, side in res.at_bounds().items() if k in TORQUES and side == "upper"]  # fmt: skip
     say("the missing force")
     picture = force_picture(plant, values, records, delay)
+    effects = () if findings else (_friction(plant, records, res, held, nominal | noise, sd, delay, say),)
     return UnitFit(res, tuple(r.name for r in records), nominal, held, lag_one, white, tuple(findings),
-                   classify(picture), picture)  # fmt: skip
+                   classify(picture), picture, effects)  # fmt: skip
+
+
+def _friction(
+    plant: dict[str, Any],
+    records: list[Record],
+    linear: MLFit,
+    held: dict[str, float],
+    nominal: dict[str, float],
+    sd: dict[str, float],
+    delay: int,
+    say: Callable[[str], None],
+) -> EffectFit:
+    """Coulomb friction fitted as a nested model from the linear fit ``linear``: it starts at the torque of 20 mV of
+    command, its search scaled by that of 0.1 V (:data:`harness.likelihood.model.EFFECTS`)."""
+    drive = rig_model(plant, *split_values(linear.values() | held)).drive
+    say("Coulomb friction, nested")
+    start = {k: v for k, v in linear.values().items() if k not in held} | {"plant.coulomb_torque": 0.02 * drive}
+    res = fit(plant, records, start, fixed=held, nominal=nominal | {"plant.coulomb_torque": 0.1 * drive},
+              prior_sd={k: sd[k] for k in start if k in sd}, delay=delay)  # fmt: skip
+    drive = rig_model(plant, *split_values(res.values() | held)).drive  # the drive as the nested fit has it
+    return EffectFit("coulomb_friction", res, ("plant.coulomb_torque",), 2.0 * (res.loglik - linear.loglik), drive)
 
 
 def _force_line(mf: MissingForce) -> str:
