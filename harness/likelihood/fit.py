@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from ..diagnosis.recalibrate import LINEAR, Bound
+from ..workercall import one_blas_thread
 from .kalman import Discrete, Filtered, kalman_filter
 from .model import EFFECTS, NOISE, Noise, StochasticModel, rig_model
 from .record import Record
@@ -182,17 +183,19 @@ class Innovations:
 def innovations(
     plant: Mapping[str, Any], values: Mapping[str, float], records: Sequence[Record], delay: int = 0
 ) -> Innovations:
-    """The filter of the rig ``plant`` with ``values`` through ``records``: :class:`Innovations`."""
-    model = rig_model(plant, *split_values(values), force="noise.hub_force" in values)
-    discrete: dict[float, Discrete] = {}
-    total, parts = 0.0, []
-    for rec in records:
-        if rec.Ts not in discrete:
-            discrete[rec.Ts] = model.discretise(rec.Ts)
-        f = run_filter(model, discrete[rec.Ts], rec, delay)
-        total += f.loglik
-        cell = np.broadcast_to(np.asarray(rec.lattice) > 0, f.e.shape)
-        parts.append([a[rec.mask] for a in (f.e, f.s, f.terms, cell)])
+    """The filter of the rig ``plant`` with ``values`` through ``records``: :class:`Innovations` (BLAS on one thread:
+    its matrices are small, and a second thread only contends for the cores)."""
+    with one_blas_thread():
+        model = rig_model(plant, *split_values(values), force="noise.hub_force" in values)
+        discrete: dict[float, Discrete] = {}
+        total, parts = 0.0, []
+        for rec in records:
+            if rec.Ts not in discrete:
+                discrete[rec.Ts] = model.discretise(rec.Ts)
+            f = run_filter(model, discrete[rec.Ts], rec, delay)
+            total += f.loglik
+            cell = np.broadcast_to(np.asarray(rec.lattice) > 0, f.e.shape)
+            parts.append([a[rec.mask] for a in (f.e, f.s, f.terms, cell)])
     return Innovations(total, *(np.concatenate(p) for p in zip(*parts, strict=True)))
 
 

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import minimize_scalar
 
+from ..workercall import one_blas_thread
 from .fit import log_likelihood, run_filter, split_values
 from .kalman import smooth
 from .model import DEG, rig_model
@@ -100,6 +101,14 @@ def force_picture(
     -------
     ForcePicture
     """
+    with one_blas_thread():  # small matrices: a second BLAS thread only contends for the cores
+        return _picture(plant, values, records, delay)
+
+
+def _picture(
+    plant: Mapping[str, Any], values: Mapping[str, float], records: Sequence[Record], delay: int
+) -> ForcePicture:
+    """:func:`force_picture`'s work."""
 
     def loglik(intensity: float) -> float:  # the model with the force state (also at none)
         return log_likelihood(plant, {**values, "noise.hub_force": intensity}, records, delay)
