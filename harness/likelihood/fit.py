@@ -143,9 +143,10 @@ def run_filter(
     model: StochasticModel, discrete: Discrete, record: Record, delay: int = 0, keep: bool = False
 ) -> Filtered:
     """The filter of ``model`` (sampled: ``discrete``) through ``record`` from :func:`start_state`, the command
-    delayed by ``delay`` samples, the readings on the record's lattice; ``keep`` keeps the states for the smoother."""
+    delayed by ``delay`` samples (through the amplifier's limit: :meth:`StochasticModel.inputs`), the readings on the
+    record's lattice; ``keep`` keeps the states for the smoother."""
     x0, P0 = start_state(model, record)
-    u = np.column_stack([record.delayed(delay), np.ones(record.n)])
+    u = model.inputs(record.delayed(delay))
     discrete = replace(discrete, q=np.asarray(record.lattice, dtype=float))
     return kalman_filter(discrete, u, record.y, record.mask, x0, P0, keep=keep)
 
@@ -286,8 +287,8 @@ def fit(
     for i, (n, b, (lo, hi)) in enumerate(zip(names, bounds, walls, strict=True)):
         at = "lower" if x[i] <= lo + AT_BOUND else "upper" if x[i] >= hi - AT_BOUND else None
         ends = np.clip([x[i] - 1.96 * se[i], x[i] + 1.96 * se[i]], lo, hi)  # an interval ends at the bounds
-        ci = (b.from_x(float(ends[0]), nominal[n]), b.from_x(float(ends[1]), nominal[n]))
-        estimates[n] = Estimate(b.from_x(float(x[i]), nominal[n]), ci, b.unit, at)
+        lo_hi = sorted(b.from_x(float(v), nominal[n]) for v in ends)  # sorted: a falling map (a limit's share)
+        estimates[n] = Estimate(b.from_x(float(x[i]), nominal[n]), (lo_hi[0], lo_hi[1]), b.unit, at)
     ll = log_likelihood(plant, values(x), records, delay)
     return MLFit(estimates, ll, n_obs, len(names), evaluations, converged, message)
 

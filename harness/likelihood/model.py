@@ -32,7 +32,7 @@ from ..diagnosis.recalibrate import LINEAR, Bound
 from ..fmu import plant as plantmod
 from .kalman import Discrete
 
-__all__ = ["EFFECTS", "NOISE", "Noise", "StochasticModel", "rig_model"]
+__all__ = ["EFFECTS", "NOISE", "LimitBound", "Noise", "StochasticModel", "rig_model"]
 
 DEG = 180.0 / math.pi
 
@@ -54,10 +54,41 @@ NOISE: dict[str, Bound] = {
 
 FRICTION_STEP = 1e-3  # s: the longest step over which the filter holds a friction torque (kalman.c's substeps)
 
-# the effects, each a nested extension of the linear rig (off at 0), in the plant FMU's names and units; searched as
-# the square of their ratio to a nominal size (a step of the search's differences is then a share of the size)
+
+@dataclass(frozen=True)
+class LimitBound(Bound):
+    """A limit [V] searched as a tenth of the share ``nominal / value`` of its nominal value, the records' largest
+    |command| (:func:`harness.likelihood.effects.command_peak`), the share from ``lo`` (1: the limit at the peak, no
+    sample clipped: the null, a wall the search reaches) to ``hi`` (the limit at 1 / hi of the peak). A step of the
+    search's differences is then a share of the limit: the gradient's (1e-5) about 1e-4 of it, the Hessian's (1e-3)
+    about 1 %, which spans the samples near the limit (the likelihood's slope in a limit jumps wherever the limit
+    crosses a sample's command), and a limit within about 1 % of the peak ends at the wall. A value of 0 (the FMU's
+    "none") is the null."""
+
+    scale: float = 0.1
+
+    def to_x(self, value: float, nominal: float) -> float:
+        """A tenth of the share nominal / value, the share at least ``lo`` (0 or a limit beyond the peak: the
+        null)."""
+        return self.scale * (max(nominal / value, self.lo) if value > 0 else self.lo)
+
+    def from_x(self, x: float, nominal: float) -> float:
+        """The limit nominal / share (at the wall ``lo``: the peak)."""
+        return nominal / max(x / self.scale, self.lo)
+
+    def x_range(self) -> tuple[float, float]:
+        """The coordinate's walls."""
+        return (self.scale * self.lo, self.scale * self.hi)
+
+
+# the effects, each a nested extension of the linear rig (off at its null), in the plant FMU's names and units.
+# Friction is searched as the square of its ratio to a nominal size (a step of the search's differences is then a
+# share of the size); the amplifier's limit as the share of the records' peak command over it (LimitBound: its
+# nominal is that peak), the null no limit. The command's delay (daq.delay_samples) and a second link mode
+# (plant.n_modes) are integers, chosen by profile likelihood (harness.likelihood.effects).
 EFFECTS: dict[str, Bound] = {
     "plant.coulomb_torque": Bound(0.0, 1e3, "N m", "Coulomb friction at the hub", part="effect", square=True),
+    "plant.amp_limit": LimitBound(1.0, 20.0, "V", "the amplifier's output limit", part="effect"),
 }
 
 
@@ -87,7 +118,8 @@ class StochasticModel:
     alpha [deg]), its ``noise``, the state names ``states``, the link's first free-hub frequency ``w1`` [rad/s] (the
     scale of its start's uncertainty) and the drive's torque per volt ``drive`` [N m/V] (its force's scale). With the
     missing force, ``G`` has a third column: the force's random walk. ``coulomb`` [N m] is the Coulomb friction at
-    the hub (0: none; the filter's, :class:`harness.likelihood.kalman.Discrete`'s ``friction``)."""
+    the hub (0: none; the filter's, :class:`harness.likelihood.kalman.Discrete`'s ``friction``); ``limit`` [V] the
+    amplifier's output limit on the command plus its input offset ``offset`` [V] (0: none; :meth:`inputs`)."""
 
     A: np.ndarray
     B: np.ndarray
@@ -98,6 +130,17 @@ class StochasticModel:
     w1: float
     drive: float
     coulomb: float = 0.0
+    limit: float = 0.0
+    offset: float = 0.0
+
+    def inputs(self, u: np.ndarray) -> np.ndarray:
+        """The filter's inputs (n x 2) for the command ``u`` [V] as the plant receives it: ``[u, 1]`` (the offset
+        rides on the constant input); with a limit L the amplifier's output clip(u + offset, -L, L) as the plant FMU
+        clamps it, written ``[clip(u + offset, -L, L) - offset, 1]`` on the same ``B``."""
+        u = np.asarray(u, dtype=float)
+        if self.limit > 0.0:
+            u = np.clip(u + self.offset, -self.limit, self.limit) - self.offset
+        return np.column_stack([u, np.ones(u.shape[0])])
 
     def discretise(self, Ts: float) -> Discrete:
         """The model sampled every ``Ts`` [s] with the inputs held over each sample: A_d = exp(A Ts), B_d its
@@ -135,7 +178,8 @@ def rig_model(
         The plant FMU's parameters by name (``Ks``, ``zeta_link``, ``n_modes``, ...).
     values : mapping
         Linear parameters by their diagnosis names (``rig.drive_gain``, ``plant.Ks``, ``sensor.theta_gain``, ...)
-        and effects (:data:`EFFECTS`: ``plant.coulomb_torque``).
+        and effects (:data:`EFFECTS`: ``plant.coulomb_torque``, ``plant.amp_limit``; off when not given, whatever
+        the plant's table says: the model is the linear rig plus the effects named).
     noise : Noise
         The readings' and the torques' noise.
     force : bool
@@ -177,4 +221,6 @@ def rig_model(
     states += ("b_alpha", "d") if force else ("b_alpha",)
     w1 = float(plantmod.mode_frequencies(p)[0, 0]) * 2.0 * math.pi
     coulomb = float(values.get("plant.coulomb_torque", 0.0))
-    return StochasticModel(A=Ax, B=Bx, G=Gx, C=Cx, noise=noise, states=states, w1=w1, drive=G_volt, coulomb=coulomb)
+    limit = float(values.get("plant.amp_limit", 0.0))
+    return StochasticModel(A=Ax, B=Bx, G=Gx, C=Cx, noise=noise, states=states, w1=w1, drive=G_volt, coulomb=coulomb,
+                           limit=limit, offset=u_offset)  # fmt: skip

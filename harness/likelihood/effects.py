@@ -1,0 +1,113 @@
+"""The effects the likelihood engine fits beside the linear rig, each a nested extension of it.
+
+Continuous effects are parameters of :func:`harness.likelihood.fit.fit` (:data:`harness.likelihood.model.EFFECTS`):
+Coulomb friction at the hub, in the filter itself, and the amplifier's output limit ``plant.amp_limit`` [V], a
+transformation of the filter's input (the command is known: the drive sees clip(u + u_offset, +-L), as the plant FMU
+clamps it; :meth:`harness.likelihood.model.StochasticModel.inputs`). The limit is searched as the share
+``peak / L`` of the records' largest |command| (:func:`command_peak`, the limit's nominal value): its null, no
+sample clipped, is the wall at 1.
+
+Integer effects are chosen by profile likelihood (:func:`profile_delay`, :func:`profile_modes`): the model fitted at
+each setting, the setting whose maximised log-likelihood is highest. The command's transport delay
+``daq.delay_samples`` shifts the filter's input by whole samples (the null: none); a second link mode
+``plant.n_modes`` 2 adds the link's second clamped-free mode, its frequency (beta_2 / beta_1)^2 times the first's and
+its gauge weight from the beam's shapes (:mod:`harness.fmu.plant`): the same free parameters, so the two fits'
+log-likelihoods compare as they are. The one-mode model is not the two-mode one at a parameter's value (with two
+modes the gauge's static calibration reads the first 1.22 times as strongly): the choice is a profile over the model's
+structure.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from .fit import MLFit, fit
+from .record import Record
+
+__all__ = ["Profile", "command_peak", "profile_delay", "profile_modes"]
+
+
+@dataclass(frozen=True)
+class Profile:
+    """An integer effect's profile likelihood: the parameter ``name`` (``daq.delay_samples``, ``plant.n_modes``),
+    the ``settings`` tried (the first the null), and the maximum-likelihood ``fits`` at each."""
+
+    name: str
+    settings: tuple[int, ...]
+    fits: tuple[MLFit, ...]
+
+    @property
+    def loglik(self) -> np.ndarray:
+        """The maximised log-likelihood [nats] at each setting."""
+        return np.array([f.loglik for f in self.fits])
+
+    @property
+    def best(self) -> int:
+        """The setting whose log-likelihood is highest."""
+        return self.settings[int(np.argmax(self.loglik))]
+
+    @property
+    def gain(self) -> float:
+        """The best setting's log-likelihood over the null's (the first setting) [nats]."""
+        return float(np.max(self.loglik) - self.loglik[0])
+
+    def fit_at(self, setting: int) -> MLFit:
+        """The fit at ``setting``."""
+        return self.fits[self.settings.index(setting)]
+
+
+def command_peak(records: Sequence[Record]) -> float:
+    """The records' largest |command| [V]: the amplifier limit's nominal value (its search's null wall)."""
+    peak = max((float(np.max(np.abs(r.u))) for r in records if r.n), default=0.0)
+    if not peak > 0.0:
+        raise ValueError("the records' command is zero throughout: no amplifier limit can show")
+    return peak
+
+
+def profile_delay(
+    plant: Mapping[str, Any],
+    records: Sequence[Record],
+    start: Mapping[str, float],
+    delays: Sequence[int] = (0, 1, 2, 3),
+    **kwargs: Any,
+) -> Profile:
+    """The command's delay by profile likelihood: :func:`harness.likelihood.fit.fit` of ``start`` over ``records``
+    at each of ``delays`` [samples] (``kwargs``: its other arguments).
+
+    Returns
+    -------
+    Profile
+        ``best`` the delay whose likelihood is highest.
+    """
+    if not delays or min(delays) < 0:
+        raise ValueError(f"delays must be whole samples >= 0, got {tuple(delays)}")
+    settings = tuple(int(d) for d in delays)
+    fits = tuple(fit(plant, records, start, delay=d, **kwargs) for d in settings)
+    return Profile("daq.delay_samples", settings, fits)
+
+
+def profile_modes(
+    plant: Mapping[str, Any],
+    records: Sequence[Record],
+    start: Mapping[str, float],
+    modes: Sequence[int] = (1, 2),
+    **kwargs: Any,
+) -> Profile:
+    """The link's modes by profile likelihood: :func:`harness.likelihood.fit.fit` of ``start`` over ``records`` with
+    the plant's ``n_modes`` at each of ``modes`` (``kwargs``: the fit's other arguments, ``delay`` among them).
+
+    Returns
+    -------
+    Profile
+        ``best`` the number of modes whose likelihood is highest; ``gain`` the second mode's log-likelihood over
+        the one-mode model's.
+    """
+    if not modes or min(modes) < 1:
+        raise ValueError(f"modes must be whole numbers >= 1, got {tuple(modes)}")
+    settings = tuple(int(m) for m in modes)
+    fits = tuple(fit({**plant, "n_modes": m}, records, start, **kwargs) for m in settings)
+    return Profile("plant.n_modes", settings, fits)
