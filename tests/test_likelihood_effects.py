@@ -145,8 +145,8 @@ def test_without_a_limit_the_fitted_limit_is_at_its_null_wall(seed):
     upper bound of the likelihood ratio) under 5.4 nats, chi-square's 0.1 % level on one degree of freedom (a limit
     is a change point in the command: its ratio's tail is heavier than chi-square's). Measured: at the peak on seeds
     7 and 12, the ratio 0; on ten blind seeds (40-49) all at the wall, within 0.25 % of the peak, the ratio at most
-    3.5 nats. The linear parameters within 5 % (measured 1.3 %; their intervals are not checked: the Hessian is
-    taken across the limit's wall)."""
+    3.5 nats. The linear parameters within 5 % (measured 1.3 %; their intervals are not checked: the fit's
+    information is taken at the limit's wall)."""
     rec = _twin(_ramped(_multisine(seed, 1.5, 3.0)), ONE, seed=seed)
     peak = command_peak([rec])
     res = _fit([rec], {"plant.amp_limit": 0.8 * peak}, {"plant.amp_limit": peak}, torques=False)

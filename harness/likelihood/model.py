@@ -60,10 +60,8 @@ class LimitBound(Bound):
     """A limit [V] searched as a tenth of the share ``nominal / value`` of its nominal value, the records' largest
     |command| (:func:`harness.likelihood.effects.command_peak`), the share from ``lo`` (1: the limit at the peak, no
     sample clipped: the null, a wall the search reaches) to ``hi`` (the limit at 1 / hi of the peak). A step of the
-    search's differences is then a share of the limit: the gradient's (1e-5) about 1e-4 of it, the Hessian's (1e-3)
-    about 1 %, which spans the samples near the limit (the likelihood's slope in a limit jumps wherever the limit
-    crosses a sample's command), and a limit within about 1 % of the peak ends at the wall. A value of 0 (the FMU's
-    "none") is the null."""
+    search's differences is then a share of the limit (the gradient's, 1e-5, about 1e-4 of it), and a limit within
+    about 1 % of the peak ends at the wall. A value of 0 (the FMU's "none") is the null."""
 
     scale: float = 0.1
 
