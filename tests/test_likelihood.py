@@ -426,3 +426,29 @@ def test_ljung_box_holds_its_level_on_white_noise_and_rejects_an_ar1():
     assert not any(ljung_box(s).white for s in ar)
     with pytest.raises(ValueError, match="too few"):
         ljung_box(np.ones(10))
+
+
+def test_a_gauge_read_late_is_put_back_in_time():
+    """The DAQ's gauge reading 10 samples (20 ms) late on the open-loop twin: with its readings put back in time
+    (Record.gauge_late) the linear parameters come back as on time (within 0.5 %, 3.29 standard errors), and the
+    fit gains on the record read as logged (measured: 3 857 nats; as logged the link's stiffness 19 % low, the
+    inertia ratio 14 % low and its damping 16 times the rig's)."""
+    n, late = 2500, 10
+    rng = np.random.default_rng(3)
+    u = 0.8 * np.where(np.cumsum(rng.random(n) < 0.015) % 2 == 0, 1.0, -1.0)
+    daq = {"noise_theta": NOISE_V, "noise_alpha": NOISE_V, "seed": 3, "gauge_delay": late}
+    with Rig(build_all()["flexjoint"], build_all()["daq"]) as rig:
+        out = rig.run(u, TS, plant=PLANT, daq=daq)
+    logged = Record("late", TS, out["u"], _readings(out), np.ones((n, 2), bool))
+    back = logged.gauge_late(late)
+    assert np.array_equal(back.y[: n - late, 1], logged.y[late:, 1]) and not back.mask[n - late :, 1].any()
+    truth = _truth(PLANT)
+    start = {k: 1.1 * v for k, v in truth.items()} | mlfit.noise_start([logged])
+    fixed = {"sensor.theta_gain": 1.0, "sensor.alpha_gauge_gain": 1.0}
+    fits = [mlfit.fit(PLANT, [r], start, fixed=fixed, nominal=truth | mlfit.noise_start([r])) for r in (back, logged)]
+    for name, want in truth.items():
+        e, b = fits[0].estimates[name], mlfit.BOUNDS[name]
+        se = (b.to_x(e.ci95[1], want) - b.to_x(e.ci95[0], want)) / (2 * 1.96)
+        assert e.value == pytest.approx(want, rel=5e-3), name
+        assert abs(b.to_x(e.value, want)) < 3.29 * se, (name, want, e)
+    assert fits[0].loglik - fits[1].loglik > 100

@@ -49,6 +49,17 @@ class Record:
             return self.u
         return np.concatenate([np.full(samples, self.u[0]), self.u[:-samples]])
 
+    def gauge_late(self, samples: int) -> Record:
+        """The record with its gauge read ``samples`` late put back in time: the gauge's reading logged at sample
+        k + samples is the link's at k (the joint likelihood of the readings does not depend on the order the filter
+        takes them in); the last ``samples`` samples have no gauge reading."""
+        if samples <= 0:
+            return self
+        y, mask = self.y.copy(), self.mask.copy()
+        y[:-samples, 1], mask[:-samples, 1] = self.y[samples:, 1], self.mask[samples:, 1]
+        y[-samples:, 1], mask[-samples:, 1] = 0.0, False
+        return Record(self.name, self.Ts, self.u, y, mask, self.lattice)
+
     @classmethod
     def from_experiment(cls, exp: RigExperiment) -> Record:
         """The record of an experiment as :func:`harness.diagnosis.experiments.load_experiments` loads it."""

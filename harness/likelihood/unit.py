@@ -24,6 +24,7 @@ from .. import spec as specmod
 from ..diagnosis import rigmodel
 from ..diagnosis.diagnose import priors
 from ..diagnosis.experiments import load_experiments
+from ..diagnosis.gauge import gauge_delay
 from ..diagnosis.noise import adc_lattice
 from ..diagnosis.recalibrate import LINEAR, parts_at_bound
 from ..diagnosis.simulation import fmu_value, sim_rig
@@ -35,7 +36,17 @@ from .model import rig_model
 from .record import Record
 from .whiteness import LAGS, LEVEL, ljung_box
 
-__all__ = ["EffectFit", "UnitFit", "check_records", "check_run", "fit_run", "linear_start", "write_likelihood"]
+__all__ = [
+    "EffectFit",
+    "RunRecords",
+    "UnitFit",
+    "check_records",
+    "load_records",
+    "check_run",
+    "fit_run",
+    "linear_start",
+    "write_likelihood",
+]
 
 
 @dataclass(frozen=True)
@@ -81,7 +92,8 @@ class UnitFit:
     ``findings`` (a parameter at its bound, in words; none: effects may be tried from here) and what the fitted
     model lacks (``missing_force``, :func:`harness.likelihood.force.classify`: its shape and size, of the smoothed
     ``picture``, :func:`harness.likelihood.force.force_picture`), and the ``effects`` fitted as nested models from the
-    linear fit (none where it has a finding)."""
+    linear fit (none where it has a finding), and how many samples late the gauge reads (``gauge_late``, the records'
+    own timing: its readings are put back in time)."""
 
     fit: MLFit
     records: tuple[str, ...]
@@ -93,6 +105,7 @@ class UnitFit:
     missing_force: MissingForce
     picture: ForcePicture
     effects: tuple[EffectFit, ...] = ()
+    gauge_late: int = 0
 
     def summary(self) -> list[str]:
         """A few lines for the terminal (under 100 characters each): the fit, the parameters that moved most from
@@ -106,6 +119,8 @@ class UnitFit:
             unit = "" if e.unit == "1" else f" {e.unit}"
             lines.append(f"  {k:24s} {e.value:.4g}{unit} ({e.value / self.nominal[k]:.3g}x the sheet), "
                          f"95 % {e.ci95[0]:.4g}..{e.ci95[1]:.4g}")  # fmt: skip
+        if self.gauge_late:
+            lines.append(f"  the gauge reads {self.gauge_late} samples late (the records' timing): read so")
         lines += [f"  finding: {x}" for x in self.findings[:5]] or ["  nothing at a bound: effects may be tried"]
         grey = [f"{r} {c}" for r, ps in self.whiteness.items() for c, p in ps.items() if p < LEVEL]
         lines.append(
@@ -138,6 +153,7 @@ class UnitFit:
                 for name, e in f.estimates.items()
             },
             "held": self.held,
+            "gauge_late_samples": self.gauge_late,
             "lag_one": self.lag_one,
             "whiteness": {"test": "Ljung-Box", "lags": LAGS, "level": LEVEL, "p": self.whiteness},
             "findings": list(self.findings),
@@ -157,22 +173,35 @@ def linear_start(plant: dict[str, Any]) -> dict[str, float]:
     }
 
 
-def _records(real: Path, sim: specmod.Spec) -> tuple[list[Record], int, bool]:
-    """The run's records as the filter reads them, each with its lattice [deg]; the command's delay [samples];
-    whether every record's hub angle is an encoder's."""
+@dataclass(frozen=True)
+class RunRecords:
+    """A run's records as the filter reads them (``records``, each with its lattice [deg] and its gauge put back in
+    time), the command's delay ``delay`` [samples], whether every record's hub angle is an ``encoder``'s, and how
+    many samples late the gauge reads (``gauge_late``: the records' own timing,
+    :func:`harness.diagnosis.gauge.gauge_delay`, as today's diagnosis reads it)."""
+
+    records: list[Record]
+    delay: int
+    encoder: bool
+    gauge_late: int
+
+
+def load_records(real: Path, sim: specmod.Spec) -> RunRecords:
+    """The records of run ``real`` with the DAQ of spec ``sim``: :class:`RunRecords`."""
     cal = load_calibration(real)
     _, daq = sim_rig(sim)
     adc_range = fmu_value(daq, "daq", "adc_range")
     exps = load_experiments(real, cal, sim, adc_range)
     bits = adc_lattice(exps, adc_range)
     lsb = 2.0 * adc_range / 2.0**bits if bits else 0.0
+    late = gauge_delay(exps).samples
     out = []
     for x in exps.values():
         rec = Record.from_experiment(x)
         step = (max(rec.lattice[0], abs(cal.Kp) * lsb), max(rec.lattice[1], abs(cal.Ke) * lsb))
-        out.append(Record(rec.name, rec.Ts, rec.u, rec.y, rec.mask, step))
+        out.append(Record(rec.name, rec.Ts, rec.u, rec.y, rec.mask, step).gauge_late(late))
     encoder = all(x.encoder for x in exps.values())
-    return out, int(fmu_value(daq, "daq", "delay_samples")), encoder
+    return RunRecords(out, int(fmu_value(daq, "daq", "delay_samples")), encoder, late)
 
 
 def check_records(plant: dict[str, Any], values: dict[str, float], records: list[Record], delay: int = 0) -> None:
@@ -220,7 +249,8 @@ def check_run(real: Path, sim: str | Path | specmod.Spec) -> None:
     writes anything)."""
     spec = sim if isinstance(sim, specmod.Spec) else specmod.load(sim)
     plant, _ = sim_rig(spec)
-    records, delay, _ = _records(Path(real), spec)
+    run = load_records(Path(real), spec)
+    records, delay = run.records, run.delay
     check_records(plant, linear_start(plant) | noise_start(records), records, delay)
 
 
@@ -244,7 +274,8 @@ def fit_run(real: Path, sim: str | Path | specmod.Spec, progress: Callable[[str]
     spec = sim if isinstance(sim, specmod.Spec) else specmod.load(sim)
     plant, _ = sim_rig(spec)
     say("records")
-    records, delay, encoder = _records(Path(real), spec)
+    run = load_records(Path(real), spec)
+    records, delay, encoder = run.records, run.delay, run.encoder
     sd, _ = priors(spec, load_calibration(Path(real)).gain_rel_se(), encoder)
     nominal = linear_start(plant)
     held = {k: v for k, v in nominal.items() if sd.get(k, 1.0) == 0.0}  # a sensor known exactly
@@ -268,7 +299,7 @@ def fit_run(real: Path, sim: str | Path | specmod.Spec, progress: Callable[[str]
     picture = force_picture(plant, values, records, delay)
     effects = () if findings else (_friction(plant, records, res, held, nominal | noise, sd, delay, say),)
     return UnitFit(res, tuple(r.name for r in records), nominal, held, lag_one, white, tuple(findings),
-                   classify(picture), picture, effects)  # fmt: skip
+                   classify(picture), picture, effects, run.gauge_late)  # fmt: skip
 
 
 def _friction(
