@@ -5,6 +5,7 @@ open and closed loop (the logged command as the input: no controller replayed)."
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import subprocess
@@ -298,6 +299,10 @@ def test_a_units_friction_is_fitted_as_a_nested_model_from_its_linear_fit(tmp_pa
     assert doc["likelihood"]["lr"] == friction.lr and doc["likelihood"]["k"] == friction.fit.k
     line = next(x for x in unit.summary() if "coulomb_friction" in x)
     assert "0.02996 N m" in line and len(line) <= 100
+    grey = {f"record_{i:02d}": {"theta": 0.0, "alpha": 0.0} for i in range(30)}
+    long = dataclasses.replace(unit, findings=("the spec's hub and drive (motor, gear) " * 4,) * 7, whiteness=grey)
+    lines = long.summary()
+    assert max(map(len, lines)) <= 100 and sum(x.startswith("  finding: ") for x in lines) == 5, lines
 
 
 def test_diagnose_says_which_engines_it_knows():

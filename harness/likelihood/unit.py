@@ -13,6 +13,7 @@ model cannot draw what the records show; both are findings, not a start for effe
 
 from __future__ import annotations
 
+import textwrap
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -121,12 +122,13 @@ class UnitFit:
                          f"95 % {e.ci95[0]:.4g}..{e.ci95[1]:.4g}")  # fmt: skip
         if self.gauge_late:
             lines.append(f"  the gauge reads {self.gauge_late} samples late (the records' timing): read so")
-        lines += [f"  finding: {x}" for x in self.findings[:5]] or ["  nothing at a bound: effects may be tried"]
+        found = ["  " + textwrap.shorten(f"finding: {x}", 98, placeholder=" ...") for x in self.findings[:5]]
+        lines += found or ["  nothing at a bound: effects may be tried"]
         grey = [f"{r} {c}" for r, ps in self.whiteness.items() for c, p in ps.items() if p < LEVEL]
-        lines.append(
-            f"  residuals white (Ljung-Box, {LEVEL:g}): {len(self.records) * 2 - len(grey)} of "
-            f"{len(self.records) * 2} record channels" + (f"; not: {', '.join(grey[:3])}" if grey else "")
+        white = (
+            f"  residuals white (Ljung-Box, {LEVEL:g}): {len(self.records) * 2 - len(grey)} of {len(self.records) * 2}"
         )
+        lines.append(textwrap.shorten(white + (f"; not: {', '.join(grey)}" if grey else ""), 100, placeholder=" ..."))
         lines.append(_force_line(self.missing_force))
         lines += [x.line() for x in self.effects]
         return lines
