@@ -305,11 +305,12 @@ class _Slopes:
     Js: np.ndarray
     Jl: np.ndarray
 
-    def fisher(self, inn: Innovations, prior_curvature: np.ndarray) -> np.ndarray:
-        """The Fisher information of the readings' Gaussian law (a lattice's q^2 / 12 in their variance) plus the
-        priors' curvature: sum_k (de/dx)^2 / s + (ds/dx)^2 / (2 s^2)."""
-        s = inn.s[:, None]
-        return self.Je.T @ (self.Je / s) + 0.5 * self.Js.T @ (self.Js / s**2) + np.diag(prior_curvature[self.idx])
+    def fisher(self, inn: Innovations, prior_curvature: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+        """The Fisher information of the readings' Gaussian law (a lattice's q^2 / 12 in their variance; only the
+        readings ``rows`` where given) plus the priors' curvature: sum_k (de/dx)^2 / s + (ds/dx)^2 / (2 s^2)."""
+        on = slice(None) if rows is None else rows
+        Je, Js, s = self.Je[on], self.Js[on], inn.s[on][:, None]
+        return Je.T @ (Je / s) + 0.5 * Js.T @ (Js / s**2) + np.diag(prior_curvature[self.idx])
 
 
 def _slopes(
@@ -375,14 +376,11 @@ def _ascend(
         sl = _slopes(point, x, f, inn, np.flatnonzero(free), walls, leaning=False)
         if not sl.idx.size:
             return x, True, "every coordinate at a wall it leans against"
-        idx, gv, Je, Js, Jl = sl.idx, sl.g, sl.Je, sl.Js, sl.Jl
-        fisher = sl.fisher(inn, prior_curvature)
-        curvatures = [fisher]
+        idx, gv = sl.idx, sl.g
+        curvatures = [sl.fisher(inn, prior_curvature)]
         if inn.cell.any():  # a lattice: its cells' own curvature beside the Gaussian's, the step that gains more
-            gauss, cell = ~inn.cell, inn.cell
-            Jg, Sg = Je[gauss], inn.s[gauss][:, None]
-            curvatures.append(Jg.T @ (Jg / Sg) + 0.5 * Js[gauss].T @ (Js[gauss] / Sg**2) + Jl[cell].T @ Jl[cell]
-                              + np.diag(prior_curvature[idx]))  # fmt: skip
+            Jl = sl.Jl[inn.cell]
+            curvatures.append(sl.fisher(inn, prior_curvature, rows=~inn.cell) + Jl.T @ Jl)
         while True:
             steps = []
             for F in curvatures:
@@ -393,7 +391,6 @@ def _ascend(
                 steps.append((fn, xn, i_n, float(gv @ step - 0.5 * step @ F @ step)))
             fn, xn, i_n, promised = max(steps, key=lambda t: t[0])
             if i_n is not None and fn > f:
-                gain = fn - f
                 while fn - f > promised:  # the quadratic undersells the way: on along it, twice as far each time
                     xe = x.copy()
                     xe[idx] = np.clip(x[idx] + 2.0 * (xn[idx] - x[idx]), lo[idx], hi[idx])
