@@ -298,7 +298,7 @@ def test_a_units_friction_is_fitted_as_a_nested_model_from_its_linear_fit(tmp_pa
     assert doc["parameters"]["plant.coulomb_torque"]["fitted"] == e.value
     assert doc["likelihood"]["lr"] == friction.lr and doc["likelihood"]["k"] == friction.fit.k
     line = next(x for x in unit.summary() if "coulomb_friction" in x)
-    assert "0.02996 N m" in line and len(line) <= 100
+    assert f"{e.value:.4g} N m = {e.value / friction.drive:.3g} V" in line and len(line) <= 100
     grey = {f"record_{i:02d}": {"theta": 0.0, "alpha": 0.0} for i in range(30)}
     long = dataclasses.replace(unit, findings=("the spec's hub and drive (motor, gear) " * 4,) * 7, whiteness=grey)
     lines = long.summary()
