@@ -1,5 +1,6 @@
 """Shared fixtures: the built rig-twin FMUs, a minimal fmpy stepping loop for tests, and the runs several test files
-read (the lab campaign, a diagnosed run, the Quanser record diagnosed: tests/shared_runs.py), each made once for the
+read (the lab campaign, a diagnosed run, the Quanser record diagnosed, the CU unit's lone record diagnosed:
+tests/shared_runs.py), each made once for the
 whole session and shared by the test processes of ``-n N``."""
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from shared_runs import make_diagnosed_run, make_lab_campaign, make_quanser_run, shared_dir
+from shared_runs import make_cu_lone_run, make_diagnosed_run, make_lab_campaign, make_quanser_run, shared_dir
 
 from harness.fmu import modeldesc
 from harness.fmu.build import build_all
@@ -60,6 +61,14 @@ def quanser_run(tmp_path_factory) -> Path:
     """The Quanser record imported and diagnosed (:func:`shared_runs.make_quanser_run`), once per session: copy it to
     write into it."""
     return shared_dir(tmp_path_factory, "quanser_run", make_quanser_run)
+
+
+@pytest.fixture(scope="session")
+def cu_lone_run(tmp_path_factory) -> Path:
+    """The CU unit's first record alone, imported and diagnosed against its lab sheet
+    (:func:`shared_runs.make_cu_lone_run`: ``run/`` and ``returned.json``), once per session: copy it to write into
+    it."""
+    return shared_dir(tmp_path_factory, "cu_lone_run", make_cu_lone_run)
 
 
 class FmuRun:

@@ -1,5 +1,5 @@
 """The runs several test files read, as they are made: each is made once per session by a fixture of conftest.py
-(``lab_campaign``, ``diagnosed_run``, ``quanser_run``) and shared, read-only, by every test process
+(``lab_campaign``, ``diagnosed_run``, ``quanser_run``, ``cu_lone_run``) and shared, read-only, by every test process
 (:func:`shared_dir`, which a test file's own shared run uses too)."""
 
 from __future__ import annotations
@@ -59,6 +59,14 @@ def make_quanser_run(path: Path) -> None:
     diagnosed against the nominal spec (serially), its diagnosis.json in the run directory."""
     import_records([f"quanser={QUANSER[0]}+{QUANSER[1]}"], path, QUANSER_IMPORT)
     diagnose_run(path, "nominal", path, workers=1)
+
+
+def make_cu_lone_run(path: Path) -> None:
+    """The CU unit's first record (:data:`CU` [0]) alone, imported as the fixture README says into ``path/run`` and
+    diagnosed there against its lab sheet (specs/cu_flexible_arm.toml, serially); the Diagnosis that
+    :func:`diagnose_run` returned, written by itself, is ``path/returned.json``."""
+    import_records([CU[0]], path / "run", CU_IMPORT)
+    diagnose_run(path / "run", "cu_flexible_arm", workers=1).write(path / "returned.json")
 
 
 def make_diagnosed_run(path: Path) -> None:

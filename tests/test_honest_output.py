@@ -501,16 +501,13 @@ def test_the_report_says_caveats_replays_and_recalibration_alone():
 # ----------------------------------------------------------------------------------------------- a real lone record
 
 
-def test_a_lone_real_record_is_diagnosed_on_its_halves(tmp_path):
+def test_a_lone_real_record_is_diagnosed_on_its_halves(cu_lone_run):
     """One of the lab's closed-loop records alone (10 s at 1 kHz, theta printed to 0.001 rad): cut in time, fitted
     on one half and scored on the other, the record's step in the floor, no parameter held by a wall (the rig
     identified in its combos under the lab sheet's priors), and what recalibration alone fitted beside the joint
-    fit."""
-    from shared_runs import CU, CU_IMPORT
-
-    run = tmp_path / "run"
-    import_records([CU[0]], run, CU_IMPORT)
-    d = dg.diagnose_run(run, "cu_flexible_arm", workers=1)
+    fit. The session's ``cu_lone_run`` (tests/shared_runs.py), which test_real_design's held-out prediction reads."""
+    run = cu_lone_run / "run"
+    d = Diagnosis.load(run)
     a, b = d.folds.A, d.folds.B
     assert len(a) == len(b) == 1 and a != b and a[0].startswith("flexibleArm_test_3 (0-")
     assert "split in time" in d.folds.scheme and set(d.replays) == {a[0], b[0]}
@@ -523,8 +520,8 @@ def test_a_lone_real_record_is_diagnosed_on_its_halves(tmp_path):
     assert d.noise_floor.fit_pct < 99.5
     assert not [k for k, p in d.parameters.items() if p.at_bound]
     assert all(p.recalibrated is not None for k, p in d.parameters.items() if k in recal.LINEAR)
-    d.write(tmp_path / "returned.json")  # what diagnose_run returns is what the file holds
-    assert (tmp_path / "returned.json").read_bytes() == (run / "diagnosis.json").read_bytes()
+    # what diagnose_run returned (written by itself in the fixture) is what the file holds
+    assert (cu_lone_run / "returned.json").read_bytes() == (run / "diagnosis.json").read_bytes()
 
 
 def test_linear_parameters_a_recalibration_that_did_not_pay_leaves_at_the_spec(tmp_path):

@@ -11,7 +11,6 @@ from shared_runs import CU, CU_IMPORT
 
 from harness import spec as specmod
 from harness.design import design
-from harness.diagnosis.diagnose import diagnose_run
 from harness.diagnosis.rigmodel import combos
 from harness.loopspecs import LoopSpecs
 from harness.prediction import predict, reference_from
@@ -28,15 +27,12 @@ def _held(pred, names):
 
 
 @pytest.fixture(scope="module")
-def cu(tmp_path_factory):
-    """The CU unit's two records, apart: test_3 diagnosed against the lab sheet, test_4 held out."""
-    root = tmp_path_factory.mktemp("cu")
-    runs = []
-    for k, record in zip((3, 4), CU, strict=True):
-        import_records([record], root / f"cu{k}", CU_IMPORT)
-        runs.append(root / f"cu{k}")
-    diagnose_run(runs[0], "cu_flexible_arm", runs[0], workers=1)
-    return runs
+def cu(tmp_path_factory, cu_lone_run):
+    """The CU unit's two records, apart: test_3 diagnosed against the lab sheet (the session's ``cu_lone_run``),
+    test_4 held out."""
+    held = tmp_path_factory.mktemp("cu") / "cu4"
+    import_records([CU[1]], held, CU_IMPORT)
+    return [cu_lone_run / "run", held]
 
 
 def test_an_lqr_to_the_courseware_specs_on_the_quanser_twin(quanser_run):
