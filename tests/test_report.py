@@ -280,12 +280,36 @@ def test_bad_run_directories(tmp_path):
     assert not (tmp_path / "report.md").exists()
 
 
+def _keep_figures(monkeypatch: pytest.MonkeyPatch, seen: dict[str, object]) -> None:
+    """Every matplotlib figure the report saves goes to ``seen`` by file name (the figures as drawn, for their axes
+    and lines), and is saved as before."""
+    save = figures.save_figure
+
+    def keep(fig, path):
+        seen[Path(path).name] = fig
+        save(fig, path)
+
+    monkeypatch.setattr(figures, "save_figure", keep)
+
+
 @pytest.fixture(scope="module")
-def real_report(real, tmp_path_factory) -> tuple[Path, dict, str]:
-    """The report of a copy of the diagnosed run."""
+def report_drawn(real, tmp_path_factory) -> tuple[Path, str, dict[str, object]]:
+    """The report of a copy of the diagnosed run, written once for the module in this process: its run directory,
+    report.md's text, and every figure it saved as drawn, by file name."""
     root = tmp_path_factory.mktemp("real_report") / "run"
     shutil.copytree(real[0], root)
-    return root, real[1], write_report(root).read_text()
+    seen: dict[str, object] = {}
+    with pytest.MonkeyPatch.context() as mp:
+        _keep_figures(mp, seen)
+        text = write_report(root).read_text()
+    return root, text, seen
+
+
+@pytest.fixture(scope="module")
+def real_report(real, report_drawn) -> tuple[Path, dict, str]:
+    """The report of a copy of the diagnosed run (:func:`report_drawn`) and the diagnosis it reports."""
+    root, text, _ = report_drawn
+    return root, real[1], text
 
 
 def _anchors(page: Path) -> set[str]:
@@ -480,22 +504,14 @@ def test_report_of_a_run_directory_without_models(real, tmp_path):
 def drawn(monkeypatch) -> dict[str, object]:
     """Every matplotlib figure the report saves, by file name (the figures as drawn, for their axes and lines)."""
     seen: dict[str, object] = {}
-    save = figures.save_figure
-
-    def keep(fig, path):
-        seen[Path(path).name] = fig
-        save(fig, path)
-
-    monkeypatch.setattr(figures, "save_figure", keep)
+    _keep_figures(monkeypatch, seen)
     return seen
 
 
-def test_every_figure_has_a_title_and_labelled_axes_with_units(real, drawn, tmp_path):
+def test_every_figure_has_a_title_and_labelled_axes_with_units(report_drawn):
     """Each figure of a real run's report: a title, every visible axes an x and a y label, each with a unit in
     brackets (or the z-plane's Re z / Im z); the time responses one figure per dataset, each time axis "t [s]"."""
-    run = tmp_path / "run"
-    shutil.copytree(real[0], run)
-    write_report(run)
+    _, _, drawn = report_drawn
     assert len(drawn) >= 18
     for name, fig in drawn.items():
         axes = [ax for ax in fig.axes if ax.get_visible() and ax.get_label() != "<colorbar>"]
@@ -513,14 +529,12 @@ def test_every_figure_has_a_title_and_labelled_axes_with_units(real, drawn, tmp_
     assert "time_responses.png" not in drawn
 
 
-def test_data_of_every_experiment_as_measured(real, drawn, tmp_path):
+def test_data_of_every_experiment_as_measured(report_drawn):
     """One figure per experiment (calibration ones too), u [V], theta and alpha [deg] over t [s], the lines the
     recorded data through the run's calibration."""
     from harness.ident.calibration import Calibration, alpha_deg, theta_deg
 
-    run = tmp_path / "run"
-    shutil.copytree(real[0], run)
-    text = write_report(run).read_text()
+    run, text, drawn = report_drawn
     cal = Calibration.from_json(RunDir(run).calibration)
     manifest = json.loads(RunDir(run).manifest.read_text())
     assert "## Data" in text
@@ -536,15 +550,13 @@ def test_data_of_every_experiment_as_measured(real, drawn, tmp_path):
         assert f"![data of {e['name']}](figures/data_{e['name']}.png)" in text
 
 
-def test_replays_against_the_record_per_experiment(real, drawn, tmp_path):
+def test_replays_against_the_record_per_experiment(real, report_drawn):
     """Each diagnosed experiment's replay figure: the record and the three stages per channel, the fit of each in
     its legend equal to the table's and, for the simulation as given and the final one, to the diagnoser's own
     per-experiment fits (within the float32 of the replay file)."""
     from harness.diagnosis.replays import STAGES, read_replays
 
-    run = tmp_path / "run"
-    shutil.copytree(real[0], run)
-    text = write_report(run).read_text()
+    run, text, drawn = report_drawn
     d = real[1]
     replays = read_replays(RunDir(run).diagnosis_replays)
     assert sorted(replays) == sorted(d["replays"])
@@ -601,12 +613,10 @@ def test_report_without_a_model_promises_no_residual(real, drawn, tmp_path):
         assert [ln.get_label() for ln in drawn[f"time_{n}.png"].axes[0].get_lines()] == ["measured"]
 
 
-def test_header_says_what_the_run_holds_and_its_overrides(real, tmp_path):
+def test_header_says_what_the_run_holds_and_its_overrides(report_drawn):
     """A full run: "holds" lists every stage (not kind: campaign); the title and the header carry the spec's
     --set overrides (what differs from the bundled spec file it names)."""
-    run = tmp_path / "run"
-    shutil.copytree(real[0], run)
-    text = write_report(run).read_text()
+    _, text, _ = report_drawn
     title = text.splitlines()[0]
     assert title.startswith("# flexjoint run report: blind (--set ")
     for o in ("campaign.seed=11", "daq.delay_samples=1", "plant.coulomb_torque=0.05"):
@@ -708,16 +718,14 @@ def test_report_of_nothing_names_what_it_needs(tmp_path):
     assert "no manifest.json" in r.stderr and "sweep.json" in r.stderr and "blindtest.json" in r.stderr
 
 
-def test_figures_drawn_over_a_cluster_are_the_figures_drawn_here(real, tmp_path):
+def test_figures_drawn_over_a_cluster_are_the_figures_drawn_here(real, report_drawn, tmp_path):
     """Inside a command's session (flexjoint run) the data and replay figures are drawn as tasks on its workers and
-    written here: the same report.md and the same PNG bytes as a report drawn in this process alone."""
+    written here: the same report.md and the same PNG bytes as a report drawn in this process alone (the module's
+    :func:`report_drawn`)."""
     from harness.executor import session
 
-    path, _ = real
-    here, there = tmp_path / "here", tmp_path / "there"
-    for dest in (here, there):
-        shutil.copytree(path, dest)
-    write_report(here)
+    here, there = report_drawn[0], tmp_path / "there"
+    shutil.copytree(real[0], there)
     with session(workers=2):
         write_report(there)
     drawn = sorted(p.name for p in (there / "figures").glob("*.png"))
