@@ -231,17 +231,22 @@ def test_a_reading_on_a_lattice_is_scored_by_its_cell():
     assert fine == pytest.approx(plain + n * np.log(step).sum(), abs=1e-4)
 
 
-def _nominal_twin(tmp_path, coulomb: float = 0.0) -> tuple[Path, specmod.Spec]:
-    """The nominal rig's campaign (its calibration, a PRBS and a square wave of 30 s at 50 Hz) logged through a 12-bit
-    ADC with 2 mV of noise, with Coulomb friction ``coulomb`` [N m], and a sheet for it that is off and has none: Ks
-    1.6 for 1.3, Beq 0.006 for 0.004, Jeq 0.0025 for 0.00208."""
+def _nominal_twin(
+    tmp_path, coulomb: float = 0.0, amp_limit: float = 0.0, names: tuple[str, ...] = ("prbs_b010", "square_030")
+) -> tuple[Path, specmod.Spec]:
+    """The nominal rig's campaign (its calibration and ``names``, by default a PRBS and a square wave, 30 s at 50 Hz;
+    a multisine 40 s) logged through a 12-bit ADC with 2 mV of noise, with Coulomb friction ``coulomb`` [N m] and an
+    amplifier limit ``amp_limit`` [V] (0: none), and a sheet for it that is off and has neither: Ks 1.6 for 1.3, Beq
+    0.006 for 0.004, Jeq 0.0025 for 0.00208."""
     raw = specmod.load("nominal").raw
     raw["daq"] = {"noise_theta": NOISE_V, "noise_alpha": NOISE_V, "adc_bits": 12}
-    raw["plant"] = {**raw["plant"], "coulomb_torque": coulomb}
-    raw["experiment"] = [{**e, "duration": 30.0} for e in raw["experiment"] if e["name"] in ("prbs_b010", "square_030")]
+    raw["plant"] = {**raw["plant"], "coulomb_torque": coulomb, "amp_limit": amp_limit}
+    raw["experiment"] = [{**e, "duration": 40.0 if e["signal"] == "multisine" else 30.0}
+                         for e in raw["experiment"] if e["name"] in names]  # fmt: skip
     real = specmod.from_dict(raw, str(specmod.resolve_path("nominal")))
     run_campaign(real, tmp_path / "real", workers=1)
-    sheet = {**raw, "plant": {**raw["plant"], "Ks": 1.6, "Beq": 0.006, "Jeq": 0.0025, "coulomb_torque": 0.0}}
+    sheet = {**raw, "plant": {**raw["plant"], "Ks": 1.6, "Beq": 0.006, "Jeq": 0.0025, "coulomb_torque": 0.0,
+                              "amp_limit": 0.0}}  # fmt: skip
     return tmp_path / "real", specmod.from_dict(sheet, str(specmod.resolve_path("nominal")))
 
 
@@ -267,8 +272,10 @@ def test_a_units_linear_model_is_fitted_from_an_off_sheet_with_nothing_at_a_boun
     assert all(abs(r) < 0.1 for chans in unit.lag_one.values() for r in chans.values()), unit.lag_one
     assert all(p >= 0.01 for chans in unit.whiteness.values() for p in chans.values()), unit.whiteness
     assert unit.missing_force.shape == "none"
-    (friction,) = unit.effects  # the nested friction: none (measured 0 at its bound, LR -0.002)
+    friction, limit = unit.effects  # none (measured: friction 0 at its bound, LR -0.002; the limit at its null)
+    assert friction.name == "coulomb_friction" and limit.name == "saturation"
     assert friction.fit.estimates["plant.coulomb_torque"].value < 1e-3 and abs(friction.lr) < 5.41, friction
+    assert limit.fit.estimates["plant.amp_limit"].at == "lower" and abs(limit.lr) < 5.41, limit
     lines = unit.summary()
     assert "  nothing at a bound: effects may be tried" in lines and "  missing force: none" in lines
     assert len(lines) < 12 and max(map(len, lines)) <= 100
@@ -286,7 +293,7 @@ def test_a_units_friction_is_fitted_as_a_nested_model_from_its_linear_fit(tmp_pa
     run, sheet = _nominal_twin(tmp_path, coulomb=0.03)
     unit = fit_run(run, sheet)
     assert not unit.findings
-    (friction,) = unit.effects
+    friction = next(x for x in unit.effects if x.name == "coulomb_friction")
     e = friction.fit.estimates["plant.coulomb_torque"]
     assert e.value == pytest.approx(0.03, rel=0.02) and e.ci95[0] < e.value < e.ci95[1]
     assert friction.lr > 1000 and friction.fit.converged
@@ -431,6 +438,23 @@ def test_ljung_box_holds_its_level_on_white_noise_and_rejects_an_ar1():
     assert not any(ljung_box(s).white for s in ar)
     with pytest.raises(ValueError, match="too few"):
         ljung_box(np.ones(10))
+
+
+def test_a_units_amplifier_limit_is_fitted_as_a_nested_model_from_its_linear_fit(tmp_path):
+    """The nominal twin under a square wave of 1.5 V and a multisine through an amplifier that clips at 1.2 V, its
+    sheet off and without a limit: the limit nested on the linear fit comes back within 2 % (measured 1.2004 V), the
+    linear parameters beside it within 2 % (measured 0.07 %), its likelihood-ratio statistic over the linear model
+    large (18 506); the friction nested on the same fit stays at none (LR 0). Under the PRBS and the square alone
+    (commands of two levels, where a limit is a gain) it was fitted at its null, the drive's gain 20 % low."""
+    run, sheet = _nominal_twin(tmp_path, amp_limit=1.2, names=("square_030", "multisine"))
+    unit = fit_run(run, sheet)
+    assert not unit.findings
+    friction, limit = unit.effects
+    e = limit.fit.estimates["plant.amp_limit"]
+    assert e.value == pytest.approx(1.2, rel=0.02) and limit.lr > 100
+    for name, want in _truth({"n_modes": 1}).items():
+        assert limit.fit.estimates[name].value == pytest.approx(want, rel=0.02), name
+    assert friction.fit.estimates["plant.coulomb_torque"].value < 1e-3 and limit.lr > friction.lr
 
 
 def test_a_gauge_read_late_is_put_back_in_time():

@@ -28,7 +28,10 @@ import numpy as np
 from .fit import MLFit, fit
 from .record import Record
 
-__all__ = ["Profile", "command_peak", "profile_delay", "profile_modes"]
+__all__ = ["NESTED", "NestedStart", "Profile", "command_peak", "nested_start", "profile_delay", "profile_modes"]
+
+# the continuous effects a unit's linear fit is extended by, one at a time: diagnosis.json's name -> the parameter
+NESTED = {"coulomb_friction": "plant.coulomb_torque", "saturation": "plant.amp_limit"}
 
 
 @dataclass(frozen=True)
@@ -66,6 +69,28 @@ def command_peak(records: Sequence[Record]) -> float:
     if not peak > 0.0:
         raise ValueError("the records' command is zero throughout: no amplifier limit can show")
     return peak
+
+
+@dataclass(frozen=True)
+class NestedStart:
+    """Where a nested fit starts: inside the effect (``inside``) and at its ``null`` (the linear rig), and the
+    ``nominal`` value its search is scaled by, in the effect parameter's unit."""
+
+    inside: float
+    null: float
+    nominal: float
+
+
+def nested_start(name: str, records: Sequence[Record], drive: float) -> NestedStart:
+    """Where the nested fit of effect ``name`` (:data:`NESTED`) starts, for ``records`` and the drive's torque per
+    volt ``drive`` [N m/V]: friction from the torque of 20 mV of command and from none, scaled by the torque of 0.1 V;
+    a limit from 0.9 of the records' peak command and from the peak (no sample clipped), scaled by the peak."""
+    if name == "coulomb_friction":
+        return NestedStart(0.02 * drive, 0.0, 0.1 * drive)
+    if name == "saturation":
+        peak = command_peak(records)
+        return NestedStart(0.9 * peak, peak, peak)
+    raise ValueError(f"no nested fit for the effect {name!r}; known: {', '.join(NESTED)}")
 
 
 def profile_delay(

@@ -31,6 +31,7 @@ from ..diagnosis.recalibrate import LINEAR, parts_at_bound
 from ..diagnosis.simulation import fmu_value, sim_rig
 from ..ident.calibration import load_calibration
 from ..rundir import write_json
+from .effects import NESTED, nested_start
 from .fit import BOUNDS, TORQUES, MLFit, filter_record, fit, noise_start, split_values
 from .force import ForcePicture, MissingForce, classify, force_picture
 from .model import rig_model
@@ -299,12 +300,16 @@ def fit_run(real: Path, sim: str | Path | specmod.Spec, progress: Callable[[str]
                  for k, side in res.at_bounds().items() if k in TORQUES and side == "upper"]  # fmt: skip
     say("the missing force")
     picture = force_picture(plant, values, records, delay)
-    effects = () if findings else (_friction(plant, records, res, held, nominal | noise, sd, delay, say),)
+    effects: list[EffectFit] = []
+    for name in () if findings else NESTED:
+        say(f"{name}, nested")
+        effects.append(_nested(name, plant, records, res, held, nominal | noise, sd, delay))
     return UnitFit(res, tuple(r.name for r in records), nominal, held, lag_one, white, tuple(findings),
-                   classify(picture), picture, effects, run.gauge_late)  # fmt: skip
+                   classify(picture), picture, tuple(effects), run.gauge_late)  # fmt: skip
 
 
-def _friction(
+def _nested(
+    name: str,
     plant: dict[str, Any],
     records: list[Record],
     linear: MLFit,
@@ -312,17 +317,21 @@ def _friction(
     nominal: dict[str, float],
     sd: dict[str, float],
     delay: int,
-    say: Callable[[str], None],
 ) -> EffectFit:
-    """Coulomb friction fitted as a nested model from the linear fit ``linear``: it starts at the torque of 20 mV of
-    command, its search scaled by that of 0.1 V (:data:`harness.likelihood.model.EFFECTS`)."""
+    """The effect ``name`` (:data:`harness.likelihood.effects.NESTED`) fitted as a nested model from the linear fit
+    ``linear``: from inside the effect and from its null (:func:`harness.likelihood.effects.nested_start`), the
+    better kept (a search from inside alone can stop in a basin the linear parameters make for it, below the null)."""
+    param = NESTED[name]
     drive = rig_model(plant, *split_values(linear.values() | held)).drive
-    say("Coulomb friction, nested")
-    start = {k: v for k, v in linear.values().items() if k not in held} | {"plant.coulomb_torque": 0.02 * drive}
-    res = fit(plant, records, start, fixed=held, nominal=nominal | {"plant.coulomb_torque": 0.1 * drive},
-              prior_sd={k: sd[k] for k in start if k in sd}, delay=delay)  # fmt: skip
+    where = nested_start(name, records, drive)
+    fits = []
+    for begin in (where.inside, where.null):
+        start = {k: v for k, v in linear.values().items() if k not in held} | {param: begin}
+        fits.append(fit(plant, records, start, fixed=held, nominal=nominal | {param: where.nominal},
+                        prior_sd={k: sd[k] for k in start if k in sd}, delay=delay))  # fmt: skip
+    res = max(fits, key=lambda f: f.loglik)
     drive = rig_model(plant, *split_values(res.values() | held)).drive  # the drive as the nested fit has it
-    return EffectFit("coulomb_friction", res, ("plant.coulomb_torque",), 2.0 * (res.loglik - linear.loglik), drive)
+    return EffectFit(name, res, (param,), 2.0 * (res.loglik - linear.loglik), drive)
 
 
 def _force_line(mf: MissingForce) -> str:
