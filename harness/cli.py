@@ -854,10 +854,10 @@ def diagnose(
     from .rundir import Manifest
 
     Manifest.load(real)  # not a run directory: one line before the diagnosis loads
-    if engine == "likelihood":  # records it cannot fit: one line before anything is written
-        from .likelihood.unit import check_run
+    if engine == "likelihood":  # fitted first: records it cannot fit are one line before anything is written
+        from .likelihood.unit import fit_run
 
-        check_run(real, sim)
+        unit = fit_run(real, sim, progress=_progress("likelihood"))
     from .diagnosis.diagnose import diagnose_run
 
     d = diagnose_run(
@@ -865,11 +865,10 @@ def diagnose(
     )
     diagnosis_screen(d, out_dir or real).print(out)
     if engine == "likelihood":
-        from .likelihood.unit import fit_run, write_likelihood
+        from .likelihood.unit import write_likelihood
         from .render.force import verdict_text, write_force_views
         from .render.summary import Summary
 
-        unit = fit_run(real, sim, progress=_progress("likelihood"))
         mf = unit.missing_force
         _, png = write_force_views(out_dir or real, unit.picture, verdict_text(mf.shape, mf.size, mf.unit,
                                                                                mf.dead_band_v))  # fmt: skip

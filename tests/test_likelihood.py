@@ -307,9 +307,11 @@ def test_a_units_friction_is_fitted_as_a_nested_model_from_its_linear_fit(tmp_pa
     line = next(x for x in unit.summary() if "coulomb_friction" in x)
     assert f"{e.value:.4g} N m = {e.value / friction.drive:.3g} V" in line and len(line) <= 100
     grey = {f"record_{i:02d}": {"theta": 0.0, "alpha": 0.0} for i in range(30)}
-    long = dataclasses.replace(unit, findings=("the spec's hub and drive (motor, gear) " * 4,) * 7, whiteness=grey)
+    long = dataclasses.replace(unit, findings=("the spec's hub and drive (motor, gear) " * 4,) * 7, whiteness=grey,
+                               records=tuple(grey))  # fmt: skip
     lines = long.summary()
     assert max(map(len, lines)) <= 100 and sum(x.startswith("  finding: ") for x in lines) == 5, lines
+    assert any(x.startswith("  residuals white (Ljung-Box, 0.01): 0 of 60 record channels; not: ") for x in lines)
 
 
 def test_diagnose_says_which_engines_it_knows():

@@ -29,7 +29,7 @@ from ..diagnosis.gauge import gauge_delay
 from ..diagnosis.noise import adc_lattice
 from ..diagnosis.recalibrate import LINEAR, parts_at_bound
 from ..diagnosis.simulation import fmu_value, sim_rig
-from ..ident.calibration import load_calibration
+from ..ident.calibration import Calibration, load_calibration
 from ..rundir import write_json
 from .effects import NESTED, nested_start
 from .fit import BOUNDS, TORQUES, MLFit, filter_record, fit, noise_start, split_values
@@ -44,7 +44,6 @@ __all__ = [
     "UnitFit",
     "check_records",
     "load_records",
-    "check_run",
     "fit_run",
     "linear_start",
     "write_likelihood",
@@ -126,10 +125,11 @@ class UnitFit:
         found = ["  " + textwrap.shorten(f"finding: {x}", 98, placeholder=" ...") for x in self.findings[:5]]
         lines += found or ["  nothing at a bound: effects may be tried"]
         grey = [f"{r} {c}" for r, ps in self.whiteness.items() for c, p in ps.items() if p < LEVEL]
-        white = (
-            f"  residuals white (Ljung-Box, {LEVEL:g}): {len(self.records) * 2 - len(grey)} of {len(self.records) * 2}"
+        channels = len(self.records) * 2
+        white = f"residuals white (Ljung-Box, {LEVEL:g}): {channels - len(grey)} of {channels} record channels"
+        lines.append(
+            "  " + textwrap.shorten(white + (f"; not: {', '.join(grey)}" if grey else ""), 98, placeholder=" ...")
         )
-        lines.append(textwrap.shorten(white + (f"; not: {', '.join(grey)}" if grey else ""), 100, placeholder=" ..."))
         lines.append(_force_line(self.missing_force))
         lines += [x.line() for x in self.effects]
         return lines
@@ -181,12 +181,13 @@ class RunRecords:
     """A run's records as the filter reads them (``records``, each with its lattice [deg] and its gauge put back in
     time), the command's delay ``delay`` [samples], whether every record's hub angle is an ``encoder``'s, and how
     many samples late the gauge reads (``gauge_late``: the records' own timing,
-    :func:`harness.diagnosis.gauge.gauge_delay`, as today's diagnosis reads it)."""
+    :func:`harness.diagnosis.gauge.gauge_delay`, as today's diagnosis reads it); the run's ``calibration``."""
 
     records: list[Record]
     delay: int
     encoder: bool
     gauge_late: int
+    calibration: Calibration
 
 
 def load_records(real: Path, sim: specmod.Spec) -> RunRecords:
@@ -204,7 +205,7 @@ def load_records(real: Path, sim: specmod.Spec) -> RunRecords:
         step = (max(rec.lattice[0], abs(cal.Kp) * lsb), max(rec.lattice[1], abs(cal.Ke) * lsb))
         out.append(Record(rec.name, rec.Ts, rec.u, rec.y, rec.mask, step).gauge_late(late))
     encoder = all(x.encoder for x in exps.values())
-    return RunRecords(out, int(fmu_value(daq, "daq", "delay_samples")), encoder, late)
+    return RunRecords(out, int(fmu_value(daq, "daq", "delay_samples")), encoder, late, cal)
 
 
 def check_records(plant: dict[str, Any], values: dict[str, float], records: list[Record], delay: int = 0) -> None:
@@ -247,16 +248,6 @@ def check_records(plant: dict[str, Any], values: dict[str, float], records: list
                              f"(it settles after {settled}; it needs half the record and {5 * LAGS} more)")  # fmt: skip
 
 
-def check_run(real: Path, sim: str | Path | specmod.Spec) -> None:
-    """:func:`check_records` on run ``real``'s records with the sheet of ``sim`` (the command line asks before it
-    writes anything)."""
-    spec = sim if isinstance(sim, specmod.Spec) else specmod.load(sim)
-    plant, _ = sim_rig(spec)
-    run = load_records(Path(real), spec)
-    records, delay = run.records, run.delay
-    check_records(plant, linear_start(plant) | noise_start(records), records, delay)
-
-
 def fit_run(real: Path, sim: str | Path | specmod.Spec, progress: Callable[[str], None] | None = None) -> UnitFit:
     """Fit the linear model of run ``real``'s records against the sim spec ``sim`` by maximum likelihood.
 
@@ -272,14 +263,18 @@ def fit_run(real: Path, sim: str | Path | specmod.Spec, progress: Callable[[str]
     Returns
     -------
     UnitFit
+
+    Raises
+    ------
+    ValueError
+        Records the engine cannot fit (:func:`check_records`), before any fit.
     """
     say = progress or (lambda _m: None)
     spec = sim if isinstance(sim, specmod.Spec) else specmod.load(sim)
     plant, _ = sim_rig(spec)
-    say("records")
     run = load_records(Path(real), spec)
     records, delay, encoder = run.records, run.delay, run.encoder
-    sd, _ = priors(spec, load_calibration(Path(real)).gain_rel_se(), encoder)
+    sd, _ = priors(spec, run.calibration.gain_rel_se(), encoder)
     nominal = linear_start(plant)
     held = {k: v for k, v in nominal.items() if sd.get(k, 1.0) == 0.0}  # a sensor known exactly
     free = {k: v for k, v in nominal.items() if k not in held}
