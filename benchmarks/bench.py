@@ -603,7 +603,19 @@ def bench_likelihood(repeats: int = 20, records: int = 3) -> dict[str, Any]:
     }
 
 
-STEPS = ("commands", "campaign", "armax", "executor", "parallel", "unit", "predict", "likelihood")
+def bench_rule(n: int = 100, workers: int = 2) -> dict[str, Any]:
+    """The likelihood engine's rule (:func:`harness.likelihood.calibrate.calibrate_rule`): Coulomb friction's false
+    alarms on ``n`` friction-free quantised twins (seeds 300 on) and its power on ``n`` with 0.01 N m, at the
+    rule's 1 %, on ``workers`` Dask workers, with the wall time."""
+    from harness.likelihood.calibrate import calibrate_rule
+
+    t0 = time.perf_counter()
+    cal = calibrate_rule(n, seed=300, coulomb=0.01, workers=workers)
+    return cal.to_json() | {"wall_s": time.perf_counter() - t0, "workers": workers,
+                            "target": "false alarms <= 0.02 at 1 %, power >= 0.9"}  # fmt: skip
+
+
+STEPS = ("commands", "campaign", "armax", "executor", "parallel", "unit", "predict", "likelihood", "rule")
 
 
 def run_all(
@@ -620,7 +632,8 @@ def run_all(
     ``vs_commit`` side by side with that commit (:func:`benchmarks.commands.bench_commands`); ``parallel`` is every
     parallel stage serial, on 2 Dask workers and on 2 plain processes (``identify`` and ``diagnose`` are its 2-worker
     runs); ``likelihood`` is one log-likelihood of the likelihood engine beside a replay's score, and a unit's
-    fit; ``table`` adds the off-datasheet diagnosis table (~3 min), ``blind`` the full blind test of that many rigs
+    fit; ``rule`` the likelihood rule's false alarms and power on quantised twins; ``table`` adds the
+    off-datasheet diagnosis table (~3 min), ``blind`` the full blind test of that many rigs
     (~20 min for 45); ``predict`` is ``flexjoint predict`` serially and on 2 workers."""
 
     if only is not None and (unknown := sorted(set(only) - set(STEPS))):
@@ -637,6 +650,7 @@ def run_all(
         ("unit", bench_unit),
         ("predict", lambda: bench_predict(50 if quick else 200)),
         ("likelihood", lambda: bench_likelihood(5 if quick else 20)),
+        ("rule", lambda: bench_rule(20 if quick else 100)),
     ]
     if table:
         steps.append(("diagnosis_table", bench_diagnosis_table))

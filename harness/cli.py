@@ -1224,7 +1224,8 @@ def bench(
     only: Annotated[
         str | None,
         typer.Option(
-            help="only these, comma-separated: commands, campaign, armax, executor, parallel, unit, predict, likelihood"
+            help="only these, comma-separated: commands, campaign, armax, executor, parallel, unit, predict, "
+            "likelihood, rule"
         ),
     ] = None,
 ) -> None:

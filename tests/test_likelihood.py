@@ -274,8 +274,8 @@ def test_a_units_linear_model_is_fitted_from_an_off_sheet_with_nothing_at_a_boun
     assert unit.missing_force.shape == "none"
     friction, limit = unit.effects  # none (measured: friction 0 at its bound, LR -0.002; the limit at its null)
     assert friction.name == "coulomb_friction" and limit.name == "saturation"
-    assert friction.fit.estimates["plant.coulomb_torque"].value < 1e-3 and abs(friction.lr) < 5.41, friction
-    assert limit.fit.estimates["plant.amp_limit"].at == "lower" and abs(limit.lr) < 5.41, limit
+    assert friction.fit.estimates["plant.coulomb_torque"].value < 1e-3 and not friction.test.enters, friction
+    assert limit.fit.estimates["plant.amp_limit"].at == "lower" and not limit.test.enters, limit
     lines = unit.summary()
     assert "  nothing at a bound: effects may be tried" in lines and "  missing force: none" in lines
     assert len(lines) < 12 and max(map(len, lines)) <= 100
@@ -296,7 +296,7 @@ def test_a_units_friction_is_fitted_as_a_nested_model_from_its_linear_fit(tmp_pa
     friction = next(x for x in unit.effects if x.name == "coulomb_friction")
     e = friction.fit.estimates["plant.coulomb_torque"]
     assert e.value == pytest.approx(0.03, rel=0.02) and e.ci95[0] < e.value < e.ci95[1]
-    assert friction.lr > 1000 and friction.fit.converged
+    assert friction.lr > 1000 and friction.test.enters and friction.fit.converged
     G, _ = motor_constants(PlantParams(n_modes=1))
     assert e.value / friction.drive == pytest.approx(0.03 / G, rel=0.02)
     for name, want in _truth({"n_modes": 1}).items():
@@ -304,6 +304,7 @@ def test_a_units_friction_is_fitted_as_a_nested_model_from_its_linear_fit(tmp_pa
     doc = json.loads(write_likelihood(tmp_path, unit).read_text())["effects"]["coulomb_friction"]
     assert doc["parameters"]["plant.coulomb_torque"]["fitted"] == e.value
     assert doc["likelihood"]["lr"] == friction.lr and doc["likelihood"]["k"] == friction.fit.k
+    assert doc["likelihood"]["enters"] and doc["likelihood"]["critical"] >= 5.41 and doc["likelihood"]["p"] < 1e-9
     line = next(x for x in unit.summary() if "coulomb_friction" in x)
     assert f"{e.value:.4g} N m = {e.value / friction.drive:.3g} V" in line and len(line) <= 100
     grey = {f"record_{i:02d}": {"theta": 0.0, "alpha": 0.0} for i in range(30)}
@@ -453,10 +454,10 @@ def test_a_units_amplifier_limit_is_fitted_as_a_nested_model_from_its_linear_fit
     assert not unit.findings
     friction, limit = unit.effects
     e = limit.fit.estimates["plant.amp_limit"]
-    assert e.value == pytest.approx(1.2, rel=0.02) and limit.lr > 100
+    assert e.value == pytest.approx(1.2, rel=0.02) and limit.lr > 100 and limit.test.enters
     for name, want in _truth({"n_modes": 1}).items():
         assert limit.fit.estimates[name].value == pytest.approx(want, rel=0.02), name
-    assert friction.fit.estimates["plant.coulomb_torque"].value < 1e-3 and limit.lr > friction.lr
+    assert friction.fit.estimates["plant.coulomb_torque"].value < 1e-3 and not friction.test.enters
 
 
 def test_a_gauge_read_late_is_put_back_in_time():

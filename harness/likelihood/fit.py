@@ -28,6 +28,7 @@ from ..workercall import one_blas_thread
 from .kalman import Discrete, Filtered, kalman_filter
 from .model import EFFECTS, NOISE, Noise, StochasticModel, rig_model
 from .record import Record
+from .robust import inflation, long_run
 
 __all__ = [
     "Estimate",
@@ -51,13 +52,16 @@ AT_BOUND = 1e-3  # a parameter this close to a wall (in the search coordinate) e
 
 @dataclass(frozen=True)
 class Estimate:
-    """A fitted parameter: its ``value``, its 95 % interval ``ci95``, its ``unit``, and ``at`` "lower" or "upper"
-    when it ends at a bound (else None)."""
+    """A fitted parameter: its ``value``, its 95 % interval ``ci95``, its ``unit``, ``at`` "lower" or "upper"
+    when it ends at a bound (else None), and the ``inflation`` of its variance where the prediction errors are not
+    independent: the sandwich's over the information's (:func:`harness.likelihood.robust.inflation`; 1 where the
+    scores are white, NaN where the information gives none)."""
 
     value: float
     ci95: tuple[float, float]
     unit: str
     at: str | None = None
+    inflation: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -171,14 +175,17 @@ def log_likelihood(
 @dataclass(frozen=True)
 class Innovations:
     """The records' summed log-likelihood ``loglik`` [nats] and, one after another, their measured readings'
-    innovations ``e`` [deg], predicted variances ``s`` [deg^2], terms of the log-likelihood ``terms`` [nats] and
-    whether each sits on a lattice (``cell``): what a scoring step needs of a filter's pass."""
+    innovations ``e`` [deg], predicted variances ``s`` [deg^2], terms of the log-likelihood ``terms`` [nats],
+    whether each sits on a lattice (``cell``), and the ``record`` and ``sample`` it was read at: what a scoring step
+    and the scores' long-run covariance need of a filter's pass."""
 
     loglik: float
     e: np.ndarray
     s: np.ndarray
     terms: np.ndarray
     cell: np.ndarray
+    record: np.ndarray
+    sample: np.ndarray
 
 
 def innovations(
@@ -190,13 +197,14 @@ def innovations(
         model = rig_model(plant, *split_values(values), force="noise.hub_force" in values)
         discrete: dict[float, Discrete] = {}
         total, parts = 0.0, []
-        for rec in records:
+        for i, rec in enumerate(records):
             if rec.Ts not in discrete:
                 discrete[rec.Ts] = model.discretise(rec.Ts)
             f = run_filter(model, discrete[rec.Ts], rec, delay)
             total += f.loglik
             cell = np.broadcast_to(np.asarray(rec.lattice) > 0, f.e.shape)
-            parts.append([a[rec.mask] for a in (f.e, f.s, f.terms, cell)])
+            at = np.broadcast_to(np.arange(rec.n)[:, None], f.e.shape)
+            parts.append([a[rec.mask] for a in (f.e, f.s, f.terms, cell, np.full(f.e.shape, i), at)])
     return Innovations(total, *(np.concatenate(p) for p in zip(*parts, strict=True)))
 
 
@@ -278,17 +286,19 @@ def fit(
         xi, converged, message = _ascend(point, xi, free, walls_xi, (c / sd) ** 2, maxiter)
     x = xi * c
     se = np.full(x.size, math.inf)  # no interval where the information is not positive
+    grown = np.full(x.size, math.nan)
     f, inn = point(xi)
     if inn is not None:
         sl = _slopes(point, xi, f, inn, np.arange(xi.size), walls_xi)
         var = np.diag(np.linalg.pinv(sl.fisher(inn, (c / sd) ** 2)))
         se[sl.idx] = np.where(var > 0.0, np.sqrt(np.abs(var)), math.inf) * c[sl.idx]
+        grown[sl.idx] = inflation(long_run(sl.Jl, inn.record, inn.sample))
     estimates = {}
     for i, (n, b, (lo, hi)) in enumerate(zip(names, bounds, walls, strict=True)):
         at = "lower" if x[i] <= lo + AT_BOUND else "upper" if x[i] >= hi - AT_BOUND else None
         ends = np.clip([x[i] - 1.96 * se[i], x[i] + 1.96 * se[i]], lo, hi)  # an interval ends at the bounds
         lo_hi = sorted(b.from_x(float(v), nominal[n]) for v in ends)  # sorted: a falling map (a limit's share)
-        estimates[n] = Estimate(b.from_x(float(x[i]), nominal[n]), (lo_hi[0], lo_hi[1]), b.unit, at)
+        estimates[n] = Estimate(b.from_x(float(x[i]), nominal[n]), (lo_hi[0], lo_hi[1]), b.unit, at, float(grown[i]))
     ll = log_likelihood(plant, values(x), records, delay)
     return MLFit(estimates, ll, n_obs, len(names), evaluations, converged, message)
 

@@ -36,6 +36,7 @@ from .fit import BOUNDS, TORQUES, MLFit, filter_record, fit, noise_start, split_
 from .force import ForcePicture, MissingForce, classify, force_picture
 from .model import rig_model
 from .record import Record
+from .rule import EffectTest, Rule
 from .whiteness import LAGS, LEVEL, ljung_box
 
 __all__ = [
@@ -54,24 +55,32 @@ __all__ = [
 class EffectFit:
     """A nested effect fitted with the linear model from the linear fit: its ``name`` (as ``diagnosis.json`` names
     effects), the ``fit`` (the linear parameters and the noise refitted beside the effect's own), the effect's own
-    ``parameters`` (names as the plant FMU's) and the likelihood-ratio statistic ``lr`` over the linear model, 2
-    (logL - logL_linear) [nats]; the drive's torque per volt ``drive`` [N m/V] (a torque's size as a command)."""
+    ``parameters`` (names as the plant FMU's), the ``test`` of its likelihood-ratio statistic over the linear model
+    (:class:`harness.likelihood.rule.EffectTest`) and the drive's torque per volt ``drive`` [N m/V] (a torque's size
+    as a command)."""
 
     name: str
     fit: MLFit
     parameters: tuple[str, ...]
-    lr: float
+    test: EffectTest
     drive: float
+
+    @property
+    def lr(self) -> float:
+        """The likelihood-ratio statistic over the linear model, 2 (logL - logL_linear) [nats]."""
+        return self.test.lr
 
     def line(self) -> str:
         """The effect in one line (under 100 characters): its parameters with their intervals (a torque also as the
-        command it takes) and its LR."""
+        command it takes), its LR over the critical value and whether it enters."""
         parts = []
         for k in self.parameters:
             e = self.fit.estimates[k]
             volts = f" = {e.value / self.drive:.3g} V" if e.unit == "N m" else ""
             parts.append(f"{e.value:.4g} {e.unit}{volts} (95 % {e.ci95[0]:.3g}..{e.ci95[1]:.3g})")
-        return f"  nested {self.name}: {'; '.join(parts)}, LR {self.lr:.3g}"
+        t = self.test
+        verdict = f"enters (p {t.p:.1g})" if t.enters else "stays out"
+        return f"  {self.name}: {'; '.join(parts)}, LR {t.lr:.3g} / {t.critical:.3g}: {verdict}"
 
     def to_json(self) -> dict[str, Any]:
         """As an entry of ``effects`` in likelihood.json."""
@@ -79,7 +88,7 @@ class EffectFit:
         return {
             "parameters": {k: {"fitted": f.estimates[k].value, "ci95": list(f.estimates[k].ci95),
                                "unit": f.estimates[k].unit, "at_bound": f.estimates[k].at} for k in self.parameters},
-            "likelihood": {"logL": f.loglik, "k": f.k, "n": f.n, "lr": self.lr},
+            "likelihood": {"logL": f.loglik, "k": f.k, "n": f.n, **self.test.to_json()},
             "converged": f.converged,
         }  # fmt: skip
 
@@ -248,7 +257,9 @@ def check_records(plant: dict[str, Any], values: dict[str, float], records: list
                              f"(it settles after {settled}; it needs half the record and {5 * LAGS} more)")  # fmt: skip
 
 
-def fit_run(real: Path, sim: str | Path | specmod.Spec, progress: Callable[[str], None] | None = None) -> UnitFit:
+def fit_run(
+    real: Path, sim: str | Path | specmod.Spec, progress: Callable[[str], None] | None = None, rule: Rule | None = None
+) -> UnitFit:
     """Fit the linear model of run ``real``'s records against the sim spec ``sim`` by maximum likelihood.
 
     Parameters
@@ -259,6 +270,8 @@ def fit_run(real: Path, sim: str | Path | specmod.Spec, progress: Callable[[str]
         The spec whose sheet the fit starts from and whose uncertainty makes the priors.
     progress : callable, optional
         Told what runs now.
+    rule : Rule, optional
+        How a nested effect is judged (default :class:`harness.likelihood.rule.Rule`'s level).
 
     Returns
     -------
@@ -270,6 +283,7 @@ def fit_run(real: Path, sim: str | Path | specmod.Spec, progress: Callable[[str]
         Records the engine cannot fit (:func:`check_records`), before any fit.
     """
     say = progress or (lambda _m: None)
+    rule = rule or Rule()
     spec = sim if isinstance(sim, specmod.Spec) else specmod.load(sim)
     plant, _ = sim_rig(spec)
     run = load_records(Path(real), spec)
@@ -298,7 +312,7 @@ def fit_run(real: Path, sim: str | Path | specmod.Spec, progress: Callable[[str]
     effects: list[EffectFit] = []
     for name in () if findings else NESTED:
         say(f"{name}, nested")
-        effects.append(_nested(name, plant, records, res, held, nominal | noise, sd, delay))
+        effects.append(_nested(name, plant, records, res, held, nominal | noise, sd, delay, rule))
     return UnitFit(res, tuple(r.name for r in records), nominal, held, lag_one, white, tuple(findings),
                    classify(picture), picture, tuple(effects), run.gauge_late)  # fmt: skip
 
@@ -312,10 +326,12 @@ def _nested(
     nominal: dict[str, float],
     sd: dict[str, float],
     delay: int,
+    rule: Rule,
 ) -> EffectFit:
     """The effect ``name`` (:data:`harness.likelihood.effects.NESTED`) fitted as a nested model from the linear fit
     ``linear``: from inside the effect and from its null (:func:`harness.likelihood.effects.nested_start`), the
-    better kept (a search from inside alone can stop in a basin the linear parameters make for it, below the null)."""
+    better kept (a search from inside alone can stop in a basin the linear parameters make for it, below the null),
+    judged by ``rule``."""
     param = NESTED[name]
     drive = rig_model(plant, *split_values(linear.values() | held)).drive
     where = nested_start(name, records, drive)
@@ -326,7 +342,8 @@ def _nested(
                         prior_sd={k: sd[k] for k in start if k in sd}, delay=delay))  # fmt: skip
     res = max(fits, key=lambda f: f.loglik)
     drive = rig_model(plant, *split_values(res.values() | held)).drive  # the drive as the nested fit has it
-    return EffectFit(name, res, (param,), 2.0 * (res.loglik - linear.loglik), drive)
+    test = rule.test(2.0 * (res.loglik - linear.loglik), res.estimates[param].inflation)
+    return EffectFit(name, res, (param,), test, drive)
 
 
 def _force_line(mf: MissingForce) -> str:
