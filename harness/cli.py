@@ -866,12 +866,10 @@ def diagnose(
     diagnosis_screen(d, out_dir or real).print(out)
     if engine == "likelihood":
         from .likelihood.unit import write_likelihood
-        from .render.force import verdict_text, write_force_views
+        from .render.force import write_force_views
         from .render.summary import Summary
 
-        mf = unit.missing_force
-        _, png = write_force_views(out_dir or real, unit.picture, verdict_text(mf.shape, mf.size, mf.unit,
-                                                                               mf.dead_band_v))  # fmt: skip
+        _, png = write_force_views(out_dir or real, unit.picture, unit.missing_force.words(), unit.curve)
         s = Summary("likelihood.json")
         s.lines(unit.summary())
         s.close(f"the whole fit: {write_likelihood(out_dir or real, unit)}")

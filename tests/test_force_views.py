@@ -5,6 +5,7 @@ end, on a twin with friction through ``flexjoint diagnose --engine likelihood``.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -18,7 +19,7 @@ from rerun.chunk import RrdReader
 from harness import spec as specmod
 from harness.fmu.build import build_all
 from harness.fmu.cosim import Rig
-from harness.likelihood.force import ForcePicture, ForceTrace
+from harness.likelihood.force import ForcePicture, ForceTrace, MissingForce
 from harness.likelihood.record import Record
 from harness.likelihood.traces import COLUMNS, read_traces
 from harness.render import force as views
@@ -36,7 +37,7 @@ except ImportError:  # tests/ imported as a package
     from tests.test_viewer import blueprint_views, check_every_view_shows_data, read_chunks
 
 TS = 2e-3
-VERDICT = {"shape": "friction", "size": 0.03, "unit": "N m", "dead_band_v": 0.125, "samples_near_zero": 7}
+VERDICT = MissingForce("friction", 0.03, "N m", 0.125, 7)
 
 
 def _picture(seed: int, records: int, seconds: float) -> ForcePicture:
@@ -59,7 +60,7 @@ def test_the_figure_draws_the_traces_and_the_parquet_stores_them(tmp_path, seed,
     panels hold one line per record, the force against speed, command, deflection and time, the time panel its +-2
     sd band; the classifier's verdict is the title; the same picture gives the same bytes twice (both files)."""
     pic = _picture(seed, records, seconds)
-    verdict = views.verdict_text("friction", 0.03, "N m", 0.125)
+    verdict = VERDICT.words()
     assert verdict == "friction of 0.03 N m (0.125 V of command)"
     parquet, png = views.write_force_views(tmp_path, pic, verdict)
     assert (parquet, png) == (RunDir(tmp_path).force_traces, RunDir(tmp_path).force_figure)
@@ -99,7 +100,9 @@ def test_a_file_that_is_no_force_picture_is_one_line(tmp_path):
         read_traces(bad)
     with pytest.raises(DataError, match=r"missing_force lacks dead_band_v, samples_near_zero \(re-run"):
         _verdict(tmp_path / "likelihood.json", {"missing_force": {"shape": "none", "size": 0.0, "unit": "N m"}})
-    assert _verdict(tmp_path / "likelihood.json", {"missing_force": VERDICT}) == VERDICT
+    assert _verdict(tmp_path / "likelihood.json", {"missing_force": VERDICT.to_json()}) == VERDICT
+    old = {k: v for k, v in VERDICT.to_json().items() if k != "levels"}  # written before the levels were
+    assert _verdict(tmp_path / "likelihood.json", {"missing_force": old}) == VERDICT
 
 
 def _results(tmp_path: Path, pic: ForcePicture, png: bool) -> RunResults:
@@ -110,6 +113,52 @@ def _results(tmp_path: Path, pic: ForcePicture, png: bool) -> RunResults:
                       missing_force=VERDICT, force=pic.traces)  # fmt: skip
 
 
+def test_each_shape_is_said_in_the_same_words_everywhere():
+    """The verdict's words, the one phrase the summary, the report, the figure and the recording use: friction with
+    its size and command, asymmetric friction with its levels each way, a limit's and an offset's level, a hub that
+    never rests said so, none; likelihood.json's form reads back to the same verdict."""
+    cases = [
+        (MissingForce("friction", 0.03, "N m", 0.125, 7), "friction of 0.03 N m (0.125 V of command)"),
+        (MissingForce("asymmetric_friction", 0.03, "N m", 0.125, 7, (0.04, 0.02)),
+         "asymmetric_friction, 0.04 forward and 0.02 backward of 0.03 N m (0.125 V of command)"),
+        (MissingForce("limit", 1.2, "V", 0.0, 0), "limit at 1.2 V"),
+        (MissingForce("offset", -0.1, "V", 0.0, 0), "offset of -0.1 V"),
+        (MissingForce("too_few_at_rest", 0.0, "N m", 0.0, 2), "too few samples at rest (the hub never rests: "
+         "friction and an offset look alike)"),
+        (MissingForce("none", 0.0, "N m", 0.0, 900), "none"),
+    ]  # fmt: skip
+    for mf, words in cases:
+        assert mf.words() == words
+        assert MissingForce.from_json(json.loads(json.dumps(mf.to_json()))) == mf
+
+
+def test_the_effect_that_entered_is_drawn_over_its_panel():
+    """Friction's curve, -Fc sign(speed) with the stick phase the vertical at zero, goes over the speed panel across
+    the traces' speeds; a limit's, the drive's torque of what it clips, over the command panel: zero within +-L,
+    drive (L - u) beyond (1.5 V on a 1.2 V limit with 0.24 N m/V: -0.072 N m)."""
+    from harness.likelihood.force import effect_curve
+
+    pic = _picture(2, 2, 1.0)
+    fr = effect_curve("plant.coulomb_torque", 0.03, pic)
+    top = max(np.abs(tr.speed).max() for tr in pic.traces)
+    np.testing.assert_allclose(fr.xs, [-top, 0, 0, top])
+    np.testing.assert_allclose(fr.ys, [0.03, 0.03, -0.03, -0.03])
+    fig = views.force_figure(pic.traces, "friction", fr)
+    drawn = [line for ax in fig.axes for line in ax.get_lines() if line.get_label() == fr.label]
+    assert len(drawn) == 1 and drawn[0] in fig.axes[0].get_lines() and drawn[0].get_color() == "k"
+    assert list(drawn[0].get_ydata()) == list(fr.ys)
+    pic = ForcePicture(pic.intensity, pic.gain, tuple(dataclasses.replace(tr, u=1.5 * np.sign(tr.u)) for tr in
+                       pic.traces), 0.24)  # fmt: skip
+    lim = effect_curve("plant.amp_limit", 1.2, pic)
+    assert lim.x == "u" and lim.xs[0] == -1.5 and lim.xs[-1] == 1.5
+    assert lim.ys[-1] == pytest.approx(-0.072) and lim.ys[0] == pytest.approx(0.072)
+    assert np.all(lim.ys[np.abs(lim.xs) <= 1.2] == 0.0)
+    fig = views.force_figure(pic.traces, "limit", lim)
+    assert [line.get_label() for line in fig.axes[1].get_lines()].count(lim.label) == 1
+    with pytest.raises(ValueError, match="no curve"):
+        effect_curve("plant.Ks", 1.0, pic)
+
+
 def test_the_report_says_the_shape_its_size_and_the_samples_at_rest(tmp_path):
     """The section names the classifier's shape and size, the samples at rest of all, and links the figure beside
     report.md; no line over 200 characters; without the figure, no link."""
@@ -117,11 +166,11 @@ def test_the_report_says_the_shape_its_size_and_the_samples_at_rest(tmp_path):
     lines = _force_lines(_results(tmp_path, pic, png=True))
     text = "\n".join(lines)
     assert lines[0] == "### Missing force"
-    assert "- shape: **friction**, size 0.03 N m (0.125 V of command)" in text
+    assert "- shape: **friction of 0.03 N m (0.125 V of command)**" in text
     assert "samples at rest (hub speed within three standard deviations of zero): 7 of 1000" in text
     assert "(force_picture.png)" in text and "`rec0`, `rec1`" in text
     assert max(map(len, lines)) < 200
-    none = views.force_markdown("none", 0.0, "N m", 0.0, 3, pic.traces, None)
+    none = views.force_markdown(MissingForce("none", 0.0, "N m", 0.0, 3), pic.traces, None)
     assert "- shape: **none**" in none and not any("![" in x for x in none)
 
 
@@ -144,11 +193,10 @@ def test_a_twins_friction_is_named_with_its_size_in_the_report_and_the_figure(tm
     pic = force_picture(PLANT, values, [rec])
     mf = classify(pic)
     assert mf.shape == "friction" and mf.size == pytest.approx(coulomb, rel=0.05)
-    verdict = views.verdict_text(mf.shape, mf.size, mf.unit, mf.dead_band_v)
+    verdict = mf.words()
     _, png = views.write_force_views(tmp_path, pic, verdict)
-    lines = views.force_markdown(mf.shape, mf.size, mf.unit, mf.dead_band_v, mf.samples_near_zero, pic.traces,
-                                 png.name)  # fmt: skip
-    assert f"- shape: **friction**, size {mf.size:.3g} N m ({mf.dead_band_v:.3g} V of command)" in lines
+    lines = views.force_markdown(mf, pic.traces, png.name)
+    assert f"- shape: **friction of {mf.size:.3g} N m ({mf.dead_band_v:.3g} V of command)**" in lines
     fig = views.force_figure(read_traces(RunDir(tmp_path).force_traces), verdict)
     assert fig._suptitle.get_text().endswith(f"friction of {mf.size:.3g} N m ({mf.dead_band_v:.3g} V of command)")
     np.testing.assert_array_equal(fig.axes[0].get_lines()[0].get_xdata(), pic.traces[0].speed)
@@ -221,7 +269,8 @@ def test_diagnose_with_the_likelihood_engine_draws_the_missing_force(tmp_path):
                        timeout=600)  # fmt: skip
     assert r.returncode == 0, r.stderr
     text = paths.report.read_text()
-    assert "### Missing force" in text and f"- shape: **{doc['missing_force']['shape']}**" in text
+    words = MissingForce.from_json(doc["missing_force"]).words()
+    assert "### Missing force" in text and f"- shape: **{words}**" in text
     assert "![missing force against hub speed, command, deflection and time](force_picture.png)" in text
     entities = {c.entity_path for c in RrdReader(paths.recording).stream()}
     assert {f"/diagnosis/force/speed/{tr.name}" for tr in traces} <= entities

@@ -278,6 +278,7 @@ def test_a_units_linear_model_is_fitted_from_an_off_sheet_with_nothing_at_a_boun
     assert limit.fit.estimates["plant.amp_limit"].at == "lower" and not limit.test.enters, limit
     lines = unit.summary()
     assert "  nothing at a bound: effects may be tried" in lines and "  missing force: none" in lines
+    assert unit.drawn_without is None and unit.curve is None
     assert len(lines) < 12 and max(map(len, lines)) <= 100
 
 
@@ -302,10 +303,18 @@ def test_a_units_friction_is_fitted_as_a_nested_model_from_its_linear_fit(tmp_pa
     for name, want in _truth({"n_modes": 1}).items():
         assert friction.fit.estimates[name].value == pytest.approx(want, rel=0.02), name
     doc = json.loads(write_likelihood(tmp_path, unit).read_text())["effects"]["coulomb_friction"]
+
+    def doc_all(path):
+        return json.loads((path / "likelihood.json").read_text())
+
     assert doc["parameters"]["plant.coulomb_torque"]["fitted"] == e.value
     assert doc["likelihood"]["lr"] == friction.lr and doc["likelihood"]["k"] == friction.fit.k
     assert doc["likelihood"]["enters"] and doc["likelihood"]["critical"] >= 5.41 and doc["likelihood"]["p"] < 1e-9
-    line = next(x for x in unit.summary() if "coulomb_friction" in x)
+    assert unit.drawn_without == "coulomb_friction" and unit.missing_force.shape == "friction"
+    assert unit.missing_force.size == pytest.approx(0.03, rel=0.05)  # the force drawn without it (measured 0.0297)
+    assert unit.curve is not None and unit.curve.x == "speed" and max(unit.curve.ys) == e.value
+    assert doc_all(tmp_path)["missing_force"]["drawn_without"] == "coulomb_friction"
+    line = next(x for x in unit.summary() if x.startswith("  coulomb_friction"))
     assert f"{e.value:.4g} N m = {e.value / friction.drive:.3g} V" in line and len(line) <= 100
     grey = {f"record_{i:02d}": {"theta": 0.0, "alpha": 0.0} for i in range(30)}
     long = dataclasses.replace(unit, findings=("the spec's hub and drive (motor, gear) " * 4,) * 7, whiteness=grey,
@@ -458,6 +467,7 @@ def test_a_units_amplifier_limit_is_fitted_as_a_nested_model_from_its_linear_fit
     for name, want in _truth({"n_modes": 1}).items():
         assert limit.fit.estimates[name].value == pytest.approx(want, rel=0.02), name
     assert friction.fit.estimates["plant.coulomb_torque"].value < 1e-3 and not friction.test.enters
+    assert unit.drawn_without == "saturation" and unit.curve is not None and unit.curve.x == "u"
 
 
 def test_a_gauge_read_late_is_put_back_in_time():

@@ -24,7 +24,17 @@ from .kalman import smooth
 from .model import DEG, rig_model
 from .record import Record
 
-__all__ = ["SHAPES", "ForcePicture", "ForceTrace", "MissingForce", "ShapePolicy", "classify", "force_picture"]
+__all__ = [
+    "SHAPES",
+    "EffectCurve",
+    "ForcePicture",
+    "ForceTrace",
+    "MissingForce",
+    "ShapePolicy",
+    "classify",
+    "effect_curve",
+    "force_picture",
+]
 
 INTENSITY_RANGE = (1e-5, 10.0)  # N m / sqrt(s): where the force's intensity is searched (log), beside none
 
@@ -58,6 +68,40 @@ class ForcePicture:
 
 
 @dataclass(frozen=True)
+class EffectCurve:
+    """A fitted effect's torque on the hub as the missing force of the model without it would show it: its
+    ``label``, drawn against the traces' field ``x`` ("speed" [deg/s] or "u" [V]) at ``xs``, the torque ``ys``
+    [N m]."""
+
+    label: str
+    x: str
+    xs: np.ndarray
+    ys: np.ndarray
+
+
+def effect_curve(parameter: str, value: float, picture: ForcePicture) -> EffectCurve:
+    """The curve of the effect ``parameter`` at ``value`` over ``picture``'s range: Coulomb friction
+    (``plant.coulomb_torque`` [N m]) -Fc sign(speed) against the hub's speed, the stick phase the vertical at zero;
+    the amplifier's limit (``plant.amp_limit`` [V]) the drive's torque of what it clips, drive (clip(u, +-L) - u),
+    against the command.
+
+    Raises
+    ------
+    ValueError
+        For a parameter with no curve.
+    """
+    if parameter == "plant.coulomb_torque":
+        top = max((float(np.max(np.abs(tr.speed))) for tr in picture.traces), default=1.0)
+        return EffectCurve(f"Coulomb friction {value:.3g} N m", "speed", np.array([-top, 0.0, 0.0, top]),
+                           np.array([value, value, -value, -value]))  # fmt: skip
+    if parameter == "plant.amp_limit":
+        top = max((float(np.max(np.abs(tr.u))) for tr in picture.traces), default=1.0)
+        u = np.linspace(-top, top, 201)
+        return EffectCurve(f"amplifier limit {value:.3g} V", "u", u, picture.drive * (np.clip(u, -value, value) - u))
+    raise ValueError(f"no curve for the effect parameter {parameter!r}")
+
+
+@dataclass(frozen=True)
 class MissingForce:
     """What the missing force's shape says (:func:`classify`): ``shape``, one of :data:`SHAPES`; its ``size`` in
     ``unit``: friction's Coulomb level [N m] (asymmetric friction: the mean of its two levels), a limit's level [V],
@@ -74,10 +118,34 @@ class MissingForce:
     samples_near_zero: int
     levels: tuple[float, float] = (0.0, 0.0)
 
+    def words(self) -> str:
+        """The verdict in words, as the summary, the report, the figure and the recording say it: "friction of
+        0.03 N m (0.125 V of command)" (asymmetric friction with its levels each way), "limit at 1.2 V", "offset of
+        0.1 V", "too few samples at rest ...", "none"."""
+        if self.shape in ("friction", "asymmetric_friction"):
+            ways = (f", {self.levels[0]:.3g} forward and {self.levels[1]:.3g} backward"
+                    if self.shape == "asymmetric_friction" else "")  # fmt: skip
+            return f"{self.shape}{ways} of {self.size:.3g} {self.unit} ({self.dead_band_v:.3g} V of command)"
+        if self.shape == "limit":
+            return f"limit at {self.size:.3g} {self.unit}"
+        if self.shape == "offset":
+            return f"offset of {self.size:.3g} {self.unit}"
+        if self.shape == "too_few_at_rest":
+            return "too few samples at rest (the hub never rests: friction and an offset look alike)"
+        return self.shape
+
     def to_json(self) -> dict[str, Any]:
         """As ``missing_force`` in likelihood.json."""
         return {"shape": self.shape, "size": self.size, "unit": self.unit, "dead_band_v": self.dead_band_v,
-                "samples_near_zero": self.samples_near_zero}  # fmt: skip
+                "samples_near_zero": self.samples_near_zero, "levels": list(self.levels)}  # fmt: skip
+
+    @classmethod
+    def from_json(cls, doc: Mapping[str, Any]) -> MissingForce:
+        """The verdict as likelihood.json's ``missing_force`` holds it (:meth:`to_json`; ``levels`` (0, 0) when
+        absent: a file written before they were)."""
+        lv = doc.get("levels") or (0.0, 0.0)
+        return cls(str(doc["shape"]), float(doc["size"]), str(doc["unit"]), float(doc["dead_band_v"]),
+                   int(doc["samples_near_zero"]), (float(lv[0]), float(lv[1])))  # fmt: skip
 
 
 def force_picture(

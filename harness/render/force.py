@@ -14,12 +14,12 @@ from pathlib import Path
 
 from matplotlib.figure import Figure
 
-from ..likelihood.force import ForcePicture, ForceTrace
+from ..likelihood.force import EffectCurve, ForcePicture, ForceTrace, MissingForce
 from ..likelihood.traces import write_traces
 from ..rundir import RunDir
 from .figures import new_figure, save_figure
 
-__all__ = ["force_figure", "force_markdown", "verdict_text", "write_force_views"]
+__all__ = ["force_figure", "force_markdown", "write_force_views"]
 
 PANELS = (  # the figure's panels: the trace's field on x, its axis label
     ("speed", "hub speed [deg/s]"),
@@ -31,14 +31,10 @@ FORCE_LABEL = "missing force [N m]"
 COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown", "tab:pink", "tab:gray")
 
 
-def verdict_text(shape: str, size: float, unit: str, dead_band_v: float) -> str:
-    """The classifier's verdict in words: "friction of 0.03 N m (0.12 V of command)", or "none"."""
-    return "none" if shape == "none" else f"{shape} of {size:.3g} {unit} ({dead_band_v:.3g} V of command)"
-
-
-def force_figure(traces: Sequence[ForceTrace], verdict: str) -> Figure:
+def force_figure(traces: Sequence[ForceTrace], verdict: str, curve: EffectCurve | None = None) -> Figure:
     """The missing force of each record against the hub's speed, the command, the deflection and time (with its +-2
-    standard deviation band), the classifier's ``verdict`` (:func:`verdict_text`) in the title.
+    standard deviation band), the classifier's ``verdict`` (:meth:`MissingForce.words`) in the title, and the
+    effect that entered drawn over its panel (``curve``, black).
 
     Parameters
     ----------
@@ -46,12 +42,14 @@ def force_figure(traces: Sequence[ForceTrace], verdict: str) -> Figure:
         Each record's smoothed force and what it is drawn against.
     verdict : str
         The classifier's verdict.
+    curve : EffectCurve, optional
+        The effect that entered, drawn over the panel of its ``x``.
 
     Returns
     -------
     Figure
         Four axes in the order of :data:`PANELS`; on each, one line per record (the force against the panel's x, in
-        the order of ``traces``), the time panel's bands as its collections.
+        the order of ``traces``), then the curve's where it is drawn; the time panel's bands as its collections.
     """
     fig = new_figure(10.0, 7.5)
     axes = fig.subplots(2, 2, sharey=True).ravel()
@@ -62,6 +60,10 @@ def force_figure(traces: Sequence[ForceTrace], verdict: str) -> Figure:
             ax.plot(getattr(tr, x), tr.force, color=color, label=tr.name, **style)
         lo, hi = tr.force - 2.0 * tr.force_sd, tr.force + 2.0 * tr.force_sd
         axes[3].fill_between(tr.t, lo, hi, color=color, alpha=0.2, lw=0)
+    if curve is not None:
+        ax = axes[[x for x, _ in PANELS].index(curve.x)]
+        ax.plot(curve.xs, curve.ys, color="k", lw=1.5, label=curve.label)
+        ax.legend(loc="best", fontsize=8)
     for ax, (_, label) in zip(axes, PANELS, strict=True):
         ax.set_xlabel(label)
         ax.grid(alpha=0.3)
@@ -78,33 +80,26 @@ def force_figure(traces: Sequence[ForceTrace], verdict: str) -> Figure:
     return fig
 
 
-def write_force_views(out: Path, picture: ForcePicture, verdict: str) -> tuple[Path, Path]:
+def write_force_views(
+    out: Path, picture: ForcePicture, verdict: str, curve: EffectCurve | None = None
+) -> tuple[Path, Path]:
     """Write ``out/force_picture.parquet`` (:func:`write_traces`) and ``out/force_picture.png``
-    (:func:`force_figure`), each atomically, and return their paths."""
+    (:func:`force_figure`, ``curve`` over it), each atomically, and return their paths."""
     paths = RunDir(out)
     traces = write_traces(paths.force_traces, picture.traces)
     png = paths.force_figure
-    save_figure(force_figure(picture.traces, verdict), png)
+    save_figure(force_figure(picture.traces, verdict, curve), png)
     return traces, png
 
 
-def force_markdown(
-    shape: str,
-    size: float,
-    unit: str,
-    dead_band_v: float,
-    near_zero: int,
-    traces: Sequence[ForceTrace],
-    png: str | None,
-) -> list[str]:
-    """The report's "Missing force" lines (under 200 characters each): the classifier's shape and size, the samples
-    at rest, the figure ``png`` linked.
+def force_markdown(mf: MissingForce, traces: Sequence[ForceTrace], png: str | None) -> list[str]:
+    """The report's "Missing force" lines (under 200 characters each): the classifier's verdict, the samples at
+    rest, the figure ``png`` linked.
 
     Parameters
     ----------
-    shape, size, unit, dead_band_v, near_zero
-        The classifier's verdict (likelihood.json's ``missing_force``: its shape, size [unit], the command it takes
-        [V] and the samples at rest).
+    mf : MissingForce
+        The classifier's verdict (likelihood.json's ``missing_force``).
     traces : sequence of ForceTrace
         The traces the figure draws (their records and samples).
     png : str or None
@@ -122,9 +117,8 @@ def force_markdown(
         f"The likelihood engine's unknown torque on the hub, smoothed through {len(traces)} records ({names}; "
         "`likelihood.json`, traces in `force_picture.parquet`).",
         "",
-        f"- shape: **{shape}**" + (f", size {size:.3g} {unit} ({dead_band_v:.3g} V of command)" if shape != "none"
-                                   else ""),
-        f"- samples at rest (hub speed within three standard deviations of zero): {near_zero} of {n}",
+        f"- shape: **{mf.words()}**",
+        f"- samples at rest (hub speed within three standard deviations of zero): {mf.samples_near_zero} of {n}",
         "",
         *([f"![missing force against hub speed, command, deflection and time]({png})", ""] if png else []),
     ]  # fmt: skip

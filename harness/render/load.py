@@ -21,7 +21,7 @@ from ..diagnosis.result import Diagnosis
 from ..ident import armax
 from ..ident.calibration import Calibration
 from ..ident.identify import PreparedExperiment, prepare
-from ..likelihood.force import ForceTrace
+from ..likelihood.force import ForceTrace, MissingForce
 from ..likelihood.traces import read_traces
 from ..rundir import DataError, Manifest, RunDir, load_run, stale_artefacts
 from ..spec import IDENTIFY_DEFAULTS
@@ -65,7 +65,7 @@ class RunResults:
     doubled_rate: dict[str, Any] | None = None
     records: dict[str, pd.DataFrame] = field(default_factory=dict)
     replays: dict[str, Replay] = field(default_factory=dict)
-    missing_force: dict[str, Any] | None = None
+    missing_force: MissingForce | None = None
     force: tuple[ForceTrace, ...] = ()
     af: float = float(IDENTIFY_DEFAULTS["af"])
     ic: str = str(IDENTIFY_DEFAULTS["ic"])
@@ -179,13 +179,13 @@ def load_results(run: Path) -> RunResults:
     return res
 
 
-def _verdict(path: Path, doc: dict[str, Any]) -> dict[str, Any]:
+def _verdict(path: Path, doc: dict[str, Any]) -> MissingForce:
     """likelihood.json's ``missing_force`` with the fields the report and the recording show; one line when not."""
     mf = doc.get("missing_force")
     missing = [k for k in MISSING_FORCE if k not in mf] if isinstance(mf, dict) else list(MISSING_FORCE)
     if missing or not isinstance(mf, dict):
         raise DataError(f"{path}: missing_force lacks {', '.join(missing)} (re-run diagnose --engine likelihood)")
-    return mf
+    return MissingForce.from_json(mf)
 
 
 def _load_crossfit(res: RunResults) -> None:

@@ -561,8 +561,7 @@ def _force_lines(res: RunResults) -> list[str]:
     if mf is None:
         return []
     png = res.paths.force_figure
-    return force_markdown(str(mf["shape"]), float(mf["size"]), str(mf["unit"]), float(mf["dead_band_v"]),
-                          int(mf["samples_near_zero"]), res.force, png.name if png.exists() else None)  # fmt: skip
+    return force_markdown(mf, res.force, png.name if png.exists() else None)
 
 
 def _replay_lines(res: RunResults, figdir: Path, drawings: Drawings) -> list[str]:

@@ -62,7 +62,6 @@ from .analysis import (
     residual_tests,
     tip_from_filtered,
 )
-from .force import verdict_text
 from .gap_text import diagnosis_markdown, gap_rows
 from .load import RunResults, load_results
 from .report import holds, title
@@ -455,8 +454,7 @@ def _log_overview(rec: rr.RecordingStream, res: RunResults) -> None:
     if res.diagnosis is not None:
         lines.append(f"- diagnosis verdict: **{res.diagnosis.verdict}**")
     if res.missing_force is not None:
-        mf = res.missing_force
-        verdict = verdict_text(mf["shape"], float(mf["size"]), mf["unit"], float(mf["dead_band_v"]))
+        verdict = res.missing_force.words()
         lines.append(f"- missing force (likelihood engine): **{verdict}**; its tab draws it against time and hub speed")
     lines += [
         "",
