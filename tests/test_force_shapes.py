@@ -175,8 +175,8 @@ def test_friction_unequal_on_the_two_sides_is_named_asymmetric():
 
 def test_the_missing_forces_json_keeps_the_issues_keys():
     """likelihood.json's missing_force holds the five keys issue 63 names, whatever the shape, and friction's levels
-    each way; the shapes are the documented ones."""
-    keys = {"shape", "size", "unit", "dead_band_v", "samples_near_zero", "levels"}
+    each way and where its size comes from; the shapes are the documented ones."""
+    keys = {"shape", "size", "unit", "dead_band_v", "samples_near_zero", "levels", "sized_by", "picture_size"}
     assert set(MissingForce("limit", 1.0, "V", 0.0, 3).to_json()) == keys
     assert set(MissingForce("asymmetric_friction", 0.02, "N m", 0.16, 3, (0.01, 0.03)).to_json()) == keys
     assert set(SHAPES) == {"friction", "asymmetric_friction", "limit", "offset", "too_few_at_rest", "none"}

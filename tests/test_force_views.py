@@ -130,6 +130,8 @@ def test_each_shape_is_said_in_the_same_words_everywhere():
     for mf, words in cases:
         assert mf.words() == words
         assert MissingForce.from_json(json.loads(json.dumps(mf.to_json()))) == mf
+    sized = MissingForce("friction", 0.0301, "N m", 0.234, 7, sized_by="coulomb_friction", picture_size=0.028)
+    assert MissingForce.from_json(json.loads(json.dumps(sized.to_json()))) == sized
 
 
 def test_the_effect_that_entered_is_drawn_over_its_panel():

@@ -311,7 +311,9 @@ def test_a_units_friction_is_fitted_as_a_nested_model_from_its_linear_fit(tmp_pa
     assert doc["likelihood"]["lr"] == friction.lr and doc["likelihood"]["k"] == friction.fit.k
     assert doc["likelihood"]["enters"] and doc["likelihood"]["critical"] >= 5.41 and doc["likelihood"]["p"] < 1e-9
     assert unit.drawn_without == "coulomb_friction" and unit.missing_force.shape == "friction"
-    assert unit.missing_force.size == pytest.approx(0.03, rel=0.05)  # the force drawn without it (measured 0.0297)
+    mf = unit.missing_force  # sized by the nested friction; the force drawn without it reads 0.0297 (measured)
+    assert mf.sized_by == "coulomb_friction" and mf.size == e.value and mf.dead_band_v == e.value / friction.drive
+    assert mf.picture_size == pytest.approx(0.03, rel=0.05)
     assert unit.curve is not None and unit.curve.x == "speed" and max(unit.curve.ys) == e.value
     assert doc_all(tmp_path)["missing_force"]["drawn_without"] == "coulomb_friction"
     line = next(x for x in unit.summary() if x.startswith("  coulomb_friction"))

@@ -78,30 +78,39 @@ def test_the_rule_is_the_chi_bar_square_scaled_by_the_inflation():
     [(True, 8, 601), (False, 8, 602), (True, 10, 603), (False, 10, 604), (True, 12, 605), (False, 12, 606)],
 )
 def test_friction_stays_out_of_a_friction_free_quantised_twin(closed, bits, seed):
-    """On friction-free twins at 8, 10 and 12 bits, open and closed loop, the friction nested on the linear fit
-    stays out at 1 % (on the 98 blind cases of ``calibrate_rule(100, seed=300)`` whose hub stays on the pot's track
-    none entered; the largest statistic 4.2, the inflation 0.89-1.72)."""
+    """On friction-free twins at 8, 10 and 12 bits, open and closed loop, through the engine as a unit's records go:
+    neither the friction nor the amplifier's limit nested on the linear fit enters at 1 %, and the missing force is
+    named none."""
     r = judge_case(Case(seed, closed, bits, 0.0), Rule())
-    assert r.test is not None and not r.test.enters, r
+    assert not r.findings and set(r.tests) == {"coulomb_friction", "saturation"}, r
+    assert not any(t.enters for t in r.tests.values()), r
+    assert r.shape == "none", r
 
 
 @pytest.mark.parametrize(("closed", "bits", "seed"), [(True, 8, 611), (False, 10, 612), (True, 12, 613)])
 def test_friction_of_a_hundredth_enters_a_quantised_twin(closed, bits, seed):
     """With Coulomb friction of 0.01 N m (77 mV of command), the friction nested on the linear fit enters at 1 %
-    and is sized within 25 %."""
+    and is sized within 25 %; the missing force drawn without it is named friction within 20 %."""
     r = judge_case(Case(seed, closed, bits, 0.01), Rule())
-    assert r.test is not None and r.test.enters and r.fitted == pytest.approx(0.01, rel=0.25), r
+    assert r.tests["coulomb_friction"].enters and r.friction == pytest.approx(0.01, rel=0.25), r
+    assert r.shape == "friction" and r.size == pytest.approx(0.01, rel=0.2), r
 
 
 def test_the_rules_calibration_counts_its_cases():
     """calibrate_rule on two cases of each kind, serially: the cases are the seeds' (closed loop on even seeds,
-    8, 10, 12 bits in turn), none of the friction-free ones alarms, both with friction enter sized, and its JSON says
-    so; a case whose hub leaves the pot's track is skipped, not judged."""
+    8, 10, 12 bits in turn), none of the friction-free ones alarms and each is named none, both with friction enter
+    sized and named, and its JSON says so; a case whose hub leaves the pot's track is skipped, not judged; a case
+    whose linear fit had a finding counts as not detected."""
     cal = calibrate_rule(2, seed=700, workers=1)
     assert [r.case for r in cal.null] == [Case(700, True, 10, 0.0), Case(701, False, 12, 0.0)]
-    assert cal.false_alarms == 0.0 and cal.power == 1.0 and cal.sized == 1.0
+    assert cal.false_alarms == 0.0 and cal.named_none == 1.0
+    assert cal.power == 1.0 and cal.sized == 1.0 and cal.named_friction == 1.0
     doc = cal.to_json()
-    assert doc["null"] == {"cases": 2, "judged": 2, "false_alarms": 0.0, "largest_lr": max(r.test.lr for r in cal.null)}
-    assert doc["effect"]["power"] == 1.0 and doc["level"] == 0.01
-    skipped = CaseResult(Case(1, False, 8, 0.0), None, None, "the hub leaves the pot's track")
+    largest = max(t.lr for r in cal.null for t in r.tests.values())
+    assert doc["null"] == {"cases": 2, "judged": 2, "false_alarms": 0.0, "largest_lr": largest, "named_none": 1.0,
+                           "white": cal.white}  # fmt: skip
+    assert doc["effect"]["power"] == 1.0 and doc["level"] == 0.01 and doc["findings"] == []
+    skipped = CaseResult(Case(1, False, 8, 0.0), {}, None, "", 0.0, False, skipped="the hub leaves the pot's track")
     assert RuleCalibration(Rule(), (*cal.null, skipped), cal.effect).false_alarms == 0.0
+    found = CaseResult(Case(3, False, 8, 0.01), {}, None, "none", 0.0, False, findings="a bound")
+    assert RuleCalibration(Rule(), cal.null, (*cal.effect, found)).power == pytest.approx(2 / 3)

@@ -28,10 +28,21 @@ import numpy as np
 from .fit import MLFit, fit
 from .record import Record
 
-__all__ = ["NESTED", "NestedStart", "Profile", "command_peak", "nested_start", "profile_delay", "profile_modes"]
+__all__ = [
+    "NESTED",
+    "SHAPE",
+    "NestedStart",
+    "Profile",
+    "command_peak",
+    "nested_start",
+    "profile_delay",
+    "profile_modes",
+]
 
 # the continuous effects a unit's linear fit is extended by, one at a time: diagnosis.json's name -> the parameter
 NESTED = {"coulomb_friction": "plant.coulomb_torque", "saturation": "plant.amp_limit"}
+# the missing force's shape (harness.likelihood.force.SHAPES) each nested effect draws when the model lacks it
+SHAPE = {"coulomb_friction": "friction", "saturation": "limit"}
 
 
 @dataclass(frozen=True)

@@ -109,7 +109,10 @@ class MissingForce:
     ``dead_band_v`` [V]; the samples the records hold at rest (``samples_near_zero``: the smoothed speed within
     :attr:`ShapePolicy.moving_sd` of its standard deviations of zero, or changing sign before the next), where
     friction's jump shows; and friction's two ``levels`` [N m] (forward, backward: the force's magnitude against the
-    motion each way; (0, 0) for the other shapes)."""
+    motion each way; (0, 0) for the other shapes). ``sized_by`` says where the size comes from: "picture" (the
+    classifier's regression on the smoothed force) or the nested effect of that shape that entered (its
+    maximum-likelihood size; the smoother's random walk rounds a small force's jumps off, so the regression reads
+    it small), the picture's own then in ``picture_size``."""
 
     shape: str
     size: float
@@ -117,6 +120,8 @@ class MissingForce:
     dead_band_v: float
     samples_near_zero: int
     levels: tuple[float, float] = (0.0, 0.0)
+    sized_by: str = "picture"
+    picture_size: float | None = None
 
     def words(self) -> str:
         """The verdict in words, as the summary, the report, the figure and the recording say it: "friction of
@@ -137,15 +142,18 @@ class MissingForce:
     def to_json(self) -> dict[str, Any]:
         """As ``missing_force`` in likelihood.json."""
         return {"shape": self.shape, "size": self.size, "unit": self.unit, "dead_band_v": self.dead_band_v,
-                "samples_near_zero": self.samples_near_zero, "levels": list(self.levels)}  # fmt: skip
+                "samples_near_zero": self.samples_near_zero, "levels": list(self.levels), "sized_by": self.sized_by,
+                "picture_size": self.picture_size}  # fmt: skip
 
     @classmethod
     def from_json(cls, doc: Mapping[str, Any]) -> MissingForce:
         """The verdict as likelihood.json's ``missing_force`` holds it (:meth:`to_json`; ``levels`` (0, 0) when
         absent: a file written before they were)."""
         lv = doc.get("levels") or (0.0, 0.0)
+        pic = doc.get("picture_size")
         return cls(str(doc["shape"]), float(doc["size"]), str(doc["unit"]), float(doc["dead_band_v"]),
-                   int(doc["samples_near_zero"]), (float(lv[0]), float(lv[1])))  # fmt: skip
+                   int(doc["samples_near_zero"]), (float(lv[0]), float(lv[1])), str(doc.get("sized_by", "picture")),
+                   None if pic is None else float(pic))  # fmt: skip
 
 
 def force_picture(

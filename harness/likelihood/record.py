@@ -60,6 +60,14 @@ class Record:
         y[-samples:, 1], mask[-samples:, 1] = 0.0, False
         return Record(self.name, self.Ts, self.u, y, mask, self.lattice)
 
+    def clamped(self, limit: float) -> Record:
+        """The record with its command as the DAQ's output stage passes it on, clamped at +-``limit`` [V] (the DAQ's
+        ``out_limit``; 0 or less: none): a logged command beyond it (a closed loop's controller asking more) never
+        reaches the amplifier."""
+        if limit <= 0.0 or not np.any(np.abs(self.u) > limit):
+            return self
+        return Record(self.name, self.Ts, np.clip(self.u, -limit, limit), self.y, self.mask, self.lattice)
+
     @classmethod
     def from_experiment(cls, exp: RigExperiment) -> Record:
         """The record of an experiment as :func:`harness.diagnosis.experiments.load_experiments` loads it."""

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import textwrap
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -31,7 +31,7 @@ from ..diagnosis.recalibrate import LINEAR, parts_at_bound
 from ..diagnosis.simulation import fmu_value, sim_rig
 from ..ident.calibration import Calibration, load_calibration
 from ..rundir import write_json
-from .effects import NESTED, nested_start
+from .effects import NESTED, SHAPE, nested_start
 from .fit import BOUNDS, TORQUES, MLFit, filter_record, fit, noise_start, split_values
 from .force import EffectCurve, ForcePicture, MissingForce, classify, effect_curve, force_picture
 from .model import EFFECTS, rig_model
@@ -46,6 +46,7 @@ __all__ = [
     "check_records",
     "load_records",
     "fit_run",
+    "fit_unit",
     "linear_start",
     "write_likelihood",
 ]
@@ -193,10 +194,11 @@ def linear_start(plant: dict[str, Any]) -> dict[str, float]:
 
 @dataclass(frozen=True)
 class RunRecords:
-    """A run's records as the filter reads them (``records``, each with its lattice [deg] and its gauge put back in
-    time), the command's delay ``delay`` [samples], whether every record's hub angle is an ``encoder``'s, and how
-    many samples late the gauge reads (``gauge_late``: the records' own timing,
-    :func:`harness.diagnosis.gauge.gauge_delay`, as today's diagnosis reads it); the run's ``calibration``."""
+    """A run's records as the filter reads them (``records``, each with its lattice [deg], its gauge put back in
+    time and its command clamped at the DAQ's output limit: :meth:`Record.clamped`), the command's delay ``delay``
+    [samples], whether every record's hub angle is an ``encoder``'s, and how many samples late the gauge reads
+    (``gauge_late``: the records' own timing, :func:`harness.diagnosis.gauge.gauge_delay`, as today's diagnosis
+    reads it); the run's ``calibration``."""
 
     records: list[Record]
     delay: int
@@ -210,6 +212,7 @@ def load_records(real: Path, sim: specmod.Spec) -> RunRecords:
     cal = load_calibration(real)
     _, daq = sim_rig(sim)
     adc_range = fmu_value(daq, "daq", "adc_range")
+    out_limit = fmu_value(daq, "daq", "out_limit")
     exps = load_experiments(real, cal, sim, adc_range)
     bits = adc_lattice(exps, adc_range)
     lsb = 2.0 * adc_range / 2.0**bits if bits else 0.0
@@ -218,7 +221,7 @@ def load_records(real: Path, sim: specmod.Spec) -> RunRecords:
     for x in exps.values():
         rec = Record.from_experiment(x)
         step = (max(rec.lattice[0], abs(cal.Kp) * lsb), max(rec.lattice[1], abs(cal.Ke) * lsb))
-        out.append(Record(rec.name, rec.Ts, rec.u, rec.y, rec.mask, step).gauge_late(late))
+        out.append(Record(rec.name, rec.Ts, rec.u, rec.y, rec.mask, step).gauge_late(late).clamped(out_limit))
     encoder = all(x.encoder for x in exps.values())
     return RunRecords(out, int(fmu_value(daq, "daq", "delay_samples")), encoder, late, cal)
 
@@ -288,8 +291,6 @@ def fit_run(
     ValueError
         Records the engine cannot fit (:func:`check_records`), before any fit.
     """
-    say = progress or (lambda _m: None)
-    rule = rule or Rule()
     spec = sim if isinstance(sim, specmod.Spec) else specmod.load(sim)
     plant, _ = sim_rig(spec)
     run = load_records(Path(real), spec)
@@ -297,9 +298,54 @@ def fit_run(
     sd, _ = priors(spec, run.calibration.gain_rel_se(), encoder)
     nominal = linear_start(plant)
     held = {k: v for k, v in nominal.items() if sd.get(k, 1.0) == 0.0}  # a sensor known exactly
+    check_records(plant, nominal | noise_start(records), records, delay)
+    return fit_unit(plant, records, nominal, held, sd, delay, rule=rule, progress=progress, gauge_late=run.gauge_late)
+
+
+def fit_unit(
+    plant: dict[str, Any],
+    records: list[Record],
+    nominal: dict[str, float],
+    held: dict[str, float],
+    sd: dict[str, float],
+    delay: int = 0,
+    *,
+    rule: Rule | None = None,
+    progress: Callable[[str], None] | None = None,
+    gauge_late: int = 0,
+) -> UnitFit:
+    """A unit's records through the engine: the linear model, its findings, the effects nested on it, the missing
+    force (what :func:`fit_run` does once it has read a run directory).
+
+    Parameters
+    ----------
+    plant : dict
+        The spec's plant table.
+    records : list of Record
+        The unit's records, as the filter reads them.
+    nominal : dict
+        The sheet's linear parameters (:func:`linear_start`): the start and the priors' centre.
+    held : dict
+        Parameters held at these values (a sensor known exactly).
+    sd : dict
+        The priors' standard deviations in the search coordinate, by parameter (absent: flat).
+    delay : int
+        The command's delay [samples].
+    rule : Rule, optional
+        How a nested effect is judged.
+    progress : callable, optional
+        Told what runs now.
+    gauge_late : int
+        How many samples late the gauge read (already put back in ``records``), for the summary.
+
+    Returns
+    -------
+    UnitFit
+    """
+    say = progress or (lambda _m: None)
+    rule = rule or Rule()
     free = {k: v for k, v in nominal.items() if k not in held}
     noise = noise_start(records)
-    check_records(plant, nominal | noise, records, delay)
     say(f"maximum likelihood over {len(records)} records")
     res = fit(plant, records, free | noise, fixed=held, nominal=nominal | noise,
               prior_sd={k: sd[k] for k in free if k in sd}, delay=delay)  # fmt: skip
@@ -324,8 +370,13 @@ def fit_run(
     drawn = values if kept is None else {k: v for k, v in (kept.fit.values() | held).items() if k not in EFFECTS}
     picture = force_picture(plant, drawn, records, delay)
     curve = None if kept is None else effect_curve(NESTED[kept.name], kept.fit.values()[NESTED[kept.name]], picture)
-    return UnitFit(res, tuple(r.name for r in records), nominal, held, lag_one, white, tuple(findings),
-                   classify(picture), picture, tuple(effects), run.gauge_late, kept.name if kept else None, curve)  # fmt: skip
+    mf = classify(picture)
+    if kept is not None and SHAPE[kept.name] == mf.shape:  # sized by the nested effect's maximum likelihood
+        size = kept.fit.values()[NESTED[kept.name]]
+        volts = size / kept.drive if mf.unit == "N m" else mf.dead_band_v
+        mf = replace(mf, size=size, dead_band_v=volts, sized_by=kept.name, picture_size=mf.size)
+    return UnitFit(res, tuple(r.name for r in records), nominal, held, lag_one, white, tuple(findings), mf,
+                   picture, tuple(effects), gauge_late, kept.name if kept else None, curve)  # fmt: skip
 
 
 def _nested(
