@@ -190,3 +190,32 @@ def test_a_second_link_mode_is_the_profiles_choice_where_the_link_has_one(modes,
     assert prof.settings == (1, 2) and prof.best == modes
     assert gain > 1000.0 if modes == 2 else gain < 3.0
     _assert_linear(prof.fit_at(modes), truth)
+
+
+@pytest.mark.parametrize(("modes", "delay", "seed"), [(1, 2, 21), (2, 0, 22), (1, 0, 23)])
+def test_a_units_linear_model_takes_its_modes_and_delay_by_profile(modes, delay, seed):
+    """A unit's records through the engine (fit_unit) from a one-mode, undelayed sheet 10 % off: a twin under a
+    random +-0.8 V square with ``modes`` link modes and the command ``delay`` samples late. The second mode and the
+    delay each enter by the rule (Vuong's test at 1 %) exactly where the twin has them, the delay at the twin's
+    setting; the linear model then is the fit with them, nothing at a bound, its parameters within 5 % of the
+    rig's."""
+    from harness.likelihood.rule import Rule
+    from harness.likelihood.unit import fit_unit, linear_start
+
+    rec = _twin(_ramped(_random_square(seed, 2.0)), {"n_modes": modes}, {"delay_samples": delay}, seed=seed)
+    sheet = {k: 1.1 * v for k, v in linear_start(ONE).items() if not k.startswith("sensor.")}
+    unit = fit_unit(ONE, [rec], sheet | SENSORS, SENSORS, {}, rule=Rule())
+    tests = {x.name: x for x in unit.effects}
+    assert tests["second_mode"].test.enters == (modes == 2), tests["second_mode"].test
+    assert tests["delay"].test.enters == (delay > 0), tests["delay"].test
+    assert (
+        tests["delay"].test.law == "vuong"
+        and tests["delay"].settings == {"daq.delay_samples": delay or 1}
+        or (not delay)
+    )
+    if delay:
+        assert tests["delay"].settings == {"daq.delay_samples": delay}
+    assert set(unit.structure) == {n for n, on in (("second_mode", modes == 2), ("delay", delay > 0)) if on}
+    assert not unit.findings and not unit.fit.at_bounds().keys() - {"noise.hub_torque", "noise.link_torque"}
+    for name, want in _truth(ONE).items():
+        assert unit.fit.estimates[name].value == pytest.approx(want, rel=0.05), name

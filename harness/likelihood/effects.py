@@ -29,13 +29,16 @@ from .fit import MLFit, fit
 from .record import Record
 
 __all__ = [
+    "DELAYS",
     "NESTED",
+    "PROFILED",
     "SHAPE",
     "NestedStart",
     "Profile",
     "command_peak",
     "nested_start",
     "profile_delay",
+    "profile_settings",
     "profile_modes",
 ]
 
@@ -43,6 +46,9 @@ __all__ = [
 NESTED = {"coulomb_friction": "plant.coulomb_torque", "saturation": "plant.amp_limit"}
 # the missing force's shape (harness.likelihood.force.SHAPES) each nested effect draws when the model lacks it
 SHAPE = {"coulomb_friction": "friction", "saturation": "limit"}
+# the integer effects, chosen by profile likelihood against the sheet's setting: diagnosis.json's name -> the parameter
+PROFILED = {"delay": "daq.delay_samples", "second_mode": "plant.n_modes"}
+DELAYS = (0, 1, 2, 3)  # the command delays a profile tries [samples]
 
 
 @dataclass(frozen=True)
@@ -102,6 +108,16 @@ def nested_start(name: str, records: Sequence[Record], drive: float) -> NestedSt
         peak = command_peak(records)
         return NestedStart(0.9 * peak, peak, peak)
     raise ValueError(f"no nested fit for the effect {name!r}; known: {', '.join(NESTED)}")
+
+
+def profile_settings(name: str, plant: Mapping[str, Any], delay: int) -> tuple[int, ...]:
+    """The settings of the integer effect ``name`` (:data:`PROFILED`) tried against the sheet's: the delays of
+    :data:`DELAYS` other than the sheet's ``delay``; a second mode where the sheet's ``plant`` has one."""
+    if name == "delay":
+        return tuple(d for d in DELAYS if d != delay)
+    if name == "second_mode":
+        return (2,) if int(plant.get("n_modes", 1)) == 1 else ()
+    raise ValueError(f"no profile for the effect {name!r}; known: {', '.join(PROFILED)}")
 
 
 def profile_delay(

@@ -8,6 +8,13 @@ parameter's variance inflation (:func:`harness.likelihood.robust.inflation`, the
 White, 1982). The critical value is that scaled law's quantile at the policy's level, taken no smaller than the
 chi-bar-square's own: a sample's autocorrelation only ever widens the law here, and an estimate of it below one is
 read as none. Not chi-square on the raw statistic: quantised records make it fire on friction-free twins.
+
+An integer effect (the command's delay, a second link mode) is not nested: the alternative is another model with as
+many free parameters, and the statistic has no chi-square law. Its test (:meth:`Rule.compare`) is Vuong's (1989):
+the per-sample differences of the two models' log-likelihood terms, summed, over their long-run standard deviation
+(the same HAC estimate, :func:`harness.likelihood.robust.long_run`), a standard normal where neither model is closer
+to the records; the alternative enters when it is closer at the level, divided among the settings tried
+(Bonferroni).
 """
 
 from __future__ import annotations
@@ -15,32 +22,37 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from scipy.stats import chi2
+import numpy as np
+from scipy.stats import chi2, norm
+
+from .robust import long_run
 
 __all__ = ["EffectTest", "Rule"]
 
 
 @dataclass(frozen=True)
 class EffectTest:
-    """A nested effect's test: its statistic ``lr`` [2 nats], the ``inflation`` its null law is scaled by, its
-    ``p``-value under that law, the ``critical`` value of ``lr`` at the rule's ``level``, and whether it ``enters``
-    (``lr`` above ``critical``)."""
+    """An effect's test: its statistic ``lr`` [2 nats], the ``inflation`` of its null law by the samples'
+    autocorrelation, its ``p``-value under that law, the ``critical`` value of ``lr`` at the rule's ``level``,
+    whether it ``enters`` (``lr`` above ``critical``), and the ``law``: "chi-bar-square" (a nested effect) or
+    "vuong" (an integer one)."""
 
     lr: float
     inflation: float
     p: float
     critical: float
     level: float
+    law: str = "chi-bar-square"
 
     @property
     def enters(self) -> bool:
         """The effect enters the model: its statistic beyond the critical value."""
         return self.lr > self.critical
 
-    def to_json(self) -> dict[str, float | bool]:
+    def to_json(self) -> dict[str, float | bool | str]:
         """As ``likelihood.json`` and ``diagnosis.json`` hold it, beside the fit's ``logL``, ``k`` and ``n``."""
         return {"lr": self.lr, "p": self.p, "critical": self.critical, "inflation": self.inflation,
-                "level": self.level, "enters": self.enters}  # fmt: skip
+                "level": self.level, "enters": self.enters, "law": self.law}  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -69,3 +81,31 @@ class Rule:
         p = 0.5 * float(chi2.sf(lr / c, 1)) if lr > 0.0 else 1.0
         critical = c * float(chi2.isf(2.0 * self.level, 1))
         return EffectTest(lr, c, p, critical, self.level)
+
+    def compare(self, gain: np.ndarray, record: np.ndarray, sample: np.ndarray, settings: int = 1) -> EffectTest:
+        """Vuong's test of an integer effect's best setting against the null model.
+
+        Parameters
+        ----------
+        gain : ndarray
+            Per reading, the alternative's log-likelihood term minus the null's [nats].
+        record, sample : ndarray of int
+            Each reading's record and sample (:class:`harness.likelihood.fit.Innovations`).
+        settings : int
+            The settings the best was chosen from (the level is divided among them).
+
+        Returns
+        -------
+        EffectTest
+            ``lr`` 2 sum(gain); ``critical`` the statistic at which the sum reaches the normal's quantile times its
+            long-run standard deviation; ``inflation`` the long-run variance over the variance at lag 0.
+        """
+        total = float(np.sum(gain))
+        run = long_run(np.asarray(gain, dtype=float)[:, None], record, sample)
+        sd = float(np.sqrt(max(run.cov[0, 0], 0.0)))
+        grown = run.cov[0, 0] / run.lag0[0, 0] if run.lag0[0, 0] > 0.0 else 1.0
+        if sd == 0.0:  # the two models give the same terms: nothing to tell
+            return EffectTest(2.0 * total, float(grown), 1.0, math.inf, self.level, "vuong")
+        p = min(1.0, settings * float(norm.sf(total / sd)))
+        critical = 2.0 * float(norm.isf(self.level / settings)) * sd
+        return EffectTest(2.0 * total, float(grown), p, critical, self.level, "vuong")

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import textwrap
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -31,8 +31,8 @@ from ..diagnosis.recalibrate import LINEAR, parts_at_bound
 from ..diagnosis.simulation import fmu_value, sim_rig
 from ..ident.calibration import Calibration, load_calibration
 from ..rundir import write_json
-from .effects import NESTED, SHAPE, nested_start
-from .fit import BOUNDS, TORQUES, MLFit, filter_record, fit, noise_start, split_values
+from .effects import NESTED, PROFILED, SHAPE, nested_start, profile_settings
+from .fit import BOUNDS, TORQUES, MLFit, filter_record, fit, innovations, noise_start, split_values
 from .force import EffectCurve, ForcePicture, MissingForce, classify, effect_curve, force_picture
 from .model import EFFECTS, rig_model
 from .record import Record
@@ -54,9 +54,10 @@ __all__ = [
 
 @dataclass(frozen=True)
 class EffectFit:
-    """A nested effect fitted with the linear model from the linear fit: its ``name`` (as ``diagnosis.json`` names
+    """An effect fitted with the linear model from the linear fit: its ``name`` (as ``diagnosis.json`` names
     effects), the ``fit`` (the linear parameters and the noise refitted beside the effect's own), the effect's own
-    ``parameters`` (names as the plant FMU's), the ``test`` of its likelihood-ratio statistic over the linear model
+    ``parameters`` (names as the plant FMU's; a nested effect's) or its integer ``settings`` (an integer effect's best,
+    by profile), the ``test`` of its likelihood-ratio statistic over the linear model
     (:class:`harness.likelihood.rule.EffectTest`) and the drive's torque per volt ``drive`` [N m/V] (a torque's size
     as a command)."""
 
@@ -65,6 +66,7 @@ class EffectFit:
     parameters: tuple[str, ...]
     test: EffectTest
     drive: float
+    settings: dict[str, int] = field(default_factory=dict)
 
     @property
     def lr(self) -> float:
@@ -79,6 +81,7 @@ class EffectFit:
             e = self.fit.estimates[k]
             volts = f" = {e.value / self.drive:.3g} V" if e.unit == "N m" else ""
             parts.append(f"{e.value:.4g} {e.unit}{volts} (95 % {e.ci95[0]:.3g}..{e.ci95[1]:.3g})")
+        parts += [f"{k.split('.')[1]} {v}" for k, v in self.settings.items()]
         t = self.test
         verdict = f"> {t.critical:.3g}: enters" if t.enters else f"<= {t.critical:.3g}: stays out"
         return f"  {self.name}: {'; '.join(parts)}, LR {t.lr:.3g} {verdict}"
@@ -88,7 +91,8 @@ class EffectFit:
         f = self.fit
         return {
             "parameters": {k: {"fitted": f.estimates[k].value, "ci95": list(f.estimates[k].ci95),
-                               "unit": f.estimates[k].unit, "at_bound": f.estimates[k].at} for k in self.parameters},
+                               "unit": f.estimates[k].unit, "at_bound": f.estimates[k].at} for k in self.parameters}
+                          | {k: {"fitted": v} for k, v in self.settings.items()},
             "likelihood": {"logL": f.loglik, "k": f.k, "n": f.n, **self.test.to_json()},
             "converged": f.converged,
         }  # fmt: skip
@@ -106,7 +110,9 @@ class UnitFit:
     linear fit (none where it has a finding), and how many samples late the gauge reads (``gauge_late``, the records'
     own timing: its readings are put back in time). Where an effect enters, the picture is drawn on its fit's linear
     parameters without it (``drawn_without``), and its ``curve`` (:func:`harness.likelihood.force.effect_curve`)
-    goes over it."""
+    goes over it. The integer effects that entered (a second mode, a delay: ``structure``) are the linear model's
+    own: ``fit`` is the fit with them, and everything after it (the findings, the nested effects, the picture) is
+    drawn from it."""
 
     fit: MLFit
     records: tuple[str, ...]
@@ -121,6 +127,7 @@ class UnitFit:
     gauge_late: int = 0
     drawn_without: str | None = None
     curve: EffectCurve | None = None
+    structure: tuple[str, ...] = ()
 
     def summary(self) -> list[str]:
         """A few lines for the terminal (under 100 characters each): the fit, the parameters that moved most from
@@ -177,6 +184,7 @@ class UnitFit:
             "whiteness": {"test": "Ljung-Box", "lags": LAGS, "level": LEVEL, "p": self.whiteness},
             "findings": list(self.findings),
             "missing_force": self.missing_force.to_json() | {"drawn_without": self.drawn_without},
+            "structure": list(self.structure),
             "effects": {x.name: x.to_json() for x in self.effects},
         }
 
@@ -346,9 +354,24 @@ def fit_unit(
     rule = rule or Rule()
     free = {k: v for k, v in nominal.items() if k not in held}
     noise = noise_start(records)
+
+    def linear_fit(p: dict[str, Any], d: int) -> MLFit:  # the linear model of plant table p, delay d, from the sheet
+        return fit(p, records, free | noise, fixed=held, nominal=nominal | noise,
+                   prior_sd={k: sd[k] for k in free if k in sd}, delay=d)  # fmt: skip
+
     say(f"maximum likelihood over {len(records)} records")
-    res = fit(plant, records, free | noise, fixed=held, nominal=nominal | noise,
-              prior_sd={k: sd[k] for k in free if k in sd}, delay=delay)  # fmt: skip
+    res = linear_fit(plant, delay)
+    # the linear model's structure first: a second link mode, the command's delay, each by profile against the
+    # sheet's (a missing mode drives the one-mode fit to its bounds), the model changed where one enters
+    effects: list[EffectFit] = []
+    for name in PROFILED:
+        if tried := profile_settings(name, plant, delay):
+            say(f"{name}, by profile")
+            eff, alt_plant, alt_delay = _profiled(name, tried, plant, delay, records, res, held, linear_fit, rule)
+            effects.append(eff)
+            if eff.test.enters:
+                plant, delay, res = alt_plant, alt_delay, eff.fit
+    structure = tuple(x.name for x in effects if x.test.enters)
     values = res.values() | held
     lag_one, white = {}, {}
     for rec in records:
@@ -359,24 +382,25 @@ def fit_unit(
     findings = [*parts_at_bound(linear)]
     findings += [f"{BOUNDS[k].label} ends at its upper bound: the linear model cannot draw what the records show"
                  for k, side in res.at_bounds().items() if k in TORQUES and side == "upper"]  # fmt: skip
-    effects: list[EffectFit] = []
     for name in () if findings else NESTED:
         say(f"{name}, nested")
         effects.append(_nested(name, plant, records, res, held, nominal | noise, sd, delay, rule))
     say("the missing force")
-    kept = max((x for x in effects if x.test.enters), key=lambda x: x.lr, default=None)
-    # drawn on the linear parameters of the effect that entered, the effect left out: its force is then the missing
-    # one, unbent by the linear fit that had to make up for it (the drive's gain 25 % low on the lab run)
+    kept = max((x for x in effects if x.name in NESTED and x.test.enters), key=lambda x: x.lr, default=None)
+    # drawn on the linear parameters of the nested effect that entered, the effect left out: its force is then the
+    # missing one, unbent by the linear fit that had to make up for it (the drive's gain 25 % low on the lab run)
     drawn = values if kept is None else {k: v for k, v in (kept.fit.values() | held).items() if k not in EFFECTS}
     picture = force_picture(plant, drawn, records, delay)
-    curve = None if kept is None else effect_curve(NESTED[kept.name], kept.fit.values()[NESTED[kept.name]], picture)
-    mf = classify(picture)
-    if kept is not None and SHAPE[kept.name] == mf.shape:  # sized by the nested effect's maximum likelihood
-        size = kept.fit.values()[NESTED[kept.name]]
-        volts = size / kept.drive if mf.unit == "N m" else mf.dead_band_v
-        mf = replace(mf, size=size, dead_band_v=volts, sized_by=kept.name, picture_size=mf.size)
+    curve, mf = None, classify(picture)
+    if kept is not None:
+        param = NESTED[kept.name]
+        curve = effect_curve(param, kept.fit.values()[param], picture)
+        if SHAPE[kept.name] == mf.shape:  # sized by the nested effect's maximum likelihood
+            size = kept.fit.values()[param]
+            volts = size / kept.drive if mf.unit == "N m" else mf.dead_band_v
+            mf = replace(mf, size=size, dead_band_v=volts, sized_by=kept.name, picture_size=mf.size)
     return UnitFit(res, tuple(r.name for r in records), nominal, held, lag_one, white, tuple(findings), mf,
-                   picture, tuple(effects), gauge_late, kept.name if kept else None, curve)  # fmt: skip
+                   picture, tuple(effects), gauge_late, kept.name if kept else None, curve, structure)  # fmt: skip
 
 
 def _nested(
@@ -406,6 +430,34 @@ def _nested(
     drive = rig_model(plant, *split_values(res.values() | held)).drive  # the drive as the nested fit has it
     test = rule.test(2.0 * (res.loglik - linear.loglik), res.estimates[param].inflation)
     return EffectFit(name, res, (param,), test, drive)
+
+
+def _profiled(
+    name: str,
+    settings: tuple[int, ...],
+    plant: dict[str, Any],
+    delay: int,
+    records: list[Record],
+    linear: MLFit,
+    held: dict[str, float],
+    linear_fit: Callable[[dict[str, Any], int], MLFit],
+    rule: Rule,
+) -> tuple[EffectFit, dict[str, Any], int]:
+    """The integer effect ``name`` (:data:`harness.likelihood.effects.PROFILED`) at each of ``settings``: the linear
+    model fitted there (``linear_fit`` of a plant table and a delay), the best judged by ``rule`` against the linear
+    fit ``linear`` at the sheet's (:meth:`harness.likelihood.rule.Rule.compare`: the two fits' per-sample
+    log-likelihood terms). Returns the effect, and the plant table and delay of its best setting."""
+    param = PROFILED[name]
+    fits = []
+    for setting in settings:
+        p, d = ({**plant, "n_modes": setting}, delay) if param == "plant.n_modes" else (plant, setting)
+        fits.append((linear_fit(p, d), p, d, setting))
+    res, p, d, best = max(fits, key=lambda t: t[0].loglik)
+    null = innovations(plant, linear.values() | held, records, delay)
+    alt = innovations(p, res.values() | held, records, d)
+    test = rule.compare(alt.terms - null.terms, null.record, null.sample, len(settings))
+    drive = rig_model(p, *split_values(res.values() | held)).drive
+    return EffectFit(name, res, (), test, drive, {param: best}), p, d
 
 
 def _lag_one(z: np.ndarray) -> float:
