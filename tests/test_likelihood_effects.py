@@ -219,3 +219,26 @@ def test_a_units_linear_model_takes_its_modes_and_delay_by_profile(modes, delay,
     assert not unit.findings and not unit.fit.at_bounds().keys() - {"noise.hub_torque", "noise.link_torque"}
     for name, want in _truth(ONE).items():
         assert unit.fit.estimates[name].value == pytest.approx(want, rel=0.05), name
+
+
+def test_a_delay_of_tens_of_samples_is_found_by_the_units_profile():
+    """A command reaching the drive 20 samples (40 ms) late, as a PC-based DAQ's can (the twin's DAQ delays it),
+    under a sheet that says none: the unit's profile (every sample to 50 ms, on a coarse grid and then around its
+    best, each fit from its neighbour's) enters the delay at 20, and the linear model then comes back within 5 % of
+    the rig's with nothing at a bound. The 25 delays (1-25 samples) are searched on every second one, then beside
+    the grid's best."""
+    from harness.likelihood.effects import profile_settings, search_order
+    from harness.likelihood.rule import Rule
+    from harness.likelihood.unit import fit_unit, linear_start
+
+    assert profile_settings("delay", ONE, 0, TS) == tuple(range(1, 26))
+    assert profile_settings("delay", ONE, 1, 0.02) == (0, 2, 3)
+    assert search_order(tuple(range(1, 26))) == ((1, 3, 5, 7, 9, 11, 13, 15, 17, 19, 21, 23, 25), 2)
+    rec = _twin(_ramped(_random_square(31, 2.0)), ONE, {"delay_samples": 20}, seed=31)
+    sheet = {k: 1.1 * v for k, v in linear_start(ONE).items() if not k.startswith("sensor.")}
+    unit = fit_unit(ONE, [rec], sheet | SENSORS, SENSORS, {}, rule=Rule())
+    delay = next(x for x in unit.effects if x.name == "delay")
+    assert delay.test.enters and delay.settings == {"daq.delay_samples": 20}, delay.test
+    assert "delay" in unit.structure and not unit.findings
+    for name, want in _truth(ONE).items():
+        assert unit.fit.estimates[name].value == pytest.approx(want, rel=0.05), name

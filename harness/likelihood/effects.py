@@ -29,7 +29,8 @@ from .fit import MLFit, fit
 from .record import Record
 
 __all__ = [
-    "DELAYS",
+    "COARSE",
+    "DELAY_SPAN",
     "NESTED",
     "PROFILED",
     "SHAPE",
@@ -39,6 +40,7 @@ __all__ = [
     "nested_start",
     "profile_delay",
     "profile_settings",
+    "search_order",
     "profile_modes",
 ]
 
@@ -48,7 +50,8 @@ NESTED = {"coulomb_friction": "plant.coulomb_torque", "saturation": "plant.amp_l
 SHAPE = {"coulomb_friction": "friction", "saturation": "limit"}
 # the integer effects, chosen by profile likelihood against the sheet's setting: diagnosis.json's name -> the parameter
 PROFILED = {"delay": "daq.delay_samples", "second_mode": "plant.n_modes"}
-DELAYS = (0, 1, 2, 3)  # the command delays a profile tries [samples]
+DELAY_SPAN = 0.05  # the command delays a unit's profile tries: every whole sample up to this [s] (a DAQ's, a PC's)
+COARSE = 10  # ... first on a grid of about this many, then every sample around the best
 
 
 @dataclass(frozen=True)
@@ -110,14 +113,25 @@ def nested_start(name: str, records: Sequence[Record], drive: float) -> NestedSt
     raise ValueError(f"no nested fit for the effect {name!r}; known: {', '.join(NESTED)}")
 
 
-def profile_settings(name: str, plant: Mapping[str, Any], delay: int) -> tuple[int, ...]:
-    """The settings of the integer effect ``name`` (:data:`PROFILED`) tried against the sheet's: the delays of
-    :data:`DELAYS` other than the sheet's ``delay``; a second mode where the sheet's ``plant`` has one."""
+def profile_settings(name: str, plant: Mapping[str, Any], delay: int, Ts: float) -> tuple[int, ...]:
+    """The settings of the integer effect ``name`` (:data:`PROFILED`) tried against the sheet's: every whole-sample
+    delay [samples] up to :data:`DELAY_SPAN` at the sample time ``Ts`` [s] (at least 3) other than the sheet's
+    ``delay``; a second mode where the sheet's ``plant`` has one."""
     if name == "delay":
-        return tuple(d for d in DELAYS if d != delay)
+        top = max(3, int(DELAY_SPAN / Ts + 1e-9))
+        return tuple(d for d in range(top + 1) if d != delay)
     if name == "second_mode":
         return (2,) if int(plant.get("n_modes", 1)) == 1 else ()
     raise ValueError(f"no profile for the effect {name!r}; known: {', '.join(PROFILED)}")
+
+
+def search_order(settings: Sequence[int]) -> tuple[tuple[int, ...], int]:
+    """How a profile over many ``settings`` is searched: a coarse grid of about :data:`COARSE` of them (every
+    ``step``-th, the last included), then every setting within ``step`` of the coarse grid's best. Returns the grid
+    and the step."""
+    step = max(1, len(settings) // COARSE)
+    grid = tuple(sorted({*settings[::step], settings[-1]}))
+    return grid, step
 
 
 def profile_delay(

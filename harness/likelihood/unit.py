@@ -31,7 +31,7 @@ from ..diagnosis.recalibrate import LINEAR, parts_at_bound
 from ..diagnosis.simulation import fmu_value, sim_rig
 from ..ident.calibration import Calibration, load_calibration
 from ..rundir import write_json
-from .effects import NESTED, PROFILED, SHAPE, nested_start, profile_settings
+from .effects import NESTED, PROFILED, SHAPE, nested_start, profile_settings, search_order
 from .fit import BOUNDS, TORQUES, MLFit, filter_record, fit, innovations, noise_start, split_values
 from .force import EffectCurve, ForcePicture, MissingForce, classify, effect_curve, force_picture
 from .model import EFFECTS, rig_model
@@ -355,8 +355,10 @@ def fit_unit(
     free = {k: v for k, v in nominal.items() if k not in held}
     noise = noise_start(records)
 
-    def linear_fit(p: dict[str, Any], d: int) -> MLFit:  # the linear model of plant table p, delay d, from the sheet
-        return fit(p, records, free | noise, fixed=held, nominal=nominal | noise,
+    def linear_fit(p: dict[str, Any], d: int, start: MLFit | None = None) -> MLFit:
+        """The linear model of plant table p at delay d, from the sheet or from a neighbouring fit."""
+        begin = free | noise if start is None else {k: v for k, v in start.values().items() if k not in held}
+        return fit(p, records, begin, fixed=held, nominal=nominal | noise,
                    prior_sd={k: sd[k] for k in free if k in sd}, delay=d)  # fmt: skip
 
     say(f"maximum likelihood over {len(records)} records")
@@ -365,7 +367,7 @@ def fit_unit(
     # sheet's (a missing mode drives the one-mode fit to its bounds), the model changed where one enters
     effects: list[EffectFit] = []
     for name in PROFILED:
-        if tried := profile_settings(name, plant, delay):
+        if tried := profile_settings(name, plant, delay, min(r.Ts for r in records)):
             say(f"{name}, by profile")
             eff, alt_plant, alt_delay = _profiled(name, tried, plant, delay, records, res, held, linear_fit, rule)
             effects.append(eff)
@@ -440,22 +442,33 @@ def _profiled(
     records: list[Record],
     linear: MLFit,
     held: dict[str, float],
-    linear_fit: Callable[[dict[str, Any], int], MLFit],
+    linear_fit: Callable[..., MLFit],
     rule: Rule,
 ) -> tuple[EffectFit, dict[str, Any], int]:
-    """The integer effect ``name`` (:data:`harness.likelihood.effects.PROFILED`) at each of ``settings``: the linear
-    model fitted there (``linear_fit`` of a plant table and a delay), the best judged by ``rule`` against the linear
-    fit ``linear`` at the sheet's (:meth:`harness.likelihood.rule.Rule.compare`: the two fits' per-sample
-    log-likelihood terms). Returns the effect, and the plant table and delay of its best setting."""
+    """The integer effect ``name`` (:data:`harness.likelihood.effects.PROFILED`) over ``settings``: the linear model
+    fitted there (``linear_fit(plant, delay, start)``), the best judged by ``rule`` against the linear fit
+    ``linear`` at the sheet's (:meth:`harness.likelihood.rule.Rule.compare`: the two fits' per-sample log-likelihood
+    terms, the level shared among the settings fitted). A second mode is fitted from the sheet; delays on a coarse
+    grid and then around its best (:func:`harness.likelihood.effects.search_order`), each from its neighbour's fit
+    (from the sheet, a delay far off can fall into a basin with the hub's gain at its bound). Returns the effect, and
+    the plant table and delay of its best setting."""
     param = PROFILED[name]
-    fits = []
-    for setting in settings:
-        p, d = ({**plant, "n_modes": setting}, delay) if param == "plant.n_modes" else (plant, setting)
-        fits.append((linear_fit(p, d), p, d, setting))
-    res, p, d, best = max(fits, key=lambda t: t[0].loglik)
+    if param == "plant.n_modes":
+        fits = {m: linear_fit({**plant, "n_modes": m}, delay) for m in settings}
+    else:
+        grid, step = search_order(settings)
+        fits, near = {}, linear
+        for d in grid:
+            fits[d] = near = linear_fit(plant, d, near)
+        top = max(fits, key=lambda d: fits[d].loglik)
+        for d in (x for x in settings if abs(x - top) < step and x not in fits):
+            fits[d] = linear_fit(plant, d, fits[top])
+    best = max(fits, key=lambda k: fits[k].loglik)
+    p, d = ({**plant, "n_modes": best}, delay) if param == "plant.n_modes" else (plant, best)
+    res = fits[best]
     null = innovations(plant, linear.values() | held, records, delay)
     alt = innovations(p, res.values() | held, records, d)
-    test = rule.compare(alt.terms - null.terms, null.record, null.sample, len(settings))
+    test = rule.compare(alt.terms - null.terms, null.record, null.sample, len(fits))
     drive = rig_model(p, *split_values(res.values() | held)).drive
     return EffectFit(name, res, (), test, drive, {param: best}), p, d
 
