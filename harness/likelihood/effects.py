@@ -33,6 +33,7 @@ __all__ = [
     "DELAY_SPAN",
     "NESTED",
     "PROFILED",
+    "SENSOR_NESTED",
     "SHAPE",
     "NestedStart",
     "Profile",
@@ -46,6 +47,10 @@ __all__ = [
 
 # the continuous effects a unit's linear fit is extended by, one at a time: diagnosis.json's name -> the parameter
 NESTED = {"coulomb_friction": "plant.coulomb_torque", "saturation": "plant.amp_limit"}
+# the sensors' dynamics nested in the linear model (its structure, not an effect): the name -> the parameter
+SENSOR_NESTED = {"gauge_lowpass": "sensor.gauge_tau"}
+GAUGE_TAU = 0.02  # s: where the gauge's low-pass is searched from inside, and its scale
+
 # the missing force's shape (harness.likelihood.force.SHAPES) each nested effect draws when the model lacks it
 SHAPE = {"coulomb_friction": "friction", "saturation": "limit"}
 # the integer effects, chosen by profile likelihood against the sheet's setting: diagnosis.json's name -> the parameter
@@ -104,13 +109,16 @@ class NestedStart:
 def nested_start(name: str, records: Sequence[Record], drive: float) -> NestedStart:
     """Where the nested fit of effect ``name`` (:data:`NESTED`) starts, for ``records`` and the drive's torque per
     volt ``drive`` [N m/V]: friction from the torque of 20 mV of command and from none, scaled by the torque of 0.1 V;
-    a limit from 0.9 of the records' peak command and from the peak (no sample clipped), scaled by the peak."""
+    a limit from 0.9 of the records' peak command and from the peak (no sample clipped), scaled by the peak; the
+    gauge's low-pass (:data:`SENSOR_NESTED`) from :data:`GAUGE_TAU` and from none, scaled by it."""
     if name == "coulomb_friction":
         return NestedStart(0.02 * drive, 0.0, 0.1 * drive)
     if name == "saturation":
         peak = command_peak(records)
         return NestedStart(0.9 * peak, peak, peak)
-    raise ValueError(f"no nested fit for the effect {name!r}; known: {', '.join(NESTED)}")
+    if name == "gauge_lowpass":
+        return NestedStart(GAUGE_TAU, 0.0, GAUGE_TAU)
+    raise ValueError(f"no nested fit for the effect {name!r}; known: {', '.join({**NESTED, **SENSOR_NESTED})}")
 
 
 def profile_settings(name: str, plant: Mapping[str, Any], delay: int, Ts: float) -> tuple[int, ...]:

@@ -26,7 +26,7 @@ import numpy as np
 from ..diagnosis.recalibrate import LINEAR, Bound
 from ..workercall import one_blas_thread
 from .kalman import Discrete, Filtered, kalman_filter
-from .model import EFFECTS, NOISE, Noise, StochasticModel, rig_model
+from .model import EFFECTS, NOISE, SENSORS, Noise, StochasticModel, rig_model
 from .record import Record
 from .robust import inflation, long_run
 
@@ -42,7 +42,7 @@ __all__ = [
     "start_state",
 ]
 
-BOUNDS: dict[str, Bound] = {**LINEAR, **EFFECTS, **NOISE}
+BOUNDS: dict[str, Bound] = {**LINEAR, **SENSORS, **EFFECTS, **NOISE}
 TORQUES = ("noise.hub_torque", "noise.link_torque")  # the process noise: freed once the rest is fitted
 GRAD_STEP = 1e-5  # search-coordinate step of the gradient's forward differences
 TOL_NATS = 1e-4  # the search stops when a step gains less log-likelihood than this [nats]
@@ -88,9 +88,10 @@ class MLFit:
 
 
 def split_values(values: Mapping[str, float]) -> tuple[dict[str, float], Noise]:
-    """Parameters by name as :func:`harness.likelihood.model.rig_model` takes them: the linear ones and the effects,
-    and the noise."""
-    return {k: v for k, v in values.items() if k in LINEAR or k in EFFECTS}, Noise.from_values(values)
+    """Parameters by name as :func:`harness.likelihood.model.rig_model` takes them: the linear ones, the sensors'
+    dynamics and the effects, and the noise."""
+    keep = {k: v for k, v in values.items() if k in LINEAR or k in SENSORS or k in EFFECTS}
+    return keep, Noise.from_values(values)
 
 
 def noise_start(records: Sequence[Record]) -> dict[str, float]:
@@ -138,6 +139,8 @@ def start_state(model: StochasticModel, record: Record) -> tuple[np.ndarray, np.
     var[idx["theta_dot"]] = ((speed + 10.0) / abs(c_theta)) ** 2
     var[rates] = model.w1**2 * var[links]
     var[idx["b_alpha"]] = (amp + 3.0 * sd_alpha + 1.0) ** 2
+    if "gauge" in idx:  # the gauge's low-pass output: as the link's deflection
+        var[idx["gauge"]] = (amp + 1.0) ** 2
     if "d" in idx:
         var[idx["d"]] = model.drive**2
     return x0, np.diag(var)

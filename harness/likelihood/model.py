@@ -1,7 +1,8 @@
 """The rig as a stochastic model: the plant's linear equations, the DAQ's sensors, process and measurement noise.
 
 In continuous time, with the state ``x = [theta, a_1..a_n, theta_dot, a_dot_1..a_dot_n, b_alpha]`` (rad, rad/s,
-deg: the plant's coordinates of :func:`harness.fmu.plant.state_space` and the record's gauge offset, a constant)::
+deg: the plant's coordinates of :func:`harness.fmu.plant.state_space` and the record's gauge offset, a constant;
+with the gauge's low-pass ``sensor.gauge_tau`` its output ``gauge`` [deg] before ``b_alpha``)::
 
     dx = (A x + B [u, 1]) dt + G dW          W: white torques on the hub and at the link's tip [N m sqrt(s)]
     y_k = C x(t_k) + v_k                      y: the readings theta, alpha [deg]; v_k white, var sigma^2
@@ -9,7 +10,11 @@ deg: the plant's coordinates of :func:`harness.fmu.plant.state_space` and the re
 The command ``u`` [V] is held over each sample (zero-order hold; the second input, a constant 1, carries the
 amplifier's input offset ``plant.u_offset``). The readings are the sensors' gains (``sensor.theta_gain``,
 ``sensor.alpha_gauge_gain``: reading per true angle) times the hub angle and the gauge's root-curvature deflection;
-a record's theta offset is its hub's start, its gauge offset the state ``b_alpha``. The rig's linear parameters are
+a record's theta offset is its hub's start, its gauge offset the state ``b_alpha``. A gauge amplifier with a
+first-order low-pass of time constant tau reads its state ``gauge``, d gauge / dt = (alpha - gauge) / tau; sampled,
+it is the DAQ FMU's filter of the sampled deflection, g_k = (1 - a) g_(k-1) + a alpha_k with a = 1 - exp(-Ts / tau),
+the state holding g_(k-1) (:meth:`StochasticModel.discretise`; with friction's substeps, a substep's filter). The
+rig's linear parameters are
 those the recalibration fits (:data:`harness.diagnosis.recalibrate.LINEAR`, mapped to the plant by
 :func:`harness.diagnosis.rigmodel.to_plant`); the noise's are :class:`Noise`'s.
 
@@ -32,7 +37,7 @@ from ..diagnosis.recalibrate import LINEAR, Bound
 from ..fmu import plant as plantmod
 from .kalman import Discrete
 
-__all__ = ["EFFECTS", "NOISE", "LimitBound", "Noise", "StochasticModel", "rig_model"]
+__all__ = ["EFFECTS", "NOISE", "SENSORS", "LimitBound", "Noise", "StochasticModel", "rig_model"]
 
 DEG = 180.0 / math.pi
 
@@ -53,6 +58,12 @@ NOISE: dict[str, Bound] = {
 }
 
 FRICTION_STEP = 1e-3  # s: the longest step over which the filter holds a friction torque (kalman.c's substeps)
+
+# the sensors' dynamics beyond their gains: the gauge amplifier's first-order low-pass (the DAQ's gauge_tau), its
+# time constant searched as the square of its ratio to a nominal (a slope at none), none its null
+SENSORS: dict[str, Bound] = {
+    "sensor.gauge_tau": Bound(0.0, 50.0, "s", "the gauge's low-pass time constant", part="sensor", square=True),
+}
 
 
 @dataclass(frozen=True)
@@ -117,7 +128,9 @@ class StochasticModel:
     scale of its start's uncertainty) and the drive's torque per volt ``drive`` [N m/V] (its force's scale). With the
     missing force, ``G`` has a third column: the force's random walk. ``coulomb`` [N m] is the Coulomb friction at
     the hub (0: none; the filter's, :class:`harness.likelihood.kalman.Discrete`'s ``friction``); ``limit`` [V] the
-    amplifier's output limit on the command plus its input offset ``offset`` [V] (0: none; :meth:`inputs`)."""
+    amplifier's output limit on the command plus its input offset ``offset`` [V] (0: none; :meth:`inputs`);
+    ``gauge_tau`` [s] the gauge's low-pass (0: none; the state ``gauge``, sampled as the DAQ filters:
+    :meth:`discretise`)."""
 
     A: np.ndarray
     B: np.ndarray
@@ -130,6 +143,7 @@ class StochasticModel:
     coulomb: float = 0.0
     limit: float = 0.0
     offset: float = 0.0
+    gauge_tau: float = 0.0
 
     def inputs(self, u: np.ndarray) -> np.ndarray:
         """The filter's inputs (n x 2) for the command ``u`` [V] as the plant receives it: ``[u, 1]`` (the offset
@@ -157,8 +171,16 @@ class StochasticModel:
         F = expm(V * Ts)
         Q = F[nx:, nx:].T @ F[:nx, nx:]
         r = np.array([self.noise.theta**2, self.noise.alpha**2])
-        Bd = E[:nx, nx:]
-        return Discrete(A=E[:nx, :nx], B=Bd, Q=0.5 * (Q + Q.T), C=self.C, r=r, friction=self.coulomb,
+        Ad, Bd, C = E[:nx, :nx], E[:nx, nx:], self.C
+        if self.gauge_tau > 0.0:  # the DAQ's filter at the samples: g_k = (1 - a) g_(k-1) + a alpha_k, read g_k
+            i = self.states.index("gauge")
+            a = 1.0 - math.exp(-Ts / self.gauge_tau)
+            row = self.gauge_tau * self.A[i, :i]  # the gauge's reading of the plant's states
+            Ad, Bd, C = Ad.copy(), Bd.copy(), C.copy()
+            Ad[i, :], Bd[i, :], Q[i, :], Q[:, i] = 0.0, 0.0, 0.0, 0.0
+            Ad[i, :i], Ad[i, i] = a * row, 1.0 - a
+            C[1, :i], C[1, i] = a * row, 1.0 - a
+        return Discrete(A=Ad, B=Bd, Q=0.5 * (Q + Q.T), C=C, r=r, friction=self.coulomb,
                         hub=Bd[:, 0] / self.drive, speed=self.states.index("theta_dot"), substeps=substeps)  # fmt: skip
 
 
@@ -175,9 +197,10 @@ def rig_model(
     plant : mapping
         The plant FMU's parameters by name (``Ks``, ``zeta_link``, ``n_modes``, ...).
     values : mapping
-        Linear parameters by their diagnosis names (``rig.drive_gain``, ``plant.Ks``, ``sensor.theta_gain``, ...)
-        and effects (:data:`EFFECTS`: ``plant.coulomb_torque``, ``plant.amp_limit``; off when not given, whatever
-        the plant's table says: the model is the linear rig plus the effects named).
+        Linear parameters by their diagnosis names (``rig.drive_gain``, ``plant.Ks``, ``sensor.theta_gain``, ...),
+        the sensors' dynamics (:data:`SENSORS`: ``sensor.gauge_tau``) and effects (:data:`EFFECTS`:
+        ``plant.coulomb_torque``, ``plant.amp_limit``; off when not given, whatever the plant's table says: the model
+        is the linear rig plus the effects named).
     noise : Noise
         The readings' and the torques' noise.
     force : bool
@@ -187,7 +210,7 @@ def rig_model(
     -------
     StochasticModel
     """
-    unknown = sorted(set(values) - set(LINEAR) - set(EFFECTS))
+    unknown = sorted(set(values) - set(LINEAR) - set(EFFECTS) - set(SENSORS))
     if unknown:
         raise ValueError(f"not a linear parameter or an effect of the rig: {', '.join(unknown)}")
     table = {k: v for k, v in plant.items() if not isinstance(v, str)}
@@ -196,11 +219,17 @@ def rig_model(
     p = plantmod.PlantParams(**{k: table[k] for k in plantmod.FLEXJOINT.parameters() if k in table})
     A, B, Cp, _ = plantmod.state_space(p)
     G_volt, _ = plantmod.motor_constants(p)
+    tau = float(values.get("sensor.gauge_tau", 0.0))
+    lowpass = tau > 0.0
     n2 = A.shape[0]
-    nx = n2 + 1 + int(force)  # and the gauge offset, the missing force
+    ib = n2 + int(lowpass)  # the gauge offset's state, after the gauge's low-pass
+    nx = ib + 1 + int(force)  # and the missing force
     hub = B[:, 0] / G_volt  # a unit torque on the hub
+    gauge = DEG * float(values.get("sensor.alpha_gauge_gain", 1.0)) * Cp[5]  # the gauge's reading of the plant
     Ax = np.zeros((nx, nx))
     Ax[:n2, :n2] = A
+    if lowpass:
+        Ax[n2, :n2], Ax[n2, n2] = gauge / tau, -1.0 / tau
     if force:
         Ax[:n2, -1] = hub
     u_offset = float(values.get("plant.u_offset", table.get("u_offset", 0.0)))
@@ -212,13 +241,16 @@ def rig_model(
         Gx[-1, 2] = 1.0
     Cx = np.zeros((2, nx))
     Cx[0, :n2] = DEG * float(values.get("sensor.theta_gain", 1.0)) * Cp[0]
-    Cx[1, :n2] = DEG * float(values.get("sensor.alpha_gauge_gain", 1.0)) * Cp[5]
-    Cx[1, n2] = 1.0
+    if lowpass:
+        Cx[1, n2] = 1.0
+    else:
+        Cx[1, :n2] = gauge
+    Cx[1, ib] = 1.0
     n = int(p.n_modes)
     states = ("theta", *(f"a_{i + 1}" for i in range(n)), "theta_dot", *(f"a_dot_{i + 1}" for i in range(n)))
-    states += ("b_alpha", "d") if force else ("b_alpha",)
+    states += ("gauge",) * lowpass + (("b_alpha", "d") if force else ("b_alpha",))
     w1 = float(plantmod.mode_frequencies(p)[0, 0]) * 2.0 * math.pi
     coulomb = float(values.get("plant.coulomb_torque", 0.0))
     limit = float(values.get("plant.amp_limit", 0.0))
     return StochasticModel(A=Ax, B=Bx, G=Gx, C=Cx, noise=noise, states=states, w1=w1, drive=G_volt, coulomb=coulomb,
-                           limit=limit, offset=u_offset)  # fmt: skip
+                           limit=limit, offset=u_offset, gauge_tau=tau)  # fmt: skip

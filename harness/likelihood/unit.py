@@ -31,7 +31,7 @@ from ..diagnosis.recalibrate import LINEAR, parts_at_bound
 from ..diagnosis.simulation import fmu_value, sim_rig
 from ..ident.calibration import Calibration, load_calibration
 from ..rundir import write_json
-from .effects import NESTED, PROFILED, SHAPE, nested_start, profile_settings, search_order
+from .effects import NESTED, PROFILED, SENSOR_NESTED, SHAPE, nested_start, profile_settings, search_order
 from .fit import BOUNDS, TORQUES, MLFit, filter_record, fit, innovations, noise_start, split_values
 from .force import EffectCurve, ForcePicture, MissingForce, classify, effect_curve, force_picture
 from .model import EFFECTS, rig_model
@@ -206,13 +206,15 @@ class RunRecords:
     time and its command clamped at the DAQ's output limit: :meth:`Record.clamped`), the command's delay ``delay``
     [samples], whether every record's hub angle is an ``encoder``'s, and how many samples late the gauge reads
     (``gauge_late``: the records' own timing, :func:`harness.diagnosis.gauge.gauge_delay`, as today's diagnosis
-    reads it); the run's ``calibration``."""
+    reads it); the run's ``calibration``; the gauge's low-pass time constant ``gauge_tau`` [s] the DAQ's sheet gives
+    (0: none known)."""
 
     records: list[Record]
     delay: int
     encoder: bool
     gauge_late: int
     calibration: Calibration
+    gauge_tau: float = 0.0
 
 
 def load_records(real: Path, sim: specmod.Spec) -> RunRecords:
@@ -231,7 +233,8 @@ def load_records(real: Path, sim: specmod.Spec) -> RunRecords:
         step = (max(rec.lattice[0], abs(cal.Kp) * lsb), max(rec.lattice[1], abs(cal.Ke) * lsb))
         out.append(Record(rec.name, rec.Ts, rec.u, rec.y, rec.mask, step).gauge_late(late).clamped(out_limit))
     encoder = all(x.encoder for x in exps.values())
-    return RunRecords(out, int(fmu_value(daq, "daq", "delay_samples")), encoder, late, cal)
+    return RunRecords(out, int(fmu_value(daq, "daq", "delay_samples")), encoder, late, cal,
+                      float(fmu_value(daq, "daq", "gauge_tau")))  # fmt: skip
 
 
 def check_records(plant: dict[str, Any], values: dict[str, float], records: list[Record], delay: int = 0) -> None:
@@ -304,7 +307,7 @@ def fit_run(
     run = load_records(Path(real), spec)
     records, delay, encoder = run.records, run.delay, run.encoder
     sd, _ = priors(spec, run.calibration.gain_rel_se(), encoder)
-    nominal = linear_start(plant)
+    nominal = linear_start(plant) | ({"sensor.gauge_tau": run.gauge_tau} if run.gauge_tau > 0 else {})
     held = {k: v for k, v in nominal.items() if sd.get(k, 1.0) == 0.0}  # a sensor known exactly
     check_records(plant, nominal | noise_start(records), records, delay)
     return fit_unit(plant, records, nominal, held, sd, delay, rule=rule, progress=progress, gauge_late=run.gauge_late)
@@ -354,11 +357,12 @@ def fit_unit(
     rule = rule or Rule()
     free = {k: v for k, v in nominal.items() if k not in held}
     noise = noise_start(records)
+    scales = nominal | noise  # what each search coordinate is a factor of
 
     def linear_fit(p: dict[str, Any], d: int, start: MLFit | None = None) -> MLFit:
         """The linear model of plant table p at delay d, from the sheet or from a neighbouring fit."""
         begin = free | noise if start is None else {k: v for k, v in start.values().items() if k not in held}
-        return fit(p, records, begin, fixed=held, nominal=nominal | noise,
+        return fit(p, records, begin, fixed=held, nominal=scales,
                    prior_sd={k: sd[k] for k in free if k in sd}, delay=d)  # fmt: skip
 
     say(f"maximum likelihood over {len(records)} records")
@@ -373,6 +377,13 @@ def fit_unit(
             effects.append(eff)
             if eff.test.enters:
                 plant, delay, res = alt_plant, alt_delay, eff.fit
+    for name, param in SENSOR_NESTED.items():  # the sensors' dynamics the sheet does not give, nested at none
+        if param not in nominal:
+            say(f"{name}, nested")
+            eff = _nested(name, plant, records, res, held, scales, sd, delay, rule)
+            effects.append(eff)
+            if eff.test.enters:  # the linear model with it: its search scaled as the nested one's
+                res, scales = eff.fit, scales | {param: nested_start(name, records, eff.drive).nominal}
     structure = tuple(x.name for x in effects if x.test.enters)
     values = res.values() | held
     lag_one, white = {}, {}
@@ -386,7 +397,7 @@ def fit_unit(
                  for k, side in res.at_bounds().items() if k in TORQUES and side == "upper"]  # fmt: skip
     for name in () if findings else NESTED:
         say(f"{name}, nested")
-        effects.append(_nested(name, plant, records, res, held, nominal | noise, sd, delay, rule))
+        effects.append(_nested(name, plant, records, res, held, scales, sd, delay, rule))
     say("the missing force")
     kept = max((x for x in effects if x.name in NESTED and x.test.enters), key=lambda x: x.lr, default=None)
     # drawn on the linear parameters of the nested effect that entered, the effect left out: its force is then the
@@ -420,7 +431,7 @@ def _nested(
     ``linear``: from inside the effect and from its null (:func:`harness.likelihood.effects.nested_start`), the
     better kept (a search from inside alone can stop in a basin the linear parameters make for it, below the null),
     judged by ``rule``."""
-    param = NESTED[name]
+    param = {**NESTED, **SENSOR_NESTED}[name]
     drive = rig_model(plant, *split_values(linear.values() | held)).drive
     where = nested_start(name, records, drive)
     fits = []
