@@ -865,9 +865,12 @@ def diagnose(
     )
     diagnosis_screen(d, out_dir or real).print(out)
     if engine == "likelihood":
-        from .likelihood.unit import write_likelihood
+        from .likelihood.unit import with_likelihood, write_likelihood
         from .render.force import write_force_views
         from .render.summary import Summary
+        from .rundir import RunDir
+
+        with_likelihood(d, unit).write(RunDir(out_dir or real).diagnosis)  # each model tried: its likelihood too
 
         _, png = write_force_views(out_dir or real, unit.picture, unit.missing_force.words(), unit.curve)
         s = Summary("likelihood.json")

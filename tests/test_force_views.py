@@ -254,8 +254,10 @@ def _friction_twin(tmp_path: Path) -> Path:
 
 def test_diagnose_with_the_likelihood_engine_draws_the_missing_force(tmp_path):
     """``flexjoint diagnose --engine likelihood --out DIR`` on a friction twin writes force_picture.png and
-    force_picture.parquet beside likelihood.json, the parquet's records those of likelihood.json; then ``flexjoint
-    report DIR``: report.md's "Missing force" names the shape likelihood.json gives, run.rrd the force's entities."""
+    force_picture.parquet beside likelihood.json, the parquet's records those of likelihood.json, and gives
+    diagnosis.json's candidates the engine fitted their likelihood (friction's, which enters, as likelihood.json has
+    it); then ``flexjoint report DIR``: report.md's "Missing force" names the shape likelihood.json gives, run.rrd the
+    force's entities."""
     run = _friction_twin(tmp_path)
     out = tmp_path / "diag"
     r = subprocess.run([sys.executable, "-m", "harness", "diagnose", "--real", str(run), "--out", str(out),
@@ -264,6 +266,10 @@ def test_diagnose_with_the_likelihood_engine_draws_the_missing_force(tmp_path):
     assert r.returncode == 0, r.stderr
     paths = RunDir(out)
     doc = json.loads(paths.likelihood.read_text())
+    candidates = {c["effect"]: c for c in json.loads(paths.diagnosis.read_text())["candidates"]}
+    friction = candidates["coulomb_friction"]["likelihood"]  # each model tried, with its likelihood
+    assert friction == doc["effects"]["coulomb_friction"]["likelihood"]
+    assert {"logL", "k", "n", "lr", "p", "critical"} <= set(friction) and friction["enters"]
     traces = read_traces(paths.force_traces)
     assert [tr.name for tr in traces] == doc["records"]
     assert paths.force_figure.read_bytes()[:4] == b"\x89PNG" and "force_picture.png" in r.stdout

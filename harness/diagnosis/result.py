@@ -182,7 +182,10 @@ class Candidate:
     """A candidate effect on the first round of the forward selection, alone on top of the recalibrated rig:
     ``params`` fitted (empty when not tried), ``held_out_share_pct``: share [%] of the excess squared gap it closes
     on held-out data (NaN when not tried: it is then ``note``'s reason), ``shrink_pct`` and ``gap_after`` (held
-    out), ``refit``: set when a joint refit with the linear parameters did better than the screening."""
+    out), ``refit``: set when a joint refit with the linear parameters did better than the screening;
+    ``likelihood``: the likelihood engine's fit of the effect and its test (``logL``, ``k``, ``n``, ``lr``, ``p``,
+    ``critical``, ...: :meth:`harness.likelihood.unit.EffectFit.to_json`'s), where ``diagnose --engine likelihood``
+    tried it."""
 
     effect: str
     params: dict[str, float]
@@ -191,6 +194,7 @@ class Candidate:
     gap_after: float | None = None
     refit: str | None = None
     note: str | None = None
+    likelihood: dict[str, Any] | None = None
 
     @property
     def tried(self) -> bool:

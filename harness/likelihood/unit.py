@@ -28,6 +28,7 @@ from ..diagnosis.experiments import load_experiments
 from ..diagnosis.gauge import gauge_delay
 from ..diagnosis.noise import adc_lattice
 from ..diagnosis.recalibrate import LINEAR, parts_at_bound
+from ..diagnosis.result import Diagnosis
 from ..diagnosis.simulation import fmu_value, sim_rig
 from ..ident.calibration import Calibration, load_calibration
 from ..rundir import write_json
@@ -48,6 +49,7 @@ __all__ = [
     "fit_run",
     "fit_unit",
     "linear_start",
+    "with_likelihood",
     "write_likelihood",
 ]
 
@@ -489,6 +491,14 @@ def _lag_one(z: np.ndarray) -> float:
     if ok.sum() < 3:
         return float("nan")
     return float(np.corrcoef(z[:-1][ok], z[1:][ok])[0, 1])
+
+
+def with_likelihood(diagnosis: Diagnosis, unit: UnitFit) -> Diagnosis:
+    """``diagnosis`` with each candidate the engine fitted given its ``likelihood`` (its fit's ``logL``, ``k``,
+    ``n`` and its test: :meth:`EffectFit.to_json`'s ``likelihood``)."""
+    tried = {x.name: x.to_json()["likelihood"] for x in unit.effects}
+    candidates = [replace(c, likelihood=tried.get(c.effect, c.likelihood)) for c in diagnosis.candidates]
+    return replace(diagnosis, candidates=candidates)
 
 
 def write_likelihood(out: Path, unit: UnitFit) -> Path:
