@@ -75,7 +75,7 @@ def test_the_rule_is_the_chi_bar_square_scaled_by_the_inflation():
 
 @pytest.mark.parametrize(
     ("closed", "bits", "seed"),
-    [(True, 8, 601), (False, 8, 602), (True, 10, 603), (False, 10, 604), (True, 12, 605), (False, 12, 606)],
+    [(True, 8, 601), (False, 10, 604), (True, 12, 605)],
 )
 def test_friction_stays_out_of_a_friction_free_quantised_twin(closed, bits, seed):
     """On friction-free twins at 8, 10 and 12 bits, open and closed loop, through the engine as a unit's records go:
@@ -87,7 +87,7 @@ def test_friction_stays_out_of_a_friction_free_quantised_twin(closed, bits, seed
     assert r.shape == "none", r
 
 
-@pytest.mark.parametrize(("closed", "bits", "seed"), [(True, 8, 611), (False, 10, 612), (True, 12, 613)])
+@pytest.mark.parametrize(("closed", "bits", "seed"), [(True, 8, 611), (False, 10, 612)])
 def test_friction_of_a_hundredth_enters_a_quantised_twin(closed, bits, seed):
     """With Coulomb friction of 0.01 N m (77 mV of command), the friction nested on the linear fit enters at 1 %
     and is sized within 25 %; the missing force drawn without it is named friction within 20 %."""
@@ -97,23 +97,23 @@ def test_friction_of_a_hundredth_enters_a_quantised_twin(closed, bits, seed):
 
 
 def test_the_rules_calibration_counts_its_cases():
-    """calibrate_rule on two cases of each kind, serially: the cases are the seeds' (closed loop on even seeds,
-    8, 10, 12 bits in turn), none of the friction-free ones alarms and each is named none, both with friction enter
-    sized and named, and its JSON says so; a case whose hub leaves the pot's track is skipped, not judged; a case
-    whose linear fit had a finding counts as not detected."""
-    cal = calibrate_rule(2, seed=700, workers=1)
-    assert [r.case for r in cal.null] == [Case(700, True, 10, 0.0), Case(701, False, 12, 0.0)]
+    """calibrate_rule on one case of each kind, serially: the case is the seed's (open loop on odd seeds, 8, 10, 12
+    bits in turn: 701 an open loop at 12 bits), the friction-free one does not alarm and is named none, the one with
+    friction enters sized and named, and its JSON says so; a case whose hub leaves the pot's track is skipped, not
+    judged; a case whose linear fit had a finding counts as not detected."""
+    cal = calibrate_rule(1, seed=701, workers=1)
+    assert [r.case for r in (*cal.null, *cal.effect)] == [Case(701, False, 12, 0.0), Case(701, False, 12, 0.01)]
     assert cal.false_alarms == 0.0 and cal.named_none == 1.0
     assert cal.power == 1.0 and cal.sized == 1.0 and cal.named_friction == 1.0
     doc = cal.to_json()
     largest = max(t.lr for r in cal.null for t in r.tests.values())
-    assert doc["null"] == {"cases": 2, "judged": 2, "false_alarms": 0.0, "largest_lr": largest, "named_none": 1.0,
+    assert doc["null"] == {"cases": 1, "judged": 1, "false_alarms": 0.0, "largest_lr": largest, "named_none": 1.0,
                            "white": cal.white}  # fmt: skip
     assert doc["effect"]["power"] == 1.0 and doc["level"] == 0.01 and doc["findings"] == []
     skipped = CaseResult(Case(1, False, 8, 0.0), {}, None, "", 0.0, False, skipped="the hub leaves the pot's track")
     assert RuleCalibration(Rule(), (*cal.null, skipped), cal.effect).false_alarms == 0.0
     found = CaseResult(Case(3, False, 8, 0.01), {}, None, "none", 0.0, False, findings="a bound")
-    assert RuleCalibration(Rule(), cal.null, (*cal.effect, found)).power == pytest.approx(2 / 3)
+    assert RuleCalibration(Rule(), cal.null, (*cal.effect, found)).power == pytest.approx(1 / 2)
 
 
 @pytest.mark.parametrize("rho", [0.0, 0.7])
