@@ -93,6 +93,7 @@ def test_friction_of_a_hundredth_enters_a_quantised_twin(closed, bits, seed):
     and is sized within 25 %; the missing force drawn without it is named friction within 20 %."""
     r = judge_case(Case(seed, closed, bits, 0.01), Rule())
     assert r.tests["coulomb_friction"].enters and r.friction == pytest.approx(0.01, rel=0.25), r
+    assert r.tests["coulomb_friction"].agrees is not None  # fitted on the record's halves
     assert r.shape == "friction" and r.size == pytest.approx(0.01, rel=0.2), r
 
 
@@ -134,3 +135,13 @@ def test_vuongs_test_holds_its_level_where_two_models_are_as_close(rho):
     three = rule.compare(np.full(n, 0.01) + rng.standard_normal(n), record, sample, settings=3)
     one = rule.compare(np.full(n, 0.01) + rng.standard_normal(n), record, sample)
     assert three.critical > one.critical
+
+
+def test_the_folds_agree_where_their_intervals_share_a_value():
+    """The rule's second condition, said beside the test (not yet required): intervals that share a value agree
+    (touching counts), ones that do not, do not, and the JSON says which."""
+    t = Rule().test(50.0, 1.0)
+    assert t.enters and t.agrees is None
+    assert Rule.agree(t, [(0.9, 1.1), (1.0, 1.3), (1.1, 1.2)]).agrees
+    apart = Rule.agree(t, [(0.9, 1.0), (1.05, 1.3)])
+    assert apart.agrees is False and apart.to_json()["agrees"] is False and apart.enters

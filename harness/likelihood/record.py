@@ -68,6 +68,13 @@ class Record:
             return self
         return Record(self.name, self.Ts, np.clip(self.u, -limit, limit), self.y, self.mask, self.lattice)
 
+    def halves(self) -> tuple[Record, Record]:
+        """The record's first and second half in time, each its own record (``name/1``, ``name/2``): the folds of a
+        unit of one record."""
+        h = self.n // 2
+        first = Record(f"{self.name}/1", self.Ts, self.u[:h], self.y[:h], self.mask[:h], self.lattice)
+        return first, Record(f"{self.name}/2", self.Ts, self.u[h:], self.y[h:], self.mask[h:], self.lattice)
+
     @classmethod
     def from_experiment(cls, exp: RigExperiment) -> Record:
         """The record of an experiment as :func:`harness.diagnosis.experiments.load_experiments` loads it."""

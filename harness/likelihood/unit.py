@@ -33,7 +33,7 @@ from ..diagnosis.simulation import fmu_value, sim_rig
 from ..ident.calibration import Calibration, load_calibration
 from ..rundir import write_json
 from .effects import NESTED, PROFILED, SENSOR_NESTED, SHAPE, nested_start, profile_settings, search_order
-from .fit import BOUNDS, TORQUES, MLFit, filter_record, fit, innovations, noise_start, split_values
+from .fit import BOUNDS, TORQUES, Estimate, MLFit, filter_record, fit, innovations, noise_start, split_values
 from .force import EffectCurve, ForcePicture, MissingForce, classify, effect_curve, force_picture
 from .model import EFFECTS, rig_model
 from .record import Record
@@ -60,8 +60,8 @@ class EffectFit:
     effects), the ``fit`` (the linear parameters and the noise refitted beside the effect's own), the effect's own
     ``parameters`` (names as the plant FMU's; a nested effect's) or its integer ``settings`` (an integer effect's best,
     by profile), the ``test`` of its likelihood-ratio statistic over the linear model
-    (:class:`harness.likelihood.rule.EffectTest`) and the drive's torque per volt ``drive`` [N m/V] (a torque's size
-    as a command)."""
+    (:class:`harness.likelihood.rule.EffectTest`), the drive's torque per volt ``drive`` [N m/V] (a torque's size
+    as a command), and a nested effect that passed its test, its size on each of the unit's ``folds``."""
 
     name: str
     fit: MLFit
@@ -69,6 +69,7 @@ class EffectFit:
     test: EffectTest
     drive: float
     settings: dict[str, int] = field(default_factory=dict)
+    folds: tuple[Estimate, ...] = ()
 
     @property
     def lr(self) -> float:
@@ -86,6 +87,8 @@ class EffectFit:
         parts += [f"{k.split('.')[1]} {v}" for k, v in self.settings.items()]
         t = self.test
         verdict = f"> {t.critical:.3g}: enters" if t.enters else f"<= {t.critical:.3g}: stays out"
+        if t.agrees is False:
+            verdict += " (folds apart)"
         return f"  {self.name}: {'; '.join(parts)}, LR {t.lr:.3g} {verdict}"
 
     def to_json(self) -> dict[str, Any]:
@@ -96,6 +99,7 @@ class EffectFit:
                                "unit": f.estimates[k].unit, "at_bound": f.estimates[k].at} for k in self.parameters}
                           | {k: {"fitted": v} for k, v in self.settings.items()},
             "likelihood": {"logL": f.loglik, "k": f.k, "n": f.n, **self.test.to_json()},
+            "folds": [{"fitted": e.value, "ci95": list(e.ci95)} for e in self.folds],
             "converged": f.converged,
         }  # fmt: skip
 
@@ -444,7 +448,15 @@ def _nested(
     res = max(fits, key=lambda f: f.loglik)
     drive = rig_model(plant, *split_values(res.values() | held)).drive  # the drive as the nested fit has it
     test = rule.test(2.0 * (res.loglik - linear.loglik), res.estimates[param].inflation)
-    return EffectFit(name, res, (param,), test, drive)
+    folds: tuple[Estimate, ...] = ()
+    if test.lr > test.critical:  # its size on each fold: the records, or a lone record's halves
+        start = {k: v for k, v in res.values().items() if k not in held}
+        parts = records if len(records) > 1 else list(records[0].halves())
+        folds = tuple(fit(plant, [part], start, fixed=held, nominal=nominal | {param: where.nominal},
+                          prior_sd={k: sd[k] for k in start if k in sd}, delay=delay).estimates[param]
+                      for part in parts)  # fmt: skip
+        test = rule.agree(test, [e.ci95 for e in folds])
+    return EffectFit(name, res, (param,), test, drive, folds=folds)
 
 
 def _profiled(
