@@ -254,6 +254,7 @@ def test_a_delay_of_tens_of_samples_is_found_by_the_units_profile():
     delay = next(x for x in unit.effects if x.name == "delay")
     assert delay.test.enters and delay.settings == {"daq.delay_samples": 20}, delay.test
     assert "delay" in unit.structure and not unit.findings
+    assert "  the linear model with: delay (each entered by the rule)" in unit.summary()
     for name, want in _truth(ONE).items():
         assert unit.fit.estimates[name].value == pytest.approx(want, rel=0.05), name
 

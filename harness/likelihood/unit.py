@@ -141,6 +141,8 @@ class UnitFit:
         f = self.fit
         head = f"likelihood engine: {len(self.records)} records, {f.n} readings, log-likelihood {f.loglik:.1f}"
         lines = [head + ("" if f.converged else f" (search stopped: {f.message[:40]})")]
+        if self.structure:
+            lines.append(f"  the linear model with: {', '.join(self.structure)} (each entered by the rule)")
         moved = sorted(((abs(np.log(e.value / self.nominal[k])), k, e) for k, e in f.estimates.items()
                         if k in self.nominal and e.value > 0 and self.nominal[k] > 0), reverse=True)  # fmt: skip
         for _, k, e in moved[:5]:
