@@ -109,7 +109,7 @@ def test_the_rules_calibration_counts_its_cases():
     doc = cal.to_json()
     largest = max(t.lr for r in cal.null for t in r.tests.values())
     assert doc["null"] == {"cases": 1, "judged": 1, "false_alarms": 0.0, "largest_lr": largest, "named_none": 1.0,
-                           "white": cal.white}  # fmt: skip
+                           "white": cal.white, "alarms": []}  # fmt: skip
     assert doc["effect"]["power"] == 1.0 and doc["level"] == 0.01 and doc["findings"] == []
     skipped = CaseResult(Case(1, False, 8, 0.0), {}, None, "", 0.0, False, skipped="the hub leaves the pot's track")
     assert RuleCalibration(Rule(), (*cal.null, skipped), cal.effect).false_alarms == 0.0

@@ -184,16 +184,18 @@ class RuleCalibration:
         return self._share([r.white for r in self._judged(self.null)])
 
     def to_json(self) -> dict[str, Any]:
-        """The shares, the cases' counts, the largest statistic on a friction-free case and the cases whose linear
-        fit had a finding (its effects not tried)."""
+        """The shares, the cases' counts, the largest statistic on a friction-free case, which effect entered on
+        which friction-free case, and the cases whose linear fit had a finding (its effects not tried)."""
         null_lr = [t.lr for r in self._judged(self.null) for t in r.tests.values()]
         found = [r.case.seed for r in (*self.null, *self.effect) if r.findings]
+        alarms = sorted((r.case.seed, name) for r in self._judged(self.null) for name, t in r.tests.items() if t.enters)
         return {
             "level": self.rule.level,
             "findings": found,
             "null": {"cases": len(self.null), "judged": len(self._judged(self.null)),
                      "false_alarms": self.false_alarms, "largest_lr": max(null_lr, default=float("nan")),
-                     "named_none": self.named_none, "white": self.white},
+                     "named_none": self.named_none, "white": self.white,
+                     "alarms": [{"seed": seed, "effect": name} for seed, name in alarms]},
             "effect": {"cases": len(self.effect), "judged": len(self._judged(self.effect)), "power": self.power,
                        "sized_within": SIZED, "sized": self.sized, "named_within": NAMED,
                        "named_friction": self.named_friction,
