@@ -1,4 +1,4 @@
-"""Whether a nested effect enters: its likelihood-ratio statistic against its own null distribution.
+"""Whether an effect enters: its likelihood-ratio statistic against its own null distribution.
 
 An effect's parameter is nested in the linear rig at a bound (friction at none, a limit past the records' peak
 command), so under the linear rig its likelihood-ratio statistic LR = 2 (logL_effect - logL_linear) is zero half the
@@ -18,8 +18,8 @@ to the records; the alternative enters when it is closer at the level, divided a
 
 An effect that passes its test is also fitted on each fold of the unit (its records, or a lone record's halves), and
 whether its 95 % intervals there share a value is said (:meth:`Rule.agree`), not yet required: the friction's
-intervals are narrower than the filter's own error (one friction torque held over each 1 ms substep), and on an
-open-loop twin with 0.01 N m the halves gave 0.01019 (0.01013..0.01025) and 0.00999 (0.00994..0.01004) N m.
+intervals are narrower than the filter's own error (one friction torque held over each 1 ms substep), so that a
+record's halves can disagree on a true friction (the validation page).
 """
 
 from __future__ import annotations
