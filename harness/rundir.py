@@ -50,6 +50,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from .spec import Spec, from_dict
+from .spec import load as load_spec
 
 REQUIRED = ("t", "u", "theta_v", "alpha_v")
 CHECKED = ("ref",)  # optional columns that must be finite where present: a closed-loop record's reference [deg]
@@ -322,6 +323,28 @@ class Manifest:
     def entry(self, name: str) -> ExperimentEntry | None:
         """Experiment ``name``'s entry (None when the run has no such experiment)."""
         return next((e for e in self.experiments if e.name == name), None)
+
+
+def check_rig(rig: str | Path) -> None:
+    """Refuse, in one line, a ``RIG`` (``flexjoint predict``, ``design``) that names no rig: a directory without a
+    diagnosis (no model of the rig to close a loop on), or a spec that does not load; cheap, so that a command says
+    so before it starts a cluster.
+
+    Raises
+    ------
+    DataError
+        A directory without diagnosis.json.
+    """
+    p = Path(rig)
+    if p.is_dir():
+        if not RunDir(p).diagnosis.is_file():
+            what = "a run without a diagnosis" if RunDir(p).manifest.is_file() else "no diagnosis"
+            raise DataError(
+                f"RIG {rig}: {what}, so no closed-loop model of the rig: run `flexjoint diagnose --real {rig}` first, "
+                "or give a spec"
+            )
+    else:
+        load_spec(rig)
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:

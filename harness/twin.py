@@ -49,7 +49,7 @@ from .fmu.cosim import CALIBRATION
 from .fmu.modeldesc import source_model
 from .ident.calibration import alpha_deg, load_calibration, theta_deg
 from .rig.controller import Controller
-from .rundir import DataError, Manifest, RunDir, read_dataset, sample_time
+from .rundir import DataError, Manifest, RunDir, check_rig, read_dataset, sample_time
 
 __all__ = ["Record", "RigTables", "Spread", "Twin", "draw", "load_record", "load_twin", "measurement_noise",
            "spread_of_diagnosis", "with_record_offset"]  # fmt: skip
@@ -312,16 +312,9 @@ def load_twin(rig: str | Path) -> Twin:
     DataError
         One line when a directory holds no diagnosis (no model of the rig to close a loop on).
     """
+    check_rig(rig)
     p = Path(rig)
-    if p.is_dir():
-        if not RunDir(p).diagnosis.is_file():
-            what = "a run without a diagnosis" if RunDir(p).manifest.is_file() else "no diagnosis"
-            raise DataError(
-                f"RIG {rig}: {what}, so no closed-loop model of the rig: run `flexjoint diagnose --real {rig}` first, "
-                "or give a spec"
-            )
-        return twin_of_diagnosis(p)
-    return twin_of_spec(specmod.load(rig))
+    return twin_of_diagnosis(p) if p.is_dir() else twin_of_spec(specmod.load(rig))
 
 
 def draw(twin: Twin, n: int, seed: int) -> list[dict[str, float]]:

@@ -206,6 +206,8 @@ def test_bad_input_is_one_line_and_writes_nothing(tmp_path):
         (["predict", str(tmp_path), "--controller", "pid:kp=1", "--out", str(out)], "no closed-loop model"),
         (["predict", "nominal", "--out", str(out)], "no controller"),
         (["predict", "nominal", "--controller", "pid:kp=1", "--specs", "settling=0", "--out", str(out)], "> 0"),
+        (["predict", "no_such_spec", "--controller", "pid:kp=1", "--out", str(out)], "no_such_spec"),
+        (["design", str(tmp_path), "--method", "lqr", "--out", str(out)], "no closed-loop model"),
     ]
     for args, why in cases:
         r = flexjoint(*args)
