@@ -279,6 +279,9 @@ def test_a_units_linear_model_is_fitted_from_an_off_sheet_with_nothing_at_a_boun
     assert limit.fit.estimates["plant.amp_limit"].at == "lower" and not limit.test.enters, limit
     lines = unit.summary()
     assert "  nothing at a bound: effects may be tried" in lines and "  missing force: none" in lines
+    assert not any(x.startswith("  not white at: ") for x in lines)  # no band, no stretch flagged
+    doc = json.loads(write_likelihood(tmp_path, unit).read_text())["where"]
+    assert set(doc) == set(unit.records) and {"bands", "windows"} <= set(doc[unit.records[0]]["alpha"])
     assert unit.drawn_without is None and unit.curve is None
     assert len(lines) <= 15 and max(map(len, lines)) <= 100
 

@@ -145,3 +145,25 @@ def test_the_folds_agree_where_their_intervals_share_a_value():
     assert Rule.agree(t, [(0.9, 1.1), (1.0, 1.3), (1.1, 1.2)]).agrees
     apart = Rule.agree(t, [(0.9, 1.0), (1.05, 1.3)])
     assert apart.agrees is False and apart.to_json()["agrees"] is False and apart.enters
+
+
+def test_the_residuals_say_when_and_at_which_frequencies_they_are_not_white():
+    """Where: on 200 white series (2500 samples at 500 Hz) a band or a window is flagged on at most 3 % (each family
+    at 1 %, shared among its members); a sinusoid of amplitude 0.5 at 37 Hz flags the octave that holds 37 Hz and no other; a
+    burst of AR(1) in the fourth of ten stretches flags that stretch and no other."""
+    from harness.likelihood.whiteness import by_band, by_window
+
+    rng = np.random.default_rng(5)
+    Ts, n = 0.002, 2500
+    flagged = sum(any(b.flagged for b in by_band(z, Ts)) or any(w.flagged for w in by_window(z, Ts))
+                  for z in rng.standard_normal((200, n)))  # fmt: skip
+    assert flagged <= 6
+    t = np.arange(n) * Ts
+    bands = by_band(rng.standard_normal(n) + 0.5 * np.sin(2 * np.pi * 37.0 * t), Ts)
+    assert [b.lo_hz <= 37.0 <= b.hi_hz for b in bands] == [b.flagged for b in bands] and any(b.flagged for b in bands)
+    assert bands[-1].hi_hz == pytest.approx(250.0, abs=0.5) and bands[0].lo_hz < 5.0
+    z = rng.standard_normal(n)
+    z[750:1000] = _ar1(0.8, 250, rng) * 0.6
+    windows = by_window(z, Ts)
+    assert len(windows) == 10 and [w.flagged for w in windows] == [i == 3 for i in range(10)]
+    assert windows[3].t0 == pytest.approx(1.5) and windows[3].t1 == pytest.approx(2.0)

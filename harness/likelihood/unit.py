@@ -13,6 +13,7 @@ model cannot draw what the records show; both are findings, not a start for effe
 
 from __future__ import annotations
 
+import dataclasses
 import textwrap
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -38,7 +39,7 @@ from .force import EffectCurve, ForcePicture, MissingForce, classify, effect_cur
 from .model import EFFECTS, rig_model
 from .record import Record
 from .rule import EffectTest, Rule
-from .whiteness import LAGS, LEVEL, ljung_box
+from .whiteness import LAGS, LEVEL, Where, ljung_box, where
 
 __all__ = [
     "EffectFit",
@@ -118,7 +119,8 @@ class UnitFit:
     parameters without it (``drawn_without``), and its ``curve`` (:func:`harness.likelihood.force.effect_curve`)
     goes over it. The integer effects that entered (a second mode, a delay: ``structure``) are the linear model's
     own: ``fit`` is the fit with them, and everything after it (the findings, the nested effects, the picture) is
-    drawn from it."""
+    drawn from it. ``where`` says, per record and channel, in which octave bands and stretches of time the linear
+    fit's residuals are not white (:func:`harness.likelihood.whiteness.where`)."""
 
     fit: MLFit
     records: tuple[str, ...]
@@ -134,6 +136,7 @@ class UnitFit:
     drawn_without: str | None = None
     curve: EffectCurve | None = None
     structure: tuple[str, ...] = ()
+    where: dict[str, dict[str, Where]] = field(default_factory=dict)
 
     def summary(self) -> list[str]:
         """A few lines for the terminal (under 100 characters each): the fit, the parameters that moved most from
@@ -159,6 +162,9 @@ class UnitFit:
         lines.append(
             "  " + textwrap.shorten(white + (f"; not: {', '.join(grey)}" if grey else ""), 98, placeholder=" ...")
         )
+        at = [f"{r} {c} {w.words()}" for r, ws in self.where.items() for c, w in ws.items() if w.words()]
+        if at:
+            lines.append("  " + textwrap.shorten(f"not white at: {'; '.join(at)}", 98, placeholder=" ..."))
         without = f" (drawn without {self.drawn_without})" if self.drawn_without else ""
         force = f"missing force{without}: {self.missing_force.words()}"
         lines.append("  " + textwrap.shorten(force, 98, placeholder=" ..."))
@@ -190,6 +196,7 @@ class UnitFit:
             "gauge_late_samples": self.gauge_late,
             "lag_one": self.lag_one,
             "whiteness": {"test": "Ljung-Box", "lags": LAGS, "level": LEVEL, "p": self.whiteness},
+            "where": {r: {c: dataclasses.asdict(w) for c, w in ws.items()} for r, ws in self.where.items()},
             "findings": list(self.findings),
             "missing_force": self.missing_force.to_json() | {"drawn_without": self.drawn_without},
             "structure": list(self.structure),
@@ -394,11 +401,12 @@ def fit_unit(
                 res, scales = eff.fit, scales | {param: nested_start(name, records, eff.drive).nominal}
     structure = tuple(x.name for x in effects if x.test.enters)
     values = res.values() | held
-    lag_one, white = {}, {}
+    lag_one, white, places = {}, {}, {}
     for rec in records:
         z = filter_record(plant, values, rec, delay).standardised(np.asarray(rec.lattice))
         lag_one[rec.name] = {c: _lag_one(z[:, j]) for j, c in enumerate(("theta", "alpha"))}
         white[rec.name] = {c: ljung_box(z[:, j]).p for j, c in enumerate(("theta", "alpha"))}
+        places[rec.name] = {c: where(z[:, j], rec.Ts) for j, c in enumerate(("theta", "alpha"))}
     linear = {k: (nominal[k], e.value) for k, e in res.estimates.items() if k in LINEAR}
     findings = [*parts_at_bound(linear)]
     findings += [f"{BOUNDS[k].label} ends at its upper bound: the linear model cannot draw what the records show"
@@ -421,7 +429,8 @@ def fit_unit(
             volts = size / kept.drive if mf.unit == "N m" else mf.dead_band_v
             mf = replace(mf, size=size, dead_band_v=volts, sized_by=kept.name, picture_size=mf.size)
     return UnitFit(res, tuple(r.name for r in records), nominal, held, lag_one, white, tuple(findings), mf,
-                   picture, tuple(effects), gauge_late, kept.name if kept else None, curve, structure)  # fmt: skip
+                   picture, tuple(effects), gauge_late, kept.name if kept else None, curve, structure,
+                   places)  # fmt: skip
 
 
 def _nested(
@@ -441,11 +450,11 @@ def _nested(
     judged by ``rule``."""
     param = {**NESTED, **SENSOR_NESTED}[name]
     drive = rig_model(plant, *split_values(linear.values() | held)).drive
-    where = nested_start(name, records, drive)
+    at = nested_start(name, records, drive)
     fits = []
-    for begin in (where.inside, where.null):
+    for begin in (at.inside, at.null):
         start = {k: v for k, v in linear.values().items() if k not in held} | {param: begin}
-        fits.append(fit(plant, records, start, fixed=held, nominal=nominal | {param: where.nominal},
+        fits.append(fit(plant, records, start, fixed=held, nominal=nominal | {param: at.nominal},
                         prior_sd={k: sd[k] for k in start if k in sd}, delay=delay))  # fmt: skip
     res = max(fits, key=lambda f: f.loglik)
     drive = rig_model(plant, *split_values(res.values() | held)).drive  # the drive as the nested fit has it
@@ -454,7 +463,7 @@ def _nested(
     if test.lr > test.critical:  # its size on each fold: the records, or a lone record's halves
         start = {k: v for k, v in res.values().items() if k not in held}
         parts = records if len(records) > 1 else list(records[0].halves())
-        folds = tuple(fit(plant, [part], start, fixed=held, nominal=nominal | {param: where.nominal},
+        folds = tuple(fit(plant, [part], start, fixed=held, nominal=nominal | {param: at.nominal},
                           prior_sd={k: sd[k] for k in start if k in sd}, delay=delay).estimates[param]
                       for part in parts)  # fmt: skip
         test = rule.agree(test, [e.ci95 for e in folds])
