@@ -174,6 +174,25 @@ def test_the_report_says_the_shape_its_size_and_the_samples_at_rest(tmp_path):
     assert max(map(len, lines)) < 200
     none = views.force_markdown(MissingForce("none", 0.0, "N m", 0.0, 3), pic.traces, None)
     assert "- shape: **none**" in none and not any("![" in x for x in none)
+    assert not any("not white" in x for x in lines)
+
+
+def test_the_report_says_where_the_residuals_are_not_white(tmp_path):
+    """likelihood.json's ``where`` read back (Where.from_json of its asdict) names the flagged bands and stretches;
+    the report lists the first eight record channels and says how many more."""
+    import dataclasses as dc
+
+    from harness.likelihood.whiteness import Band, Where, Window
+
+    w = Where((Band(3.1, 6.2, 2.5, 1e-9, True), Band(6.3, 12.4, 1.0, 0.5, False)),
+              (Window(0.0, 3.0, 0.4, False), Window(3.0, 6.0, 1e-6, True)))  # fmt: skip
+    back = Where.from_json(json.loads(json.dumps(dc.asdict(w))))
+    assert back == w and back.words() == "3.1-6.2 Hz, 3-6 s"
+    res = dc.replace(_results(tmp_path, _picture(1, 2, 1.0), png=False),
+                     not_white=tuple(f"rec{i} alpha: {w.words()}" for i in range(10)))  # fmt: skip
+    lines = _force_lines(res)
+    assert "- rec0 alpha: 3.1-6.2 Hz, 3-6 s" in lines and "- and 2 more (`likelihood.json`)" in lines
+    assert "- rec8 alpha: 3.1-6.2 Hz, 3-6 s" not in lines
 
 
 @pytest.mark.parametrize(("coulomb", "seed"), [(0.03, 1), (0.02, 4)])

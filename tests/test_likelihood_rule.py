@@ -149,8 +149,8 @@ def test_the_folds_agree_where_their_intervals_share_a_value():
 
 def test_the_residuals_say_when_and_at_which_frequencies_they_are_not_white():
     """Where: on 200 white series (2500 samples at 500 Hz) a band or a window is flagged on at most 3 % (each family
-    at 1 %, shared among its members); a sinusoid of amplitude 0.5 at 37 Hz flags the octave that holds 37 Hz and no other; a
-    burst of AR(1) in the fourth of ten stretches flags that stretch and no other."""
+    at 1 %, shared among its members); a sinusoid of amplitude 0.5 at 37 Hz flags the octave that holds 37 Hz and no
+    other; a burst of AR(1) in the fourth of ten stretches flags that stretch and no other."""
     from harness.likelihood.whiteness import by_band, by_window
 
     rng = np.random.default_rng(5)

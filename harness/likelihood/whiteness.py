@@ -181,6 +181,11 @@ class Where:
     bands: tuple[Band, ...]
     windows: tuple[Window, ...]
 
+    @classmethod
+    def from_json(cls, doc: dict) -> Where:
+        """As ``likelihood.json``'s ``where`` holds one record channel (:func:`dataclasses.asdict`'s)."""
+        return cls(tuple(Band(**b) for b in doc.get("bands", ())), tuple(Window(**w) for w in doc.get("windows", ())))
+
     def words(self) -> str:
         """The flagged bands and stretches in a few words ("31-62 Hz, 1.5-2 s"), empty where none is flagged."""
         parts = [f"{b.lo_hz:.3g}-{b.hi_hz:.3g} Hz" for b in self.bands if b.flagged]

@@ -23,6 +23,7 @@ from ..ident.calibration import Calibration
 from ..ident.identify import PreparedExperiment, prepare
 from ..likelihood.force import ForceTrace, MissingForce
 from ..likelihood.traces import read_traces
+from ..likelihood.whiteness import Where
 from ..rundir import DataError, Manifest, RunDir, load_run, stale_artefacts
 from ..spec import IDENTIFY_DEFAULTS
 
@@ -43,8 +44,9 @@ class RunResults:
     ``records``: every experiment's dataset (all roles, manifest order); ``replays``: the diagnosis's replays beside
     the record per experiment (:mod:`harness.diagnosis.replays`); ``missing_force``: the likelihood engine's verdict
     (likelihood.json's ``missing_force``) and ``force`` the smoothed force per record it was read from
-    (force_picture.parquet, :mod:`harness.likelihood.traces`), beside a diagnosis when ``diagnose --engine likelihood``
-    wrote them. A directory that ``flexjoint diagnose --out``
+    (force_picture.parquet, :mod:`harness.likelihood.traces`), and ``not_white``, where its residuals are not white
+    (likelihood.json's ``where``: "record channel: bands, stretches"), beside a diagnosis when ``diagnose --engine
+    likelihood`` wrote them. A directory that ``flexjoint diagnose --out``
     wrote holds a diagnosis only: its manifest is then a stand-in of kind "diagnosis" with no experiments.
     ``stale``: the artefacts left out because they were made from other inputs than the directory holds
     (:func:`harness.rundir.stale_artefacts`: artefact -> the line that says so).
@@ -67,6 +69,7 @@ class RunResults:
     replays: dict[str, Replay] = field(default_factory=dict)
     missing_force: MissingForce | None = None
     force: tuple[ForceTrace, ...] = ()
+    not_white: tuple[str, ...] = ()
     af: float = float(IDENTIFY_DEFAULTS["af"])
     ic: str = str(IDENTIFY_DEFAULTS["ic"])
     stale: dict[str, str] = field(default_factory=dict)
@@ -175,6 +178,8 @@ def load_results(run: Path) -> RunResults:
     likelihood = _read_json(paths.likelihood) if res.diagnosis is not None else None
     if likelihood is not None and paths.force_traces.exists():
         res.missing_force, res.force = _verdict(paths.likelihood, likelihood), read_traces(paths.force_traces)
+        res.not_white = tuple(f"{r} {c}: {w}" for r, chans in likelihood.get("where", {}).items()
+                              for c, doc in chans.items() if (w := Where.from_json(doc).words()))  # fmt: skip
     res.doubled_rate = _read_json(paths.doubled_rate) if "doubled_rate.json" not in res.stale else None
     return res
 

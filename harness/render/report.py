@@ -556,12 +556,18 @@ def _section_diagnosis(res: RunResults, figdir: Path, drawings: Drawings) -> lis
 
 def _force_lines(res: RunResults) -> list[str]:
     """The likelihood engine's missing force (when ``diagnose --engine likelihood`` wrote it): its shape, size and
-    samples at rest, its figure (drawn by diagnose, beside report.md) linked."""
+    samples at rest, its figure (drawn by diagnose, beside report.md) linked; where the residuals are not white."""
     mf = res.missing_force
     if mf is None:
         return []
     png = res.paths.force_figure
-    return force_markdown(mf, res.force, png.name if png.exists() else None)
+    lines = force_markdown(mf, res.force, png.name if png.exists() else None)
+    if res.not_white:
+        shown = [f"- {x}" for x in res.not_white[:8]] + ([f"- and {len(res.not_white) - 8} more (`likelihood.json`)"]
+                                                          if len(res.not_white) > 8 else [])  # fmt: skip
+        lines += ["Where the linear fit's residuals are not white (octave bands, stretches of time; each at 1 %):", "",
+                  *shown, ""]  # fmt: skip
+    return lines
 
 
 def _replay_lines(res: RunResults, figdir: Path, drawings: Drawings) -> list[str]:
