@@ -226,7 +226,8 @@ def test_a_twins_friction_is_named_with_its_size_in_the_report_and_the_figure(tm
 def test_the_recording_holds_the_force_over_time_and_against_speed(tmp_path):
     """Per record the force over ``time`` with its +-2 sd band as series (the values logged exactly), the force
     against the hub's speed as 2D points (their coordinates proportional to speed and force, one scale for every
-    record), in a "missing force" tab whose views all show data; the same results give the same bytes twice."""
+    record), in a "missing force" tab whose views all show data, with where the residuals are not white when they
+    are not somewhere; the same results give the same bytes twice."""
     rr.set_strict_mode(True)
     pic = _picture(3, 2, 1.0)
     res = _results(tmp_path, pic, png=False)
@@ -254,6 +255,15 @@ def test_the_recording_holds_the_force_over_time_and_against_speed(tmp_path):
     assert names["missing force [N m] vs t [s], +-2 sd band"] == "diagnosis/force/time"
     assert names["missing force [N m] (up) vs hub speed [deg/s] (right)"] == "diagnosis/force/speed"
     assert blueprint_views(rrds[0])[1] == "time"
+    assert "where not white" not in names  # white everywhere: no view without data
+    grey = dataclasses.replace(res, not_white=("rec0 alpha: 3.1-6.2 Hz, 3-6 s",))
+    rrd = write_recording(tmp_path / "c.rrd", "0" * 8 + "-0000-0000-0000-" + "0" * 12,
+                          lambda rec: _log_with_blueprint(rec, grey))  # fmt: skip
+    assert {v["name"]: v["origin"] for v in check_every_view_shows_data(rrd)}["where not white"] == (
+        "diagnosis/force/where"
+    )
+    (doc,) = [d for d in read_chunks(rrd)["/diagnosis/force/where"] if "TextDocument:text" in d]
+    assert "- rec0 alpha: 3.1-6.2 Hz, 3-6 s" in doc["TextDocument:text"][0][0]
     overview = [d for d in chunks["/overview"] if "TextDocument:text" in d][0]["TextDocument:text"][0][0]
     assert "missing force (likelihood engine): **friction of 0.03 N m (0.125 V of command)**" in overview
 

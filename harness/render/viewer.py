@@ -25,8 +25,9 @@ Entity tree (all logged from the run directory alone, via :func:`harness.render.
   [deg] over ``time``)
 - ``diagnosis/force/time/<record>/{force,upper,lower}`` (the likelihood engine's missing force [N m] and its +-2
   standard deviation band over ``time``) and ``diagnosis/force/speed/<record>`` (2D points: the force against the
-  hub's speed [deg/s]), ``diagnosis/force/speed/axes``: when ``diagnose --engine likelihood`` wrote
-  force_picture.parquet (:mod:`harness.render.force`)
+  hub's speed [deg/s]), ``diagnosis/force/speed/axes``, ``diagnosis/force/where`` (markdown: where the linear
+  fit's residuals are not white): when ``diagnose --engine likelihood`` wrote force_picture.parquet
+  (:mod:`harness.render.force`)
 
 Time series use one ``send_columns`` call per entity.
 """
@@ -420,6 +421,10 @@ def _log_force(rec: rr.RecordingStream, res: RunResults) -> rrb.VisualBounds2D |
     xticks = [(x * sx, f"{x:g}") for x in _ticks(-smax, smax, ds) if abs(x) <= smax]
     yticks = [(y * sy, f"{y:g}") for y in _ticks(-fmax, fmax, df) if abs(y) <= fmax]
     half_w, half_h = 0.5 * FORCE_WIDTH, 0.5 * FORCE_HEIGHT
+    if res.not_white:
+        _markdown(rec, "diagnosis/force/where", ["Where the linear fit's residuals are not white (octave bands, "
+                                                 "stretches of time; each at 1 %):", "",
+                                                 *(f"- {x}" for x in res.not_white)])  # fmt: skip
     return _log_axes(rec, "diagnosis/force/speed/axes", xticks, yticks, (-half_w, half_w), (-half_h, half_h))
 
 
@@ -559,12 +564,15 @@ def _diagnosis_tab(res: RunResults, bounds: dict[str, rrb.VisualBounds2D]) -> An
     return rrb.Tabs(summary, rrb.Horizontal(*bars, name="gaps"), name="diagnosis")  # the summary's tables at full width
 
 
-def _force_tab(bounds: dict[str, rrb.VisualBounds2D]) -> Any:
-    """The missing force: over time with its band, and against the hub's speed."""
+def _force_tab(bounds: dict[str, rrb.VisualBounds2D], res: RunResults) -> Any:
+    """The missing force: over time with its band, and against the hub's speed; where the residuals are not white,
+    when they are not somewhere."""
+    where = [rrb.TextDocumentView(origin="diagnosis/force/where", name="where not white")] if res.not_white else []
     return rrb.Vertical(
         rrb.TimeSeriesView(origin="diagnosis/force/time", name="missing force [N m] vs t [s], +-2 sd band"),
         rrb.Spatial2DView(origin="diagnosis/force/speed", visual_bounds=bounds["force_speed"],
                           name="missing force [N m] (up) vs hub speed [deg/s] (right)"),
+        *where,
         name="missing force",
     )  # fmt: skip
 
@@ -619,7 +627,7 @@ def _blueprint(res: RunResults, bounds: dict[str, rrb.VisualBounds2D], active: i
     if res.diagnosis is not None:
         tabs.append(_diagnosis_tab(res, bounds))
     if "force_speed" in bounds:
-        tabs.append(_force_tab(bounds))
+        tabs.append(_force_tab(bounds, res))
     if res.replays:
         tabs.append(_replays_tab(res))
     return rrb.Blueprint(
