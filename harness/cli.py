@@ -695,13 +695,14 @@ def predict(
     from .clusterprocess import prestart
     from .loopspecs import LoopSpecs, controller_source
     from .rig.controller import parse_controller
-    from .rundir import check_rig
 
     _out_dir(out_dir)
     judged = LoopSpecs.parse(specs) if specs else None
     controller_source(controller, str(controller_from) if controller_from else None, record is not None)
     if controller is not None:
         parse_controller(controller)  # a mistake in which controller, or in it, is told before the twin loads
+    from .rundir import check_rig
+
     check_rig(rig)  # a RIG that names no rig: one line before a cluster starts
     prestart(workers, scheduler, ["harness.prediction"])  # the workers start while the twin loads
     from .prediction import controller_from as pick_controller
@@ -761,13 +762,14 @@ def design(
     with the rig's effects, intervals and noise: design.json, controller.toml, loop.ssp and the prediction."""
     from .clusterprocess import prestart
     from .loopspecs import METHODS, LoopSpecs, parse_weights
-    from .rundir import check_rig
 
     _out_dir(out_dir)
     if method not in METHODS:
         raise ValueError(f"--method {method!r} unknown; valid: {', '.join(METHODS)}")
     wt = parse_weights(weights, method) if weights is not None else None
     judged = LoopSpecs.parse(specs) if specs is not None else None
+    from .rundir import check_rig
+
     check_rig(rig)  # a RIG that names no rig: one line before a cluster starts
     prestart(workers, scheduler, ["harness.prediction"])  # the workers start while the search runs
     from .design import design as run_design
