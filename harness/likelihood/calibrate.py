@@ -17,15 +17,14 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from functools import cache
 from typing import Any
 
 import numpy as np
 
 from ..executor import Executor, worker_rig
 from ..fmu.build import build_all
-from ..fmu.modeldesc import bundled_model
 from ..rig.controller import Controller
+from ..spec import fmu_value
 from .effects import NESTED
 from .record import Record
 from .rule import EffectTest, Rule
@@ -75,10 +74,9 @@ class CaseResult:
     skipped: str = ""
 
 
-@cache
 def _daq(name: str) -> float:
     """The DAQ FMU's default of parameter ``name``."""
-    return float(bundled_model("daq").parameters()[name].start or 0.0)
+    return fmu_value({}, "daq", name)
 
 
 def _readings(out: dict[str, np.ndarray]) -> np.ndarray:

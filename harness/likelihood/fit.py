@@ -302,7 +302,7 @@ def fit(
         ends = np.clip([x[i] - 1.96 * se[i], x[i] + 1.96 * se[i]], lo, hi)  # an interval ends at the bounds
         lo_hi = sorted(b.from_x(float(v), nominal[n]) for v in ends)  # sorted: a falling map (a limit's share)
         estimates[n] = Estimate(b.from_x(float(x[i]), nominal[n]), (lo_hi[0], lo_hi[1]), b.unit, at, float(grown[i]))
-    ll = log_likelihood(plant, values(x), records, delay)
+    ll = inn.loglik if inn is not None else log_likelihood(plant, values(x), records, delay)  # the pass at x
     return MLFit(estimates, ll, n_obs, len(names), evaluations, converged, message)
 
 
