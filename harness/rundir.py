@@ -325,10 +325,15 @@ class Manifest:
         return next((e for e in self.experiments if e.name == name), None)
 
 
-def check_rig(rig: str | Path) -> None:
+def check_rig(rig: str | Path) -> Spec | None:
     """Refuse, in one line, a ``RIG`` (``flexjoint predict``, ``design``) that names no rig: a directory without a
     diagnosis (no model of the rig to close a loop on), or a spec that does not load; cheap, so that a command says
     so before it starts a cluster.
+
+    Returns
+    -------
+    Spec or None
+        The spec ``rig`` names; None for a diagnosis directory.
 
     Raises
     ------
@@ -336,15 +341,15 @@ def check_rig(rig: str | Path) -> None:
         A directory without diagnosis.json.
     """
     p = Path(rig)
-    if p.is_dir():
-        if not RunDir(p).diagnosis.is_file():
-            what = "a run without a diagnosis" if RunDir(p).manifest.is_file() else "no diagnosis"
-            raise DataError(
-                f"RIG {rig}: {what}, so no closed-loop model of the rig: run `flexjoint diagnose --real {rig}` first, "
-                "or give a spec"
-            )
-    else:
-        load_spec(rig)
+    if not p.is_dir():
+        return load_spec(rig)
+    if not RunDir(p).diagnosis.is_file():
+        what = "a run without a diagnosis" if RunDir(p).manifest.is_file() else "no diagnosis"
+        raise DataError(
+            f"RIG {rig}: {what}, so no closed-loop model of the rig: run `flexjoint diagnose --real {rig}` first, "
+            "or give a spec"
+        )
+    return None
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:

@@ -312,9 +312,8 @@ def load_twin(rig: str | Path) -> Twin:
     DataError
         One line when a directory holds no diagnosis (no model of the rig to close a loop on).
     """
-    check_rig(rig)
-    p = Path(rig)
-    return twin_of_diagnosis(p) if p.is_dir() else twin_of_spec(specmod.load(rig))
+    spec = check_rig(rig)
+    return twin_of_diagnosis(Path(rig)) if spec is None else twin_of_spec(spec)
 
 
 def draw(twin: Twin, n: int, seed: int) -> list[dict[str, float]]:
