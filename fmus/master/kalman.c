@@ -28,6 +28,10 @@
  * sample: with substeps > 1, A, B, Q and bf are a substep's, taken substeps times per sample (the command held), the
  * friction after each.
  *
+ * A channel j with cubic[j] != 0 bends (a strain gauge's bridge): z = C_j x + cubic[j] (g_j x)^3 + v, g_j = bend's row j
+ * (the part of the reading that bends: the gauge without its offset). Its update is the extended Kalman filter's: the
+ * row linearised at the predicted state, C_j + 3 cubic[j] (g_j x)^2 g_j. cubic NULL: no channel bends.
+ *
  * Returns the log-likelihood: the sum over measured channels of -(log(2 pi s) + e^2 / s) / 2, or log P(cell) on a
  * lattice; NaN when a variance is not positive and finite. e, s and l (n x ny) receive each channel's innovation
  * y - mu, its predicted variance s (without the lattice) and its term of the log-likelihood (0 where masked); xp, Pp (predicted: before
@@ -102,9 +106,9 @@ EXPORT double kalman_filter(long nx, long ny, long nu, const double *A, const do
                             const double *C, const double *r, const double *q, const double *x0, const double *P0,
                             long n,
                             const double *u, const double *y, const unsigned char *mask, const double *bf,
-                            long i_speed, double Fc, long substeps, double *e, double *s, double *l, double *xp, double *Pp, double *xf,
+                            long i_speed, double Fc, long substeps, const double *cubic, const double *bend, double *e, double *s, double *l, double *xp, double *Pp, double *xf,
                             double *Pf) {
-    double x[KF_MAX_STATES], xn[KF_MAX_STATES], ph[KF_MAX_STATES];
+    double x[KF_MAX_STATES], xn[KF_MAX_STATES], ph[KF_MAX_STATES], hl[KF_MAX_STATES];
     double P[KF_MAX_STATES * KF_MAX_STATES], AP[KF_MAX_STATES * KF_MAX_STATES];
     const double log2pi = log(2.0 * 3.14159265358979323846);
     double ll = 0.0;
@@ -125,11 +129,19 @@ EXPORT double kalman_filter(long nx, long ny, long nu, const double *A, const do
                 continue;
             }
             double pred = 0.0, sj = r[j];
+            for (long a = 0; a < nx; a++) pred += h[a] * x[a];
+            if (cubic && cubic[j] != 0.0) { /* the bent reading, and its row linearised at x */
+                const double *g = bend + j * nx;
+                double L = 0.0;
+                for (long a = 0; a < nx; a++) L += g[a] * x[a];
+                pred += cubic[j] * L * L * L;
+                for (long a = 0; a < nx; a++) hl[a] = h[a] + 3.0 * cubic[j] * L * L * g[a];
+                h = hl;
+            }
             for (long a = 0; a < nx; a++) {
                 double acc = 0.0;
                 for (long b = 0; b < nx; b++) acc += P[a * nx + b] * h[b];
                 ph[a] = acc;
-                pred += h[a] * x[a];
             }
             for (long a = 0; a < nx; a++) sj += h[a] * ph[a];
             double ej = y[kj] - pred;

@@ -1,11 +1,13 @@
 """The effects the likelihood engine fits beside the linear rig, each a nested extension of it.
 
 Continuous effects are parameters of :func:`harness.likelihood.fit.fit` (:data:`harness.likelihood.model.EFFECTS`):
-Coulomb friction at the hub, in the filter itself, and the amplifier's output limit ``plant.amp_limit`` [V], a
-transformation of the filter's input (the command is known: the drive sees clip(u + u_offset, +-L), as the plant FMU
-clamps it; :meth:`harness.likelihood.model.StochasticModel.inputs`). The limit is searched as the share
-``peak / L`` of the records' largest |command| (:func:`command_peak`, the limit's nominal value): its null, no
-sample clipped, is the wall at 1.
+Coulomb friction at the hub, in the filter itself, the strain gauge's cubic nonlinearity ``daq.gauge_cubic``, in the
+filter's reading of the gauge (an extended Kalman filter's update; its null inside its range, :data:`INTERIOR`), and
+the amplifier's output limit ``plant.amp_limit`` [V], a transformation of the filter's input (the command is known:
+the drive sees clip(u + u_offset, +-L), as the plant FMU clamps it;
+:meth:`harness.likelihood.model.StochasticModel.inputs`). The limit is searched as the share ``peak / L`` of the
+records' largest |command| (:func:`command_peak`, the limit's nominal value): its null, no sample clipped, is the
+wall at 1.
 
 Integer effects are chosen by profile likelihood (:func:`profile_delay`, :func:`profile_modes`): the model fitted at
 each setting, the setting whose maximised log-likelihood is highest. The command's transport delay
@@ -31,6 +33,7 @@ from .record import Record
 __all__ = [
     "COARSE",
     "DELAY_SPAN",
+    "INTERIOR",
     "NESTED",
     "PROFILED",
     "SENSOR_NESTED",
@@ -46,7 +49,11 @@ __all__ = [
 ]
 
 # the continuous effects a unit's linear fit is extended by, one at a time: diagnosis.json's name -> the parameter
-NESTED = {"coulomb_friction": "plant.coulomb_torque", "saturation": "plant.amp_limit"}
+NESTED = {"coulomb_friction": "plant.coulomb_torque", "saturation": "plant.amp_limit",
+          "gauge_nonlinearity": "daq.gauge_cubic"}  # fmt: skip
+# the nested effects whose null lies inside their range (either sign), not at a wall: their LR's law is chi-square
+INTERIOR = ("gauge_nonlinearity",)
+GAUGE_CUBIC = 0.05  # where the gauge's nonlinearity is searched from inside, and its scale
 # the sensors' dynamics nested in the linear model (its structure, not an effect): the name -> the parameter
 SENSOR_NESTED = {"gauge_lowpass": "sensor.gauge_tau"}
 GAUGE_TAU = 0.02  # s: where the gauge's low-pass is searched from inside, and its scale
@@ -110,7 +117,8 @@ def nested_start(name: str, records: Sequence[Record], drive: float) -> NestedSt
     """Where the nested fit of effect ``name`` (:data:`NESTED`) starts, for ``records`` and the drive's torque per
     volt ``drive`` [N m/V]: friction from the torque of 20 mV of command and from none, scaled by the torque of 0.1 V;
     a limit from 0.9 of the records' peak command and from the peak (no sample clipped), scaled by the peak; the
-    gauge's low-pass (:data:`SENSOR_NESTED`) from :data:`GAUGE_TAU` and from none, scaled by it."""
+    gauge's low-pass (:data:`SENSOR_NESTED`) from :data:`GAUGE_TAU` and from none, scaled by it; the gauge's
+    nonlinearity from :data:`GAUGE_CUBIC` and from none."""
     if name == "coulomb_friction":
         return NestedStart(0.02 * drive, 0.0, 0.1 * drive)
     if name == "saturation":
@@ -118,6 +126,8 @@ def nested_start(name: str, records: Sequence[Record], drive: float) -> NestedSt
         return NestedStart(0.9 * peak, peak, peak)
     if name == "gauge_lowpass":
         return NestedStart(GAUGE_TAU, 0.0, GAUGE_TAU)
+    if name == "gauge_nonlinearity":
+        return NestedStart(GAUGE_CUBIC, 0.0, GAUGE_CUBIC)
     raise ValueError(f"no nested fit for the effect {name!r}; known: {', '.join({**NESTED, **SENSOR_NESTED})}")
 
 

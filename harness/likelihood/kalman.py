@@ -32,7 +32,11 @@ class Discrete:
     With ``friction`` Fc > 0, Coulomb friction acts on the state ``speed``: over each sample one torque f held, its
     effect on the state ``hub`` per unit (nx), the torque that brings the speed to rest where that is within +-Fc
     (stuck), else +-Fc against the motion (``fmus/master/kalman.c``'s header). With ``substeps`` > 1, A, B, Q and
-    ``hub`` are a substep's, taken that many times per sample (the input held), the friction after each."""
+    ``hub`` are a substep's, taken that many times per sample (the input held), the friction after each.
+
+    A channel with ``cubic`` [1/unit^2] not 0 bends: z = C x + cubic (g x)^3 + v, ``bend``'s row g the part of the
+    reading that bends (a strain gauge's bridge, its offset apart); the filter's update is then the extended Kalman
+    filter's, the row linearised at the predicted state."""
 
     A: np.ndarray
     B: np.ndarray
@@ -44,6 +48,8 @@ class Discrete:
     hub: np.ndarray | None = None
     speed: int = 0
     substeps: int = 1
+    cubic: np.ndarray | None = None
+    bend: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -84,7 +90,7 @@ def _library() -> ctypes.CDLL:
     lib = ctypes.CDLL(str(build_master()))
     ptr, n = ctypes.c_void_p, ctypes.c_long
     lib.kalman_filter.restype = ctypes.c_double
-    lib.kalman_filter.argtypes = [n, n, n, *[ptr] * 8, n, *[ptr] * 4, n, ctypes.c_double, n, *[ptr] * 7]
+    lib.kalman_filter.argtypes = [n, n, n, *[ptr] * 8, n, *[ptr] * 4, n, ctypes.c_double, n, *[ptr] * 9]
     lib.kalman_max_states.restype = ctypes.c_int
     return lib
 
@@ -141,12 +147,15 @@ def kalman_filter(
     m = _c(mask, np.uint8)
     friction = model.friction if model.hub is not None else 0.0
     hub = _c(model.hub) if friction > 0.0 and model.hub is not None else None
+    bent = model.cubic is not None and model.bend is not None and bool(np.any(model.cubic))
+    cubic = _c(model.cubic) if bent and model.cubic is not None else None
+    bend = _c(model.bend).reshape(ny, nx) if bent and model.bend is not None else None
     e, s, terms = np.empty((n, ny)), np.empty((n, ny)), np.empty((n, ny))
     kept = [np.empty((n, nx)), np.empty((n, nx, nx)), np.empty((n, nx)), np.empty((n, nx, nx))] if keep else [None] * 4
     ll = lib.kalman_filter(
         nx, ny, nu, _ptr(A), _ptr(B), _ptr(Q), _ptr(C), _ptr(r), _ptr(q), _ptr(x0), _ptr(P0), n, _ptr(u), _ptr(y),
-        _ptr(m), _ptr(hub), model.speed, friction, model.substeps, _ptr(e), _ptr(s), _ptr(terms),
-        *(_ptr(k) for k in kept),
+        _ptr(m), _ptr(hub), model.speed, friction, model.substeps, _ptr(cubic), _ptr(bend), _ptr(e), _ptr(s),
+        _ptr(terms), *(_ptr(k) for k in kept),
     )  # fmt: skip
     return Filtered(float(ll), e, s, terms, *kept)
 
@@ -168,8 +177,8 @@ def smooth(model: Discrete, filtered: Filtered) -> tuple[np.ndarray, np.ndarray]
     """
     if filtered.xp is None or filtered.Pp is None or filtered.xf is None or filtered.Pf is None:
         raise ValueError("the smoother needs the filter's states: run kalman_filter with keep=True")
-    if model.friction > 0.0 or model.substeps != 1:
-        raise ValueError("the smoother takes a linear model: one without friction")
+    if model.friction > 0.0 or model.substeps != 1 or (model.cubic is not None and np.any(model.cubic)):
+        raise ValueError("the smoother takes a linear model: one without friction or a bent reading")
     xp, Pp, xf, Pf = filtered.xp, filtered.Pp, filtered.xf, filtered.Pf
     x, P = xf.copy(), Pf.copy()
     A = model.A

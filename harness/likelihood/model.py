@@ -94,10 +94,13 @@ class LimitBound(Bound):
 # Friction is searched as the square of its ratio to a nominal size (a step of the search's differences is then a
 # share of the size); the amplifier's limit as the share of the records' peak command over it (LimitBound: its
 # nominal is that peak), the null no limit. The command's delay (daq.delay_samples) and a second link mode
-# (plant.n_modes) are integers, chosen by profile likelihood (harness.likelihood.effects).
+# (plant.n_modes) are integers, chosen by profile likelihood (harness.likelihood.effects). The gauge's nonlinearity
+# (the DAQ's gauge_cubic: a reading a (1 + c (a / 10 deg)^2) of the deflection a [deg]) is searched as itself: either
+# sign bends a bridge, its null none inside its range.
 EFFECTS: dict[str, Bound] = {
     "plant.coulomb_torque": Bound(0.0, 1e3, "N m", "Coulomb friction at the hub", part="effect", square=True),
     "plant.amp_limit": LimitBound(1.0, 20.0, "V", "the amplifier's output limit", part="effect"),
+    "daq.gauge_cubic": Bound(-0.3, 0.3, "1", "the strain gauge's cubic nonlinearity", log=False, part="effect"),
 }
 
 
@@ -130,7 +133,8 @@ class StochasticModel:
     the hub (0: none; the filter's, :class:`harness.likelihood.kalman.Discrete`'s ``friction``); ``limit`` [V] the
     amplifier's output limit on the command plus its input offset ``offset`` [V] (0: none; :meth:`inputs`);
     ``gauge_tau`` [s] the gauge's low-pass (0: none; the state ``gauge``, sampled as the DAQ filters:
-    :meth:`discretise`)."""
+    :meth:`discretise`); ``cubic`` [1/deg^2] the gauge reading's bend, its reading L (offset apart) read as
+    L + cubic L^3 (0: none; with the low-pass, taken on its output where the DAQ bends its input)."""
 
     A: np.ndarray
     B: np.ndarray
@@ -144,6 +148,7 @@ class StochasticModel:
     limit: float = 0.0
     offset: float = 0.0
     gauge_tau: float = 0.0
+    cubic: float = 0.0
 
     def inputs(self, u: np.ndarray) -> np.ndarray:
         """The filter's inputs (n x 2) for the command ``u`` [V] as the plant receives it: ``[u, 1]`` (the offset
@@ -180,8 +185,14 @@ class StochasticModel:
             Ad[i, :], Bd[i, :], Q[i, :], Q[:, i] = 0.0, 0.0, 0.0, 0.0
             Ad[i, :i], Ad[i, i] = a * row, 1.0 - a
             C[1, :i], C[1, i] = a * row, 1.0 - a
+        bend = None
+        if self.cubic != 0.0:  # the gauge's reading without its offset bends
+            bend = np.zeros_like(C)
+            bend[1] = C[1]
+            bend[1, self.states.index("b_alpha")] = 0.0
         return Discrete(A=Ad, B=Bd, Q=0.5 * (Q + Q.T), C=C, r=r, friction=self.coulomb,
-                        hub=Bd[:, 0] / self.drive, speed=self.states.index("theta_dot"), substeps=substeps)  # fmt: skip
+                        hub=Bd[:, 0] / self.drive, speed=self.states.index("theta_dot"), substeps=substeps,
+                        cubic=None if bend is None else np.array([0.0, self.cubic]), bend=bend)  # fmt: skip
 
 
 def rig_model(
@@ -199,8 +210,8 @@ def rig_model(
     values : mapping
         Linear parameters by their diagnosis names (``rig.drive_gain``, ``plant.Ks``, ``sensor.theta_gain``, ...),
         the sensors' dynamics (:data:`SENSORS`: ``sensor.gauge_tau``) and effects (:data:`EFFECTS`:
-        ``plant.coulomb_torque``, ``plant.amp_limit``; off when not given, whatever the plant's table says: the model
-        is the linear rig plus the effects named).
+        ``plant.coulomb_torque``, ``plant.amp_limit``, ``daq.gauge_cubic``; off when not given, whatever the
+        plant's table says: the model is the linear rig plus the effects named).
     noise : Noise
         The readings' and the torques' noise.
     force : bool
@@ -252,5 +263,7 @@ def rig_model(
     w1 = float(plantmod.mode_frequencies(p)[0, 0]) * 2.0 * math.pi
     coulomb = float(values.get("plant.coulomb_torque", 0.0))
     limit = float(values.get("plant.amp_limit", 0.0))
+    # the DAQ's a (1 + c (a / 10)^2) of the deflection a [deg], read as L = g a (g: the gauge's gain)
+    cubic = float(values.get("daq.gauge_cubic", 0.0)) / (100.0 * float(values.get("sensor.alpha_gauge_gain", 1.0)) ** 2)
     return StochasticModel(A=Ax, B=Bx, G=Gx, C=Cx, noise=noise, states=states, w1=w1, drive=G_volt, coulomb=coulomb,
-                           limit=limit, offset=u_offset, gauge_tau=tau)  # fmt: skip
+                           limit=limit, offset=u_offset, gauge_tau=tau, cubic=cubic)  # fmt: skip

@@ -7,7 +7,9 @@ prediction errors are autocorrelated (a quantised reading at rest), the statisti
 parameter's variance inflation (:func:`harness.likelihood.robust.inflation`, the sandwich's over the information's:
 White, 1982). The critical value is that scaled law's quantile at the policy's level, taken no smaller than the
 chi-bar-square's own: a sample's autocorrelation only ever widens the law here, and an estimate of it below one is
-read as none. Not chi-square on the raw statistic: quantised records make it fire on friction-free twins.
+read as none. Not chi-square on the raw statistic: quantised records make it fire on friction-free twins. An effect of
+either sign (the gauge's nonlinearity) has its null inside its range: its law is the chi-square of one degree of
+freedom, scaled alike.
 
 An integer effect (the command's delay, a second link mode) is not nested: the alternative is another model with as
 many free parameters, and the statistic has no chi-square law. Its test (:meth:`Rule.compare`) is Vuong's (1989):
@@ -41,7 +43,8 @@ class EffectTest:
     """An effect's test: its statistic ``lr`` [2 nats], the ``inflation`` of its null law by the samples'
     autocorrelation, its ``p``-value under that law, the ``critical`` value of ``lr`` at the rule's ``level``,
     whether it ``enters`` (``lr`` above ``critical``), the ``law``:
-    "chi-bar-square" (a nested effect) or "vuong" (an integer one), and whether its intervals on the unit's folds
+    "chi-bar-square" (a nested effect, its null at a wall), "chi-square" (one whose null lies inside its range) or
+    "vuong" (an integer one), and whether its intervals on the unit's folds
     share a value (``agrees``; None: not fitted on folds)."""
 
     lr: float
@@ -71,9 +74,10 @@ class Rule:
 
     level: float = 0.01
 
-    def test(self, lr: float, inflation: float) -> EffectTest:
+    def test(self, lr: float, inflation: float, interior: bool = False) -> EffectTest:
         """The test of a nested effect whose statistic is ``lr`` [2 nats] and whose parameter's variance inflation is
-        ``inflation`` (NaN or below one: read as one).
+        ``inflation`` (NaN or below one: read as one); an ``interior`` null (an effect of either sign, none inside its
+        range) takes the chi-square of one degree of freedom, not the chi-bar-square.
 
         Parameters
         ----------
@@ -81,15 +85,18 @@ class Rule:
             2 (logL with the effect - logL without) [nats].
         inflation : float
             The effect parameter's sandwich variance over its information's.
+        interior : bool
+            The effect's null lies inside its range, not at a wall.
 
         Returns
         -------
         EffectTest
         """
         c = inflation if math.isfinite(inflation) and inflation > 1.0 else 1.0
-        p = 0.5 * float(chi2.sf(lr / c, 1)) if lr > 0.0 else 1.0
-        critical = c * float(chi2.isf(2.0 * self.level, 1))
-        return EffectTest(lr, c, p, critical, self.level)
+        half = 1.0 if interior else 0.5  # the chi-bar-square: half the time none, half a chi-square
+        p = half * float(chi2.sf(lr / c, 1)) if lr > 0.0 else 1.0
+        critical = c * float(chi2.isf(self.level / half, 1))
+        return EffectTest(lr, c, p, critical, self.level, "chi-square" if interior else "chi-bar-square")
 
     @staticmethod
     def agree(test: EffectTest, intervals: Sequence[tuple[float, float]]) -> EffectTest:

@@ -33,7 +33,7 @@ from ..diagnosis.result import Diagnosis
 from ..diagnosis.simulation import fmu_value, sim_rig
 from ..ident.calibration import Calibration, load_calibration
 from ..rundir import write_json
-from .effects import NESTED, PROFILED, SENSOR_NESTED, SHAPE, nested_start, profile_settings, search_order
+from .effects import INTERIOR, NESTED, PROFILED, SENSOR_NESTED, SHAPE, nested_start, profile_settings, search_order
 from .fit import BOUNDS, TORQUES, Estimate, MLFit, filter_record, fit, innovations, noise_start, split_values
 from .force import EffectCurve, ForcePicture, MissingForce, classify, effect_curve, force_picture
 from .model import EFFECTS, rig_model
@@ -415,7 +415,7 @@ def fit_unit(
         say(f"{name}, nested")
         effects.append(_nested(name, plant, records, res, held, scales, sd, delay, rule))
     say("the missing force")
-    kept = max((x for x in effects if x.name in NESTED and x.test.enters), key=lambda x: x.lr, default=None)
+    kept = max((x for x in effects if x.name in SHAPE and x.test.enters), key=lambda x: x.lr, default=None)
     # drawn on the linear parameters of the nested effect that entered, the effect left out: its force is then the
     # missing one, unbent by the linear fit that had to make up for it (the drive's gain 25 % low on the lab run)
     drawn = values if kept is None else {k: v for k, v in (kept.fit.values() | held).items() if k not in EFFECTS}
@@ -458,7 +458,7 @@ def _nested(
                         prior_sd={k: sd[k] for k in start if k in sd}, delay=delay))  # fmt: skip
     res = max(fits, key=lambda f: f.loglik)
     drive = rig_model(plant, *split_values(res.values() | held)).drive  # the drive as the nested fit has it
-    test = rule.test(2.0 * (res.loglik - linear.loglik), res.estimates[param].inflation)
+    test = rule.test(2.0 * (res.loglik - linear.loglik), res.estimates[param].inflation, name in INTERIOR)
     folds: tuple[Estimate, ...] = ()
     if test.lr > test.critical:  # its size on each fold: the records, or a lone record's halves
         start = {k: v for k, v in res.values().items() if k not in held}
