@@ -871,6 +871,7 @@ def diagnose(
     )
     diagnosis_screen(d, out_dir or real).print(out)
     if engine == "likelihood":
+        from .diagnosis.decide import decide
         from .likelihood.unit import with_likelihood, write_likelihood
         from .render.force import write_force_views
         from .render.summary import Summary
@@ -879,9 +880,11 @@ def diagnose(
         with_likelihood(d, unit).write(RunDir(out_dir or real).diagnosis)  # each model tried: its likelihood too
 
         _, png = write_force_views(out_dir or real, unit.picture, unit.missing_force.words(), unit.curve)
+        verdict = decide(unit)
         s = Summary("likelihood.json")
         s.lines(unit.summary())
-        s.close(f"the whole fit: {write_likelihood(out_dir or real, unit)}")
+        s.lines([f"  verdict by likelihood: {verdict.verdict}: {verdict.reason}"])
+        s.close(f"the whole fit: {write_likelihood(out_dir or real, unit, verdict.to_json())}")
         s.close(f"the missing force drawn: {png} (its traces: force_picture.parquet)")
         s.print(out)
 

@@ -12,12 +12,15 @@ import pytest
 from test_force_shapes import _multisine
 from test_likelihood import NOISE_V, TS, _readings, _truth
 
+from harness.diagnosis.decide import Decision, decide
 from harness.fmu.build import build_all
 from harness.fmu.cosim import Rig
 from harness.likelihood import fit as mlfit
 from harness.likelihood.effects import command_peak, profile_delay, profile_modes
 from harness.likelihood.model import Noise, rig_model
 from harness.likelihood.record import Record
+from harness.likelihood.rule import Rule
+from harness.likelihood.unit import fit_unit, linear_start
 
 ONE = {"n_modes": 1}  # the textbook rig: one link mode
 SENSORS = {"sensor.theta_gain": 1.0, "sensor.alpha_gauge_gain": 1.0}
@@ -84,6 +87,19 @@ def test_the_models_input_replays_the_fmus_limit_offset_and_delay(limit, offset,
     np.testing.assert_allclose(clipped[:, 0], y[:, 0], rtol=0, atol=1e-6)
     np.testing.assert_allclose(clipped[:, 1], y[:, 1], rtol=0, atol=2e-5)
     assert np.abs(plain[:, 0] - y[:, 0]).max() > 1.0
+
+
+def test_a_delayed_command_is_none_before_the_record():
+    """A record whose command starts at 1.5 V on its first sample, delayed 3 samples by the DAQ: the model fed
+    :meth:`Record.delayed` replays the FMUs from the first sample (the DAQ's delay line holds none before the record),
+    the hub within 1e-6 deg; the first value held before the record instead is off by more than 1e-3 deg."""
+    u = 1.5 * np.ones(200)
+    y = _readings_of(u, ONE, {"delay_samples": 3})
+    rec = Record("r", TS, u, y, np.ones((u.size, 2), bool))
+    model = rig_model(ONE, _truth(ONE), Noise(0.0, 0.0))
+    np.testing.assert_allclose(_simulate(model, rec.delayed(3))[:, 0], y[:, 0], rtol=0, atol=1e-6)
+    held = np.concatenate([np.full(3, u[0]), u[:-3]])
+    assert np.abs(_simulate(model, held)[:, 0] - y[:, 0]).max() > 1e-3
 
 
 @pytest.mark.parametrize("tau", [0.02, 0.06])
@@ -302,10 +318,8 @@ def test_a_gauges_nonlinearity_is_nested_where_the_bridge_bends(cubic, seed):
     """A gauge that bends its reading by ``daq.gauge_cubic`` (the DAQ's a (1 + c (a / 10 deg)^2)), 1.2 V random
     squares over 4 s: its nested fit, from inside and from none, comes back within 2 % (measured 0.06011) and enters
     by the chi-square's rule (its null inside its range); on the straight gauge it stays out, within 0.002 of none
-    (measured 6.6e-5), and the gauge's gain is that of the linear fit within 0.5 %."""
-    from harness.likelihood.rule import Rule
-    from harness.likelihood.unit import fit_unit, linear_start
-
+    (measured 6.6e-5), and the gauge's gain is that of the linear fit within 0.5 %. The verdict
+    (:func:`harness.diagnosis.decide.decide`) is gauge_nonlinearity, and none on the straight gauge."""
     rec = _twin(_ramped(_random_square(seed, 4.0, 1.2)), ONE, {"gauge_cubic": cubic}, seed=seed)
     sheet = {k: 1.1 * v if not k.startswith("sensor.") else v for k, v in linear_start(ONE).items()}
     unit = fit_unit(ONE, [rec], sheet, {"sensor.theta_gain": 1.0}, {}, rule=Rule())
@@ -315,6 +329,30 @@ def test_a_gauges_nonlinearity_is_nested_where_the_bridge_bends(cubic, seed):
     if cubic:
         assert bend.test.enters and value == pytest.approx(cubic, rel=0.02), bend.line()
         assert bend.fit.estimates["sensor.alpha_gauge_gain"].value == pytest.approx(1.0, rel=0.005)
+        assert unit.final is bend.fit and decide(unit).verdict == "gauge_nonlinearity", decide(unit)
     else:
         assert not bend.test.enters and abs(value) < 0.002, bend.line()
         assert not any(x.test.enters for x in unit.effects), unit.summary()
+        assert unit.final is None and decide(unit) == Decision("none", (), None, "no effect enters and the residuals "
+                                                               "are white")  # fmt: skip
+        _assert_the_verdicts_order(unit)
+
+
+def _assert_the_verdicts_order(unit) -> None:
+    """On a unit with no effect: a finding makes it unexplained (bound) before anything else; residuals not white on
+    one record channel of two, at p below half the rule's level (Bonferroni), unexplained (not_white), at p just
+    above it not; an ADC's lattice the sheet lacks, quantization; a missing force of a shape no effect draws,
+    unexplained (shape)."""
+    from dataclasses import replace
+
+    from harness.likelihood.force import MissingForce
+
+    rule = Rule(white=0.01)
+    assert decide(replace(unit, findings=("drive gain ends at its lower bound",)), rule).unexplained == "bound"
+    grey = {r: {"theta": 0.0049, "alpha": 0.5} for r in unit.whiteness}
+    assert decide(replace(unit, whiteness=grey), rule).unexplained == "not_white"
+    fine = {r: {"theta": 0.0051, "alpha": 0.5} for r in unit.whiteness}
+    assert decide(replace(unit, whiteness=fine), rule).verdict == "none"
+    assert decide(replace(unit, lattice_bits=10), rule).verdict == "quantization"
+    offset = MissingForce("offset", 0.05, "V", 0.0, 100)
+    assert decide(replace(unit, missing_force=offset), rule).unexplained == "shape"

@@ -44,10 +44,11 @@ class Record:
         return int(self.u.shape[0])
 
     def delayed(self, samples: int) -> np.ndarray:
-        """The command as the plant receives it ``samples`` later (the first value held before the record)."""
+        """The command as the plant receives it ``samples`` later, none before the record (the rig at rest before it
+        is logged: the DAQ's delay line holds zeros, as the DAQ FMU's does)."""
         if samples <= 0:
             return self.u
-        return np.concatenate([np.full(samples, self.u[0]), self.u[:-samples]])
+        return np.concatenate([np.zeros(samples), self.u[:-samples]])
 
     def gauge_late(self, samples: int) -> Record:
         """The record with its gauge read ``samples`` late put back in time: the gauge's reading logged at sample

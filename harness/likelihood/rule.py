@@ -70,9 +70,12 @@ class EffectTest:
 @dataclass(frozen=True)
 class Rule:
     """How an effect is judged: ``level``, the false alarms the rule allows on a rig without the effect (the share
-    of friction-free twins on which friction would enter)."""
+    of friction-free twins on which friction would enter); ``white``, the level of the one test of whether the best
+    model's residuals are white (:func:`harness.diagnosis.decide.decide`: the smallest of its records' and channels'
+    Ljung-Box p-values, Bonferroni over them)."""
 
     level: float = 0.01
+    white: float = 0.01
 
     def test(self, lr: float, inflation: float, interior: bool = False) -> EffectTest:
         """The test of a nested effect whose statistic is ``lr`` [2 nats] and whose parameter's variance inflation is

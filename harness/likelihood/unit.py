@@ -120,7 +120,10 @@ class UnitFit:
     goes over it. The integer effects that entered (a second mode, a delay: ``structure``) are the linear model's
     own: ``fit`` is the fit with them, and everything after it (the findings, the nested effects, the picture) is
     drawn from it. ``where`` says, per record and channel, in which octave bands and stretches of time the linear
-    fit's residuals are not white (:func:`harness.likelihood.whiteness.where`)."""
+    fit's residuals are not white (:func:`harness.likelihood.whiteness.where`). ``final`` is the linear model with
+    every nested effect that entered (None: none did; one: its fit; more: fitted together), ``final_whiteness`` its
+    residuals' Ljung-Box p-values as ``whiteness`` (empty where none entered: ``whiteness`` is the best model's). ``lattice_bits``: the
+    bits of an ADC's lattice the records sit on that the sheet's DAQ does not have (0: none)."""
 
     fit: MLFit
     records: tuple[str, ...]
@@ -137,6 +140,9 @@ class UnitFit:
     curve: EffectCurve | None = None
     structure: tuple[str, ...] = ()
     where: dict[str, dict[str, Where]] = field(default_factory=dict)
+    final: MLFit | None = None
+    final_whiteness: dict[str, dict[str, float]] = field(default_factory=dict)
+    lattice_bits: int = 0
 
     def summary(self) -> list[str]:
         """A few lines for the terminal (under 100 characters each): the fit, the parameters that moved most from
@@ -201,7 +207,13 @@ class UnitFit:
             "missing_force": self.missing_force.to_json() | {"drawn_without": self.drawn_without},
             "structure": list(self.structure),
             "effects": {x.name: x.to_json() for x in self.effects},
-        }
+            "final": None if self.final is None else {
+                "effects": [x.name for x in self.effects if x.name in NESTED and x.test.enters],
+                "loglik": self.final.loglik, "k": self.final.k, "n": self.final.n,
+                "whiteness": {"test": "Ljung-Box", "lags": LAGS, "p": self.final_whiteness},
+            },
+            "lattice_bits": self.lattice_bits,
+        }  # fmt: skip
 
 
 def linear_start(plant: dict[str, Any]) -> dict[str, float]:
@@ -222,7 +234,8 @@ class RunRecords:
     [samples], whether every record's hub angle is an ``encoder``'s, and how many samples late the gauge reads
     (``gauge_late``: the records' own timing, :func:`harness.diagnosis.gauge.gauge_delay`, as today's diagnosis
     reads it); the run's ``calibration``; the gauge's low-pass time constant ``gauge_tau`` [s] the DAQ's sheet gives
-    (0: none known)."""
+    (0: none known); the bits of an ADC's lattice the records sit on that the sheet's DAQ does not have
+    (``lattice_bits``, :func:`harness.diagnosis.noise.adc_lattice`; 0: none)."""
 
     records: list[Record]
     delay: int
@@ -230,6 +243,7 @@ class RunRecords:
     gauge_late: int
     calibration: Calibration
     gauge_tau: float = 0.0
+    lattice_bits: int = 0
 
 
 def load_records(real: Path, sim: specmod.Spec) -> RunRecords:
@@ -248,8 +262,9 @@ def load_records(real: Path, sim: specmod.Spec) -> RunRecords:
         step = (max(rec.lattice[0], abs(cal.Kp) * lsb), max(rec.lattice[1], abs(cal.Ke) * lsb))
         out.append(Record(rec.name, rec.Ts, rec.u, rec.y, rec.mask, step).gauge_late(late).clamped(out_limit))
     encoder = all(x.encoder for x in exps.values())
+    new = bits if bits and bits != int(fmu_value(daq, "daq", "adc_bits")) else 0
     return RunRecords(out, int(fmu_value(daq, "daq", "delay_samples")), encoder, late, cal,
-                      float(fmu_value(daq, "daq", "gauge_tau")))  # fmt: skip
+                      float(fmu_value(daq, "daq", "gauge_tau")), new)  # fmt: skip
 
 
 def check_records(plant: dict[str, Any], values: dict[str, float], records: list[Record], delay: int = 0) -> None:
@@ -325,7 +340,18 @@ def fit_run(
     nominal = linear_start(plant) | ({"sensor.gauge_tau": run.gauge_tau} if run.gauge_tau > 0 else {})
     held = {k: v for k, v in nominal.items() if sd.get(k, 1.0) == 0.0}  # a sensor known exactly
     check_records(plant, nominal | noise_start(records), records, delay)
-    return fit_unit(plant, records, nominal, held, sd, delay, rule=rule, progress=progress, gauge_late=run.gauge_late)
+    return fit_unit(
+        plant,
+        records,
+        nominal,
+        held,
+        sd,
+        delay,
+        rule=rule,
+        progress=progress,
+        gauge_late=run.gauge_late,
+        lattice_bits=run.lattice_bits,
+    )
 
 
 def fit_unit(
@@ -339,6 +365,7 @@ def fit_unit(
     rule: Rule | None = None,
     progress: Callable[[str], None] | None = None,
     gauge_late: int = 0,
+    lattice_bits: int = 0,
 ) -> UnitFit:
     """A unit's records through the engine: the linear model, its findings, the effects nested on it, the missing
     force (what :func:`fit_run` does once it has read a run directory).
@@ -363,6 +390,8 @@ def fit_unit(
         Told what runs now.
     gauge_late : int
         How many samples late the gauge read (already put back in ``records``), for the summary.
+    lattice_bits : int
+        The bits of an ADC's lattice the records sit on that the sheet's DAQ does not have (0: none).
 
     Returns
     -------
@@ -405,7 +434,7 @@ def fit_unit(
     for rec in records:
         z = filter_record(plant, values, rec, delay).standardised(np.asarray(rec.lattice))
         lag_one[rec.name] = {c: _lag_one(z[:, j]) for j, c in enumerate(("theta", "alpha"))}
-        white[rec.name] = {c: ljung_box(z[:, j]).p for j, c in enumerate(("theta", "alpha"))}
+        white[rec.name] = _white(z)
         places[rec.name] = {c: where(z[:, j], rec.Ts) for j, c in enumerate(("theta", "alpha"))}
     linear = {k: (nominal[k], e.value) for k, e in res.estimates.items() if k in LINEAR}
     findings = [*parts_at_bound(linear)]
@@ -414,6 +443,13 @@ def fit_unit(
     for name in () if findings else NESTED:
         say(f"{name}, nested")
         effects.append(_nested(name, plant, records, res, held, scales, sd, delay, rule))
+    entered = [x for x in effects if x.name in NESTED and x.test.enters]
+    final, final_white = None, {}
+    if entered:  # the linear model with every nested effect that entered, and whether its residuals are white
+        say("the linear model with " + " and ".join(x.name for x in entered))
+        final = entered[0].fit if len(entered) == 1 else _joint(plant, records, entered, held, scales, sd, delay)
+        final_white = {rec.name: _white(filter_record(plant, final.values() | held, rec, delay)
+                                        .standardised(np.asarray(rec.lattice))) for rec in records}  # fmt: skip
     say("the missing force")
     kept = max((x for x in effects if x.name in SHAPE and x.test.enters), key=lambda x: x.lr, default=None)
     # drawn on the linear parameters of the nested effect that entered, the effect left out: its force is then the
@@ -430,7 +466,34 @@ def fit_unit(
             mf = replace(mf, size=size, dead_band_v=volts, sized_by=kept.name, picture_size=mf.size)
     return UnitFit(res, tuple(r.name for r in records), nominal, held, lag_one, white, tuple(findings), mf,
                    picture, tuple(effects), gauge_late, kept.name if kept else None, curve, structure,
-                   places)  # fmt: skip
+                   places, final, final_white, lattice_bits)  # fmt: skip
+
+
+def _white(z: np.ndarray) -> dict[str, float]:
+    """The Ljung-Box p-value of each channel's standardised residuals (n x 2: theta, alpha)."""
+    return {c: ljung_box(z[:, j]).p for j, c in enumerate(("theta", "alpha"))}
+
+
+def _joint(
+    plant: dict[str, Any],
+    records: list[Record],
+    entered: list[EffectFit],
+    held: dict[str, float],
+    nominal: dict[str, float],
+    sd: dict[str, float],
+    delay: int,
+) -> MLFit:
+    """The linear model with every nested effect in ``entered`` at once, from the strongest's fit and each other's
+    own size."""
+    top = max(entered, key=lambda x: x.lr)
+    start = {k: v for k, v in top.fit.values().items() if k not in held}
+    scales = dict(nominal)
+    for x in entered:
+        param = NESTED[x.name]
+        start[param] = x.fit.values()[param]
+        scales[param] = nested_start(x.name, records, x.drive).nominal
+    return fit(plant, records, start, fixed=held, nominal=scales, prior_sd={k: sd[k] for k in start if k in sd},
+               delay=delay)  # fmt: skip
 
 
 def _nested(
@@ -524,8 +587,9 @@ def with_likelihood(diagnosis: Diagnosis, unit: UnitFit) -> Diagnosis:
     return replace(diagnosis, candidates=candidates)
 
 
-def write_likelihood(out: Path, unit: UnitFit) -> Path:
-    """Write ``out/likelihood.json`` (atomically, byte-stable) and return its path."""
+def write_likelihood(out: Path, unit: UnitFit, verdict: dict[str, Any] | None = None) -> Path:
+    """Write ``out/likelihood.json`` (atomically, byte-stable), with the ``verdict`` on the fit where given
+    (:meth:`harness.diagnosis.decide.Decision.to_json`), and return its path."""
     path = Path(out) / "likelihood.json"
-    write_json(path, unit.to_json())
+    write_json(path, unit.to_json() | ({"verdict": verdict} if verdict else {}))
     return path
