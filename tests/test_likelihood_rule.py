@@ -85,17 +85,19 @@ def test_friction_stays_out_of_a_friction_free_quantised_twin(closed, bits, seed
     tried = {"delay", "gauge_lowpass", "coulomb_friction", "saturation", "gauge_nonlinearity"}
     assert not r.findings and set(r.tests) == tried, r
     assert not any(t.enters for t in r.tests.values()), r
-    assert r.shape == "none", r
+    assert r.shape == "none" and r.verdict == "none", r
 
 
 @pytest.mark.parametrize(("closed", "bits", "seed"), [(True, 8, 611), (False, 10, 612)])
 def test_friction_of_a_hundredth_enters_a_quantised_twin(closed, bits, seed):
     """With Coulomb friction of 0.01 N m (77 mV of command), the friction nested on the linear fit enters at 1 %
-    and is sized within 25 %; the missing force drawn without it is named friction within 20 %."""
+    and is sized within 25 %; the missing force drawn without it is named friction within 20 %; the verdict is
+    coulomb_friction."""
     r = judge_case(Case(seed, closed, bits, 0.01), Rule())
     assert r.tests["coulomb_friction"].enters and r.friction == pytest.approx(0.01, rel=0.25), r
     assert r.tests["coulomb_friction"].agrees is not None  # fitted on the record's halves
     assert r.shape == "friction" and r.size == pytest.approx(0.01, rel=0.2), r
+    assert r.verdict == "coulomb_friction", r  # its residuals white by the law its draws give the filter
 
 
 def test_the_rules_calibration_counts_its_cases():

@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from ..diagnosis.decide import decide
 from ..executor import Executor, worker_rig
 from ..fmu.build import build_all
 from ..rig.controller import Controller
@@ -61,8 +62,9 @@ class Case:
 class CaseResult:
     """A case through the engine: each nested effect's ``tests`` (none where ``skipped`` says why the case was not
     fitted, or the linear fit's ``findings`` kept the effects out), the friction's fitted value ``friction`` [N m],
-    the missing force's ``shape`` and ``size`` (:class:`harness.likelihood.force.MissingForce`), and whether the
-    linear fit's residuals are ``white`` on every channel (Ljung-Box at its level)."""
+    the missing force's ``shape`` and ``size`` (:class:`harness.likelihood.force.MissingForce`), whether the
+    linear fit's residuals are ``white`` on every channel (Ljung-Box at its level), and the ``verdict``
+    (:func:`harness.diagnosis.decide.decide`)."""
 
     case: Case
     tests: dict[str, EffectTest]
@@ -72,6 +74,7 @@ class CaseResult:
     white: bool
     findings: str = ""
     skipped: str = ""
+    verdict: str = ""
 
 
 def _daq(name: str) -> float:
@@ -121,7 +124,9 @@ def judge_case(case: Case, rule: Rule, fmus: dict[str, Any] | None = None) -> Ca
     friction = next((x.fit.values()[NESTED[x.name]] for x in unit.effects if x.name == "coulomb_friction"), None)
     white = all(p >= LEVEL for ps in unit.whiteness.values() for p in ps.values())
     mf = unit.missing_force
-    return CaseResult(case, tests, friction, mf.shape, mf.size, white, "; ".join(unit.findings))
+    return CaseResult(
+        case, tests, friction, mf.shape, mf.size, white, "; ".join(unit.findings), verdict=decide(unit, rule).verdict
+    )
 
 
 def _enters(result: CaseResult, effect: str) -> bool:
@@ -177,6 +182,13 @@ class RuleCalibration:
                             for r in self._judged(self.effect)])  # fmt: skip
 
     @property
+    def verdict_right(self) -> tuple[float, float]:
+        """The shares of judged cases whose verdict is the twin's: none on the friction-free ones,
+        coulomb_friction on those with friction."""
+        return (self._share([r.verdict == "none" for r in self._judged(self.null)]),
+                self._share([r.verdict == "coulomb_friction" for r in self._judged(self.effect)]))  # fmt: skip
+
+    @property
     def white(self) -> float:
         """The share of judged friction-free cases whose linear fit's residuals are white on every channel."""
         return self._share([r.white for r in self._judged(self.null)])
@@ -192,11 +204,11 @@ class RuleCalibration:
             "findings": found,
             "null": {"cases": len(self.null), "judged": len(self._judged(self.null)),
                      "false_alarms": self.false_alarms, "largest_lr": max(null_lr, default=float("nan")),
-                     "named_none": self.named_none, "white": self.white,
+                     "named_none": self.named_none, "white": self.white, "verdict_none": self.verdict_right[0],
                      "alarms": [{"seed": seed, "effect": name} for seed, name in alarms]},
             "effect": {"cases": len(self.effect), "judged": len(self._judged(self.effect)), "power": self.power,
                        "sized_within": SIZED, "sized": self.sized, "named_within": NAMED,
-                       "named_friction": self.named_friction,
+                       "named_friction": self.named_friction, "verdict_friction": self.verdict_right[1],
                        "coulomb": self.effect[0].case.coulomb if self.effect else None},
         }  # fmt: skip
 

@@ -159,12 +159,12 @@ class StochasticModel:
             u = np.clip(u + self.offset, -self.limit, self.limit) - self.offset
         return np.column_stack([u, np.ones(u.shape[0])])
 
-    def discretise(self, Ts: float) -> Discrete:
+    def discretise(self, Ts: float, step: float = FRICTION_STEP) -> Discrete:
         """The model sampled every ``Ts`` [s] with the inputs held over each sample: A_d = exp(A Ts), B_d its
         integral on B, Q_d = int_0^Ts exp(A s) G W G' exp(A' s) ds (Van Loan), r the readings' variances. With
-        friction, the filter's steps are substeps of at most :data:`FRICTION_STEP` (the hub sticks and slides within
-        a sample)."""
-        substeps = max(1, math.ceil(Ts / FRICTION_STEP - 1e-9)) if self.coulomb > 0.0 else 1
+        friction, the steps are substeps of at most ``step`` [s] (the hub sticks and slides within a sample; the
+        filter's :data:`FRICTION_STEP`)."""
+        substeps = max(1, math.ceil(Ts / step - 1e-9)) if self.coulomb > 0.0 else 1
         Ts /= substeps
         nx, nu = self.B.shape
         M = np.zeros((nx + nu, nx + nu))

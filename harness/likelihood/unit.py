@@ -39,6 +39,7 @@ from .force import EffectCurve, ForcePicture, MissingForce, classify, effect_cur
 from .model import EFFECTS, rig_model
 from .record import Record
 from .rule import EffectTest, Rule
+from .simulate import whiteness_scale
 from .whiteness import LAGS, LEVEL, Where, ljung_box, where
 
 __all__ = [
@@ -122,8 +123,10 @@ class UnitFit:
     drawn from it. ``where`` says, per record and channel, in which octave bands and stretches of time the linear
     fit's residuals are not white (:func:`harness.likelihood.whiteness.where`). ``final`` is the linear model with
     every nested effect that entered (None: none did; one: its fit; more: fitted together), ``final_whiteness`` its
-    residuals' Ljung-Box p-values as ``whiteness`` (empty where none entered: ``whiteness`` is the best model's). ``lattice_bits``: the
-    bits of an ADC's lattice the records sit on that the sheet's DAQ does not have (0: none)."""
+    residuals' Ljung-Box p-values as ``whiteness`` (empty where none entered: ``whiteness`` is the best model's),
+    each test's law scaled by ``final_scale`` (what the filter keeps on records the model draws,
+    :func:`harness.likelihood.simulate.whiteness_scale`: its friction and its bent gauge are approximations).
+    ``lattice_bits``: the bits of an ADC's lattice the records sit on that the sheet's DAQ does not have (0: none)."""
 
     fit: MLFit
     records: tuple[str, ...]
@@ -142,6 +145,7 @@ class UnitFit:
     where: dict[str, dict[str, Where]] = field(default_factory=dict)
     final: MLFit | None = None
     final_whiteness: dict[str, dict[str, float]] = field(default_factory=dict)
+    final_scale: dict[str, dict[str, float]] = field(default_factory=dict)
     lattice_bits: int = 0
 
     def summary(self) -> list[str]:
@@ -210,7 +214,8 @@ class UnitFit:
             "final": None if self.final is None else {
                 "effects": [x.name for x in self.effects if x.name in NESTED and x.test.enters],
                 "loglik": self.final.loglik, "k": self.final.k, "n": self.final.n,
-                "whiteness": {"test": "Ljung-Box", "lags": LAGS, "p": self.final_whiteness},
+                "whiteness": {"test": "Ljung-Box", "lags": LAGS, "p": self.final_whiteness,
+                              "scale": self.final_scale},
             },
             "lattice_bits": self.lattice_bits,
         }  # fmt: skip
@@ -444,12 +449,16 @@ def fit_unit(
         say(f"{name}, nested")
         effects.append(_nested(name, plant, records, res, held, scales, sd, delay, rule))
     entered = [x for x in effects if x.name in NESTED and x.test.enters]
-    final, final_white = None, {}
+    final, final_white, final_scale = None, {}, {}
     if entered:  # the linear model with every nested effect that entered, and whether its residuals are white
         say("the linear model with " + " and ".join(x.name for x in entered))
         final = entered[0].fit if len(entered) == 1 else _joint(plant, records, entered, held, scales, sd, delay)
+        # its filter is an approximation (friction's moments over 1 ms, a bent gauge linearised): its whiteness
+        # test's law scaled by what it keeps on records the model draws
+        final_scale = whiteness_scale(plant, final.values() | held, records, delay)
         final_white = {rec.name: _white(filter_record(plant, final.values() | held, rec, delay)
-                                        .standardised(np.asarray(rec.lattice))) for rec in records}  # fmt: skip
+                                        .standardised(np.asarray(rec.lattice)), final_scale[rec.name])
+                       for rec in records}  # fmt: skip
     say("the missing force")
     kept = max((x for x in effects if x.name in SHAPE and x.test.enters), key=lambda x: x.lr, default=None)
     # drawn on the linear parameters of the nested effect that entered, the effect left out: its force is then the
@@ -466,12 +475,13 @@ def fit_unit(
             mf = replace(mf, size=size, dead_band_v=volts, sized_by=kept.name, picture_size=mf.size)
     return UnitFit(res, tuple(r.name for r in records), nominal, held, lag_one, white, tuple(findings), mf,
                    picture, tuple(effects), gauge_late, kept.name if kept else None, curve, structure,
-                   places, final, final_white, lattice_bits)  # fmt: skip
+                   places, final, final_white, final_scale, lattice_bits)  # fmt: skip
 
 
-def _white(z: np.ndarray) -> dict[str, float]:
-    """The Ljung-Box p-value of each channel's standardised residuals (n x 2: theta, alpha)."""
-    return {c: ljung_box(z[:, j]).p for j, c in enumerate(("theta", "alpha"))}
+def _white(z: np.ndarray, scale: dict[str, float] | None = None) -> dict[str, float]:
+    """The Ljung-Box p-value of each channel's standardised residuals (n x 2: theta, alpha), its law scaled by the
+    channel's ``scale`` where given (:func:`harness.likelihood.simulate.whiteness_scale`)."""
+    return {c: ljung_box(z[:, j], scale=(scale or {}).get(c, 1.0)).p for j, c in enumerate(("theta", "alpha"))}
 
 
 def _joint(

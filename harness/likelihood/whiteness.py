@@ -56,8 +56,9 @@ class Whiteness:
         return self.p >= self.level
 
 
-def ljung_box(z: np.ndarray, lags: int = LAGS, level: float = LEVEL) -> Whiteness:
-    """The Ljung-Box test of the residuals ``z`` (NaN where masked).
+def ljung_box(z: np.ndarray, lags: int = LAGS, level: float = LEVEL, scale: float = 1.0) -> Whiteness:
+    """The Ljung-Box test of the residuals ``z`` (NaN where masked), its chi-square law scaled by ``scale`` (what an
+    approximate filter keeps on its model's own data: :func:`harness.likelihood.simulate.whiteness_scale`).
 
     Parameters
     ----------
@@ -67,6 +68,8 @@ def ljung_box(z: np.ndarray, lags: int = LAGS, level: float = LEVEL) -> Whitenes
         The autocorrelations summed.
     level : float
         The test's level.
+    scale : float
+        The statistic's law is ``scale`` times the chi-square's.
 
     Returns
     -------
@@ -83,7 +86,7 @@ def ljung_box(z: np.ndarray, lags: int = LAGS, level: float = LEVEL) -> Whitenes
         pairs = int(np.sum(ok[k:] & ok[:-k]))
         rho = float(np.sum(x[k:] * x[:-k])) / (pairs * var) if pairs else 0.0
         q += (pairs + 2) * rho**2  # Ljung and Box's n (n + 2) r_k^2 / (n - k), r_k over the pairs a mask leaves
-    return Whiteness(q, lags, n, float(chi2.sf(q, lags)), level)
+    return Whiteness(q, lags, n, float(chi2.sf(q / scale, lags)), level)
 
 
 @dataclass(frozen=True)
