@@ -102,9 +102,9 @@ def test_friction_of_a_hundredth_enters_a_quantised_twin(closed, bits, seed):
 
 def test_the_rules_calibration_counts_its_cases():
     """calibrate_rule on one case of each kind, serially: the case is the seed's (open loop on odd seeds, 8, 10, 12
-    bits in turn: 701 an open loop at 12 bits), the friction-free one does not alarm and is named none, the one with
-    friction enters sized and named, and its JSON says so; a case whose hub leaves the pot's track is skipped, not
-    judged; a case whose linear fit had a finding counts as not detected."""
+    bits in turn: 701 an open loop at 12 bits), the friction-free one does not alarm and is named none, the one
+    with friction enters sized and named, each verdict is the twin's, and its JSON says so; a case whose hub
+    leaves the pot's track is skipped, not judged; a case whose linear fit had a finding counts as not detected."""
     cal = calibrate_rule(1, seed=701, workers=1)
     assert [r.case for r in (*cal.null, *cal.effect)] == [Case(701, False, 12, 0.0), Case(701, False, 12, 0.01)]
     assert cal.false_alarms == 0.0 and cal.named_none == 1.0
@@ -112,8 +112,9 @@ def test_the_rules_calibration_counts_its_cases():
     doc = cal.to_json()
     largest = max(t.lr for r in cal.null for t in r.tests.values())
     assert doc["null"] == {"cases": 1, "judged": 1, "false_alarms": 0.0, "largest_lr": largest, "named_none": 1.0,
-                           "white": cal.white, "alarms": []}  # fmt: skip
+                           "white": cal.white, "verdict_none": 1.0, "alarms": []}  # fmt: skip
     assert doc["effect"]["power"] == 1.0 and doc["level"] == 0.01 and doc["findings"] == []
+    assert doc["effect"]["verdict_friction"] == 1.0 and cal.verdict_right == (1.0, 1.0)
     skipped = CaseResult(Case(1, False, 8, 0.0), {}, None, "", 0.0, False, skipped="the hub leaves the pot's track")
     assert RuleCalibration(Rule(), (*cal.null, skipped), cal.effect).false_alarms == 0.0
     found = CaseResult(Case(3, False, 8, 0.01), {}, None, "none", 0.0, False, findings="a bound")
