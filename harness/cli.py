@@ -1105,6 +1105,10 @@ def blindtest(
     keep: Annotated[bool, typer.Option("--keep", help="keep the case run directories in OUT/blind_cases")] = False,
     scheduler: SchedulerOpt = None,
     workers: WorkersOpt = None,
+    engine: Annotated[
+        str,
+        typer.Option(help="replay (today's diagnosis) or likelihood (the likelihood engine's fit and verdict)"),
+    ] = "replay",
 ) -> None:
     """Score the diagnoser on rigs with hidden effects: blindtest.json.
 
@@ -1115,8 +1119,10 @@ def blindtest(
     from .diagnosis.blindtest import blindtest as run_blind
 
     fams = tuple(family) if family else FAMILIES
+    if engine not in ("replay", "likelihood"):
+        raise typer.BadParameter(f"--engine {engine!r}: replay or likelihood")
     res = run_blind(
-        n, seed, out_dir, progress=_progress("blindtest"), families=fams, quick=quick, keep=keep,
+        n, seed, out_dir, progress=_progress("blindtest"), families=fams, quick=quick, keep=keep, engine=engine,
         **_parallel(workers, scheduler),
     )  # fmt: skip
     from .render.summary import Summary

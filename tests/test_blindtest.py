@@ -11,6 +11,7 @@ import pytest
 from test_diagnosis_result import minimal_doc
 
 from harness.diagnosis import blindtest as bt
+from harness.diagnosis.blindcase import Answer
 from harness.diagnosis.effects import EFFECTS
 from harness.diagnosis.result import Diagnosis
 
@@ -61,33 +62,38 @@ def _diag(verdict, effects, shrink, parameters=None):
     return Diagnosis.from_dict(doc)
 
 
+def _score(case: dict, diag: Diagnosis) -> dict:
+    """The replay diagnosis's answer scored."""
+    return bt.score_case(case, Answer.of_diagnosis(diag))
+
+
 def test_scoring_rules():
     single = {"kind": "single", "truth_effects": ["backlash"], "truth_params": {"plant.backlash": 0.005}}
-    s = bt.score_case(single, _diag("backlash", [("backlash", {"plant.backlash": 0.0062})], 80.0))
+    s = _score(single, _diag("backlash", [("backlash", {"plant.backlash": 0.0062})], 80.0))
     assert s["top1"] and s["param_ok"] and not s["param_ok_20"] and s["param_error"] == pytest.approx(0.24)
-    s = bt.score_case(single, _diag("backlash", [("backlash", {"plant.backlash": 0.0063})], 80.0))
+    s = _score(single, _diag("backlash", [("backlash", {"plant.backlash": 0.0063})], 80.0))
     assert s["top1"] and not s["param_ok"]
-    s = bt.score_case(single, _diag("delay", [("delay", {"daq.delay_samples": 1})], 30.0))
+    s = _score(single, _diag("delay", [("delay", {"daq.delay_samples": 1})], 30.0))
     assert not s["top1"] and not s["param_ok"] and math.isinf(s["param_error"])
     none = {"kind": "none", "truth_effects": [], "truth_params": {}}
-    assert bt.score_case(none, _diag("none", [], 0.0))["correct"]
-    s = bt.score_case(none, _diag("backlash", [("backlash", {"plant.backlash": 0.001})], 20.0))
+    assert _score(none, _diag("none", [], 0.0))["correct"]
+    s = _score(none, _diag("backlash", [("backlash", {"plant.backlash": 0.001})], 20.0))
     assert s["turned_into_effect"] and not s["correct"]
-    assert not bt.score_case(none, _diag("unexplained", [], 0.0))["turned_into_effect"]
+    assert not _score(none, _diag("unexplained", [], 0.0))["turned_into_effect"]
     out = {"kind": "out", "truth_effects": ["gauge_drift"], "truth_params": {}}
-    assert bt.score_case(out, _diag("unexplained", [], 0.0))["correct"]
-    assert not bt.score_case(out, _diag("gauge_nonlinearity", [("gauge_nonlinearity", {})], 90.0))["correct"]
-    assert not bt.score_case(out, _diag("none", [], 0.0))["correct"]
+    assert _score(out, _diag("unexplained", [], 0.0))["correct"]
+    assert not _score(out, _diag("gauge_nonlinearity", [("gauge_nonlinearity", {})], 90.0))["correct"]
+    assert not _score(out, _diag("none", [], 0.0))["correct"]
     # recalibration: Ks within 10 % and Beq within 25 % of the rig's (nuisance) values
     nuis = {**none, "nuisance": {"plant.Ks": 1.5, "plant.Beq": 0.008}}
     diag = _diag("none", [], 0.0, {"plant.Ks": 1.64, "plant.Beq": 0.0099})
-    s = bt.score_case(nuis, diag)
+    s = _score(nuis, diag)
     assert s["ks_error"] == pytest.approx(0.14 / 1.5) and s["recal_ok"]
     diag.parameters["plant.Beq"].fitted = 0.0101
-    assert not bt.score_case(nuis, diag)["recal_ok"]
+    assert not _score(nuis, diag)["recal_ok"]
     # a diagnosis without a Beq row (its drive held: blindtest --family closed --quick --n 2 --seed 5 raised
     # KeyError 'plant.Beq'): Beq missed, the case scored
-    s = bt.score_case(nuis, _diag("none", [], 0.0, {"plant.Ks": 1.64}))
+    s = _score(nuis, _diag("none", [], 0.0, {"plant.Ks": 1.64}))
     assert math.isinf(s["beq_error"]) and not s["recal_ok"] and s["ks_error"] == pytest.approx(0.14 / 1.5)
 
 
@@ -167,7 +173,7 @@ def test_a_target_is_not_met_on_one_case_nor_on_none():
     from harness.cli import blindtest_table
 
     single = {"kind": "single", "truth_effects": ["backlash"], "truth_params": {"plant.backlash": 0.005}}
-    s = bt.score_case(single, _diag("backlash", [("backlash", {"plant.backlash": 0.0051})], 80.0))
+    s = _score(single, _diag("backlash", [("backlash", {"plant.backlash": 0.0051})], 80.0))
     tot = bt.totals([{**single, "family": "twin", "case": 0, "score": s}])
     assert tot["targets"]["single top-1 %"]["n"] == 1 and not tot["targets"]["single top-1 %"]["enough"]
     console = Console(width=200, record=True)
@@ -255,23 +261,23 @@ def test_wrong_sheet_scoring_reads_the_rows_when_present_and_says_not_fitted_oth
     case = {"case": 0, "family": "wrong_sheet", "kind": "none", "truth_effects": [], "truth_params": {},
             "nuisance": {"plant.Ks": 1.0}, "sheet_truth": TRUTH}  # fmt: skip
     inside = {"rig.drive_gain": 2.19, "rig.drive_tau": 0.091, "plant.Ks": 1.09, "sensor.alpha_gauge_gain": 0.546}
-    s = bt.score_case(case, _sheet_diag(inside))
+    s = _score(case, _sheet_diag(inside))
     assert s["sheet_all_ok"] and set(s["sheet_status"].values()) == {"fitted"} and s["correct"]
     assert s["sheet_errors"]["rig.drive_gain"] == pytest.approx(0.095) and "recal_ok" not in s
-    s = bt.score_case(case, _sheet_diag({**inside, "sensor.alpha_gauge_gain": 0.556}))  # 11.2 % off
+    s = _score(case, _sheet_diag({**inside, "sensor.alpha_gauge_gain": 0.556}))  # 11.2 % off
     assert not s["sheet_all_ok"] and not s["sheet_ok"]["sensor.alpha_gauge_gain"] and s["sheet_ok"]["plant.Ks"]
     diag = _sheet_diag({**inside, "sensor.alpha_gauge_gain": 1.0})
     diag.parameters["sensor.alpha_gauge_gain"].ci95 = [math.nan, math.nan]  # kept at the sheet's value
-    assert bt.score_case(case, diag)["sheet_status"]["sensor.alpha_gauge_gain"] == "kept"
+    assert _score(case, diag)["sheet_status"]["sensor.alpha_gauge_gain"] == "kept"
     # today's diagnosis: plant rows only, no rig.* nor sensor.* row
-    s = bt.score_case(case, _sheet_diag({"plant.Ks": 1.05, "plant.kt": 0.00768, "plant.Beq": 0.004}))
+    s = _score(case, _sheet_diag({"plant.Ks": 1.05, "plant.kt": 0.00768, "plant.Beq": 0.004}))
     assert s["sheet_status"] == {"rig.drive_gain": "not fitted", "rig.drive_tau": "not fitted", "plant.Ks": "fitted",
                                  "sensor.alpha_gauge_gain": "not fitted"}  # fmt: skip
     assert s["sheet_errors"]["rig.drive_gain"] is None and s["sheet_ok"]["plant.Ks"] and not s["sheet_all_ok"]
     # the textbook plant's drive gain, 1.758 rad/(V s), against a truth of 2: 12.1 % off (not scored)
     assert s["sheet_implied_errors"]["rig.drive_gain"] == pytest.approx(0.1209, abs=1e-4)
     diags = [_sheet_diag(inside), _sheet_diag({"plant.Ks": 1.5})]
-    cases = [{**case, "case": i, "score": bt.score_case(case, d)} for i, d in enumerate(diags)]
+    cases = [{**case, "case": i, "score": _score(case, d)} for i, d in enumerate(diags)]
     tot = bt.totals(cases)
     ws = tot["families"]["wrong_sheet"]["wrong_sheet"]
     assert ws["all_four_within_10pct"]["k"] == 1 and ws["all_four_within_10pct"]["n"] == 2
@@ -300,7 +306,7 @@ def test_wrong_sheet_report_and_console(tmp_path, monkeypatch):
     case = {"case": 0, "family": "wrong_sheet", "kind": "none", "truth_effects": [], "truth_params": {},
             "nuisance": {}, "sheet_truth": TRUTH, "campaign_seed": 1, "sheet_factors": {
                 "rig.drive_gain": 1.1, "rig.drive_tau": 1.0, "plant.Ks": 0.8, "daq.gauge_gain": 2.0}}  # fmt: skip
-    case["score"] = bt.score_case(case, _sheet_diag({"plant.Ks": 1.03}))
+    case["score"] = _score(case, _sheet_diag({"plant.Ks": 1.03}))
     doc = {"n": 1, "seed": 0, "spec": "blind.toml", "quick": True, "families": ["wrong_sheet"], "skipped": [],
            "cases": [case], "totals": bt.totals([case])}  # fmt: skip
     (tmp_path / "blindtest.json").write_text(json.dumps(doc))
@@ -368,3 +374,49 @@ def test_a_real_like_unit_on_the_independent_simulator_gives_back_its_friction_a
     assert score["verdict"] == "coulomb_friction" and score["param_ok"], score
     assert abs(score["fitted"]["plant.coulomb_torque"] / case["truth_params"]["plant.coulomb_torque"] - 1) < 0.1
     assert score["offsets_ok"], score
+
+
+def test_the_likelihood_engine_judges_blind_cases(fmus):
+    """``run_case(..., engine="likelihood")``: the twin family's seed-0 plan, its bent gauge (case 9, a cubic of
+    0.0970) named gauge_nonlinearity within 2 % (measured 0.0968) and its rig without an effect (case 10) named none,
+    by the engine's fit and verdict; the answer's parameter rows hold the linear fit and the plant parameters it
+    implies (Beq within 5 % of the sheet's, the twin's own). An engine it does not know is one line."""
+    from harness.executor import fmu_bytes
+
+    shipped = {k: fmu_bytes(v) for k, v in fmus.items()}
+    cases = bt.plan(14, 0, ("twin",))
+    bent = bt.run_case(cases[9], None, True, shipped, engine="likelihood")
+    assert bent["truth_effects"] == ["gauge_nonlinearity"]
+    sc = bent["score"]
+    assert sc["top1"] and sc["param_error"] < 0.02 and sc["verdict"] == "gauge_nonlinearity", sc
+    assert math.isnan(sc["shrink_pct"])
+    none = bt.run_case(cases[10], None, True, shipped, engine="likelihood")
+    assert none["kind"] == "none" and none["score"]["correct"], none["score"]
+    with pytest.raises(ValueError, match="engine 'kalman'"):
+        bt.run_case(cases[10], None, True, shipped, engine="kalman")
+
+
+def test_a_likelihood_answer_carries_the_linear_fit_and_the_plant_it_implies():
+    """:meth:`Answer.of_likelihood` on a unit fit: the verdict and effects of the decision, an entered effect's
+    parameter as its fit has it, a lattice as its bits, the linear rows with their sheet values and the plant
+    rows (kt, km, Beq, Jeq) the fit implies through :func:`rigmodel.to_plant`, NaN intervals."""
+    from types import SimpleNamespace
+
+    from harness.diagnosis.decide import Decision
+    from harness.diagnosis.rigmodel import combos, to_plant
+    from harness.likelihood.fit import Estimate
+
+    plant = {"n_modes": 1}
+    sheet = combos(plant)
+    est = {k: Estimate(1.1 * v, (v, 1.2 * v), "1", None) for k, v in sheet.items()}
+    fit = SimpleNamespace(estimates=est, values=lambda: {k: e.value for k, e in est.items()})
+    friction = SimpleNamespace(name="coulomb_friction", parameters=("plant.coulomb_torque",), settings={},
+                               fit=SimpleNamespace(values=lambda: {"plant.coulomb_torque": 0.031}))  # fmt: skip
+    unit = SimpleNamespace(effects=(friction,), final=fit, fit=None, nominal=sheet, lattice_bits=10)
+    a = Answer.of_likelihood(unit, Decision("coulomb_friction", ("coulomb_friction", "quantization"), None, ""), plant)
+    assert a.verdict == "coulomb_friction" and a.found == ["coulomb_friction", "quantization"]
+    assert a.fitted == {"plant.coulomb_torque": 0.031, "daq.adc_bits": 10.0}
+    assert a.parameters["rig.drive_gain"].fitted == pytest.approx(1.1 * sheet["rig.drive_gain"])
+    assert a.parameters["rig.drive_gain"].change_pct == pytest.approx(10.0)
+    want = to_plant({k: 1.1 * v for k, v in sheet.items()}, plant)
+    assert a.parameters["plant.Beq"].fitted == pytest.approx(want["Beq"]) and a.parameters["plant.Beq"].kept

@@ -6,16 +6,18 @@ data converted with the sheet's calibration), and the diagnosis scored against t
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 from .. import spec as specmod
 from ..ident.calibration import Calibration
+from ..likelihood.unit import UnitFit
 from ..rundir import Manifest, RunDir, record_inputs
+from .decide import Decision
 from .effects import EFFECTS
-from .result import Diagnosis
-from .rigmodel import combos
+from .result import Diagnosis, FittedParameter
+from .rigmodel import combos, to_plant
 from .simulation import fmu_value
 
 BLIND_SPEC = specmod.SPEC_DIR / "blind.toml"
@@ -99,12 +101,54 @@ def _rel_err(true: float, fitted: float | None) -> float:
     return abs(float(fitted) - float(true)) / abs(float(true))
 
 
-def score_case(case: dict[str, Any], diag: Diagnosis) -> dict[str, Any]:
-    """Score one diagnosis against the hidden truth."""
-    verdict = diag.verdict
-    found = diag.effect_names
-    fitted = diag.fitted_effect_params()
-    shrink = float(diag.gap.shrink_pct)
+@dataclass(frozen=True)
+class Answer:
+    """What a diagnosis answered, as a blind case scores it: the ``verdict``, the effects ``found`` (their order),
+    each effect parameter ``fitted`` ({"plant.coulomb_torque": 0.03, ...}), the held-out ``shrink_pct`` (NaN where
+    the engine does not replay) and the parameter table ``parameters`` (its linear rows)."""
+
+    verdict: str
+    found: list[str]
+    fitted: dict[str, float]
+    shrink_pct: float
+    parameters: dict[str, FittedParameter]
+
+    @classmethod
+    def of_diagnosis(cls, diag: Diagnosis) -> Answer:
+        """The replay diagnosis's answer (``diagnosis.json``)."""
+        return cls(diag.verdict, diag.effect_names, diag.fitted_effect_params(), float(diag.gap.shrink_pct),
+                   diag.parameters)  # fmt: skip
+
+    @classmethod
+    def of_likelihood(cls, unit: UnitFit, decision: Decision, plant: dict[str, Any]) -> Answer:
+        """The likelihood engine's answer: the ``decision``'s verdict and effects, each effect's parameter as its
+        nested fit has it (an integer effect's setting), the linear parameters of the best model
+        (:attr:`UnitFit.final`, else the linear fit) and the plant parameters they imply on the sheet's ``plant``
+        (:func:`rigmodel.to_plant`: kt, km, Beq, Jeq; no interval)."""
+        fitted: dict[str, float] = {}
+        for x in unit.effects:
+            if x.name in decision.effects:
+                fitted |= {k: x.fit.values()[k] for k in x.parameters} | {k: float(v) for k, v in x.settings.items()}
+        if "quantization" in decision.effects:
+            fitted["daq.adc_bits"] = float(unit.lattice_bits)
+        best = unit.final or unit.fit
+        rows = {k: FittedParameter(unit.nominal[k], e.value, list(e.ci95), 100.0 * (e.value / unit.nominal[k] - 1.0),
+                                   e.unit, at_bound=e.at)
+                for k, e in best.estimates.items() if k in unit.nominal and unit.nominal[k]}  # fmt: skip
+        implied = to_plant({k: e.value for k, e in best.estimates.items()}, plant)
+        sheet = to_plant({}, plant)
+        for k, v in implied.items():
+            rows.setdefault(f"plant.{k}", FittedParameter(sheet[k], v, [math.nan, math.nan],
+                                                          100.0 * (v / sheet[k] - 1.0), ""))  # fmt: skip
+        return cls(decision.verdict, list(decision.effects), fitted, math.nan, rows)
+
+
+def score_case(case: dict[str, Any], answer: Answer) -> dict[str, Any]:
+    """Score one diagnosis's answer against the hidden truth."""
+    verdict = answer.verdict
+    found = answer.found
+    fitted = answer.fitted
+    shrink = answer.shrink_pct
     out: dict[str, Any] = {"verdict": verdict, "found": found, "fitted": fitted, "shrink_pct": shrink}
     kind = case["kind"]
     if kind == "single":
@@ -125,9 +169,9 @@ def score_case(case: dict[str, Any], diag: Diagnosis) -> dict[str, Any]:
         out.update(both=all(e in found for e in effs), top1_in_truth=verdict in effs, param_errors=errs)
     else:
         out.update(correct=verdict == "unexplained")
-    params = diag.parameters
+    params = answer.parameters
     if case.get("sheet_truth"):
-        out.update(sheet_scores(case["sheet_truth"], diag))
+        out.update(sheet_scores(case["sheet_truth"], params))
     elif case.get("nuisance") and "plant.Ks" in params:  # a row the diagnosis has not (the drive held): a miss
         ks = _rel_err(case["nuisance"]["plant.Ks"], params["plant.Ks"].fitted)
         beq_row = params.get("plant.Beq")
@@ -136,13 +180,12 @@ def score_case(case: dict[str, Any], diag: Diagnosis) -> dict[str, Any]:
     return out
 
 
-def sheet_scores(truth: dict[str, float], diag: Diagnosis) -> dict[str, Any]:
+def sheet_scores(truth: dict[str, float], params: dict[str, FittedParameter]) -> dict[str, Any]:
     """A wrong_sheet rig's sheet quantities (:data:`SHEET_ROWS`) against the diagnosis's parameter rows: each row's
     ``sheet_status`` ("fitted", "kept" at the spec's value, or "not fitted": no such row), its relative error
     ``sheet_errors`` (None when not fitted), ``sheet_ok`` within :data:`SHEET_TOL`, and ``sheet_all_ok``. Beside
     them, not scored: the drive's gain and time constant the plant rows imply (``sheet_implied_errors``, from the
     fitted kt, km, Beq, Jeq, Ks through :func:`rigmodel.combos`)."""
-    params = diag.parameters
     status, errors, ok = {}, {}, {}
     for row in SHEET_ROWS:
         p = params.get(row)

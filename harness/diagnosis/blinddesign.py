@@ -31,7 +31,7 @@ from ..prediction import MetricBand, Reference, judge_specs, pooled, reference_f
 from ..rig.campaign import run_campaign
 from ..rig.controller import Controller
 from ..twin import RigTables, twin_of_diagnosis, twin_of_spec
-from .blindcase import campaign_spec, case_sets, hide_truth, score_case
+from .blindcase import Answer, campaign_spec, case_sets, hide_truth, score_case
 from .diagnose import diagnose_run
 
 __all__ = ["BAND_METRICS", "METHOD", "REFERENCE", "SPECS", "design_group", "design_scores", "run_design_case",
@@ -138,7 +138,7 @@ def run_design_case(case: dict[str, Any], root: Path | None, quick: bool, fmus: 
     tables = _true_tables(true_spec, sheet, true_seed(case))
     true_id = _true_metrics(rig, tables, identified.controller, ref)
     true_sheet = _true_metrics(rig, tables, sheet_c, ref)
-    score = {**score_case(case, diag), "design": design_scores(identified, true_id, true_sheet)}
+    score = {**score_case(case, Answer.of_diagnosis(diag)), "design": design_scores(identified, true_id, true_sheet)}
     return {**case, "score": score, "timing_s": time.perf_counter() - tc}
 
 

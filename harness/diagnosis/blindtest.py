@@ -68,6 +68,7 @@ from .. import clone
 from .. import spec as specmod
 from ..executor import Executor, FmuBytes, fmu_bytes, fmu_file, session
 from ..fmu.build import build_all
+from ..likelihood.unit import fit_run
 from ..rig.campaign import run_campaign
 from ..rundir import write_json
 from . import blinddesign
@@ -80,23 +81,26 @@ from .blindcase import (
     MAG_TOL,
     SHEET_FAMILIES,
     SHEET_ROWS,
+    Answer,
     campaign_spec,
     case_sets,
     hide_truth,
     score_case,
     sheet_plant,
 )
+from .decide import decide
 from .diagnose import diagnose_run
 from .effects import EFFECTS
 from .reallike import NUISANCE, make_unit, offsets_ok, plan_units
 from .rigmodel import combos, to_plant
-from .simulation import fmu_value
+from .simulation import fmu_value, sim_rig
 
 Progress = Callable[[str], None]
 
 FAMILIES = ("twin", "nuisance", "independent", "closed")  # the default set
 EXTRA_FAMILIES = ("wrong_sheet", "real_like", "design")  # run when asked for by name
 KNOWN_FAMILIES = (*FAMILIES, *EXTRA_FAMILIES)
+ENGINES = ("replay", "likelihood")  # which diagnosis judges a case
 
 OUT_OF_LIBRARY = ("gauge_drift", "pot_nonlinearity")
 
@@ -517,11 +521,19 @@ def slowest_first(cases: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 
 def run_case(
-    case: dict[str, Any], root: Path | None, quick: bool, fmus: dict[str, FmuBytes] | None = None
+    case: dict[str, Any],
+    root: Path | None,
+    quick: bool,
+    fmus: dict[str, FmuBytes] | None = None,
+    engine: str = "replay",
 ) -> dict[str, Any]:
     """One blind case, a task: its hidden rig's campaign into ``root/case_NNN`` (a scratch directory of the
-    worker when ``root`` is None), the diagnosis (serial, the FMUs from ``fmus`` bytes), the score."""
+    worker when ``root`` is None), the diagnosis (serial, the FMUs from ``fmus`` bytes), the score. ``engine``
+    "likelihood": the likelihood engine's fit of the unit (:func:`harness.likelihood.unit.fit_run`) and its verdict
+    (:func:`harness.diagnosis.decide.decide`) instead of the replay diagnosis (no held-out shrink)."""
 
+    if engine not in ENGINES:
+        raise ValueError(f"engine {engine!r}: one of {', '.join(ENGINES)}")
     if case.get("family") == "design":
         return blinddesign.run_design_case(case, root, quick, fmus or {})
     tc = time.perf_counter()
@@ -535,10 +547,15 @@ def run_case(
             sim = specmod.load("cu_flexible_arm")
         else:
             sim = campaign_spec(quick, case_sets(case)[1:], case.get("family", "twin"))  # the case's rate, not seed
-        diag = diagnose_run(d, sim, d, workers=1, fmus=files)
-        score = score_case(case, diag)
-        if case.get("family") == "real_like" and diag.rig is not None:
-            score |= offsets_ok(case, d, diag.rig.overrides)
+        if engine == "likelihood":
+            unit = fit_run(d, sim)
+            plant, _ = sim_rig(sim if isinstance(sim, specmod.Spec) else specmod.load(sim))
+            score = score_case(case, Answer.of_likelihood(unit, decide(unit), plant))
+        else:
+            diag = diagnose_run(d, sim, d, workers=1, fmus=files)
+            score = score_case(case, Answer.of_diagnosis(diag))
+            if case.get("family") == "real_like" and diag.rig is not None:
+                score |= offsets_ok(case, d, diag.rig.overrides)
     return {**case, "score": score, "timing_s": time.perf_counter() - tc}
 
 
@@ -552,14 +569,20 @@ def blindtest(
     quick: bool = False,
     families: tuple[str, ...] = FAMILIES,
     scheduler: str | None = None,
+    engine: str = "replay",
 ) -> dict[str, Any]:
     """Run ``n`` blind cases drawn with ``seed`` over ``families``; writes ``out/blindtest.json`` (every case and
     the totals; the wall times apart in ``blindtest.timing.json``) and returns it with ``timing_s``. Cases run in
     parallel (``workers`` processes, or the Dask cluster at ``scheduler``), each diagnosis serially inside its
     task, the FMUs sent as bytes; ``keep`` keeps the case run directories under ``out/blind_cases/`` (on a remote
     cluster: on the workers' disks); ``quick`` runs the shortened campaign of :func:`campaign_spec`. The
-    independent family is skipped, and said so, when there is no independent simulator (no source checkout)."""
+    independent family is skipped, and said so, when there is no independent simulator (no source checkout).
+    ``engine``: which diagnosis judges each case (:func:`run_case`; "likelihood" leaves out the design family)."""
 
+    if engine not in ENGINES:
+        raise ValueError(f"engine {engine!r}: one of {', '.join(ENGINES)}")
+    if engine == "likelihood" and "design" in families:
+        raise ValueError("the design family designs on the replay diagnosis's twin: not with --engine likelihood")
     say = progress or (lambda _m: None)
     t0 = time.perf_counter()
     skipped = []
@@ -584,7 +607,8 @@ def blindtest(
     todo = slowest_first(cases)
     with Executor(workers=workers, scheduler=scheduler, progress=progress) as ex:
         labels = [str(c["case"]) for c in todo]
-        results = sorted(ex.map(run_case, todo, root, quick, fmus, desc="case", labels=labels), key=lambda c: c["case"])
+        done = ex.map(run_case, todo, root, quick, fmus, engine, desc="case", labels=labels)
+        results = sorted(done, key=lambda c: c["case"])
     for r in results:
         sc = r["score"]
         say(f"case {r['case']} ({r['family']}): {r['kind']} {r['truth_effects']} -> {sc['verdict']} {sc['fitted']}")
@@ -594,6 +618,7 @@ def blindtest(
         "seed": seed,
         "spec": BLIND_SPEC.name,
         "quick": quick,
+        "engine": engine,
         "families": list(families),
         "skipped": skipped,
         "cases": results,
