@@ -18,10 +18,12 @@ the per-sample differences of the two models' log-likelihood terms, summed, over
 to the records; the alternative enters when it is closer at the level, divided among the settings tried
 (Bonferroni).
 
-An effect that passes its test is also fitted on each fold of the unit (its records, or a lone record's halves), and
-whether its 95 % intervals there share a value is said (:meth:`Rule.agree`), not yet required: the friction's
-intervals are narrower than the filter's own error (one friction torque held over each 1 ms substep), so that a
-record's halves can disagree on a true friction (the validation page).
+An effect that passes its test is also fitted on each fold of the unit (its records, or a lone record's halves), the
+linear model beside it; it enters only where the records held out of each fold gain in likelihood under the effect
+fitted there, summed over the folds (:attr:`EffectTest.held_out`: a fit the records do not share does not carry
+over). Whether its 95 % intervals on the folds share a value is said (:meth:`Rule.agree`), not yet required: the
+friction's intervals are narrower than the filter's own error (one friction torque held over each 1 ms substep), so
+that a record's halves can disagree on a true friction (the validation page).
 """
 
 from __future__ import annotations
@@ -42,10 +44,11 @@ __all__ = ["EffectTest", "Rule"]
 class EffectTest:
     """An effect's test: its statistic ``lr`` [2 nats], the ``inflation`` of its null law by the samples'
     autocorrelation, its ``p``-value under that law, the ``critical`` value of ``lr`` at the rule's ``level``,
-    whether it ``enters`` (``lr`` above ``critical``), the ``law``:
+    whether it ``enters`` (``lr`` above ``critical`` and, where measured, a positive ``held_out`` gain), the ``law``:
     "chi-bar-square" (a nested effect, its null at a wall), "chi-square" (one whose null lies inside its range) or
-    "vuong" (an integer one), and whether its intervals on the unit's folds
-    share a value (``agrees``; None: not fitted on folds)."""
+    "vuong" (an integer one), whether its intervals on the unit's folds share a value (``agrees``; None: not
+    fitted on folds), and its ``held_out`` gain [nats]: on each fold the log-likelihood of the other folds' records
+    under the effect fitted there over the linear model fitted there, summed (None: not measured)."""
 
     lr: float
     inflation: float
@@ -54,17 +57,20 @@ class EffectTest:
     level: float
     law: str = "chi-bar-square"
     agrees: bool | None = None
+    held_out: float | None = None
 
     @property
     def enters(self) -> bool:
-        """The effect enters the model: its statistic beyond the critical value (``agrees`` is said beside it, not
-        required: the module docstring says why)."""
-        return self.lr > self.critical
+        """The effect enters the model: its statistic beyond the critical value, and the records it was not fitted to
+        gain in likelihood where that was measured (``agrees`` is said beside it, not required: the module docstring
+        says why)."""
+        return self.lr > self.critical and (self.held_out is None or self.held_out > 0.0)
 
     def to_json(self) -> dict[str, float | bool | str | None]:
         """As ``likelihood.json`` and ``diagnosis.json`` hold it, beside the fit's ``logL``, ``k`` and ``n``."""
         return {"lr": self.lr, "p": self.p, "critical": self.critical, "inflation": self.inflation,
-                "level": self.level, "enters": self.enters, "law": self.law, "agrees": self.agrees}  # fmt: skip
+                "level": self.level, "enters": self.enters, "law": self.law, "agrees": self.agrees,
+                "held_out": self.held_out}  # fmt: skip
 
 
 @dataclass(frozen=True)

@@ -89,6 +89,8 @@ class EffectFit:
         parts += [f"{k.split('.')[1]} {v}" for k, v in self.settings.items()]
         t = self.test
         verdict = f"> {t.critical:.3g}: enters" if t.enters else f"<= {t.critical:.3g}: stays out"
+        if t.lr > t.critical and not t.enters:
+            verdict = f"> {t.critical:.3g} but stays out: held out, {t.held_out:.3g} nats"
         if t.agrees is False:
             verdict += " (folds apart)"
         return f"  {self.name}: {'; '.join(parts)}, LR {t.lr:.3g} {verdict}"
@@ -533,14 +535,28 @@ def _nested(
     drive = rig_model(plant, *split_values(res.values() | held)).drive  # the drive as the nested fit has it
     test = rule.test(2.0 * (res.loglik - linear.loglik), res.estimates[param].inflation, name in INTERIOR)
     folds: tuple[Estimate, ...] = ()
-    if test.lr > test.critical:  # its size on each fold: the records, or a lone record's halves
-        start = {k: v for k, v in res.values().items() if k not in held}
+    if test.lr > test.critical:  # on each fold (the records, or a lone record's halves): its size, its held-out gain
         parts = records if len(records) > 1 else list(records[0].halves())
-        folds = tuple(fit(plant, [part], start, fixed=held, nominal=nominal | {param: at.nominal},
-                          prior_sd={k: sd[k] for k in start if k in sd}, delay=delay).estimates[param]
-                      for part in parts)  # fmt: skip
-        test = rule.agree(test, [e.ci95 for e in folds])
+
+        def on(part: Record, begin: MLFit, scale: dict[str, float]) -> MLFit:
+            start = {k: v for k, v in begin.values().items() if k not in held}
+            return fit(plant, [part], start, fixed=held, nominal=scale, prior_sd={k: sd[k] for k in start if k in sd},
+                       delay=delay)  # fmt: skip
+
+        with_it = [on(part, res, nominal | {param: at.nominal}) for part in parts]
+        without = [on(part, linear, nominal) for part in parts]
+        folds = tuple(f.estimates[param] for f in with_it)
+        gain = sum(_scored(plant, a, parts, i, held, delay) - _scored(plant, b, parts, i, held, delay)
+                   for i, (a, b) in enumerate(zip(with_it, without, strict=True)))  # fmt: skip
+        test = replace(rule.agree(test, [e.ci95 for e in folds]), held_out=float(gain))
     return EffectFit(name, res, (param,), test, drive, folds=folds)
+
+
+def _scored(plant: dict[str, Any], fitted: MLFit, parts: list[Record], i: int, held: dict[str, float],
+            delay: int) -> float:  # fmt: skip
+    """The log-likelihood [nats] of every part but the ``i``-th under the model ``fitted`` on it."""
+    values = fitted.values() | held
+    return sum(filter_record(plant, values, p, delay).loglik for j, p in enumerate(parts) if j != i)
 
 
 def _profiled(
