@@ -549,7 +549,7 @@ def run_case(
             sim = campaign_spec(quick, case_sets(case)[1:], case.get("family", "twin"))  # the case's rate, not seed
         if engine == "likelihood":
             unit = fit_run(d, sim)
-            plant, _ = sim_rig(sim if isinstance(sim, specmod.Spec) else specmod.load(sim))
+            plant, _ = sim_rig(sim)
             score = score_case(case, Answer.of_likelihood(unit, decide(unit), plant))
         else:
             diag = diagnose_run(d, sim, d, workers=1, fmus=files)
@@ -577,7 +577,8 @@ def blindtest(
     task, the FMUs sent as bytes; ``keep`` keeps the case run directories under ``out/blind_cases/`` (on a remote
     cluster: on the workers' disks); ``quick`` runs the shortened campaign of :func:`campaign_spec`. The
     independent family is skipped, and said so, when there is no independent simulator (no source checkout).
-    ``engine``: which diagnosis judges each case (:func:`run_case`; "likelihood" leaves out the design family)."""
+    ``engine``: which diagnosis judges each case (:func:`run_case`; "likelihood" refuses the design family, which
+    designs on the replay diagnosis's twin)."""
 
     if engine not in ENGINES:
         raise ValueError(f"engine {engine!r}: one of {', '.join(ENGINES)}")
