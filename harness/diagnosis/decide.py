@@ -26,8 +26,9 @@ from ..likelihood.unit import UnitFit
 
 __all__ = ["LIBRARY", "UNDRAWN", "Decision", "decide"]
 
-# the effects of diagnosis.json's library the engine fits (a sensor's low-pass is the linear model's, not one)
-LIBRARY = ("coulomb_friction", "backlash", "saturation", "second_mode", "delay", "gauge_nonlinearity")
+# the effects of diagnosis.json's library the engine fits (not yet backlash; a sensor's low-pass is the linear
+# model's, not an effect); quantization is the data's lattice, not a fit
+LIBRARY = ("coulomb_friction", "saturation", "second_mode", "delay", "gauge_nonlinearity")
 UNDRAWN = ("offset", "asymmetric_friction")  # the missing force's shapes no effect in the library draws
 
 
