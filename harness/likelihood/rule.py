@@ -18,12 +18,13 @@ the per-sample differences of the two models' log-likelihood terms, summed, over
 to the records; the alternative enters when it is closer at the level, divided among the settings tried
 (Bonferroni).
 
-An effect that passes its test is also fitted on each fold of the unit (its records, or a lone record's halves), the
-linear model beside it; it enters only where the records held out of each fold gain in likelihood under the effect
-fitted there, summed over the folds (:attr:`EffectTest.held_out`: a fit the records do not share does not carry
-over). Whether its 95 % intervals on the folds share a value is said (:meth:`Rule.agree`), not yet required: the
-friction's intervals are narrower than the filter's own error (one friction torque held over each 1 ms substep), so
-that a record's halves can disagree on a true friction (the validation page).
+An effect that passes its test is also fitted on each of the unit's two folds (its records dealt alternately by
+their largest command, or a lone record's halves: :func:`harness.likelihood.unit.folds_of`), the linear model beside
+it; it enters only where each fold's records gain in likelihood under the effect fitted on the other, summed
+(:attr:`EffectTest.held_out`: a fit the records do not share does not carry over). Whether its 95 % intervals on the
+folds share a value is said (:meth:`Rule.agree`), not yet required: the friction's intervals are narrower than the
+filter's own error (one friction torque held over each 1 ms substep), so that a record's halves can disagree on a
+true friction (the validation page).
 """
 
 from __future__ import annotations
@@ -47,8 +48,8 @@ class EffectTest:
     whether it ``enters`` (``lr`` above ``critical`` and, where measured, a positive ``held_out`` gain), the ``law``:
     "chi-bar-square" (a nested effect, its null at a wall), "chi-square" (one whose null lies inside its range) or
     "vuong" (an integer one), whether its intervals on the unit's folds share a value (``agrees``; None: not
-    fitted on folds), and its ``held_out`` gain [nats]: on each fold the log-likelihood of the other folds' records
-    under the effect fitted there over the linear model fitted there, summed (None: not measured)."""
+    fitted on folds), and its ``held_out`` gain [nats]: the log-likelihood of each fold's records under the effect
+    fitted on the other over the linear model fitted there, summed (None: not measured)."""
 
     lr: float
     inflation: float

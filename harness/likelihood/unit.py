@@ -50,6 +50,7 @@ __all__ = [
     "load_records",
     "fit_run",
     "fit_unit",
+    "folds_of",
     "linear_start",
     "with_likelihood",
     "write_likelihood",
@@ -75,7 +76,8 @@ class EffectFit:
 
     @property
     def lr(self) -> float:
-        """The likelihood-ratio statistic over the linear model, 2 (logL - logL_linear) [nats]."""
+        """The likelihood-ratio statistic over the model it is nested on (the linear fit, or the linear fit with the
+        effects that entered before it), 2 (logL - logL_base) [nats]."""
         return self.test.lr
 
     def line(self) -> str:
@@ -124,7 +126,8 @@ class UnitFit:
     own: ``fit`` is the fit with them, and everything after it (the findings, the nested effects, the picture) is
     drawn from it. ``where`` says, per record and channel, in which octave bands and stretches of time the linear
     fit's residuals are not white (:func:`harness.likelihood.whiteness.where`). ``final`` is the linear model with
-    every nested effect that entered (None: none did; one: its fit; more: fitted together), ``final_whiteness`` its
+    every nested effect that entered (None: none did; the last forward step's fit: each effect is nested on the model
+    with those that entered before it, the strongest of a step entering), ``final_whiteness`` its
     residuals' Ljung-Box p-values as ``whiteness`` (empty where none entered: ``whiteness`` is the best model's),
     each test's law scaled by ``final_scale`` (what the filter keeps on records the model draws,
     :func:`harness.likelihood.simulate.whiteness_scale`: its friction and its bent gauge are approximations).
@@ -447,14 +450,27 @@ def fit_unit(
     findings = [*parts_at_bound(linear)]
     findings += [f"{BOUNDS[k].label} ends at its upper bound: the linear model cannot draw what the records show"
                  for k, side in res.at_bounds().items() if k in TORQUES and side == "upper"]  # fmt: skip
-    for name in () if findings else NESTED:
-        say(f"{name}, nested")
-        effects.append(_nested(name, plant, records, res, held, scales, sd, delay, rule))
-    entered = [x for x in effects if x.name in NESTED and x.test.enters]
+    # the nested effects, forward: each fitted on the model so far, the strongest that enters added to it, the rest
+    # fitted again on that (an effect the model lacks bends the others' fits and their held-out scores)
+    nested: dict[str, EffectFit] = {}
+    base, on = res, scales
+    entered: list[EffectFit] = []
+    todo = [] if findings else list(NESTED)
+    while todo:
+        for name in todo:
+            say(f"{name}, nested" + "".join(f" on {x.name}" for x in entered[-1:]))
+            nested[name] = _nested(name, plant, records, base, held, on, sd, delay, rule)
+        passed = [nested[n] for n in todo if nested[n].test.enters]
+        if not passed:
+            break
+        top = max(passed, key=lambda x: x.lr)
+        entered.append(top)
+        base, on = top.fit, on | {NESTED[top.name]: nested_start(top.name, records, top.drive).nominal}
+        todo = [n for n in todo if n != top.name]
+    effects += [nested[n] for n in NESTED if n in nested]
     final, final_white, final_scale = None, {}, {}
     if entered:  # the linear model with every nested effect that entered, and whether its residuals are white
-        say("the linear model with " + " and ".join(x.name for x in entered))
-        final = entered[0].fit if len(entered) == 1 else _joint(plant, records, entered, held, scales, sd, delay)
+        final = base
         # its filter is an approximation (friction's moments over 1 ms, a bent gauge linearised): its whiteness
         # test's law scaled by what it keeps on records the model draws
         final_scale = whiteness_scale(plant, final.values() | held, records, delay)
@@ -486,28 +502,6 @@ def _white(z: np.ndarray, scale: dict[str, float] | None = None) -> dict[str, fl
     return {c: ljung_box(z[:, j], scale=(scale or {}).get(c, 1.0)).p for j, c in enumerate(("theta", "alpha"))}
 
 
-def _joint(
-    plant: dict[str, Any],
-    records: list[Record],
-    entered: list[EffectFit],
-    held: dict[str, float],
-    nominal: dict[str, float],
-    sd: dict[str, float],
-    delay: int,
-) -> MLFit:
-    """The linear model with every nested effect in ``entered`` at once, from the strongest's fit and each other's
-    own size."""
-    top = max(entered, key=lambda x: x.lr)
-    start = {k: v for k, v in top.fit.values().items() if k not in held}
-    scales = dict(nominal)
-    for x in entered:
-        param = NESTED[x.name]
-        start[param] = x.fit.values()[param]
-        scales[param] = nested_start(x.name, records, x.drive).nominal
-    return fit(plant, records, start, fixed=held, nominal=scales, prior_sd={k: sd[k] for k in start if k in sd},
-               delay=delay)  # fmt: skip
-
-
 def _nested(
     name: str,
     plant: dict[str, Any],
@@ -535,28 +529,38 @@ def _nested(
     drive = rig_model(plant, *split_values(res.values() | held)).drive  # the drive as the nested fit has it
     test = rule.test(2.0 * (res.loglik - linear.loglik), res.estimates[param].inflation, name in INTERIOR)
     folds: tuple[Estimate, ...] = ()
-    if test.lr > test.critical:  # on each fold (the records, or a lone record's halves): its size, its held-out gain
-        parts = records if len(records) > 1 else list(records[0].halves())
+    if test.lr > test.critical:  # on each of two folds: its size, and its gain on the other fold's records
+        parts = folds_of(records)
 
-        def on(part: Record, begin: MLFit, scale: dict[str, float]) -> MLFit:
+        def on(part: list[Record], begin: MLFit, scale: dict[str, float]) -> MLFit:
             start = {k: v for k, v in begin.values().items() if k not in held}
-            return fit(plant, [part], start, fixed=held, nominal=scale, prior_sd={k: sd[k] for k in start if k in sd},
+            return fit(plant, part, start, fixed=held, nominal=scale, prior_sd={k: sd[k] for k in start if k in sd},
                        delay=delay)  # fmt: skip
 
         with_it = [on(part, res, nominal | {param: at.nominal}) for part in parts]
         without = [on(part, linear, nominal) for part in parts]
         folds = tuple(f.estimates[param] for f in with_it)
-        gain = sum(_scored(plant, a, parts, i, held, delay) - _scored(plant, b, parts, i, held, delay)
-                   for i, (a, b) in enumerate(zip(with_it, without, strict=True)))  # fmt: skip
+        gain = sum(_scored(plant, a, other, held, delay) - _scored(plant, b, other, held, delay)
+                   for a, b, other in zip(with_it, without, parts[::-1], strict=True))  # fmt: skip
         test = replace(rule.agree(test, [e.ci95 for e in folds]), held_out=float(gain))
     return EffectFit(name, res, (param,), test, drive, folds=folds)
 
 
-def _scored(plant: dict[str, Any], fitted: MLFit, parts: list[Record], i: int, held: dict[str, float],
-            delay: int) -> float:  # fmt: skip
-    """The log-likelihood [nats] of every part but the ``i``-th under the model ``fitted`` on it."""
+def folds_of(records: list[Record]) -> tuple[list[Record], list[Record]]:
+    """A unit's two folds: a lone record's halves (:meth:`Record.halves`); else its records ordered by their largest
+    |command| and dealt alternately, so that each fold holds small commands and large ones (a fold of small ones
+    alone does not determine a limit or a bent gauge that the other's large ones show)."""
+    if len(records) == 1:
+        first, second = records[0].halves()
+        return [first], [second]
+    ordered = sorted(records, key=lambda r: (float(np.max(np.abs(r.u))) if r.n else 0.0, r.name))
+    return ordered[0::2], ordered[1::2]
+
+
+def _scored(plant: dict[str, Any], fitted: MLFit, records: list[Record], held: dict[str, float], delay: int) -> float:
+    """The log-likelihood [nats] of ``records`` under the model ``fitted`` elsewhere."""
     values = fitted.values() | held
-    return sum(filter_record(plant, values, p, delay).loglik for j, p in enumerate(parts) if j != i)
+    return sum(filter_record(plant, values, r, delay).loglik for r in records)
 
 
 def _profiled(
