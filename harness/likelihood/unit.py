@@ -527,7 +527,10 @@ def _nested(
                         prior_sd={k: sd[k] for k in start if k in sd}, delay=delay))  # fmt: skip
     res = max(fits, key=lambda f: f.loglik)
     drive = rig_model(plant, *split_values(res.values() | held)).drive  # the drive as the nested fit has it
-    test = rule.test(2.0 * (res.loglik - linear.loglik), res.estimates[param].inflation, name in INTERIOR)
+    # the null's maximum: the model it is nested on, or a search that ended with the effect at its null and the rest
+    # further on (then the effect's statistic is none of the rest's gain)
+    null = max([linear.loglik, *(f.loglik for f in fits if f.values()[param] == at.null)])
+    test = rule.test(2.0 * (res.loglik - null), res.estimates[param].inflation, name in INTERIOR)
     folds: tuple[Estimate, ...] = ()
     if test.lr > test.critical:  # on each of two folds: its size, and its gain on the other fold's records
         parts = folds_of(records)
