@@ -129,10 +129,12 @@ def test_the_rules_calibration_counts_its_cases():
                            "white": cal.white, "verdict_none": 1.0, "alarms": []}  # fmt: skip
     assert doc["effect"]["power"] == 1.0 and doc["level"] == 0.01 and doc["findings"] == []
     assert doc["effect"]["verdict_friction"] == 1.0 and cal.verdict_right == (1.0, 1.0)
+    assert doc["effect"]["missed"] == []
     skipped = CaseResult(Case(1, False, 8, 0.0), {}, None, "", 0.0, False, skipped="the hub leaves the pot's track")
     assert RuleCalibration(Rule(), (*cal.null, skipped), cal.effect).false_alarms == 0.0
     found = CaseResult(Case(3, False, 8, 0.01), {}, None, "none", 0.0, False, findings="a bound")
     assert RuleCalibration(Rule(), cal.null, (*cal.effect, found)).power == pytest.approx(1 / 2)
+    assert RuleCalibration(Rule(), cal.null, (*cal.effect, found)).to_json()["effect"]["missed"] == [3]
 
 
 @pytest.mark.parametrize("rho", [0.0, 0.7])

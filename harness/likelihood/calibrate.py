@@ -195,10 +195,12 @@ class RuleCalibration:
 
     def to_json(self) -> dict[str, Any]:
         """The shares, the cases' counts, the largest statistic on a friction-free case, which effect entered on
-        which friction-free case, and the cases whose linear fit had a finding (its effects not tried)."""
+        which friction-free case, the seeds of the cases with friction on which it did not enter (``missed``), and
+        the cases whose linear fit had a finding (its effects not tried)."""
         null_lr = [t.lr for r in self._judged(self.null) for t in r.tests.values()]
         found = [r.case.seed for r in (*self.null, *self.effect) if r.findings]
         alarms = sorted((r.case.seed, name) for r in self._judged(self.null) for name, t in r.tests.items() if t.enters)
+        missed = sorted(r.case.seed for r in self._judged(self.effect) if not _enters(r, "coulomb_friction"))
         return {
             "level": self.rule.level,
             "findings": found,
@@ -209,7 +211,7 @@ class RuleCalibration:
             "effect": {"cases": len(self.effect), "judged": len(self._judged(self.effect)), "power": self.power,
                        "sized_within": SIZED, "sized": self.sized, "named_within": NAMED,
                        "named_friction": self.named_friction, "verdict_friction": self.verdict_right[1],
-                       "coulomb": self.effect[0].case.coulomb if self.effect else None},
+                       "coulomb": self.effect[0].case.coulomb if self.effect else None, "missed": missed},
         }  # fmt: skip
 
 
