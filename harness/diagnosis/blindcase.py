@@ -17,7 +17,7 @@ from ..rundir import Manifest, RunDir, record_inputs
 from .decide import Decision
 from .effects import EFFECTS
 from .result import Diagnosis, FittedParameter
-from .rigmodel import combos, to_plant
+from .rigmodel import combos, plant_value, to_plant
 from .simulation import fmu_value
 
 BLIND_SPEC = specmod.SPEC_DIR / "blind.toml"
@@ -135,11 +135,10 @@ class Answer:
         rows = {k: FittedParameter(unit.nominal[k], e.value, list(e.ci95), 100.0 * (e.value / unit.nominal[k] - 1.0),
                                    e.unit, at_bound=e.at)
                 for k, e in best.estimates.items() if k in unit.nominal and unit.nominal[k]}  # fmt: skip
-        implied = to_plant({k: e.value for k, e in best.estimates.items()}, plant)
-        sheet = to_plant({}, plant)
-        for k, v in implied.items():
-            rows.setdefault(f"plant.{k}", FittedParameter(sheet[k], v, [math.nan, math.nan],
-                                                          100.0 * (v / sheet[k] - 1.0), ""))  # fmt: skip
+        for k, v in to_plant({k: e.value for k, e in best.estimates.items()}, plant).items():
+            sheet = plant_value(plant, k)
+            rows.setdefault(f"plant.{k}", FittedParameter(sheet, v, [math.nan, math.nan], 100.0 * (v / sheet - 1.0),
+                                                          ""))  # fmt: skip
         return cls(decision.verdict, list(decision.effects), fitted, math.nan, rows)
 
 

@@ -21,14 +21,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from ..likelihood.effects import NESTED, PROFILED
 from ..likelihood.rule import Rule
 from ..likelihood.unit import UnitFit
+from .effects import EFFECTS
 
 __all__ = ["LIBRARY", "UNDRAWN", "Decision", "decide"]
 
-# the effects of diagnosis.json's library the engine fits (not yet backlash; a sensor's low-pass is the linear
-# model's, not an effect); quantization is the data's lattice, not a fit
-LIBRARY = ("coulomb_friction", "saturation", "second_mode", "delay", "gauge_nonlinearity")
+# the effects of diagnosis.json's library that the engine fits, nested or by profile (a sensor's low-pass is the
+# linear model's, not an effect; quantization is the data's lattice, not a fit)
+LIBRARY = tuple(name for name in EFFECTS if name in NESTED or name in PROFILED)
 UNDRAWN = ("offset", "asymmetric_friction")  # the missing force's shapes no effect in the library draws
 
 

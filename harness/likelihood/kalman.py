@@ -147,9 +147,9 @@ def kalman_filter(
     m = _c(mask, np.uint8)
     friction = model.friction if model.hub is not None else 0.0
     hub = _c(model.hub) if friction > 0.0 and model.hub is not None else None
-    bent = model.cubic is not None and model.bend is not None and bool(np.any(model.cubic))
-    cubic = _c(model.cubic) if bent and model.cubic is not None else None
-    bend = _c(model.bend).reshape(ny, nx) if bent and model.bend is not None else None
+    cubic = bend = None
+    if model.cubic is not None and model.bend is not None and np.any(model.cubic):
+        cubic, bend = _c(model.cubic), _c(model.bend).reshape(ny, nx)
     e, s, terms = np.empty((n, ny)), np.empty((n, ny)), np.empty((n, ny))
     kept = [np.empty((n, nx)), np.empty((n, nx, nx)), np.empty((n, nx)), np.empty((n, nx, nx))] if keep else [None] * 4
     ll = lib.kalman_filter(
