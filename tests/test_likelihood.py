@@ -277,13 +277,15 @@ def test_a_units_linear_model_is_fitted_from_an_off_sheet_with_nothing_at_a_boun
     assert not effects["second_mode"].test.enters and not effects["delay"].test.enters and unit.structure == ()
     assert friction.fit.estimates["plant.coulomb_torque"].value < 1e-3 and not friction.test.enters, friction
     assert limit.fit.estimates["plant.amp_limit"].at == "lower" and not limit.test.enters, limit
+    play = effects["backlash"]
+    assert play.fit.estimates["plant.backlash"].value < 2e-5 and not play.test.enters, play
     lines = unit.summary()
     assert "  nothing at a bound: effects may be tried" in lines and "  missing force: none" in lines
     assert not any(x.startswith("  not white at: ") for x in lines)  # no band, no stretch flagged
     doc = json.loads(write_likelihood(tmp_path, unit).read_text())["where"]
     assert set(doc) == set(unit.records) and {"bands", "windows"} <= set(doc[unit.records[0]]["alpha"])
     assert unit.drawn_without is None and unit.curve is None
-    assert len(lines) <= 15 and max(map(len, lines)) <= 100
+    assert len(lines) <= 16 and max(map(len, lines)) <= 100  # a line per effect tried
 
 
 def test_a_units_friction_is_fitted_as_a_nested_model_from_its_linear_fit(tmp_path):

@@ -79,10 +79,10 @@ def test_the_rule_is_the_chi_bar_square_scaled_by_the_inflation():
 )
 def test_friction_stays_out_of_a_friction_free_quantised_twin(closed, bits, seed):
     """On friction-free twins at 8, 10 and 12 bits, open and closed loop, through the engine as a unit's records go:
-    neither a delay nor the gauge's low-pass nor the friction, the amplifier's limit or the gauge's nonlinearity
-    nested on the linear fit enters at 1 %, and the missing force is named none."""
+    neither a delay nor the gauge's low-pass nor the friction, the amplifier's limit, the gauge's nonlinearity or the
+    gear's play nested on the linear fit enters at 1 %, and the missing force is named none."""
     r = judge_case(Case(seed, closed, bits, 0.0), Rule())
-    tried = {"delay", "gauge_lowpass", "coulomb_friction", "saturation", "gauge_nonlinearity"}
+    tried = {"delay", "gauge_lowpass", "coulomb_friction", "saturation", "gauge_nonlinearity", "backlash"}
     assert not r.findings and set(r.tests) == tried, r
     assert not any(t.enters for t in r.tests.values()), r
     assert r.shape == "none" and r.verdict == "none", r

@@ -32,6 +32,19 @@
  * (the part of the reading that bends: the gauge without its offset). Its update is the extended Kalman filter's: the
  * row linearised at the predicted state, C_j + 3 cubic[j] (g_j x)^2 g_j. cubic NULL: no channel bends.
  *
+ * A gear's play of width play > 0 (Af NULL otherwise; the time-stepping of an impact / dead-zone hybrid): the state
+ * i_gap is how far the motor side's teeth are ahead of the hub side's, within +-h, h = play / 2. A, B, Q are then
+ * the teeth in contact's (the rig as one body: the gap held, the motor's speed the hub's), Af, Bf, Qf the two sides
+ * apart, Pi (nx x nx) the plastic impact (momentum kept, the speeds made one, the gap's row zero). Over each step the
+ * sides move apart, x <- Af x + Bf u; where that would take the gap g past +-h the teeth meet within the step, at
+ * its fraction tau where g reaches the edge (g linear over the step), and the step is the impact at its start then
+ * the rigid step, x <- A (Pi x +- h e_gap) + B u, and the step apart then the impact, x <- Pi (Af x + Bf u) +- h e_gap,
+ * weighed (1 - tau) and tau: teeth pressed together (tau = 0) take the linear rig's step, a play that closes within
+ * the step closes there to first order. With tau taken at each region's mean, the map is affine in x on each of the three regions of g, a linear function of x, so its moments under
+ * N(x, P) are exact: the state given g's region (its regression on g, g's truncated normal moments) mapped
+ * through the region's step, the three mixed by their probabilities and matched by one normal. Sure of g, the
+ * filter takes the hard decision. Friction (Fc > 0) then acts on the rig as one body (bf: in contact).
+ *
  * Returns the log-likelihood: the sum over measured channels of -(log(2 pi s) + e^2 / s) / 2, or log P(cell) on a
  * lattice; NaN when a variance is not positive and finite. e, s and l (n x ny) receive each channel's innovation
  * y - mu, its predicted variance s (without the lattice) and its term of the log-likelihood (0 where masked); xp, Pp (predicted: before
@@ -55,8 +68,9 @@ EXPORT int kalman_max_states(void) { return KF_MAX_STATES; }
 static double upper_tail(double x) { return 0.5 * erfc(x / sqrt(2.0)); } /* P(Z > x), Z standard normal */
 static double density(double x) { return exp(-0.5 * x * x) / sqrt(2.0 * 3.14159265358979323846); }
 
-/* The cell [a, b] (standardised) of a standard normal: its probability *p, and its truncated mean *m and variance
- * *v. Returns 0 when the probability underflows (the caller falls back to a Gaussian reading). */
+/* The cell [a, b] (standardised; either end may be infinite) of a standard normal: its probability *p, and its
+ * truncated mean *m and variance *v. Returns 0 when the probability underflows (the caller falls back to a Gaussian
+ * reading, or leaves the cell out). */
 static int cell(double a, double b, double *p, double *m, double *v) {
     double z;
     if (a > 0.0) z = upper_tail(a) - upper_tail(b);
@@ -64,7 +78,7 @@ static int cell(double a, double b, double *p, double *m, double *v) {
     else z = 1.0 - upper_tail(b) - upper_tail(-a);
     if (!(z > 1e-300)) return 0;
     double fa = density(a), fb = density(b);
-    double d1 = (fa - fb) / z, d2 = (a * fa - b * fb) / z;
+    double d1 = (fa - fb) / z, d2 = ((isinf(a) ? 0.0 : a * fa) - (isinf(b) ? 0.0 : b * fb)) / z;
     *p = z;
     *m = d1;
     *v = 1.0 + d2 - d1 * d1;
@@ -102,19 +116,136 @@ static void friction(long nx, double *x, double *P, double *W, const double *bf,
         for (long c = a; c < nx; c++) P[a * nx + c] = P[c * nx + a] = P[a * nx + c] + resid * bf[a] * bf[c];
 }
 
+/* W = M P M' (+ Q when not NULL), nx x nx; T is nx x nx of scratch. */
+static void sandwich(long nx, const double *M, const double *P, const double *Q, double *T, double *W) {
+    for (long a = 0; a < nx; a++)
+        for (long b = 0; b < nx; b++) {
+            double acc = 0.0;
+            for (long c = 0; c < nx; c++) acc += M[a * nx + c] * P[c * nx + b];
+            T[a * nx + b] = acc;
+        }
+    for (long a = 0; a < nx; a++)
+        for (long b = a; b < nx; b++) {
+            double acc = Q ? Q[a * nx + b] : 0.0;
+            for (long c = 0; c < nx; c++) acc += T[a * nx + c] * M[b * nx + c];
+            W[a * nx + b] = W[b * nx + a] = acc;
+        }
+}
+
+/* One step with a gear's play (the header): x and P (nx, nx x nx) changed in place. A, B, Q: in contact; Af, Bf, Qf:
+ * apart; M = A Pi (Pi: the impact) and Ag = A's gap column; the gap's state ig, half the play h. */
+static void play_step(long nx, long nu, double *x, double *P, const double *u, const double *B, const double *Q,
+                      const double *Af, const double *Bf, const double *Qf, const double *M, const double *Ag,
+                      const double *PAf, const double *PBf, const double *PQf, long ig, double h) {
+    double k[KF_MAX_STATES], mean[3][KF_MAX_STATES], xr[KF_MAX_STATES], w[3] = {0.0, 0.0, 0.0}, shift[3], keep[3];
+    double Pr[KF_MAX_STATES * KF_MAX_STATES], T[KF_MAX_STATES * KF_MAX_STATES], W[KF_MAX_STATES * KF_MAX_STATES];
+    double acc[KF_MAX_STATES * KF_MAX_STATES], Fr[KF_MAX_STATES * KF_MAX_STATES], Qr[KF_MAX_STATES * KF_MAX_STATES];
+    const double *af = Af + ig * nx;
+    double mu = 0.0, var = 0.0;
+    for (long c = 0; c < nu; c++) mu += Bf[ig * nu + c] * u[c];
+    for (long a = 0; a < nx; a++) {
+        double t = 0.0;
+        for (long b = 0; b < nx; b++) t += P[a * nx + b] * af[b];
+        k[a] = t;
+        mu += af[a] * x[a];
+    }
+    for (long a = 0; a < nx; a++) var += af[a] * k[a];
+    const double sd = sqrt(var > 0.0 ? var : 0.0);
+    const double lo[3] = {-INFINITY, -h, h}, hi[3] = {-h, h, INFINITY};
+    if (sd > 1e-12 * (h + fabs(mu))) { /* where the gap would go apart: below -h, within, above +h */
+        for (int r = 0; r < 3; r++) {
+            double p, m, v;
+            if (cell((lo[r] - mu) / sd, (hi[r] - mu) / sd, &p, &m, &v)) w[r] = p, shift[r] = m / sd, keep[r] = 1.0 - v;
+        }
+    } else { /* sure of it */
+        const int r = mu < -h ? 0 : mu > h ? 2 : 1;
+        w[r] = 1.0, shift[r] = 0.0, keep[r] = 0.0;
+    }
+    const double total = w[0] + w[1] + w[2];
+    memset(acc, 0, (size_t)(nx * nx) * sizeof(double));
+    for (int r = 0; r < 3; r++) {
+        if (!(w[r] > 0.0)) continue;
+        w[r] /= total;
+        /* the state given the gap's region: its regression on the gap, the gap's truncated moments */
+        for (long a = 0; a < nx; a++) xr[a] = x[a] + k[a] * shift[r];
+        for (long a = 0; a < nx; a++)
+            for (long b = 0; b < nx; b++) Pr[a * nx + b] = P[a * nx + b] - k[a] * k[b] * keep[r] / (var > 0.0 ? var : 1.0);
+        if (r == 1) { /* apart */
+            for (long a = 0; a < nx; a++) {
+                double t = 0.0;
+                for (long b = 0; b < nx; b++) t += Af[a * nx + b] * xr[b];
+                for (long c = 0; c < nu; c++) t += Bf[a * nu + c] * u[c];
+                mean[r][a] = t;
+            }
+            sandwich(nx, Af, Pr, Qf, T, W);
+        } else { /* in contact from the step's fraction tau on, where the gap's mean reaches the edge */
+            const double edge = r == 0 ? -h : h;
+            double gf = 0.0;
+            for (long b = 0; b < nx; b++) gf += af[b] * xr[b];
+            for (long c = 0; c < nu; c++) gf += Bf[ig * nu + c] * u[c];
+            double tau = gf != xr[ig] ? (edge - xr[ig]) / (gf - xr[ig]) : 0.0;
+            tau = tau > 0.0 ? (tau < 1.0 ? tau : 1.0) : 0.0;
+            for (long a = 0; a < nx; a++) {
+                double t = (1.0 - tau) * edge * Ag[a] + (a == ig ? tau * edge : 0.0);
+                for (long b = 0; b < nx; b++) {
+                    Fr[a * nx + b] = (1.0 - tau) * M[a * nx + b] + tau * PAf[a * nx + b];
+                    Qr[a * nx + b] = (1.0 - tau) * Q[a * nx + b] + tau * PQf[a * nx + b];
+                    t += Fr[a * nx + b] * xr[b];
+                }
+                for (long c = 0; c < nu; c++) t += ((1.0 - tau) * B[a * nu + c] + tau * PBf[a * nu + c]) * u[c];
+                mean[r][a] = t;
+            }
+            sandwich(nx, Fr, Pr, Qr, T, W);
+        }
+        for (long a = 0; a < nx * nx; a++) acc[a] += w[r] * W[a];
+    }
+    for (long a = 0; a < nx; a++) x[a] = w[0] * mean[0][a] + w[1] * mean[1][a] + w[2] * mean[2][a];
+    for (long a = 0; a < nx; a++)
+        for (long b = a; b < nx; b++) {
+            double t = acc[a * nx + b];
+            for (int r = 0; r < 3; r++)
+                if (w[r] > 0.0) t += w[r] * (mean[r][a] - x[a]) * (mean[r][b] - x[b]);
+            P[a * nx + b] = P[b * nx + a] = t;
+        }
+}
+
 EXPORT double kalman_filter(long nx, long ny, long nu, const double *A, const double *B, const double *Q,
                             const double *C, const double *r, const double *q, const double *x0, const double *P0,
                             long n,
                             const double *u, const double *y, const unsigned char *mask, const double *bf,
-                            long i_speed, double Fc, long substeps, const double *cubic, const double *bend, double *e, double *s, double *l, double *xp, double *Pp, double *xf,
+                            long i_speed, double Fc, long substeps, const double *cubic, const double *bend,
+                            double play, long i_gap, const double *Af, const double *Bf, const double *Qf,
+                            const double *Pi, double *e, double *s, double *l, double *xp, double *Pp, double *xf,
                             double *Pf) {
     double x[KF_MAX_STATES], xn[KF_MAX_STATES], ph[KF_MAX_STATES], hl[KF_MAX_STATES];
     double P[KF_MAX_STATES * KF_MAX_STATES], AP[KF_MAX_STATES * KF_MAX_STATES];
     const double log2pi = log(2.0 * 3.14159265358979323846);
     double ll = 0.0;
     if (nx < 1 || nx > KF_MAX_STATES) return NAN;
+    double M[KF_MAX_STATES * KF_MAX_STATES], Ag[KF_MAX_STATES], PAf[KF_MAX_STATES * KF_MAX_STATES];
+    double PQf[KF_MAX_STATES * KF_MAX_STATES], PBf[KF_MAX_STATES * 4], T[KF_MAX_STATES * KF_MAX_STATES];
+    if (play > 0.0 && nu > 4) return NAN;
     memcpy(x, x0, (size_t)nx * sizeof(double));
     memcpy(P, P0, (size_t)(nx * nx) * sizeof(double));
+    if (play > 0.0) { /* in contact from the impact's state: M = A Pi, and the gap's column of A */
+        for (long a = 0; a < nx; a++) {
+            Ag[a] = A[a * nx + i_gap];
+            for (long b = 0; b < nx; b++) {
+                double acc = 0.0;
+                for (long c = 0; c < nx; c++) acc += A[a * nx + c] * Pi[c * nx + b];
+                M[a * nx + b] = acc;
+                acc = 0.0;
+                for (long c = 0; c < nx; c++) acc += Pi[a * nx + c] * Af[c * nx + b];
+                PAf[a * nx + b] = acc;
+            }
+            for (long c = 0; c < nu; c++) {
+                double acc = 0.0;
+                for (long b = 0; b < nx; b++) acc += Pi[a * nx + b] * Bf[b * nu + c];
+                PBf[a * nu + c] = acc;
+            }
+        }
+        sandwich(nx, Pi, Qf, NULL, T, PQf);
+    }
     for (long k = 0; k < n; k++) {
         if (xp) memcpy(xp + k * nx, x, (size_t)nx * sizeof(double));
         if (Pp) memcpy(Pp + k * nx * nx, P, (size_t)(nx * nx) * sizeof(double));
@@ -172,6 +303,11 @@ EXPORT double kalman_filter(long nx, long ny, long nu, const double *A, const do
         if (Pf) memcpy(Pf + k * nx * nx, P, (size_t)(nx * nx) * sizeof(double));
         /* time update: x <- A x + B u[k], P <- A P A' + Q, over each of the sample's substeps */
         for (long sub = 0; sub < substeps; sub++) {
+            if (play > 0.0) {
+                play_step(nx, nu, x, P, u + k * nu, B, Q, Af, Bf, Qf, M, Ag, PAf, PBf, PQf, i_gap, 0.5 * play);
+                if (Fc > 0.0 && bf) friction(nx, x, P, AP, bf, i_speed, Fc);
+                continue;
+            }
             for (long a = 0; a < nx; a++) {
                 double acc = 0.0;
                 for (long b = 0; b < nx; b++) acc += A[a * nx + b] * x[b];

@@ -241,6 +241,48 @@ def state_space(p: PlantParams) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.
     return A, B, C, np.zeros((len(OUTPUTS), 2))
 
 
+@dataclass(frozen=True)
+class GearPlay:
+    """The rig with its gear's teeth apart (in the play, ``backlash`` > 0): the hub side and the motor side move
+    on their own, as the flexjoint FMU splits them (``Jm_share`` of Jeq and of Beq on the motor side).
+
+    ``A`` (2N x 2N) and ``tip`` (2N) are the hub side's dynamics in :func:`state_space`'s states: its inertia
+    Jeq (1 - Jm_share) with the link, its viscous friction Beq (1 - Jm_share), no drive; ``tip`` is a tip torque's
+    input column. ``hub`` (2N) is a unit torque on the hub side's effect on the derivatives (its velocity rows: the
+    first column of the hub side's inverse mass matrix), so that an impulse P through the gear moves the velocities
+    by P ``hub[N:]``. The motor side's speed w obeys Jm w' = G v - (Bemf + Bm) w: ``Jm`` [kg m2], ``damping``
+    Bemf + Bm [N m s/rad] and ``drive`` G [N m/V]."""
+
+    A: np.ndarray
+    tip: np.ndarray
+    hub: np.ndarray
+    Jm: float
+    damping: float
+    drive: float
+
+
+def gear_play(p: PlantParams) -> GearPlay:
+    """The rig ``p`` in its gear's play (:class:`GearPlay`): the hub side from :func:`mass_stiffness` with the hub
+    side's inertia and friction and no back-EMF, the motor side's constants."""
+    hub_side = PlantParams(**(p.to_dict() | {"Jeq": (1.0 - p.Jm_share) * p.Jeq, "Beq": (1.0 - p.Jm_share) * p.Beq}))
+    M, K, D = mass_stiffness(hub_side)
+    G, Bemf = motor_constants(p)
+    D[0, 0] -= Bemf  # the motor is on the other side of the play
+    N = M.shape[0]
+    Minv = np.linalg.inv(M)
+    A = np.zeros((2 * N, 2 * N))
+    A[:N, N:] = np.eye(N)
+    A[N:, :N] = -Minv @ K
+    A[N:, N:] = -Minv @ D
+    F = np.zeros(N)
+    F[0] = 1.0
+    F[1:] = beam_integrals(int(p.n_modes))["tip"]
+    tip, hub = np.zeros(2 * N), np.zeros(2 * N)
+    tip[N:], hub[N:] = Minv @ F, Minv[:, 0]
+    Jm = p.Jm_share * p.Jeq
+    return GearPlay(A=A, tip=tip, hub=hub, Jm=Jm, damping=Bemf + p.Jm_share * p.Beq, drive=G)
+
+
 def mode_frequencies(p: PlantParams) -> np.ndarray:
     """Undamped flexible-mode frequencies [Hz], shape (2, n_modes): row 0 free hub, row 1 clamped hub.
 

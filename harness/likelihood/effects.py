@@ -1,8 +1,10 @@
 """The effects the likelihood engine fits beside the linear rig, each a nested extension of it.
 
 Continuous effects are parameters of :func:`harness.likelihood.fit.fit` (:data:`harness.likelihood.model.EFFECTS`):
-Coulomb friction at the hub, in the filter itself, the strain gauge's cubic nonlinearity ``daq.gauge_cubic``, in the
-filter's reading of the gauge (an extended Kalman filter's update; its null inside its range, :data:`INTERIOR`), and
+Coulomb friction at the hub and the gear's play ``plant.backlash`` [rad], in the filter itself (the play as an
+impact / dead-zone hybrid, the plant FMU's, on two more states), the strain gauge's cubic nonlinearity
+``daq.gauge_cubic``, in the filter's reading of the gauge (an extended Kalman filter's update; its null inside its
+range, :data:`INTERIOR`), and
 the amplifier's output limit ``plant.amp_limit`` [V], a transformation of the filter's input (the command is known:
 the drive sees clip(u + u_offset, +-L), as the plant FMU clamps it;
 :meth:`harness.likelihood.model.StochasticModel.inputs`). The limit is searched as the share ``peak / L`` of the
@@ -35,6 +37,7 @@ __all__ = [
     "DELAY_SPAN",
     "INTERIOR",
     "NESTED",
+    "PLAY",
     "PROFILED",
     "SENSOR_NESTED",
     "SHAPE",
@@ -50,13 +53,14 @@ __all__ = [
 
 # the continuous effects a unit's linear fit is extended by, one at a time: diagnosis.json's name -> the parameter
 NESTED = {"coulomb_friction": "plant.coulomb_torque", "saturation": "plant.amp_limit",
-          "gauge_nonlinearity": "daq.gauge_cubic"}  # fmt: skip
+          "gauge_nonlinearity": "daq.gauge_cubic", "backlash": "plant.backlash"}  # fmt: skip
 # the nested effects whose null lies inside their range (either sign), not at a wall: their LR's law is chi-square
 INTERIOR = ("gauge_nonlinearity",)
 GAUGE_CUBIC = 0.05  # where the gauge's nonlinearity is searched from inside, and its scale
 # the sensors' dynamics nested in the linear model (its structure, not an effect): the name -> the parameter
 SENSOR_NESTED = {"gauge_lowpass": "sensor.gauge_tau"}
 GAUGE_TAU = 0.02  # s: where the gauge's low-pass is searched from inside, and its scale
+PLAY = 0.002  # rad: the gear play's scale (a small one: the rule's calibration's), searched from 1.5 times it
 
 # the missing force's shape (harness.likelihood.force.SHAPES) each nested effect draws when the model lacks it
 SHAPE = {"coulomb_friction": "friction", "saturation": "limit"}
@@ -118,7 +122,8 @@ def nested_start(name: str, records: Sequence[Record], drive: float) -> NestedSt
     volt ``drive`` [N m/V]: friction from the torque of 20 mV of command and from none, scaled by the torque of 0.1 V;
     a limit from 0.9 of the records' peak command and from the peak (no sample clipped), scaled by the peak; the
     gauge's low-pass (:data:`SENSOR_NESTED`) from :data:`GAUGE_TAU` and from none, scaled by it; the gauge's
-    nonlinearity from :data:`GAUGE_CUBIC` and from none."""
+    nonlinearity from :data:`GAUGE_CUBIC` and from none; a gear's play from 1.5 :data:`PLAY` and from none, scaled
+    by :data:`PLAY`."""
     if name == "coulomb_friction":
         return NestedStart(0.02 * drive, 0.0, 0.1 * drive)
     if name == "saturation":
@@ -128,6 +133,8 @@ def nested_start(name: str, records: Sequence[Record], drive: float) -> NestedSt
         return NestedStart(GAUGE_TAU, 0.0, GAUGE_TAU)
     if name == "gauge_nonlinearity":
         return NestedStart(GAUGE_CUBIC, 0.0, GAUGE_CUBIC)
+    if name == "backlash":
+        return NestedStart(1.5 * PLAY, 0.0, PLAY)
     raise ValueError(f"no nested fit for the effect {name!r}; known: {', '.join({**NESTED, **SENSOR_NESTED})}")
 
 

@@ -116,7 +116,8 @@ def start_state(model: StochasticModel, record: Record) -> tuple[np.ndarray, np.
     """The filter's first state and its covariance for ``record``: the hub where its first reading puts it, the
     link at rest, the gauge offset its first reading and no missing force, each with a variance wide enough for the
     first samples to decide it (the hub's speed up to the record's fastest, the link's deflection up to its largest,
-    the force up to the drive's at 1 V)."""
+    the force up to the drive's at 1 V); with a play, the teeth anywhere in it (uniformly) and the motor at the
+    hub's speed."""
     nx = model.A.shape[0]
     idx = {name: i for i, name in enumerate(model.states)}
     links = [i for name, i in idx.items() if name.startswith("a_") and not name.startswith("a_dot")]
@@ -143,7 +144,12 @@ def start_state(model: StochasticModel, record: Record) -> tuple[np.ndarray, np.
         var[idx["gauge"]] = (amp + 1.0) ** 2
     if "d" in idx:
         var[idx["d"]] = model.drive**2
-    return x0, np.diag(var)
+    P0 = np.diag(var)
+    if "gap" in idx:  # the teeth anywhere in the play, the motor turning with the hub
+        P0[idx["gap"], idx["gap"]] = model.play**2 / 12.0
+        w, v = idx["motor_speed"], idx["theta_dot"]
+        P0[w, v] = P0[v, w] = P0[w, w] = var[v]
+    return x0, P0
 
 
 def run_filter(

@@ -36,7 +36,13 @@ class Discrete:
 
     A channel with ``cubic`` [1/unit^2] not 0 bends: z = C x + cubic (g x)^3 + v, ``bend``'s row g the part of the
     reading that bends (a strain gauge's bridge, its offset apart); the filter's update is then the extended Kalman
-    filter's, the row linearised at the predicted state."""
+    filter's, the row linearised at the predicted state.
+
+    With ``play`` > 0 the model has a gear's play: the state ``gap`` (within +-play / 2) says how far its teeth are
+    apart. A, B, Q are then the teeth in contact's, ``loose`` the (A, B, Q) of the sides apart, and ``impact``
+    (nx x nx) the plastic impact that brings them together (the gap left to be set): over each step the sides move
+    apart, and where that would take the gap past +-play / 2 the teeth are in contact instead, the step taken from the
+    state after the impact (``fmus/master/kalman.c``'s header)."""
 
     A: np.ndarray
     B: np.ndarray
@@ -50,6 +56,10 @@ class Discrete:
     substeps: int = 1
     cubic: np.ndarray | None = None
     bend: np.ndarray | None = None
+    play: float = 0.0
+    gap: int = 0
+    loose: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    impact: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -90,7 +100,8 @@ def _library() -> ctypes.CDLL:
     lib = ctypes.CDLL(str(build_master()))
     ptr, n = ctypes.c_void_p, ctypes.c_long
     lib.kalman_filter.restype = ctypes.c_double
-    lib.kalman_filter.argtypes = [n, n, n, *[ptr] * 8, n, *[ptr] * 4, n, ctypes.c_double, n, *[ptr] * 9]
+    lib.kalman_filter.argtypes = [n, n, n, *[ptr] * 8, n, *[ptr] * 4, n, ctypes.c_double, n, *[ptr] * 2,
+                                  ctypes.c_double, n, *[ptr] * 4, *[ptr] * 7]  # fmt: skip
     lib.kalman_max_states.restype = ctypes.c_int
     return lib
 
@@ -150,12 +161,15 @@ def kalman_filter(
     cubic = bend = None
     if model.cubic is not None and model.bend is not None and np.any(model.cubic):
         cubic, bend = _c(model.cubic), _c(model.bend).reshape(ny, nx)
+    play, loose = 0.0, list[np.ndarray | None]([None] * 4)
+    if model.play > 0.0 and model.loose is not None and model.impact is not None:
+        play, loose = model.play, [_c(m) for m in (*model.loose, model.impact)]
     e, s, terms = np.empty((n, ny)), np.empty((n, ny)), np.empty((n, ny))
     kept = [np.empty((n, nx)), np.empty((n, nx, nx)), np.empty((n, nx)), np.empty((n, nx, nx))] if keep else [None] * 4
     ll = lib.kalman_filter(
         nx, ny, nu, _ptr(A), _ptr(B), _ptr(Q), _ptr(C), _ptr(r), _ptr(q), _ptr(x0), _ptr(P0), n, _ptr(u), _ptr(y),
-        _ptr(m), _ptr(hub), model.speed, friction, model.substeps, _ptr(cubic), _ptr(bend), _ptr(e), _ptr(s),
-        _ptr(terms), *(_ptr(k) for k in kept),
+        _ptr(m), _ptr(hub), model.speed, friction, model.substeps, _ptr(cubic), _ptr(bend), play, model.gap,
+        *(_ptr(k) for k in loose), _ptr(e), _ptr(s), _ptr(terms), *(_ptr(k) for k in kept),
     )  # fmt: skip
     return Filtered(float(ll), e, s, terms, *kept)
 
@@ -177,8 +191,9 @@ def smooth(model: Discrete, filtered: Filtered) -> tuple[np.ndarray, np.ndarray]
     """
     if filtered.xp is None or filtered.Pp is None or filtered.xf is None or filtered.Pf is None:
         raise ValueError("the smoother needs the filter's states: run kalman_filter with keep=True")
-    if model.friction > 0.0 or model.substeps != 1 or (model.cubic is not None and np.any(model.cubic)):
-        raise ValueError("the smoother takes a linear model: one without friction or a bent reading")
+    bent = model.cubic is not None and np.any(model.cubic)
+    if model.friction > 0.0 or model.play > 0.0 or model.substeps != 1 or bent:
+        raise ValueError("the smoother takes a linear model: one without friction, a play or a bent reading")
     xp, Pp, xf, Pf = filtered.xp, filtered.Pp, filtered.xf, filtered.Pf
     x, P = xf.copy(), Pf.copy()
     A = model.A

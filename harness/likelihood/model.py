@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from typing import Any
 
 import numpy as np
@@ -101,6 +101,7 @@ EFFECTS: dict[str, Bound] = {
     "plant.coulomb_torque": Bound(0.0, 1e3, "N m", "Coulomb friction at the hub", part="effect", square=True),
     "plant.amp_limit": LimitBound(1.0, 20.0, "V", "the amplifier's output limit", part="effect"),
     "daq.gauge_cubic": Bound(-0.3, 0.3, "1", "the strain gauge's cubic nonlinearity", log=False, part="effect"),
+    "plant.backlash": Bound(0.0, 1e3, "rad", "the gear's play at the load shaft", part="effect", square=True),
 }
 
 
@@ -134,7 +135,12 @@ class StochasticModel:
     amplifier's output limit on the command plus its input offset ``offset`` [V] (0: none; :meth:`inputs`);
     ``gauge_tau`` [s] the gauge's low-pass (0: none; the state ``gauge``, sampled as the DAQ filters:
     :meth:`discretise`); ``cubic`` [1/deg^2] the gauge reading's bend, its reading L (offset apart) read as
-    L + cubic L^3 (0: none; with the low-pass, taken on its output where the DAQ bends its input)."""
+    L + cubic L^3 (0: none; with the low-pass, taken on its output where the DAQ bends its input). ``play`` [rad]
+    is the gear's play (0: none): two more states, ``gap`` (the motor side's angle ahead of the hub's, within
+    +-play / 2) and ``motor_speed``; ``A``, ``B`` and ``G`` are then the teeth in contact's (the rig as one body: the
+    gap held, the motor's speed the hub's), ``loose`` the (A, B, G) of the two sides apart (:class:`harness.fmu.plant.
+    GearPlay`) and ``impact`` (nx x nx) the plastic impact that closes the play, momentum kept, the gap left to be
+    set at +-play / 2 (:meth:`discretise`)."""
 
     A: np.ndarray
     B: np.ndarray
@@ -149,6 +155,9 @@ class StochasticModel:
     offset: float = 0.0
     gauge_tau: float = 0.0
     cubic: float = 0.0
+    play: float = 0.0
+    loose: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    impact: np.ndarray | None = None
 
     def inputs(self, u: np.ndarray) -> np.ndarray:
         """The filter's inputs (n x 2) for the command ``u`` [V] as the plant receives it: ``[u, 1]`` (the offset
@@ -162,37 +171,52 @@ class StochasticModel:
     def discretise(self, Ts: float, step: float = FRICTION_STEP) -> Discrete:
         """The model sampled every ``Ts`` [s] with the inputs held over each sample: A_d = exp(A Ts), B_d its
         integral on B, Q_d = int_0^Ts exp(A s) G W G' exp(A' s) ds (Van Loan), r the readings' variances. With
-        friction, the steps are substeps of at most ``step`` [s] (the hub sticks and slides within a sample; the
-        filter's :data:`FRICTION_STEP`)."""
-        substeps = max(1, math.ceil(Ts / step - 1e-9)) if self.coulomb > 0.0 else 1
+        friction or a play, the steps are substeps of at most ``step`` [s] (the hub sticks and slides, the teeth
+        part and meet, within a sample; the filter's :data:`FRICTION_STEP`); with a play, the sides apart sampled
+        as well (``kalman.c``'s header)."""
+        substeps = max(1, math.ceil(Ts / step - 1e-9)) if self.coulomb > 0.0 or self.play > 0.0 else 1
         Ts /= substeps
-        nx, nu = self.B.shape
-        M = np.zeros((nx + nu, nx + nu))
-        M[:nx, :nx], M[:nx, nx:] = self.A, self.B
-        E = expm(M * Ts)
-        W = np.diag([self.noise.hub_torque**2, self.noise.link_torque**2, self.noise.hub_force**2][: self.G.shape[1]])
-        V = np.zeros((2 * nx, 2 * nx))
-        V[:nx, :nx], V[:nx, nx:], V[nx:, nx:] = -self.A, self.G @ W @ self.G.T, self.A.T
-        F = expm(V * Ts)
-        Q = F[nx:, nx:].T @ F[:nx, nx:]
-        r = np.array([self.noise.theta**2, self.noise.alpha**2])
-        Ad, Bd, C = E[:nx, :nx], E[:nx, nx:], self.C
+        C = self.C
         if self.gauge_tau > 0.0:  # the DAQ's filter at the samples: g_k = (1 - a) g_(k-1) + a alpha_k, read g_k
             i = self.states.index("gauge")
             a = 1.0 - math.exp(-Ts / self.gauge_tau)
-            row = self.gauge_tau * self.A[i, :i]  # the gauge's reading of the plant's states
-            Ad, Bd, C = Ad.copy(), Bd.copy(), C.copy()
-            Ad[i, :], Bd[i, :], Q[i, :], Q[:, i] = 0.0, 0.0, 0.0, 0.0
-            Ad[i, :i], Ad[i, i] = a * row, 1.0 - a
-            C[1, :i], C[1, i] = a * row, 1.0 - a
+            C = C.copy()
+            C[1, :i], C[1, i] = a * self.gauge_tau * self.A[i, :i], 1.0 - a
+        Ad, Bd, Q = self._sampled(self.A, self.B, self.G, Ts)
         bend = None
         if self.cubic != 0.0:  # the gauge's reading without its offset bends
             bend = np.zeros_like(C)
             bend[1] = C[1]
             bend[1, self.states.index("b_alpha")] = 0.0
-        return Discrete(A=Ad, B=Bd, Q=0.5 * (Q + Q.T), C=C, r=r, friction=self.coulomb,
-                        hub=Bd[:, 0] / self.drive, speed=self.states.index("theta_dot"), substeps=substeps,
-                        cubic=None if bend is None else np.array([0.0, self.cubic]), bend=bend)  # fmt: skip
+        loose = None if self.loose is None else self._sampled(*self.loose, Ts)
+        return Discrete(A=Ad, B=Bd, Q=Q, C=C, r=np.array([self.noise.theta**2, self.noise.alpha**2]),
+                        friction=self.coulomb, hub=Bd[:, 0] / self.drive, speed=self.states.index("theta_dot"),
+                        substeps=substeps, cubic=None if bend is None else np.array([0.0, self.cubic]), bend=bend,
+                        play=self.play, gap=self.states.index("gap") if self.play > 0.0 else 0, loose=loose,
+                        impact=self.impact)  # fmt: skip
+
+    def _sampled(
+        self, A: np.ndarray, B: np.ndarray, G: np.ndarray, Ts: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(A_d, B_d, Q_d) of the continuous (A, B, G) over ``Ts`` [s] with this model's noise (:meth:`discretise`);
+        with the gauge's low-pass, its state the DAQ's filter of the sampled deflection."""
+        nx, nu = B.shape
+        M = np.zeros((nx + nu, nx + nu))
+        M[:nx, :nx], M[:nx, nx:] = A, B
+        E = expm(M * Ts)
+        W = np.diag([self.noise.hub_torque**2, self.noise.link_torque**2, self.noise.hub_force**2][: G.shape[1]])
+        V = np.zeros((2 * nx, 2 * nx))
+        V[:nx, :nx], V[:nx, nx:], V[nx:, nx:] = -A, G @ W @ G.T, A.T
+        F = expm(V * Ts)
+        Q = F[nx:, nx:].T @ F[:nx, nx:]
+        Ad, Bd = E[:nx, :nx], E[:nx, nx:]
+        if self.gauge_tau > 0.0:
+            i = self.states.index("gauge")
+            a = 1.0 - math.exp(-Ts / self.gauge_tau)
+            Ad, Bd = Ad.copy(), Bd.copy()
+            Ad[i, :], Bd[i, :], Q[i, :], Q[:, i] = 0.0, 0.0, 0.0, 0.0
+            Ad[i, :i], Ad[i, i] = a * self.gauge_tau * A[i, :i], 1.0 - a
+        return Ad, Bd, 0.5 * (Q + Q.T)
 
 
 def rig_model(
@@ -265,5 +289,46 @@ def rig_model(
     limit = float(values.get("plant.amp_limit", 0.0))
     # the DAQ's a (1 + c (a / 10)^2) of the deflection a [deg], read as L = g a (g: the gauge's gain)
     cubic = float(values.get("daq.gauge_cubic", 0.0)) / (100.0 * float(values.get("sensor.alpha_gauge_gain", 1.0)) ** 2)
-    return StochasticModel(A=Ax, B=Bx, G=Gx, C=Cx, noise=noise, states=states, w1=w1, drive=G_volt, coulomb=coulomb,
-                           limit=limit, offset=u_offset, gauge_tau=tau, cubic=cubic)  # fmt: skip
+    model = StochasticModel(A=Ax, B=Bx, G=Gx, C=Cx, noise=noise, states=states, w1=w1, drive=G_volt, coulomb=coulomb,
+                            limit=limit, offset=u_offset, gauge_tau=tau, cubic=cubic)  # fmt: skip
+    play = float(values.get("plant.backlash", 0.0))
+    return _with_play(model, plantmod.gear_play(p), play, u_offset) if play > 0.0 else model
+
+
+def _with_play(rigid: StochasticModel, gear: plantmod.GearPlay, play: float, u_offset: float) -> StochasticModel:
+    """``rigid`` with the gear's ``play`` [rad] (:class:`StochasticModel`'s ``loose`` and ``impact``): the states
+    ``gap`` and ``motor_speed`` added; in contact the gap held and the motor's speed the hub's; apart, the hub side
+    ``gear`` without the drive (the gauge, its offset and the missing force as in contact), the motor side
+    driven."""
+    nr, n2 = rigid.A.shape[0], gear.A.shape[0]
+    N, nx = n2 // 2, nr + 2
+    ig, iw = nr, nr + 1  # the gap, the motor's speed
+
+    def widen(M: np.ndarray, cols: int) -> np.ndarray:
+        out = np.zeros((nx, cols))
+        out[:nr] = M
+        return out
+
+    A, B, G = (widen(M, M.shape[1]) for M in (rigid.A, rigid.B, rigid.G))
+    A = np.column_stack([A, np.zeros((nx, 2))])
+    A[iw], B[iw], G[iw] = A[N], B[N], G[N]  # in contact the motor turns with the hub
+    Af, Bf, Gf = A.copy(), np.zeros_like(B), np.zeros_like(G)
+    Af[:n2, :n2] = gear.A
+    if "d" in rigid.states:  # the missing force acts on the hub side
+        Af[:n2, rigid.states.index("d")] = gear.hub
+        Gf[rigid.states.index("d"), 2] = 1.0
+    Gf[:n2, 0], Gf[:n2, 1] = gear.hub, gear.tip
+    Af[iw] = 0.0
+    Af[ig, iw], Af[ig, N] = 1.0, -1.0
+    Af[iw, iw] = -gear.damping / gear.Jm
+    Bf[iw, 0], Bf[iw, 1] = gear.drive / gear.Jm, gear.drive / gear.Jm * u_offset
+    # the plastic impact: an impulse P = (w_m - theta_dot) / (1 / Jm + hub[N]) through the gear moves the hub side's
+    # velocities by P hub[N:], the motor's speed becomes the hub's; the gap is then set (zero here)
+    impact = np.eye(nx)
+    c = 1.0 / (1.0 / gear.Jm + gear.hub[N])
+    impact[N:n2, iw] += gear.hub[N:] * c
+    impact[N:n2, N] -= gear.hub[N:] * c
+    impact[iw] = impact[N]
+    impact[ig] = 0.0
+    return replace(rigid, A=A, B=B, G=G, C=np.column_stack([rigid.C, np.zeros((2, 2))]), play=play,
+                   states=(*rigid.states, "gap", "motor_speed"), loose=(Af, Bf, Gf), impact=impact)  # fmt: skip

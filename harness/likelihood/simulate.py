@@ -4,9 +4,11 @@ model makes.
 :func:`draw_records` simulates the model a fit describes (:meth:`harness.likelihood.model.StochasticModel.
 discretise`) under a record's command, mask and lattice: the process noise over each step, friction as the
 time-stepping methods of non-smooth mechanics take it on the state itself (the torque that brings the hub to rest
-where that is within +-Fc, else +-Fc against the motion), on steps of :data:`FINE_STEP` (the filter holds its friction
-over 1 ms: a hub that stops within a step is stopped at the step's end, its impulse on the link a step late; on
-these steps the draws replay the plant FMU's event-located stick-slip), the gauge bent, the readings' white noise,
+where that is within +-Fc, else +-Fc against the motion), a gear's play as the filter steps it (``fmus/master/
+kalman.c``: its sides apart, or in contact after a plastic impact), on steps of :data:`FINE_STEP` (the filter holds
+its friction over 1 ms: a hub that stops within a step is stopped at the step's end, its impulse on the link a step
+late; on these steps the draws replay the plant FMU's event-located stick-slip, and its play within 1.5e-3 deg),
+the gauge bent, the readings' white noise,
 rounded to the record's lattice. The filter run through such draws meets its own approximations (friction's moments
 over its coarser steps, the bent gauge's linearisation, the start's wide prior) and nothing else: what its
 innovations keep there is what the model leaves on data it describes (:func:`whiteness_scale`).
@@ -64,14 +66,17 @@ def draw_records(
     """
     model = rig_model(plant, *split_values(values))
     d = model.discretise(record.Ts, FINE_STEP)
-    u = model.inputs(record.delayed(delay)) @ d.B.T  # each sample's input term
+    u = model.inputs(record.delayed(delay)) @ d.B.T  # each sample's input term (in contact)
     x0, _ = start_state(model, record)
-    w, V = np.linalg.eigh(d.Q)
-    L = V * np.sqrt(np.clip(w, 0.0, None))  # Q = L L'
+    L = _root(d.Q)
     n = u.shape[0]
     X = np.repeat(x0[:, None], draws, axis=1)
     friction = d.friction > 0.0 and d.hub is not None
     hub = d.hub if d.hub is not None else np.zeros(x0.size)
+    inputs = model.inputs(record.delayed(delay))
+    play = None
+    if d.play > 0.0 and d.loose is not None and d.impact is not None:
+        play = (d.loose[0], d.loose[1], _root(d.loose[2]), d.A @ d.impact, d.impact)
     y = np.empty((draws, n, 2))
     for k in range(n):
         z = d.C @ X
@@ -79,12 +84,29 @@ def draw_records(
             z += d.cubic[:, None] * (d.bend @ X) ** 3
         y[:, k] = z.T
         for _ in range(d.substeps):
-            X = d.A @ X + u[k][:, None] + L @ rng.standard_normal(X.shape)
+            if play is None:
+                X = d.A @ X + u[k][:, None] + L @ rng.standard_normal(X.shape)
+            else:  # the sides apart, or in contact where the gap would pass +-play / 2
+                Af, Bf, Lf, M, impact = play
+                Xf = Af @ X + (Bf @ inputs[k])[:, None] + Lf @ rng.standard_normal(X.shape)
+                edge = 0.5 * d.play * np.sign(Xf[d.gap]) * (np.abs(Xf[d.gap]) > 0.5 * d.play)
+                with np.errstate(invalid="ignore", divide="ignore"):  # where the teeth meet within the step
+                    tau = np.nan_to_num(np.clip((edge - X[d.gap]) / (Xf[d.gap] - X[d.gap]), 0.0, 1.0))
+                Xc = M @ X + np.outer(d.A[:, d.gap], edge) + u[k][:, None] + L @ rng.standard_normal(X.shape)
+                Xi = impact @ Xf
+                Xi[d.gap] = edge
+                X = np.where(edge != 0, (1.0 - tau) * Xc + tau * Xi, Xf)
             if friction:  # the friction torque over the step: to rest within +-Fc, else +-Fc against the motion
                 X += np.outer(hub, np.clip(-X[d.speed] / hub[d.speed], -d.friction, d.friction))
     y += np.sqrt(d.r) * rng.standard_normal(y.shape)
     q = np.asarray(record.lattice, dtype=float)
     return np.where(q > 0, np.round(y / np.where(q > 0, q, 1.0)) * q, y)
+
+
+def _root(Q: np.ndarray) -> np.ndarray:
+    """L with Q = L L' for a covariance Q (its eigenvectors scaled: Q may be singular)."""
+    w, V = np.linalg.eigh(Q)
+    return V * np.sqrt(np.clip(w, 0.0, None))
 
 
 def whiteness_scale(
