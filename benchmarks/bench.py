@@ -604,13 +604,13 @@ def bench_likelihood(repeats: int = 20, records: int = 3) -> dict[str, Any]:
 
 
 def bench_rule(n: int = 100, workers: int = 2) -> dict[str, Any]:
-    """The likelihood engine's rule (:func:`harness.likelihood.calibrate.calibrate_rule`): Coulomb friction's false
-    alarms on ``n`` friction-free quantised twins (seeds 300 on) and its power on ``n`` with 0.01 N m, at the
-    rule's 1 %, on ``workers`` Dask workers, with the wall time."""
+    """The likelihood engine's rule (:func:`harness.likelihood.calibrate.calibrate_rule`): its false alarms on ``n``
+    effect-free quantised twins (seeds 300 on) and its power on ``n`` with each small effect (Coulomb friction of
+    0.01 N m, a play of 2 mrad), at the rule's 1 %, on ``workers`` Dask workers, with the wall time."""
     from harness.likelihood.calibrate import calibrate_rule
 
     t0 = time.perf_counter()
-    cal = calibrate_rule(n, seed=300, coulomb=0.01, workers=workers)
+    cal = calibrate_rule(n, seed=300, workers=workers)
     return cal.to_json() | {"wall_s": time.perf_counter() - t0, "workers": workers,
                             "target": "false alarms <= 0.02 at 1 %, power >= 0.9"}  # fmt: skip
 

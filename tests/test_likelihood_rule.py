@@ -81,7 +81,7 @@ def test_friction_stays_out_of_a_friction_free_quantised_twin(closed, bits, seed
     """On friction-free twins at 8, 10 and 12 bits, open and closed loop, through the engine as a unit's records go:
     neither a delay nor the gauge's low-pass nor the friction, the amplifier's limit, the gauge's nonlinearity or the
     gear's play nested on the linear fit enters at 1 %, and the missing force is named none."""
-    r = judge_case(Case(seed, closed, bits, 0.0), Rule())
+    r = judge_case(Case(seed, closed, bits), Rule())
     tried = {"delay", "gauge_lowpass", "coulomb_friction", "saturation", "gauge_nonlinearity", "backlash"}
     assert not r.findings and set(r.tests) == tried, r
     assert not any(t.enters for t in r.tests.values()), r
@@ -93,8 +93,8 @@ def test_friction_of_a_hundredth_enters_a_quantised_twin(closed, bits, seed):
     """With Coulomb friction of 0.01 N m (77 mV of command), the friction nested on the linear fit enters at 1 %
     and is sized within 25 %; the missing force drawn without it is named friction within 20 %; the verdict is
     coulomb_friction."""
-    r = judge_case(Case(seed, closed, bits, 0.01), Rule())
-    assert r.tests["coulomb_friction"].enters and r.friction == pytest.approx(0.01, rel=0.25), r
+    r = judge_case(Case(seed, closed, bits, "coulomb_friction", 0.01), Rule())
+    assert r.tests["coulomb_friction"].enters and r.fitted == pytest.approx(0.01, rel=0.25), r
     assert r.tests["coulomb_friction"].agrees is not None  # fitted on the record's halves
     assert r.tests["coulomb_friction"].held_out > 100.0, r  # each half's fit gains on the other (448, 575 nats)
     assert r.shape == "friction" and r.size == pytest.approx(0.01, rel=0.2), r
@@ -105,7 +105,7 @@ def test_an_effect_the_held_out_records_do_not_gain_from_stays_out():
     """The friction-free closed-loop twin at 8 bits on seed 324, the one false alarm of the rule's calibration on
     seeds 300-399 (LR 5.97 against 5.41): friction fitted on each half of the record loses on the other half
     (-0.58 nats), so it stays out and the verdict is none; a test passes only with both conditions."""
-    r = judge_case(Case(324, True, 8, 0.0), Rule())
+    r = judge_case(Case(324, True, 8), Rule())
     t = r.tests["coulomb_friction"]
     assert t.lr > t.critical and t.held_out is not None and t.held_out < 0.0 and not t.enters, t
     assert r.verdict == "none" and t.to_json()["held_out"] == t.held_out
@@ -116,25 +116,33 @@ def test_an_effect_the_held_out_records_do_not_gain_from_stays_out():
 
 def test_the_rules_calibration_counts_its_cases():
     """calibrate_rule on one case of each kind, serially: the case is the seed's (open loop on odd seeds, 8, 10, 12
-    bits in turn: 701 an open loop at 12 bits), the friction-free one does not alarm and is named none, the one
-    with friction enters sized and named, each verdict is the twin's, and its JSON says so; a case whose hub
-    leaves the pot's track is skipped, not judged; a case whose linear fit had a finding counts as not detected."""
+    bits in turn: 701 an open loop at 12 bits), the effect-free one does not alarm and is named none; friction
+    (0.01 N m) and the play (2 mrad) each enter sized; friction's missing force is named friction (the play draws
+    no shape: None); each verdict is the twin's, and its JSON says so; a case whose hub leaves the pot's track is
+    skipped, not judged; a case whose linear fit had a finding counts as not detected."""
     cal = calibrate_rule(1, seed=701, workers=1)
-    assert [r.case for r in (*cal.null, *cal.effect)] == [Case(701, False, 12, 0.0), Case(701, False, 12, 0.01)]
-    assert cal.false_alarms == 0.0 and cal.named_none == 1.0
-    assert cal.power == 1.0 and cal.sized == 1.0 and cal.named_friction == 1.0
+    friction, play = Case(701, False, 12, "coulomb_friction", 0.01), Case(701, False, 12, "backlash", 0.002)
+    assert [r.case for r in (*cal.null, *cal.effects["coulomb_friction"], *cal.effects["backlash"])] == [
+        Case(701, False, 12), friction, play]  # fmt: skip
+    assert friction.plant() == {"n_modes": 2, "coulomb_torque": 0.01} and Case(1, False, 8).plant() == {"n_modes": 2}
+    assert cal.false_alarms == 0.0 and cal.named_none == 1.0 and cal.verdict_right("") == 1.0
+    for name in ("coulomb_friction", "backlash"):
+        assert cal.power(name) == 1.0 and cal.sized(name) == 1.0 and cal.verdict_right(name) == 1.0, name
+    assert cal.named("coulomb_friction") == 1.0 and cal.named("backlash") is None
     doc = cal.to_json()
     largest = max(t.lr for r in cal.null for t in r.tests.values())
     assert doc["null"] == {"cases": 1, "judged": 1, "false_alarms": 0.0, "largest_lr": largest, "named_none": 1.0,
                            "white": cal.white, "verdict_none": 1.0, "alarms": []}  # fmt: skip
-    assert doc["effect"]["power"] == 1.0 and doc["level"] == 0.01 and doc["findings"] == []
-    assert doc["effect"]["verdict_friction"] == 1.0 and cal.verdict_right == (1.0, 1.0)
-    assert doc["effect"]["missed"] == []
-    skipped = CaseResult(Case(1, False, 8, 0.0), {}, None, "", 0.0, False, skipped="the hub leaves the pot's track")
-    assert RuleCalibration(Rule(), (*cal.null, skipped), cal.effect).false_alarms == 0.0
-    found = CaseResult(Case(3, False, 8, 0.01), {}, None, "none", 0.0, False, findings="a bound")
-    assert RuleCalibration(Rule(), cal.null, (*cal.effect, found)).power == pytest.approx(1 / 2)
-    assert RuleCalibration(Rule(), cal.null, (*cal.effect, found)).to_json()["effect"]["missed"] == [3]
+    assert doc["level"] == 0.01 and doc["findings"] == []
+    assert doc["effects"]["backlash"] | {"named": 0} == {
+        "cases": 1, "judged": 1, "size": 0.002, "power": 1.0, "sized_within": 0.25, "sized": 1.0,
+        "verdict_right": 1.0, "named_within": 0.2, "named": 0, "missed": []}  # fmt: skip
+    skipped = CaseResult(Case(1, False, 8), {}, None, "", 0.0, False, skipped="the hub leaves the pot's track")
+    assert RuleCalibration(Rule(), (*cal.null, skipped), cal.effects).false_alarms == 0.0
+    found = CaseResult(Case(3, False, 8, "coulomb_friction", 0.01), {}, None, "none", 0.0, False, findings="a bound")
+    more = cal.effects | {"coulomb_friction": (*cal.effects["coulomb_friction"], found)}
+    assert RuleCalibration(Rule(), cal.null, more).power("coulomb_friction") == pytest.approx(1 / 2)
+    assert RuleCalibration(Rule(), cal.null, more).to_json()["effects"]["coulomb_friction"]["missed"] == [3]
 
 
 @pytest.mark.parametrize("rho", [0.0, 0.7])
