@@ -52,7 +52,7 @@ from .rig.controller import Controller
 from .rundir import DataError, Manifest, RunDir, check_rig, read_dataset, sample_time
 
 __all__ = ["Record", "RigTables", "Spread", "Twin", "draw", "load_record", "load_twin", "measurement_noise",
-           "spread_of_diagnosis", "with_record_offset"]  # fmt: skip
+           "process_noise", "spread_of_diagnosis", "with_record_offset"]  # fmt: skip
 
 MODELS = {"plant": "flexjoint", "daq": "daq"}  # the FMU behind each table
 NOISE = {"theta": ("noise_theta", "pot_gain"), "alpha": ("noise_alpha", "gauge_gain")}  # channel -> DAQ noise, gain
@@ -92,7 +92,9 @@ class Twin:
     (the sim spec of a diagnosis); ``sample_rate`` [Hz] of its records (a spec's own); ``plant``/``daq``: the sheet's
     tables (noise off, a record's sensor settings: an encoder, the gauge's delay); ``overrides``: the fitted values and
     effects on top; ``noise_deg``: measurement noise RMS [deg] per channel as read; ``spread``: how the overrides vary;
-    ``run``: the diagnosed run (its records), None for a spec."""
+    ``run``: the diagnosed run (its records), None for a spec; ``process``: the plant's process noise, the white
+    torques' intensities on the hub and at the link's tip (the plant FMU's ``hub_torque_noise``, ``tip_torque_noise``
+    [N m sqrt(s)]: the likelihood engine's maximum-likelihood ones, :func:`process_noise`; none for a spec)."""
 
     name: str
     source: str
@@ -104,13 +106,15 @@ class Twin:
     noise_deg: dict[str, float]
     spread: Spread = field(default_factory=Spread)
     run: Path | None = None
+    process: dict[str, float] = field(default_factory=dict)
 
     def tables(
         self, over: dict[str, float] | None = None, seed: int = 0, noise: bool = True, record: str | None = None
     ) -> RigTables:
-        """The rig with the overrides ``over`` (default: the twin's own), the DAQ's noise seed ``seed`` and its
-        measurement noise (``noise`` False: off); ``record``: the record whose gauge offset the gauge reads (its
-        ``sensor.alpha_offset@<record>`` [deg as read] where the diagnosis fitted it, else none)."""
+        """The rig with the overrides ``over`` (default: the twin's own), the noise seed ``seed`` (the DAQ's and the
+        plant's) and the measurement and process noise (``noise`` False: off); ``record``: the record whose gauge
+        offset the gauge reads (its ``sensor.alpha_offset@<record>`` [deg as read] where the diagnosis fitted it, else
+        none)."""
         over = dict(self.overrides if over is None else over)
         drive = {k: float(v) for k, v in over.items() if k in COMBOS}
         plant = {**self.plant, **(to_plant(drive, self.plant) if drive else {})}
@@ -126,6 +130,8 @@ class Twin:
         for c, (vn, gain) in NOISE.items():
             daq[vn] = self.noise_deg[c] / abs(specmod.fmu_value(believed, "daq", gain)) if noise else 0.0
         daq["seed"] = int(seed) % (2**31 - 1)
+        if noise and self.process:
+            plant |= self.process | {"noise_seed": daq["seed"]}
         offset = float(over.get(offset_key(record), 0.0)) if record is not None else 0.0
         daq["gauge_offset"] = specmod.fmu_value(believed, "daq", "gauge_offset") + offset / specmod.fmu_value(
             believed, "daq", "gauge_gain"
@@ -290,7 +296,22 @@ def twin_of_diagnosis(where: Path, spec: specmod.Spec | None = None) -> Twin:
     over, spread = spread_of_diagnosis(doc)
     noise = measurement_noise(diag.noise_floor, daq, over)
     name = f"diagnosis of {run.name}"
-    return Twin(name, "diagnosis", spec, float(rate), plant, daq, over, noise, spread, run)
+    return Twin(name, "diagnosis", spec, float(rate), plant, daq, over, noise, spread, run, process_noise(where))
+
+
+def process_noise(where: Path) -> dict[str, float]:
+    """The process noise a diagnosis directory ``where`` found: the likelihood engine's maximum-likelihood white
+    torques (``likelihood.json``: the best model's, the linear model with the effects that entered, else the linear
+    fit's) as the plant FMU's ``hub_torque_noise`` and ``tip_torque_noise`` [N m sqrt(s)]; none without the engine's
+    fit."""
+    path = RunDir(where).likelihood
+    if not path.is_file():
+        return {}
+    doc = json.loads(path.read_text(encoding="utf-8"))
+    fitted = {k: float(v["fitted"]) for k, v in doc.get("parameters", {}).items()}
+    fitted |= {k: float(v) for k, v in ((doc.get("final") or {}).get("noise") or {}).items()}
+    names = {"noise.hub_torque": "hub_torque_noise", "noise.link_torque": "tip_torque_noise"}
+    return {fmu: fitted[k] for k, fmu in names.items() if fitted.get(k, 0.0) > 0.0}
 
 
 def load_twin(rig: str | Path) -> Twin:

@@ -228,3 +228,27 @@ def test_which_option_gives_the_controller():
         controller_source("pid:kp=1", "design", False)
     with pytest.raises(ValueError, match="no controller: give --controller"):
         controller_source(None, None, False)
+
+
+def test_the_members_draw_the_process_noise_the_engine_found(lab, tmp_path):
+    """A twin without spread or measurement noise but with the likelihood engine's white torques (the best model's,
+    read from ``likelihood.json`` by process_noise): its members differ (the theta band is open, by more than 0.01
+    deg somewhere), each member's plant its own noise seed, the DAQ's; without them every member is the one loop."""
+    from harness.twin import process_noise
+
+    (tmp_path / "likelihood.json").write_text(json.dumps({
+        "parameters": {"noise.hub_torque": {"fitted": 0.05}, "noise.link_torque": {"fitted": 0.0}},
+        "final": {"noise": {"noise.hub_torque": 0.004, "noise.link_torque": 0.0005}}}))  # fmt: skip
+    found = process_noise(tmp_path)
+    assert found == {"hub_torque_noise": 0.004, "tip_torque_noise": 0.0005}
+    assert process_noise(tmp_path / "nothing") == {}
+    quiet = dataclasses.replace(lab, spread=Spread(), noise_deg={"theta": 0.0, "alpha": 0.0})
+    noisy = dataclasses.replace(quiet, process=found)
+    tables = noisy.tables(seed=7)
+    assert tables.plant["hub_torque_noise"] == 0.004 and tables.plant["noise_seed"] == tables.daq["seed"] == 7
+    assert "hub_torque_noise" not in noisy.tables(seed=7, noise=False).plant
+    ref = reference_from("square:f=0.5;amplitude=20;duration=2", 500.0)
+    lo, _, hi = predict(noisy, LQR, ref, n=6, seed=3, workers=1).bands["theta"]
+    assert np.max(hi - lo) > 0.01
+    lo, _, hi = predict(quiet, LQR, ref, n=6, seed=3, workers=1).bands["theta"]
+    np.testing.assert_array_equal(lo, hi)

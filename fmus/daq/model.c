@@ -47,9 +47,9 @@
 #include <string.h>
 
 #include "fmi2common.h"
+#include "noise.h"
 
 #define RAD2DEG 57.29577951308232
-#define TWO_PI 6.283185307179586
 #define PI 3.141592653589793
 
 void setStartValues(ModelInstance *comp) {
@@ -103,24 +103,6 @@ bool validate(ModelInstance *comp, char *msg, size_t len) {
 }
 
 /* ---------------------------------------------------------------- noise */
-
-static inline uint64_t mix64(uint64_t z) { /* splitmix64 output function */
-    z += 0x9E3779B97F4A7C15ULL;
-    z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ULL;
-    z = (z ^ (z >> 27)) * 0x94D049BB133111EBULL;
-    return z ^ (z >> 31);
-}
-
-/* uniform in (0, 1] from stream key and counter */
-static inline double uniform(uint64_t key, uint64_t counter) {
-    return (double)((mix64(key + mix64(counter)) >> 11) + 1) * (1.0 / 9007199254740992.0);
-}
-
-/* standard normal deviate number k of the stream (Box-Muller) */
-static double gauss(uint64_t key, int64_t k) {
-    const double u1 = uniform(key, 2 * (uint64_t)k), u2 = uniform(key, 2 * (uint64_t)k + 1);
-    return sqrt(-2.0 * log(u1)) * cos(TWO_PI * u2);
-}
 
 /* the table kept for stream key: the one that holds it, else the next in turn, emptied for it */
 static int noiseTable(ModelData *d, uint64_t key) {

@@ -2,9 +2,11 @@
 #ifndef FLEXJOINT_CONFIG_H
 #define FLEXJOINT_CONFIG_H
 
+#include <stdint.h>
+
 #define MODEL_NAME "flexjoint"
 /* must equal the guid attribute of modelDescription.xml (harness/fmu/build.py checks it) */
-#define MODEL_GUID "{6c1f4a52-3f0e-4b8e-9a57-1d2b7c9e0f11}"
+#define MODEL_GUID "{6c1f4a52-3f0e-4b8e-9a57-1d2b7c9e0f12}"
 
 #define MAX_MODES 3
 #define MAX_DOF (MAX_MODES + 1)         /* hub angle + modal tip-angle coordinates a_i */
@@ -39,11 +41,14 @@ enum { RIGID = 0, PLAY = 1, STUCK = 2, CONFIGS = 4 }; /* the configurations of M
     X(alpha_start, 22, 0.0)      \
     X(theta_dot_start, 23, 0.0)  \
     X(alpha_dot_start, 24, 0.0)  \
-    X(stribeck_speed, 25, 0.0)  \
-    X(u_offset, 26, 0.0)
+    X(stribeck_speed, 25, 0.0)   \
+    X(u_offset, 26, 0.0)         \
+    X(hub_torque_noise, 27, 0.0) \
+    X(tip_torque_noise, 28, 0.0)
 #define INTEGER_PARAMETERS(X)    \
     X(n_modes, 12, 1)            \
-    X(hub_locked, 20, 0)
+    X(hub_locked, 20, 0)         \
+    X(noise_seed, 29, 0)
 #define INPUTS(X)                \
     X(u, 30)                     \
     X(tau_tip, 31)
@@ -93,6 +98,8 @@ typedef struct {
     int side;        /* backlash: 0 = in the play, +1/-1 = teeth in contact (motor ahead / behind) */
     int slip;        /* sign of the hub velocity while sliding with friction (0: no friction force) */
     double v_amp;    /* amplifier output held over the current step [V] */
+    double v_noise;  /* the hub's process-noise torque over the current communication step, as volts [V] */
+    uint64_t noise_key[2]; /* the process noise's streams: hub, tip */
 
     /* communication steps finer than the internal step: X stays on the grid of whole internal steps (Xg, its
        flags, lag the time integrated past it as a preview, lag_u and lag_tau the inputs over that part) */

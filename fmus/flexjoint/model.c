@@ -53,6 +53,7 @@
 #include <string.h>
 
 #include "fmi2common.h"
+#include "noise.h"
 
 /* roots of cos(x) cosh(x) + 1 = 0: beta_i L of the clamped-free beam */
 static const double BETA_L[MAX_MODES] = {1.8751040687119611, 4.694091132974175, 7.854757438237613};
@@ -98,6 +99,8 @@ bool validate(ModelInstance *comp, char *msg, size_t len) {
     CHECK(d->stribeck_speed >= 0, "invalid parameter stribeck_speed = %g: must be >= 0 (0 = no Stribeck drop)",
           d->stribeck_speed);
     CHECK(d->backlash >= 0, "invalid parameter backlash = %g: must be >= 0", d->backlash);
+    CHECK(d->hub_torque_noise >= 0, "invalid parameter hub_torque_noise = %g: must be >= 0", d->hub_torque_noise);
+    CHECK(d->tip_torque_noise >= 0, "invalid parameter tip_torque_noise = %g: must be >= 0", d->tip_torque_noise);
     CHECK(d->Jm_share >= 0.05 && d->Jm_share <= 0.95, "invalid parameter Jm_share = %g: must be in [0.05, 0.95]",
           d->Jm_share);
     CHECK(d->amp_limit >= 0, "invalid parameter amp_limit = %g: must be >= 0 (0 = no saturation)", d->amp_limit);
@@ -247,6 +250,9 @@ fmi2Status initialize(ModelInstance *comp) {
     d->Bm = d->Jm_share * d->Beq;
     d->Bh = d->Beq - d->Bm;
     d->Fs = d->stiction_ratio * d->coulomb_torque;
+    d->v_noise = 0.0;
+    d->noise_key[0] = mix64((uint64_t)(int64_t)d->noise_seed ^ 0x687562ULL); /* "hub" */
+    d->noise_key[1] = mix64((uint64_t)(int64_t)d->noise_seed ^ 0x746970ULL); /* "tip" */
     /* (Fs - Fc) exp(-r^2) < Fc 2^-55 leaves Fc + it = Fc to the last bit: the exponential need not be taken */
     d->r2_flat = 0.0;
     if (d->Fs > d->coulomb_torque) d->r2_flat = log((d->Fs - d->coulomb_torque) / d->coulomb_torque) + 55.0 * log(2.0);
@@ -720,6 +726,7 @@ static fmi2Status integrate(ModelInstance *comp, double h, double u, double tau)
     long nsub, k;
     d->v_amp = u + d->u_offset;
     if (d->amp_limit > 0) d->v_amp = fmin(fmax(d->v_amp, -d->amp_limit), d->amp_limit);
+    d->v_amp += d->v_noise; /* the hub's process noise, as the drive's torque */
     nsub_d = ceil(h / d->h_max - 1e-9);
     if (nsub_d < 1) nsub_d = 1;
     if (nsub_d > 1e9) {
@@ -751,7 +758,24 @@ static void restoreGrid(ModelData *d) {
  * every FMU at a fraction of the sample period) keeps the state on the grid of whole internal steps, as a step of
  * the sample period would integrate it, and previews the part of an internal step past it: the same numbers at the
  * grid points whatever the master's step, while the inputs change only there. */
+static fmi2Status stepInputs(ModelInstance *comp, double t, double h);
+
+/* The process noise (hub_torque_noise, tip_torque_noise): over the communication step k = t / h, white torques held,
+ * of rms intensity / sqrt(h), deviate k of each stream (noise.h) - the hub's added to the drive's output (as volts:
+ * on the motor's side of a play), the tip's to tau_tip. */
 fmi2Status doStep(ModelInstance *comp, double t, double h) {
+    ModelData *d = &comp->data;
+    if (d->hub_torque_noise == 0.0 && d->tip_torque_noise == 0.0) return stepInputs(comp, t, h);
+    const int64_t k = (int64_t)floor(t / h + 0.5);
+    const double tau_in = d->tau_tip, scale = 1.0 / sqrt(h);
+    d->v_noise = d->hub_torque_noise * scale * gauss(d->noise_key[0], k) / d->G;
+    d->tau_tip = tau_in + d->tip_torque_noise * scale * gauss(d->noise_key[1], k);
+    const fmi2Status s = stepInputs(comp, t, h);
+    d->tau_tip = tau_in;
+    return s;
+}
+
+static fmi2Status stepInputs(ModelInstance *comp, double t, double h) {
     ModelData *d = &comp->data;
     const int nx = 2 * d->N + 2;
     const double eps = 1e-9 * d->h_max;

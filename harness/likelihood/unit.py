@@ -221,6 +221,7 @@ class UnitFit:
                 "loglik": self.final.loglik, "k": self.final.k, "n": self.final.n,
                 "whiteness": {"test": "Ljung-Box", "lags": LAGS, "p": self.final_whiteness,
                               "scale": self.final_scale},
+                "noise": {k: e.value for k, e in self.final.estimates.items() if k in TORQUES},
             },
             "lattice_bits": self.lattice_bits,
         }  # fmt: skip
