@@ -101,6 +101,24 @@ def test_friction_of_a_hundredth_enters_a_quantised_twin(closed, bits, seed):
     assert r.verdict == "coulomb_friction", r  # its residuals white by the law its draws give the filter
 
 
+def test_an_effect_of_two_parameters_takes_the_mixture_of_their_laws():
+    """Two parameters: both at a wall, the law is 1/4 none + 1/2 chi-square(1) + 1/4 chi-square(2); one at a wall and
+    one inside (friction's breakaway and its Stribeck speed), 1/2 chi-square(1) + 1/2 chi-square(2). At the critical
+    value each mixture's tail is the level (scipy's chi-square, summed), the p-value there the level; the mixture of
+    one wall is the chi-bar-square (5.41), of one inside parameter the chi-square (6.63)."""
+    rule = Rule(level=0.01)
+    walls = rule.test(1.0, 1.0, (False, False))
+    mixed = rule.test(1.0, 1.0, (False, True))
+    tail2 = 0.5 * chi2.sf(walls.critical, 1) + 0.25 * chi2.sf(walls.critical, 2)
+    tail11 = 0.5 * chi2.sf(mixed.critical, 1) + 0.5 * chi2.sf(mixed.critical, 2)
+    assert tail2 == pytest.approx(0.01, rel=1e-9) and tail11 == pytest.approx(0.01, rel=1e-9)
+    assert rule.test(walls.critical, 1.0, (False, False)).p == pytest.approx(0.01, rel=1e-9)
+    assert walls.law == mixed.law == "chi-bar-square" and rule.test(1.0, 1.0, (True, True)).law == "chi-square"
+    assert rule.test(1.0, 1.0, (False,)).critical == pytest.approx(chi2.isf(0.02, 1), rel=1e-9)
+    assert rule.test(1.0, 1.0, True).critical == pytest.approx(chi2.isf(0.01, 1), rel=1e-9)
+    assert 5.41 < walls.critical < mixed.critical < chi2.isf(0.01, 2)
+
+
 def test_an_effect_the_held_out_records_do_not_gain_from_stays_out():
     """The friction-free closed-loop twin at 8 bits on seed 324, the one false alarm of the rule's calibration on
     seeds 300-399 (LR 5.97 against 5.41): friction fitted on each half of the record loses on the other half

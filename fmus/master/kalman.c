@@ -16,14 +16,17 @@
  * probability is below what a double holds, the cell is taken as a reading at its centre with r + q^2 / 12.
  * A channel with q[j] = 0 is a plain Gaussian reading.
  *
- * Coulomb friction of level Fc > 0 on the state i_speed (the hub's speed), as the time-stepping methods of
- * non-smooth mechanics take it: over each sample the friction is one torque f held, which adds f bf to the state (bf:
- * a unit torque's effect over a sample). It is the torque that brings the speed to rest at the sample's end where
- * that is within +-Fc (the hub sticks), else +-Fc against the motion (it slides): f = clip(-v / bf[i], -Fc, Fc) for
- * the speed v the step would reach without it. The filter knows v only as N(v^, sv^2), so f is taken by its moments
- * over that normal (an assumed-density filter, like the lattice's cells): the state moves by E[f] bf, the covariance
- * maps through J = I - p bf e_i' / bf[i] (p: the probability that the hub sticks, which is E[df/dv] bf[i]) and gains
- * bf bf' times f's variance that J leaves out. Sure of its speed (sv = 0), the filter takes the hard decision. The
+ * Friction at the hub, of Coulomb level Fc > 0 on the state i_speed (the hub's speed), breakaway Fs >= Fc and Stribeck
+ * speed vs (0: none; the plant FMU's law), as the time-stepping methods of non-smooth mechanics take it: over each
+ * sample the friction is one torque f held, which adds f bf to the state (bf: a unit torque's effect over a sample,
+ * b = bf[i] > 0 on the speed). It is the torque that brings the speed to rest at the sample's end where that is
+ * within +-Fs (the hub sticks: f = -v / b), else the sliding friction against the motion, Fc + (Fs - Fc)
+ * exp(-(v / vs)^2) (Fc alone when vs = 0), for the speed v the step would reach without it. The filter knows v only as
+ * N(v^, sv^2), so f is taken by its moments over that normal (an assumed-density filter, like the lattice's cells;
+ * each region's, the exponential's with the normal a normal again, in closed form): the state moves by E[f] bf, the
+ * covariance maps through J = I + beta bf e_i' (beta = Cov(f, v) / Var(v), f's regression on v; -P(stuck) / b for
+ * Coulomb friction) and gains bf bf' times f's variance that J leaves out. Sure of its speed (sv = 0), the filter
+ * takes the hard decision. The
  * likelihood is then smooth in Fc and the model's parameters, as a fit needs it. The hub sticks or slides within a
  * sample: with substeps > 1, A, B, Q and bf are a substep's, taken substeps times per sample (the command held), the
  * friction after each.
@@ -87,33 +90,63 @@ static int cell(double a, double b, double *p, double *m, double *v) {
     return 1;
 }
 
-/* Coulomb friction over one sample (the header's moments): x and P (nx, nx x nx) before it, changed in place; W is
- * nx x nx of scratch. */
-static void friction(long nx, double *x, double *P, double *W, const double *bf, long i, double Fc) {
-    const double b = bf[i], m = -x[i] / b, sd = sqrt(P[i * nx + i] > 0.0 ? P[i * nx + i] : 0.0) / fabs(b);
-    double mean, p, resid = 0.0;
-    if (sd > 1e-12 * (Fc + fabs(m))) {
-        const double al = (-Fc - m) / sd, be = (Fc - m) / sd, fa = density(al), fb = density(be);
-        const double lo = upper_tail(-al), hi = upper_tail(be); /* P(f = -Fc), P(f = +Fc) */
-        p = al > 0.0 ? upper_tail(al) - upper_tail(be) : be < 0.0 ? upper_tail(-be) - upper_tail(-al) : 1.0 - lo - hi;
-        mean = Fc * (hi - lo) + m * p + sd * (fa - fb);
-        const double second =
-            Fc * Fc * (hi + lo) + m * m * p + 2.0 * m * sd * (fa - fb) + sd * sd * (p + al * fa - be * fb);
-        resid = second - mean * mean - p * p * sd * sd;
-        if (resid < 0.0) resid = 0.0;
-    } else {
-        mean = m > Fc ? Fc : m < -Fc ? -Fc : m;
-        p = fabs(m) < Fc ? 1.0 : 0.0;
+/* The normal N(m, s^2) on [lo, hi] (either end infinite): the probability *p of the interval, and E[v 1] *e1 and
+ * E[v^2 1] *e2 over it (0 where the probability underflows). s = 0: the point m. */
+static void span(double m, double s, double lo, double hi, double *p, double *e1, double *e2) {
+    double pr, mt, vt;
+    *p = *e1 = *e2 = 0.0;
+    if (!(s > 0.0)) {
+        if (m >= lo && m <= hi) *p = 1.0, *e1 = m, *e2 = m * m;
+        return;
     }
-    for (long a = 0; a < nx; a++) x[a] += mean * bf[a];
-    if (p > 0.0) { /* P <- J P J', J = I - p g e_i', g = bf / b: row a of J P is P[a] - p g[a] P[i] */
-        for (long a = 0; a < nx; a++)
-            for (long c = 0; c < nx; c++) W[a * nx + c] = P[a * nx + c] - p * bf[a] / b * P[i * nx + c];
-        for (long a = 0; a < nx; a++)
-            for (long c = a; c < nx; c++) P[a * nx + c] = P[c * nx + a] = W[a * nx + c] - p * W[a * nx + i] * bf[c] / b;
+    if (!cell((lo - m) / s, (hi - m) / s, &pr, &mt, &vt)) return;
+    const double mean = m + s * mt;
+    *p = pr;
+    *e1 = pr * mean;
+    *e2 = pr * (s * s * vt + mean * mean);
+}
+
+/* The hub's friction over one step (the header's moments): x and P (nx, nx x nx) before it, changed in place; W is
+ * nx x nx of scratch. Fc the Coulomb level, Fs >= Fc the breakaway, vs the Stribeck speed (0: none). */
+static void friction(long nx, double *x, double *P, double *W, const double *bf, long i, double Fc, double Fs,
+                     double vs) {
+    const double b = bf[i], m = x[i], s = sqrt(P[i * nx + i] > 0.0 ? P[i * nx + i] : 0.0), a = b * Fs;
+    const double D = vs > 0.0 ? Fs - Fc : 0.0;
+    if (!(b > 0.0)) return;
+    double ef = 0.0, efv = 0.0, ef2 = 0.0, p, e1, e2;
+    /* stuck: f = -v / b */
+    span(m, s, -a, a, &p, &e1, &e2);
+    ef += -e1 / b, efv += -e2 / b, ef2 += e2 / (b * b);
+    /* sliding forward (v > a), f = -(Fc + D g(v)), and back (v < -a), f = +(Fc + D g(v)), g = exp(-v^2 / vs^2) */
+    for (int dir = 1; dir >= -1; dir -= 2) {
+        const double lo = dir > 0 ? a : -INFINITY, hi = dir > 0 ? INFINITY : -a;
+        span(m, s, lo, hi, &p, &e1, &e2);
+        ef += -dir * Fc * p, efv += -dir * Fc * e1, ef2 += Fc * Fc * p;
+        if (D > 0.0)
+            for (int k = 1; k <= 2; k++) { /* g^k N(v; m, s^2) = c N(v; mk, sk^2) */
+                const double t2 = vs * vs / (2.0 * k), den = s * s + t2;
+                const double c = sqrt(t2 / den) * exp(-0.5 * m * m / den);
+                const double mk = m * t2 / den, sk = s * sqrt(t2 / den);
+                double q, g1, g2;
+                span(mk, sk, lo, hi, &q, &g1, &g2);
+                if (k == 1) ef += -dir * D * c * q, efv += -dir * D * c * g1, ef2 += 2.0 * Fc * D * c * q;
+                else ef2 += D * D * c * q;
+            }
     }
-    for (long a = 0; a < nx; a++)
-        for (long c = a; c < nx; c++) P[a * nx + c] = P[c * nx + a] = P[a * nx + c] + resid * bf[a] * bf[c];
+    /* in the state's units: the torque's effect bf; f's regression on v, beta, and what it leaves */
+    const double cov = efv - ef * m, var = ef2 - ef * ef;
+    const double beta = s > 0.0 ? cov / (s * s) : 0.0;
+    double resid = var - beta * beta * s * s;
+    if (resid < 0.0) resid = 0.0;
+    for (long r = 0; r < nx; r++) x[r] += ef * bf[r];
+    if (beta != 0.0) { /* P <- J P J', J = I + beta bf e_i': row r of J P is P[r] + beta bf[r] P[i] */
+        for (long r = 0; r < nx; r++)
+            for (long c = 0; c < nx; c++) W[r * nx + c] = P[r * nx + c] + beta * bf[r] * P[i * nx + c];
+        for (long r = 0; r < nx; r++)
+            for (long c = r; c < nx; c++) P[r * nx + c] = P[c * nx + r] = W[r * nx + c] + beta * W[r * nx + i] * bf[c];
+    }
+    for (long r = 0; r < nx; r++)
+        for (long c = r; c < nx; c++) P[r * nx + c] = P[c * nx + r] = P[r * nx + c] + resid * bf[r] * bf[c];
 }
 
 /* W = M P M' (+ Q when not NULL), nx x nx; T is nx x nx of scratch. */
@@ -131,6 +164,8 @@ static void sandwich(long nx, const double *M, const double *P, const double *Q,
             W[a * nx + b] = W[b * nx + a] = acc;
         }
 }
+
+#define PLAY_NEGLIGIBLE 1e-12 /* a region of the gap less likely than this is left out of the step's moments */
 
 /* One step with a gear's play (the header): x and P (nx, nx x nx) changed in place. A, B, Q: in contact; Af, Bf, Qf:
  * apart; M = A Pi (Pi: the impact) and Ag = A's gap column; the gap's state ig, half the play h. */
@@ -155,7 +190,8 @@ static void play_step(long nx, long nu, double *x, double *P, const double *u, c
     if (sd > 1e-12 * (h + fabs(mu))) { /* where the gap would go apart: below -h, within, above +h */
         for (int r = 0; r < 3; r++) {
             double p, m, v;
-            if (cell((lo[r] - mu) / sd, (hi[r] - mu) / sd, &p, &m, &v)) w[r] = p, shift[r] = m / sd, keep[r] = 1.0 - v;
+            if (cell((lo[r] - mu) / sd, (hi[r] - mu) / sd, &p, &m, &v) && p > PLAY_NEGLIGIBLE)
+                w[r] = p, shift[r] = m / sd, keep[r] = 1.0 - v;
         }
     } else { /* sure of it */
         const int r = mu < -h ? 0 : mu > h ? 2 : 1;
@@ -213,7 +249,7 @@ EXPORT double kalman_filter(long nx, long ny, long nu, const double *A, const do
                             const double *C, const double *r, const double *q, const double *x0, const double *P0,
                             long n,
                             const double *u, const double *y, const unsigned char *mask, const double *bf,
-                            long i_speed, double Fc, long substeps, const double *cubic, const double *bend,
+                            long i_speed, double Fc, double Fs, double vs, long substeps, const double *cubic, const double *bend,
                             double play, long i_gap, const double *Af, const double *Bf, const double *Qf,
                             const double *Pi, double *e, double *s, double *l, double *xp, double *Pp, double *xf,
                             double *Pf) {
@@ -305,7 +341,7 @@ EXPORT double kalman_filter(long nx, long ny, long nu, const double *A, const do
         for (long sub = 0; sub < substeps; sub++) {
             if (play > 0.0) {
                 play_step(nx, nu, x, P, u + k * nu, B, Q, Af, Bf, Qf, M, Ag, PAf, PBf, PQf, i_gap, 0.5 * play);
-                if (Fc > 0.0 && bf) friction(nx, x, P, AP, bf, i_speed, Fc);
+                if (Fc > 0.0 && bf) friction(nx, x, P, AP, bf, i_speed, Fc, Fs, vs);
                 continue;
             }
             for (long a = 0; a < nx; a++) {
@@ -327,7 +363,7 @@ EXPORT double kalman_filter(long nx, long ny, long nu, const double *A, const do
                     for (long c = 0; c < nx; c++) acc += AP[a * nx + c] * A[b * nx + c];
                     P[a * nx + b] = P[b * nx + a] = acc;
                 }
-            if (Fc > 0.0 && bf) friction(nx, x, P, AP, bf, i_speed, Fc);
+            if (Fc > 0.0 && bf) friction(nx, x, P, AP, bf, i_speed, Fc, Fs, vs);
         }
     }
     return ll;

@@ -12,6 +12,7 @@ from typing import Any
 
 from .. import spec as specmod
 from ..ident.calibration import Calibration
+from ..likelihood.effects import FRICTION_SHAPE_EFFECT
 from ..likelihood.unit import UnitFit
 from ..rundir import Manifest, RunDir, record_inputs
 from .decide import Decision
@@ -122,13 +123,16 @@ class Answer:
     @classmethod
     def of_likelihood(cls, unit: UnitFit, decision: Decision, plant: dict[str, Any]) -> Answer:
         """The likelihood engine's answer: the ``decision``'s verdict and effects, each effect's parameter as its
-        nested fit has it (an integer effect's setting), the linear parameters of the best model
-        (:attr:`UnitFit.final`, else the linear fit) and the plant parameters they imply on the sheet's ``plant``
-        (:func:`rigmodel.to_plant`: kt, km, Beq, Jeq; no interval)."""
+        nested fit has it (an integer effect's setting; friction's with its shape where that entered), the linear
+        parameters of the best model (:attr:`UnitFit.final`, else the linear fit) and the plant parameters they imply
+        on the sheet's ``plant`` (:func:`rigmodel.to_plant`: kt, km, Beq, Jeq; no interval)."""
         fitted: dict[str, float] = {}
         for x in unit.effects:
             if x.name in decision.effects:
                 fitted |= {k: x.fit.values()[k] for k in x.parameters} | {k: float(v) for k, v in x.settings.items()}
+        shape = next((x for x in unit.effects if x.name == FRICTION_SHAPE_EFFECT and x.test.enters), None)
+        if shape is not None and "coulomb_friction" in decision.effects:  # friction sized with its shape
+            fitted |= {k: shape.fit.values()[k] for k in ("plant.coulomb_torque", *shape.parameters)}
         if "quantization" in decision.effects:
             fitted["daq.adc_bits"] = float(unit.lattice_bits)
         best = unit.final or unit.fit

@@ -35,6 +35,8 @@ from .record import Record
 __all__ = [
     "COARSE",
     "DELAY_SPAN",
+    "FRICTION_SHAPE",
+    "FRICTION_SHAPE_EFFECT",
     "INTERIOR",
     "NESTED",
     "PLAY",
@@ -60,6 +62,10 @@ GAUGE_CUBIC = 0.05  # where the gauge's nonlinearity is searched from inside, an
 # the sensors' dynamics nested in the linear model (its structure, not an effect): the name -> the parameter
 SENSOR_NESTED = {"gauge_lowpass": "sensor.gauge_tau"}
 GAUGE_TAU = 0.02  # s: where the gauge's low-pass is searched from inside, and its scale
+# friction's shape beside its Coulomb level, where its search starts (and the Stribeck speed's scale [rad/s]): a
+# breakaway half again the Coulomb level, falling over 0.05 rad/s (the independent simulator's and a servo's order)
+FRICTION_SHAPE = {"plant.stiction_ratio": 1.5, "plant.stribeck_speed": 0.05}
+FRICTION_SHAPE_EFFECT = "friction_shape"  # its name among a unit's effects (not a verdict: friction's own refinement)
 PLAY = 0.002  # rad: the gear play's scale (a small one: the rule's calibration's), searched from 1.5 times it
 
 # the missing force's shape (harness.likelihood.force.SHAPES) each nested effect draws when the model lacks it

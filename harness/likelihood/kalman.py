@@ -29,10 +29,12 @@ class Discrete:
     v ~ N(0, diag(r)); the reading y[k] is z[k], or the centre of its cell on a lattice of step ``q`` per channel
     (0: none). Units are the caller's (the rig's: :mod:`harness.likelihood.model`).
 
-    With ``friction`` Fc > 0, Coulomb friction acts on the state ``speed``: over each sample one torque f held, its
-    effect on the state ``hub`` per unit (nx), the torque that brings the speed to rest where that is within +-Fc
-    (stuck), else +-Fc against the motion (``fmus/master/kalman.c``'s header). With ``substeps`` > 1, A, B, Q and
-    ``hub`` are a substep's, taken that many times per sample (the input held), the friction after each.
+    With ``friction`` Fc > 0, friction acts on the state ``speed``: over each sample one torque f held, its effect on
+    the state ``hub`` per unit (nx), the torque that brings the speed to rest where that is within +-Fs (stuck: Fs the
+    ``breakaway``, Fc where that is less), else the sliding friction against the motion, Fc + (Fs - Fc)
+    exp(-(v / ``stribeck``)^2) (Fc alone when ``stribeck`` is 0; ``fmus/master/kalman.c``'s header). With
+    ``substeps`` > 1, A, B, Q and ``hub`` are a substep's, taken that many times per sample (the input held), the
+    friction after each.
 
     A channel with ``cubic`` [1/unit^2] not 0 bends: z = C x + cubic (g x)^3 + v, ``bend``'s row g the part of the
     reading that bends (a strain gauge's bridge, its offset apart); the filter's update is then the extended Kalman
@@ -51,6 +53,8 @@ class Discrete:
     r: np.ndarray
     q: np.ndarray | None = None
     friction: float = 0.0
+    breakaway: float = 0.0
+    stribeck: float = 0.0
     hub: np.ndarray | None = None
     speed: int = 0
     substeps: int = 1
@@ -100,7 +104,8 @@ def _library() -> ctypes.CDLL:
     lib = ctypes.CDLL(str(build_master()))
     ptr, n = ctypes.c_void_p, ctypes.c_long
     lib.kalman_filter.restype = ctypes.c_double
-    lib.kalman_filter.argtypes = [n, n, n, *[ptr] * 8, n, *[ptr] * 4, n, ctypes.c_double, n, *[ptr] * 2,
+    d = ctypes.c_double
+    lib.kalman_filter.argtypes = [n, n, n, *[ptr] * 8, n, *[ptr] * 4, n, d, d, d, n, *[ptr] * 2,
                                   ctypes.c_double, n, *[ptr] * 4, *[ptr] * 7]  # fmt: skip
     lib.kalman_max_states.restype = ctypes.c_int
     return lib
@@ -168,8 +173,9 @@ def kalman_filter(
     kept = [np.empty((n, nx)), np.empty((n, nx, nx)), np.empty((n, nx)), np.empty((n, nx, nx))] if keep else [None] * 4
     ll = lib.kalman_filter(
         nx, ny, nu, _ptr(A), _ptr(B), _ptr(Q), _ptr(C), _ptr(r), _ptr(q), _ptr(x0), _ptr(P0), n, _ptr(u), _ptr(y),
-        _ptr(m), _ptr(hub), model.speed, friction, model.substeps, _ptr(cubic), _ptr(bend), play, model.gap,
-        *(_ptr(k) for k in loose), _ptr(e), _ptr(s), _ptr(terms), *(_ptr(k) for k in kept),
+        _ptr(m), _ptr(hub), model.speed, friction, max(model.breakaway, friction), model.stribeck, model.substeps,
+        _ptr(cubic), _ptr(bend), play, model.gap, *(_ptr(k) for k in loose), _ptr(e), _ptr(s), _ptr(terms),
+        *(_ptr(k) for k in kept),
     )  # fmt: skip
     return Filtered(float(ll), e, s, terms, *kept)
 

@@ -58,6 +58,7 @@ NOISE: dict[str, Bound] = {
 }
 
 FRICTION_STEP = 1e-3  # s: the longest step over which the filter holds a friction torque (kalman.c's substeps)
+STRIBECK_STEP = 2.5e-4  # s: ... where the friction falls with speed (a step samples the drop as a hub reverses)
 
 # the sensors' dynamics beyond their gains: the gauge amplifier's first-order low-pass (the DAQ's gauge_tau), its
 # time constant searched as the square of its ratio to a nominal (a slope at none), none its null
@@ -102,6 +103,10 @@ EFFECTS: dict[str, Bound] = {
     "plant.amp_limit": LimitBound(1.0, 20.0, "V", "the amplifier's output limit", part="effect"),
     "daq.gauge_cubic": Bound(-0.3, 0.3, "1", "the strain gauge's cubic nonlinearity", log=False, part="effect"),
     "plant.backlash": Bound(0.0, 1e3, "rad", "the gear's play at the load shaft", part="effect", square=True),
+    # friction's shape beside its Coulomb level (the plant FMU's Karnopp law): the breakaway over the Coulomb level
+    # (1: none, its null a wall) and the speed over which the sliding friction falls from it (Stribeck's)
+    "plant.stiction_ratio": Bound(1.0, 3.0, "1", "breakaway over Coulomb friction", log=False, part="effect"),
+    "plant.stribeck_speed": Bound(0.1, 10.0, "rad/s", "Stribeck speed of the friction drop", part="effect"),
 }
 
 
@@ -131,7 +136,11 @@ class StochasticModel:
     alpha [deg]), its ``noise``, the state names ``states``, the link's first free-hub frequency ``w1`` [rad/s] (the
     scale of its start's uncertainty) and the drive's torque per volt ``drive`` [N m/V] (its force's scale). With the
     missing force, ``G`` has a third column: the force's random walk. ``coulomb`` [N m] is the Coulomb friction at
-    the hub (0: none; the filter's, :class:`harness.likelihood.kalman.Discrete`'s ``friction``); ``limit`` [V] the
+    the hub (0: none; the filter's, :class:`harness.likelihood.kalman.Discrete`'s ``friction``), ``breakaway`` [N m]
+    the torque the stuck hub holds (0: the Coulomb level) and ``stribeck`` [rad/s] the speed over which the sliding
+    friction falls from it to the Coulomb level (0: at once), ``shaped`` whether the model has friction's shape at all
+    (then on the finer steps of :data:`STRIBECK_STEP`, its breakaway at none too: a shape and its null one filter);
+    ``limit`` [V] the
     amplifier's output limit on the command plus its input offset ``offset`` [V] (0: none; :meth:`inputs`);
     ``gauge_tau`` [s] the gauge's low-pass (0: none; the state ``gauge``, sampled as the DAQ filters:
     :meth:`discretise`); ``cubic`` [1/deg^2] the gauge reading's bend, its reading L (offset apart) read as
@@ -151,6 +160,9 @@ class StochasticModel:
     w1: float
     drive: float
     coulomb: float = 0.0
+    breakaway: float = 0.0
+    stribeck: float = 0.0
+    shaped: bool = False
     limit: float = 0.0
     offset: float = 0.0
     gauge_tau: float = 0.0
@@ -174,6 +186,8 @@ class StochasticModel:
         friction or a play, the steps are substeps of at most ``step`` [s] (the hub sticks and slides, the teeth
         part and meet, within a sample; the filter's :data:`FRICTION_STEP`); with a play, the sides apart sampled
         as well (``kalman.c``'s header)."""
+        if self.shaped:
+            step = min(step, STRIBECK_STEP)
         substeps = max(1, math.ceil(Ts / step - 1e-9)) if self.coulomb > 0.0 or self.play > 0.0 else 1
         Ts /= substeps
         C = self.C
@@ -190,7 +204,8 @@ class StochasticModel:
             bend[1, self.states.index("b_alpha")] = 0.0
         loose = None if self.loose is None else self._sampled(*self.loose, Ts)
         return Discrete(A=Ad, B=Bd, Q=Q, C=C, r=np.array([self.noise.theta**2, self.noise.alpha**2]),
-                        friction=self.coulomb, hub=Bd[:, 0] / self.drive, speed=self.states.index("theta_dot"),
+                        friction=self.coulomb, breakaway=self.breakaway, stribeck=self.stribeck,
+                        hub=Bd[:, 0] / self.drive, speed=self.states.index("theta_dot"),
                         substeps=substeps, cubic=None if bend is None else np.array([0.0, self.cubic]), bend=bend,
                         play=self.play, gap=self.states.index("gap") if self.play > 0.0 else 0, loose=loose,
                         impact=self.impact)  # fmt: skip
@@ -286,11 +301,16 @@ def rig_model(
     states += ("gauge",) * lowpass + (("b_alpha", "d") if force else ("b_alpha",))
     w1 = float(plantmod.mode_frequencies(p)[0, 0]) * 2.0 * math.pi
     coulomb = float(values.get("plant.coulomb_torque", 0.0))
+    breakaway = coulomb * float(values.get("plant.stiction_ratio", 1.0))
+    stribeck = float(values.get("plant.stribeck_speed", 0.0)) if breakaway > coulomb else 0.0
+    shaped = coulomb > 0.0 and "plant.stiction_ratio" in values
     limit = float(values.get("plant.amp_limit", 0.0))
     # the DAQ's a (1 + c (a / 10)^2) of the deflection a [deg], read as L = g a (g: the gauge's gain)
     cubic = float(values.get("daq.gauge_cubic", 0.0)) / (100.0 * float(values.get("sensor.alpha_gauge_gain", 1.0)) ** 2)
     model = StochasticModel(A=Ax, B=Bx, G=Gx, C=Cx, noise=noise, states=states, w1=w1, drive=G_volt, coulomb=coulomb,
-                            limit=limit, offset=u_offset, gauge_tau=tau, cubic=cubic)  # fmt: skip
+                            breakaway=breakaway, stribeck=stribeck, shaped=shaped, limit=limit, offset=u_offset,
+                            gauge_tau=tau,
+                            cubic=cubic)  # fmt: skip
     play = float(values.get("plant.backlash", 0.0))
     return _with_play(model, plantmod.gear_play(p), play, u_offset) if play > 0.0 else model
 

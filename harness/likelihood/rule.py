@@ -34,6 +34,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy.optimize import brentq
 from scipy.stats import chi2, norm
 
 from .robust import long_run
@@ -84,10 +85,13 @@ class Rule:
     level: float = 0.01
     white: float = 0.01
 
-    def test(self, lr: float, inflation: float, interior: bool = False) -> EffectTest:
+    def test(self, lr: float, inflation: float, interior: bool | Sequence[bool] = False) -> EffectTest:
         """The test of a nested effect whose statistic is ``lr`` [2 nats] and whose parameter's variance inflation is
         ``inflation`` (NaN or below one: read as one); an ``interior`` null (an effect of either sign, none inside its
-        range) takes the chi-square of one degree of freedom, not the chi-bar-square.
+        range) takes the chi-square of one degree of freedom, not the chi-bar-square. An effect of several parameters
+        gives one flag each: with k of them at a wall and m inside, the law is the mixture of chi-squares of m + j
+        degrees of freedom, j of the k walls left (binomial weights C(k, j) / 2^k; Self and Liang's case of
+        independent parameters).
 
         Parameters
         ----------
@@ -95,18 +99,26 @@ class Rule:
             2 (logL with the effect - logL without) [nats].
         inflation : float
             The effect parameter's sandwich variance over its information's.
-        interior : bool
-            The effect's null lies inside its range, not at a wall.
+        interior : bool or sequence of bool
+            The effect's null lies inside its range, not at a wall (one flag per parameter).
 
         Returns
         -------
         EffectTest
         """
         c = inflation if math.isfinite(inflation) and inflation > 1.0 else 1.0
-        half = 1.0 if interior else 0.5  # the chi-bar-square: half the time none, half a chi-square
-        p = half * float(chi2.sf(lr / c, 1)) if lr > 0.0 else 1.0
-        critical = c * float(chi2.isf(self.level / half, 1))
-        return EffectTest(lr, c, p, critical, self.level, "chi-square" if interior else "chi-bar-square")
+        flags = (interior,) if isinstance(interior, bool) else tuple(interior)
+        k, m = flags.count(False), flags.count(True)
+        weights = [(math.comb(k, j) / 2**k, m + j) for j in range(k + 1)]  # (weight, degrees of freedom)
+
+        def sf(x: float) -> float:
+            return sum(w * float(chi2.sf(x, dof)) for w, dof in weights if dof > 0) if x > 0.0 else 1.0
+
+        p = sf(lr / c)
+        top = float(chi2.isf(self.level / 2**k, k + m))  # the law's tail lies below the largest chi-square's
+        critical = c * float(brentq(lambda x: sf(x) - self.level, 1e-9, top + 1.0))
+        law = "chi-square" if k == 0 else "chi-bar-square"
+        return EffectTest(lr, c, p, critical, self.level, law)
 
     @staticmethod
     def agree(test: EffectTest, intervals: Sequence[tuple[float, float]]) -> EffectTest:

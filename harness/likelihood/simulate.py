@@ -26,7 +26,7 @@ from .model import rig_model
 from .record import Record
 from .whiteness import LAGS, ljung_box
 
-__all__ = ["DRAWS", "FINE_STEP", "draw_records", "whiteness_scale"]
+__all__ = ["DRAWS", "FINE_STEP", "draw_records", "friction_torque", "whiteness_scale"]
 
 DRAWS = 10  # records drawn per record to measure what the filter leaves on the model's own data
 FINE_STEP = 5e-5  # s: the draws' friction step (they replay the plant FMU's stick-slip within 3.2e-5 deg, 1 ms 1.2e-4)
@@ -96,11 +96,21 @@ def draw_records(
                 Xi = impact @ Xf
                 Xi[d.gap] = edge
                 X = np.where(edge != 0, (1.0 - tau) * Xc + tau * Xi, Xf)
-            if friction:  # the friction torque over the step: to rest within +-Fc, else +-Fc against the motion
-                X += np.outer(hub, np.clip(-X[d.speed] / hub[d.speed], -d.friction, d.friction))
+            if friction:  # the friction torque over the step: to rest within +-Fs, else sliding against the motion
+                X += np.outer(hub, friction_torque(X[d.speed], hub[d.speed], d.friction, d.breakaway, d.stribeck))
     y += np.sqrt(d.r) * rng.standard_normal(y.shape)
     q = np.asarray(record.lattice, dtype=float)
     return np.where(q > 0, np.round(y / np.where(q > 0, q, 1.0)) * q, y)
+
+
+def friction_torque(v: np.ndarray, b: float, fc: float, fs: float = 0.0, vs: float = 0.0) -> np.ndarray:
+    """The friction torque [N m] held over a step that would end at the hub speed ``v`` without it (``b``: a unit
+    torque's effect on the speed over the step): -v / b where that is within +-Fs (Fs = max(``fs``, ``fc``): the hub
+    sticks), else against the motion, ``fc`` + (Fs - ``fc``) exp(-(v / ``vs``)^2) (``fc`` alone where ``vs`` is 0;
+    the filter's law, ``fmus/master/kalman.c``)."""
+    top = max(fs, fc)
+    drop = (top - fc) * np.exp(-((v / vs) ** 2)) if vs > 0.0 else 0.0
+    return np.where(np.abs(v) <= b * top, -v / b, -np.sign(v) * (fc + drop))
 
 
 def _root(Q: np.ndarray) -> np.ndarray:

@@ -33,7 +33,18 @@ from ..diagnosis.result import Diagnosis
 from ..diagnosis.simulation import fmu_value, sim_rig
 from ..ident.calibration import Calibration, load_calibration
 from ..rundir import write_json
-from .effects import INTERIOR, NESTED, PROFILED, SENSOR_NESTED, SHAPE, nested_start, profile_settings, search_order
+from .effects import (
+    FRICTION_SHAPE,
+    FRICTION_SHAPE_EFFECT,
+    INTERIOR,
+    NESTED,
+    PROFILED,
+    SENSOR_NESTED,
+    SHAPE,
+    nested_start,
+    profile_settings,
+    search_order,
+)
 from .fit import BOUNDS, TORQUES, Estimate, MLFit, filter_record, fit, innovations, noise_start, split_values
 from .force import EffectCurve, ForcePicture, MissingForce, classify, effect_curve, force_picture
 from .model import EFFECTS, rig_model
@@ -469,6 +480,12 @@ def fit_unit(
         base, on = top.fit, on | {NESTED[top.name]: nested_start(top.name, records, top.drive).nominal}
         todo = [n for n in todo if n != top.name]
     effects += [nested[n] for n in NESTED if n in nested]
+    if any(x.name == "coulomb_friction" for x in entered):  # friction's breakaway and Stribeck drop, on the model
+        say("friction's shape, nested")
+        shape = _friction_shape(plant, records, base, held, on, sd, delay, rule)
+        effects.append(shape)
+        if shape.test.enters:
+            base = shape.fit
     final, final_white, final_scale = None, {}, {}
     if entered:  # the linear model with every nested effect that entered, and whether its residuals are white
         final = base
@@ -532,22 +549,70 @@ def _nested(
     # further on (then the effect's statistic is none of the rest's gain)
     null = max([linear.loglik, *(f.loglik for f in fits if f.values()[param] == at.null)])
     test = rule.test(2.0 * (res.loglik - null), res.estimates[param].inflation, name in INTERIOR)
-    folds: tuple[Estimate, ...] = ()
-    if test.lr > test.critical:  # on each of two folds: its size, and its gain on the other fold's records
-        parts = folds_of(records)
-
-        def on(part: list[Record], begin: MLFit, scale: dict[str, float]) -> MLFit:
-            start = {k: v for k, v in begin.values().items() if k not in held}
-            return fit(plant, part, start, fixed=held, nominal=scale, prior_sd={k: sd[k] for k in start if k in sd},
-                       delay=delay)  # fmt: skip
-
-        with_it = [on(part, res, nominal | {param: at.nominal}) for part in parts]
-        without = [on(part, linear, nominal) for part in parts]
-        folds = tuple(f.estimates[param] for f in with_it)
-        gain = sum(_scored(plant, a, other, held, delay) - _scored(plant, b, other, held, delay)
-                   for a, b, other in zip(with_it, without, parts[::-1], strict=True))  # fmt: skip
-        test = replace(rule.agree(test, [e.ci95 for e in folds]), held_out=float(gain))
+    scale = nominal | {param: at.nominal}
+    test, folds = _held_out(test, plant, records, res, linear, held, scale, sd, delay, param, rule)
     return EffectFit(name, res, (param,), test, drive, folds=folds)
+
+
+def _held_out(
+    test: EffectTest,
+    plant: dict[str, Any],
+    records: list[Record],
+    res: MLFit,
+    base: MLFit,
+    held: dict[str, float],
+    nominal: dict[str, float],
+    sd: dict[str, float],
+    delay: int,
+    param: str,
+    rule: Rule,
+    base_held: dict[str, float] | None = None,
+) -> tuple[EffectTest, tuple[Estimate, ...]]:
+    """``test`` of the fit ``res`` nested on ``base``, where its statistic passes, with the rule's held-out
+    condition: each of the unit's two folds (:func:`folds_of`) fitted with the effect and without it, the gain of
+    each fold's fit on the other fold's records, summed; and its parameter ``param``'s size on each fold (whether
+    their intervals agree, said). ``base_held``: what ``base`` held (default ``held``). Returns the test and the
+    sizes (none where the statistic does not pass)."""
+    if not test.lr > test.critical:
+        return test, ()
+    parts, fixed = folds_of(records), held if base_held is None else base_held
+
+    def on(part: list[Record], begin: MLFit, keep: dict[str, float]) -> MLFit:
+        start = {k: v for k, v in begin.values().items() if k not in keep}
+        return fit(plant, part, start, fixed=keep, nominal=nominal, prior_sd={k: sd[k] for k in start if k in sd},
+                   delay=delay)  # fmt: skip
+
+    with_it, without = [on(part, res, held) for part in parts], [on(part, base, fixed) for part in parts]
+    folds = tuple(f.estimates[param] for f in with_it)
+    gain = sum(_scored(plant, a, other, held, delay) - _scored(plant, b, other, fixed, delay)
+               for a, b, other in zip(with_it, without, parts[::-1], strict=True))  # fmt: skip
+    return replace(rule.agree(test, [e.ci95 for e in folds]), held_out=float(gain)), folds
+
+
+def _friction_shape(
+    plant: dict[str, Any],
+    records: list[Record],
+    base: MLFit,
+    held: dict[str, float],
+    nominal: dict[str, float],
+    sd: dict[str, float],
+    delay: int,
+    rule: Rule,
+) -> EffectFit:
+    """Friction's shape beside its Coulomb level, on the model ``base`` that friction entered: the breakaway ratio
+    and the Stribeck speed (:data:`harness.likelihood.effects.FRICTION_SHAPE`) fitted from their start with the rest,
+    judged by ``rule`` against ``base`` refitted on the same filter (its breakaway at none: the shape's finer steps;
+    the ratio's null at its wall, the speed's undetermined there: one flag each), with the held-out condition."""
+    ratio, scale = "plant.stiction_ratio", nominal | FRICTION_SHAPE
+    prior = {k: sd[k] for k in base.values() if k in sd and k not in held}
+    begin = {k: v for k, v in base.values().items() if k not in held}
+    null = fit(plant, records, begin, fixed=held | {ratio: 1.0}, nominal=scale, prior_sd=prior, delay=delay)
+    start = {k: v for k, v in null.values().items() if k not in held and k != ratio} | FRICTION_SHAPE
+    res = fit(plant, records, start, fixed=held, nominal=scale, prior_sd=prior, delay=delay)
+    test = rule.test(2.0 * (res.loglik - null.loglik), res.estimates[ratio].inflation, (False, True))
+    test, folds = _held_out(test, plant, records, res, null, held, scale, sd, delay, ratio, rule, held | {ratio: 1.0})
+    drive = rig_model(plant, *split_values(res.values() | held)).drive
+    return EffectFit(FRICTION_SHAPE_EFFECT, res, tuple(FRICTION_SHAPE), test, drive, folds=folds)
 
 
 def folds_of(records: list[Record]) -> tuple[list[Record], list[Record]]:
