@@ -351,18 +351,7 @@ EXPORT double kalman_filter(long nx, long ny, long nu, const double *A, const do
                 xn[a] = acc;
             }
             memcpy(x, xn, (size_t)nx * sizeof(double));
-            for (long a = 0; a < nx; a++)
-                for (long b = 0; b < nx; b++) {
-                    double acc = 0.0;
-                    for (long c = 0; c < nx; c++) acc += A[a * nx + c] * P[c * nx + b];
-                    AP[a * nx + b] = acc;
-                }
-            for (long a = 0; a < nx; a++)
-                for (long b = a; b < nx; b++) {
-                    double acc = Q[a * nx + b];
-                    for (long c = 0; c < nx; c++) acc += AP[a * nx + c] * A[b * nx + c];
-                    P[a * nx + b] = P[b * nx + a] = acc;
-                }
+            sandwich(nx, A, P, Q, AP, P); /* P <- A P A' + Q (sandwich reads P before it writes) */
             if (Fc > 0.0 && bf) friction(nx, x, P, AP, bf, i_speed, Fc, Fs, vs);
         }
     }
