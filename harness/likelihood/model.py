@@ -140,8 +140,8 @@ class StochasticModel:
     the torque the stuck hub holds (0: the Coulomb level) and ``stribeck`` [rad/s] the speed over which the sliding
     friction falls from it to the Coulomb level (0: at once), ``shaped`` whether the model has friction's shape at all
     (then on the finer steps of :data:`STRIBECK_STEP`, its breakaway at none too: a shape and its null one filter);
-    ``limit`` [V] the
-    amplifier's output limit on the command plus its input offset ``offset`` [V] (0: none; :meth:`inputs`);
+    ``limit`` [V] the amplifier's output limit on the command plus its input offset ``offset`` [V] (0: none;
+    :meth:`inputs`);
     ``gauge_tau`` [s] the gauge's low-pass (0: none; the state ``gauge``, sampled as the DAQ filters:
     :meth:`discretise`); ``cubic`` [1/deg^2] the gauge reading's bend, its reading L (offset apart) read as
     L + cubic L^3 (0: none; with the low-pass, taken on its output where the DAQ bends its input). ``play`` [rad]
@@ -184,8 +184,8 @@ class StochasticModel:
         """The model sampled every ``Ts`` [s] with the inputs held over each sample: A_d = exp(A Ts), B_d its
         integral on B, Q_d = int_0^Ts exp(A s) G W G' exp(A' s) ds (Van Loan), r the readings' variances. With
         friction or a play, the steps are substeps of at most ``step`` [s] (the hub sticks and slides, the teeth
-        part and meet, within a sample; the filter's :data:`FRICTION_STEP`); with a play, the sides apart sampled
-        as well (``kalman.c``'s header)."""
+        part and meet, within a sample; the filter's :data:`FRICTION_STEP`, with friction's shape
+        :data:`STRIBECK_STEP`); with a play, the sides apart sampled as well (``kalman.c``'s header)."""
         if self.shaped:
             step = min(step, STRIBECK_STEP)
         substeps = max(1, math.ceil(Ts / step - 1e-9)) if self.coulomb > 0.0 or self.play > 0.0 else 1
@@ -309,8 +309,7 @@ def rig_model(
     cubic = float(values.get("daq.gauge_cubic", 0.0)) / (100.0 * float(values.get("sensor.alpha_gauge_gain", 1.0)) ** 2)
     model = StochasticModel(A=Ax, B=Bx, G=Gx, C=Cx, noise=noise, states=states, w1=w1, drive=G_volt, coulomb=coulomb,
                             breakaway=breakaway, stribeck=stribeck, shaped=shaped, limit=limit, offset=u_offset,
-                            gauge_tau=tau,
-                            cubic=cubic)  # fmt: skip
+                            gauge_tau=tau, cubic=cubic)  # fmt: skip
     play = float(values.get("plant.backlash", 0.0))
     return _with_play(model, plantmod.gear_play(p), play, u_offset) if play > 0.0 else model
 
@@ -324,12 +323,12 @@ def _with_play(rigid: StochasticModel, gear: plantmod.GearPlay, play: float, u_o
     N, nx = n2 // 2, nr + 2
     ig, iw = nr, nr + 1  # the gap, the motor's speed
 
-    def widen(M: np.ndarray, cols: int) -> np.ndarray:
-        out = np.zeros((nx, cols))
+    def widen(M: np.ndarray) -> np.ndarray:  # the rows of the two new states, none yet
+        out = np.zeros((nx, M.shape[1]))
         out[:nr] = M
         return out
 
-    A, B, G = (widen(M, M.shape[1]) for M in (rigid.A, rigid.B, rigid.G))
+    A, B, G = (widen(M) for M in (rigid.A, rigid.B, rigid.G))
     A = np.column_stack([A, np.zeros((nx, 2))])
     A[iw], B[iw], G[iw] = A[N], B[N], G[N]  # in contact the motor turns with the hub
     Af, Bf, Gf = A.copy(), np.zeros_like(B), np.zeros_like(G)
