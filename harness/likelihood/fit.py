@@ -202,7 +202,9 @@ def innovations(
 ) -> Innovations:
     """The filter of the rig ``plant`` with ``values`` through ``records``: :class:`Innovations` (BLAS on one thread:
     its matrices are small, and a second thread only contends for the cores)."""
-    with one_blas_thread():
+    # a search's trial far off can overflow the sampling's exponentials: its log-likelihood is then NaN (the search
+    # steps back), not a warning on the user's screen
+    with one_blas_thread(), np.errstate(over="ignore", invalid="ignore"):
         model = rig_model(plant, *split_values(values), force="noise.hub_force" in values)
         discrete: dict[float, Discrete] = {}
         total, parts = 0.0, []
