@@ -609,7 +609,9 @@ def _friction_shape(
     null = fit(plant, records, begin, fixed=held | {ratio: 1.0}, nominal=scale, prior_sd=prior, delay=delay)
     start = {k: v for k, v in null.values().items() if k not in held and k != ratio} | FRICTION_SHAPE
     res = fit(plant, records, start, fixed=held, nominal=scale, prior_sd=prior, delay=delay)
-    test = rule.test(2.0 * (res.loglik - null.loglik), res.estimates[ratio].inflation, (False, True))
+    # a search that ended with no breakaway is the null's, further on (its gain is none of the shape's)
+    top = max(null.loglik, res.loglik) if res.values()[ratio] <= 1.0 else null.loglik
+    test = rule.test(2.0 * (res.loglik - top), res.estimates[ratio].inflation, (False, True))
     test, folds = _held_out(test, plant, records, res, null, held, scale, sd, delay, ratio, rule, held | {ratio: 1.0})
     drive = rig_model(plant, *split_values(res.values() | held)).drive
     return EffectFit(FRICTION_SHAPE_EFFECT, res, tuple(FRICTION_SHAPE), test, drive, folds=folds)
