@@ -30,7 +30,7 @@ def test_built_fmu_carries_the_source_xml_and_hash_in_name(fmus):
         assert built.variables == source.variables and built.guid == source.guid
         assert built.variables["u"].value_reference == (40 if name == "controller" else 30)  # its output, their input
         # the controller's 18 and its LQG's 191 matrix entries (A 10x10, B, C, K, L, N, X), each a parameter
-        assert len(built.parameters()) == {"flexjoint": 27, "daq": 22, "controller": 18 + 191}[name]
+        assert len(built.parameters()) == {"flexjoint": 30, "daq": 22, "controller": 18 + 191}[name]
         assert path.name == f"{name}-{source_hash(name)[:12]}.fmu"
         assert fmu_sha256(path) == hashlib.sha256(path.read_bytes()).hexdigest()
 
