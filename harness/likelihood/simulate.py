@@ -1,17 +1,17 @@
-"""Records drawn from a fitted stochastic model: the parametric bootstrap of what the filter leaves on data its
-model makes.
+"""Records drawn from a fitted stochastic model: the parametric bootstrap of what the filter leaves on data its model
+makes.
 
-:func:`draw_records` simulates the model a fit describes (:meth:`harness.likelihood.model.StochasticModel.
-discretise`) under a record's command, mask and lattice: the process noise over each step, friction as the
-time-stepping methods of non-smooth mechanics take it on the state itself (the torque that brings the hub to rest
-where that is within +-Fc, else +-Fc against the motion), a gear's play as the filter steps it (``fmus/master/
-kalman.c``: its sides apart, or in contact after a plastic impact), on steps of :data:`FINE_STEP` (the filter holds
-its friction over 1 ms: a hub that stops within a step is stopped at the step's end, its impulse on the link a step
-late; on these steps the draws replay the plant FMU's event-located stick-slip, and its play within 1.5e-3 deg),
-the gauge bent, the readings' white noise,
-rounded to the record's lattice. The filter run through such draws meets its own approximations (friction's moments
-over its coarser steps, the bent gauge's linearisation, the start's wide prior) and nothing else: what its
-innovations keep there is what the model leaves on data it describes (:func:`whiteness_scale`).
+:func:`draw_records` simulates the model a fit describes
+(:meth:`harness.likelihood.model.StochasticModel.discretise`) under a record's command, mask and lattice: the
+process noise over each step, friction as the time-stepping methods of non-smooth mechanics take it on the state
+itself (the torque that brings the hub to rest where that is within +-Fc, else +-Fc against the motion), a gear's
+play as the filter steps it (``fmus/master/kalman.c``: its sides apart, or in contact after a plastic impact), on
+steps of :data:`FINE_STEP` (the filter holds its friction over 1 ms: a hub that stops within a step is stopped at
+the step's end, its impulse on the link a step late; on these steps the draws replay the plant FMU's event-located
+stick-slip, and its play within 1.5e-3 deg), the gauge bent, the readings' white noise, rounded to the record's
+lattice. The filter run through such draws meets its own approximations (friction's moments over its coarser steps,
+the bent gauge's linearisation, the start's wide prior) and nothing else: what its innovations keep there is what
+the model leaves on data it describes (:func:`whiteness_scale`).
 """
 
 from __future__ import annotations
@@ -66,14 +66,14 @@ def draw_records(
     """
     model = rig_model(plant, *split_values(values))
     d = model.discretise(record.Ts, FINE_STEP)
-    u = model.inputs(record.delayed(delay)) @ d.B.T  # each sample's input term (in contact)
+    inputs = model.inputs(record.delayed(delay))
+    u = inputs @ d.B.T  # each sample's input term (in contact)
     x0, _ = start_state(model, record)
     L = _root(d.Q)
     n = u.shape[0]
     X = np.repeat(x0[:, None], draws, axis=1)
     friction = d.friction > 0.0 and d.hub is not None
     hub = d.hub if d.hub is not None else np.zeros(x0.size)
-    inputs = model.inputs(record.delayed(delay))
     play = None
     if d.play > 0.0 and d.loose is not None and d.impact is not None:
         play = (d.loose[0], d.loose[1], _root(d.loose[2]), d.A @ d.impact, d.impact)
